@@ -1,0 +1,167 @@
+"""From a geometry spec to arrays: nodes, hexahedra, springs, lumped masses.
+
+A box is built with index arithmetic (a 1M-node lattice in about a second and little memory);
+voxels and meshes go through their hexahedra. Both give the same springs for the same solid:
+the union over hexahedra of the connectivity's local node pairs, each pair once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import product
+
+import numpy as np
+
+from .hexahedron import NATURAL, local_pairs
+from .spec import BoxGeometry, MeshGeometry, NetworkGeometry, VoxelGeometry
+
+# A spring joins lattice offsets (dx, dy, dz) whose number of non-zero components is at most
+# this, per connectivity: edges 1, face diagonals 2, body diagonals 3.
+_MAX_NONZERO = {"axis": 1, "axis+face": 2, "full": 3}
+
+
+@dataclass
+class Solid:
+    """The discretised solid.
+
+    Attributes:
+        nodes: (N, 3) rest positions, m.
+        hexahedra: (H, 8) node indices in :mod:`fpm.hexahedron` order; None for a network and
+            for a box until :meth:`elements` is asked (a 1M-node lattice need not hold them).
+        springs: (S, 2) int32 node pairs, i < j, each pair once, sorted.
+        masses: (N,) lumped node masses, kg.
+        shape: (nx, ny, nz) for a box lattice (node n = i + nx*(j + ny*k)), else None.
+    """
+
+    nodes: np.ndarray
+    hexahedra: np.ndarray | None
+    springs: np.ndarray
+    masses: np.ndarray
+    shape: tuple[int, int, int] | None = None
+
+    def elements(self) -> np.ndarray | None:
+        """(H, 8) hexahedra, built on first use for a box; None for a network."""
+        if self.hexahedra is None and self.shape is not None:
+            self.hexahedra = box_hexahedra(self.shape)
+        return self.hexahedra
+
+
+def build_solid(geometry: BoxGeometry | VoxelGeometry | MeshGeometry | NetworkGeometry, density: float) -> Solid:
+    """Arrays for ``geometry``; lumped mass ``density * volume / 8`` per hexahedron corner."""
+    if isinstance(geometry, BoxGeometry):
+        return _box(geometry, density)
+    if isinstance(geometry, NetworkGeometry):
+        return _network(geometry)
+    if isinstance(geometry, VoxelGeometry):
+        nodes, hexahedra = voxel_mesh(geometry)
+    else:
+        nodes = np.asarray(geometry.nodes, dtype=float)
+        hexahedra = np.asarray(geometry.hexahedra, dtype=np.int64)
+    springs = hexahedron_springs(hexahedra, geometry.connectivity)
+    return Solid(nodes, hexahedra, springs, lumped_masses(nodes, hexahedra, density))
+
+
+def box_nodes(g: BoxGeometry) -> np.ndarray:
+    """(N, 3) lattice nodes, x fastest: node n = i + nx*(j + ny*k)."""
+    axes = [np.linspace(o, o + s, n) for o, s, n in zip(g.origin, g.size, g.nodes)]
+    z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    return np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+
+
+def box_hexahedra(shape: tuple[int, int, int]) -> np.ndarray:
+    """(H, 8) hexahedra of a box lattice of ``shape`` nodes, in :mod:`fpm.hexahedron` order."""
+    nx, ny, nz = shape
+    k, j, i = np.meshgrid(np.arange(nz - 1), np.arange(ny - 1), np.arange(nx - 1), indexing="ij")
+    base = (i + nx * (j + ny * k)).ravel()
+    corner = NATURAL.astype(np.int64) > 0  # (8, 3) 0/1 offsets per local node
+    offsets = corner[:, 0] + nx * (corner[:, 1] + ny * corner[:, 2])
+    return base[:, None] + offsets[None, :]
+
+
+def _box(g: BoxGeometry, density: float) -> Solid:
+    shape = g.nodes
+    nx, ny, nz = shape
+    nodes = box_nodes(g)
+    index = np.arange(nx * ny * nz, dtype=np.int32).reshape(nz, ny, nx)
+    pairs = []
+    for d in product((-1, 0, 1), repeat=3):
+        # Half of the 26-neighbour stencil: the offsets whose first non-zero component is +1.
+        nonzero = [c for c in d if c]
+        if not nonzero or nonzero[0] < 0 or len(nonzero) > _MAX_NONZERO[g.connectivity]:
+            continue
+        dx, dy, dz = d
+        src = index[max(0, -dz) : nz - max(0, dz), max(0, -dy) : ny - max(0, dy), max(0, -dx) : nx - max(0, dx)]
+        pairs.append(np.stack([src.ravel(), src.ravel() + np.int32(dx + nx * (dy + ny * dz))], axis=1))
+    springs = np.concatenate(pairs)
+    springs.sort(axis=1)
+    springs = springs[np.lexsort((springs[:, 1], springs[:, 0]))]
+    cell = np.prod(np.asarray(g.size) / (np.asarray(shape) - 1))
+    # Number of cells touching a node is a product of per-axis counts (1 at an end, 2 inside).
+    counts = [np.where((np.arange(n) == 0) | (np.arange(n) == n - 1), 1.0, 2.0) for n in shape]
+    touching = (counts[2][:, None, None] * counts[1][None, :, None] * counts[0][None, None, :]).ravel()
+    masses = density * cell / 8.0 * touching
+    return Solid(nodes, None, springs, masses, shape=(nx, ny, nz))
+
+
+def voxel_mesh(g: VoxelGeometry) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes (N, 3) and hexahedra (H, 8) of the occupied voxels; unused corners are dropped."""
+    occ = np.asarray(g.occupancy, dtype=bool)
+    cx, cy, cz = occ.shape
+    shape = (cx + 1, cy + 1, cz + 1)
+    # Occupancy is indexed [i][j][k]; box_hexahedra enumerates cells with i fastest.
+    cells = np.transpose(occ, (2, 1, 0)).ravel()
+    hexahedra = box_hexahedra(shape)[cells]
+    used, hexahedra = np.unique(hexahedra, return_inverse=True)
+    hexahedra = hexahedra.reshape(-1, 8)
+    i = used % shape[0]
+    j = (used // shape[0]) % shape[1]
+    k = used // (shape[0] * shape[1])
+    nodes = np.asarray(g.origin) + np.stack([i, j, k], axis=1) * np.asarray(g.spacing)
+    return nodes, hexahedra
+
+
+def hexahedron_springs(hexahedra: np.ndarray, connectivity: str) -> np.ndarray:
+    """(S, 2) unique sorted node pairs joined by springs in ``hexahedra`` (H, 8)."""
+    lp = local_pairs(connectivity)
+    pairs = np.stack([hexahedra[:, lp[:, 0]].ravel(), hexahedra[:, lp[:, 1]].ravel()], axis=1)
+    pairs.sort(axis=1)
+    return np.unique(pairs, axis=0).astype(np.int32)
+
+
+def hexahedron_volumes(nodes: np.ndarray, hexahedra: np.ndarray) -> np.ndarray:
+    """(H,) volumes, m^3, by 2x2x2 Gauss quadrature of det J (exact for trilinear maps)."""
+    g = 1 / np.sqrt(3.0)
+    vol = np.zeros(len(hexahedra))
+    x = nodes[hexahedra]  # (H, 8, 3)
+    for r, s, t in product((-g, g), repeat=3):
+        dn = (
+            np.stack(
+                [
+                    NATURAL[:, 0] * (1 + s * NATURAL[:, 1]) * (1 + t * NATURAL[:, 2]),
+                    NATURAL[:, 1] * (1 + r * NATURAL[:, 0]) * (1 + t * NATURAL[:, 2]),
+                    NATURAL[:, 2] * (1 + r * NATURAL[:, 0]) * (1 + s * NATURAL[:, 1]),
+                ]
+            )
+            / 8
+        )  # (3, 8) dN/d(r,s,t)
+        jac = np.einsum("an,hnb->hab", dn, x)
+        vol += np.linalg.det(jac)
+    return vol
+
+
+def lumped_masses(nodes: np.ndarray, hexahedra: np.ndarray, density: float) -> np.ndarray:
+    """(N,) node masses: each hexahedron gives density * volume / 8 to each of its nodes."""
+    share = density * np.abs(hexahedron_volumes(nodes, hexahedra)) / 8.0
+    masses = np.zeros(len(nodes))
+    np.add.at(masses, hexahedra.ravel(), np.repeat(share, 8))
+    return masses
+
+
+def _network(g: NetworkGeometry) -> Solid:
+    nodes = np.asarray(g.nodes, dtype=float)
+    springs = np.asarray(g.springs, dtype=np.int64)
+    springs.sort(axis=1)
+    springs = np.unique(springs, axis=0).astype(np.int32)
+    m = g.masses
+    masses = np.asarray(m, dtype=float) if isinstance(m, list) else np.full(len(nodes), float(m))
+    return Solid(nodes, None, springs, masses)

@@ -1,0 +1,221 @@
+"""A validated problem as arrays: the data every other module of :mod:`fpm` works on.
+
+Data flow: JSON -> :class:`fpm.spec.ProblemSpec` (schema checks) -> :func:`load_problem`
+(checks that need the nodes) -> :class:`Problem` (arrays).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import ValidationError
+from pydantic_core import InitErrorDetails, PydanticCustomError
+
+from .geometry import Solid, build_solid
+from .spec import MeshGeometry, NetworkGeometry, ProblemSpec, Selector
+
+Loc = tuple[str | int, ...]
+
+
+class SpecError(ValueError):
+    """A spec that passed the schema but does not fit its own solid; ``errors`` is [(loc, msg)].
+
+    Converted to a pydantic :class:`ValidationError` by :func:`load_problem`, so callers see
+    one kind of error for every bad spec.
+    """
+
+    def __init__(self, errors: list[tuple[Loc, str]]):
+        super().__init__("; ".join(f"{'.'.join(map(str, loc))}: {msg}" for loc, msg in errors))
+        self.errors = errors
+
+
+@dataclass
+class LoadCase:
+    """Constant nodal forces of one load case.
+
+    Attributes:
+        name: label.
+        nodes: (P,) indices of the stimulated nodes (unique, ascending).
+        forces: (P, 3) force on each, N (forces on the same node are summed).
+    """
+
+    name: str
+    nodes: np.ndarray
+    forces: np.ndarray
+
+    def dense(self, n_nodes: int) -> np.ndarray:
+        """(N, 3) nodal force array."""
+        f = np.zeros((n_nodes, 3))
+        f[self.nodes] = self.forces
+        return f
+
+
+@dataclass
+class Problem:
+    """A problem ready to compute.
+
+    Attributes:
+        spec: the validated spec.
+        solid: nodes, hexahedra, springs, masses (:class:`fpm.geometry.Solid`).
+        fixed: (N,) bool, nodes that never move.
+        load_cases: one :class:`LoadCase` per spec load case, in spec order.
+        rest_lengths: (S,) spring rest lengths, m.
+        h: shortest spring rest length, m (discrepancies are quoted in % of h).
+        size: bounding-box diagonal, m (a node moving further than this has diverged).
+    """
+
+    spec: ProblemSpec
+    solid: Solid
+    fixed: np.ndarray
+    load_cases: list[LoadCase]
+    rest_lengths: np.ndarray = field(init=False)
+    h: float = field(init=False)
+    size: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        s = self.solid.springs
+        self.rest_lengths = np.linalg.norm(self.solid.nodes[s[:, 1]] - self.solid.nodes[s[:, 0]], axis=1)
+        self.h = float(self.rest_lengths.min())
+        self.size = float(np.linalg.norm(np.ptp(self.solid.nodes, axis=0)))
+
+    @property
+    def nodes(self) -> np.ndarray:
+        """(N, 3) rest positions, m."""
+        return self.solid.nodes
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.solid.nodes)
+
+
+def load_problem(spec: dict[str, Any] | str | Path | ProblemSpec) -> Problem:
+    """Validate ``spec`` (a dict, a JSON file path, a JSON string or a ProblemSpec) and build it.
+
+    Raises:
+        pydantic.ValidationError: for any bad spec; each error's ``loc`` names the field.
+    """
+    if isinstance(spec, ProblemSpec):
+        parsed = spec
+    elif isinstance(spec, dict):
+        parsed = ProblemSpec.model_validate(spec)
+    else:
+        text = str(spec)
+        if not text.lstrip().startswith("{"):
+            text = Path(text).read_text()
+        parsed = ProblemSpec.model_validate(json.loads(text))
+    try:
+        return build_problem(parsed)
+    except SpecError as e:
+        raise ValidationError.from_exception_data(
+            "ProblemSpec",
+            [
+                InitErrorDetails(type=PydanticCustomError("spec", msg), loc=loc, input=None)
+                for loc, msg in e.errors
+            ],
+        ) from None
+
+
+def build_problem(spec: ProblemSpec) -> Problem:
+    """Arrays for a schema-valid spec; raises :class:`SpecError` where it does not fit its solid."""
+    _check_indices(spec)
+    solid = build_solid(spec.geometry, spec.material.density)
+    errors: list[tuple[Loc, str]] = []
+    lengths = np.linalg.norm(solid.nodes[solid.springs[:, 1]] - solid.nodes[solid.springs[:, 0]], axis=1)
+    if len(lengths) and lengths.min() <= 0:
+        errors.append((("geometry",), "a spring joins two nodes at the same point"))
+        raise SpecError(errors)
+    h = float(lengths.min())
+    finder = _NodeFinder(solid.nodes, tol=1e-3 * h)
+
+    fixed = np.zeros(len(solid.nodes), dtype=bool)
+    for i, sel in enumerate(spec.fixed):
+        picked = finder.select(sel, ("fixed", i), errors)
+        fixed[picked] = True
+
+    load_cases = []
+    for c, case in enumerate(spec.load_cases):
+        idx, vec = [], []
+        for f, force in enumerate(case.forces):
+            loc: Loc = ("load_cases", c, "forces", f)
+            target = Selector(node=force.node) if force.node is not None else Selector(at=force.at)
+            picked = finder.select(target, loc, errors)
+            if len(picked) and fixed[picked[0]]:
+                errors.append((loc, f"node {int(picked[0])} is fixed; a force on it does nothing"))
+            idx.extend(picked.tolist())
+            vec.extend([force.vector] * len(picked))
+        nodes, inverse = np.unique(np.asarray(idx, dtype=np.int64), return_inverse=True)
+        forces = np.zeros((len(nodes), 3))
+        np.add.at(forces, inverse, np.asarray(vec, dtype=float).reshape(-1, 3))
+        if len(vec) and not np.any(forces):
+            errors.append((("load_cases", c, "forces"), "all forces are zero"))
+        load_cases.append(LoadCase(case.name or f"load case {c + 1}", nodes, forces))
+    if errors:
+        raise SpecError(errors)
+    return Problem(spec, solid, fixed, load_cases)
+
+
+def _check_indices(spec: ProblemSpec) -> None:
+    """Index checks that must pass before the solid can be built."""
+    g = spec.geometry
+    errors: list[tuple[Loc, str]] = []
+    if isinstance(g, MeshGeometry):
+        n = len(g.nodes)
+        for e, hexa in enumerate(g.hexahedra):
+            if max(hexa) >= n:
+                errors.append((("geometry", "hexahedra", e), f"node index {max(hexa)} out of range (0..{n - 1})"))
+            elif len(set(hexa)) != 8:
+                errors.append((("geometry", "hexahedra", e), "a hexahedron needs 8 distinct nodes"))
+    if isinstance(g, NetworkGeometry):
+        n = len(g.nodes)
+        for s, (a, b) in enumerate(g.springs):
+            if max(a, b) >= n or min(a, b) < 0:
+                errors.append((("geometry", "springs", s), f"node index out of range (0..{n - 1})"))
+            elif a == b:
+                errors.append((("geometry", "springs", s), "a spring needs two distinct nodes"))
+        if isinstance(g.masses, list) and len(g.masses) != n:
+            errors.append((("geometry", "masses"), f"need {n} masses (one per node), got {len(g.masses)}"))
+    if errors:
+        raise SpecError(errors[:20])
+
+
+class _NodeFinder:
+    """Resolves selectors to node indices; ``tol`` (m) is how far ``at`` may miss a node."""
+
+    def __init__(self, nodes: np.ndarray, tol: float):
+        self.nodes = nodes
+        self.tol = tol
+        self.lo = nodes.min(axis=0)
+        self.hi = nodes.max(axis=0)
+
+    def select(self, sel: Selector, loc: Loc, errors: list[tuple[Loc, str]]) -> np.ndarray:
+        n = len(self.nodes)
+        if sel.node is not None:
+            if sel.node >= n:
+                errors.append(((*loc, "node"), f"node index {sel.node} out of range (0..{n - 1})"))
+                return np.zeros(0, dtype=np.int64)
+            return np.array([sel.node])
+        if sel.at is not None:
+            dist = np.linalg.norm(self.nodes - np.asarray(sel.at), axis=1)
+            best = int(np.argmin(dist))
+            if dist[best] > self.tol:
+                errors.append(
+                    ((*loc, "at"), f"no node at {list(sel.at)} (nearest node {best} is {dist[best]:.3g} m away)")
+                )
+                return np.zeros(0, dtype=np.int64)
+            return np.array([best])
+        if sel.face is not None:
+            axis = "xyz".index(sel.face[0])
+            edge = self.lo[axis] if sel.face[1] == "-" else self.hi[axis]
+            picked = np.flatnonzero(np.abs(self.nodes[:, axis] - edge) <= self.tol)
+        else:
+            assert sel.box is not None
+            lo, hi = np.asarray(sel.box[0]), np.asarray(sel.box[1])
+            inside = np.all((self.nodes >= lo - self.tol) & (self.nodes <= hi + self.tol), axis=1)
+            picked = np.flatnonzero(inside)
+            if not len(picked):
+                errors.append(((*loc, "box"), "selects no node"))
+        return picked

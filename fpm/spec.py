@@ -1,0 +1,257 @@
+"""The problem spec: one pydantic schema for the CLI, the worker and the service.
+
+A spec names a material, a solid (geometry + spring connectivity), the fixed nodes, the load
+cases, and the FPM and annealing settings. All quantities are SI (m, N, Pa, kg/m^3, s).
+Validation here is what can be checked without building the solid; checks that need the nodes
+(a point with no node, a node index out of range, an empty face) happen in
+:func:`fpm.problem.load_problem`, which raises the same kind of error with the field's location.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+Vector3 = tuple[float, float, float]
+Connectivity = Literal["axis", "axis+face", "full"]
+FACES = ("x-", "x+", "y-", "y+", "z-", "z+")
+
+
+class _Strict(BaseModel):
+    """Base: unknown fields are errors (a typo must not be silently ignored); no NaN or inf."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class Material(_Strict):
+    """Isotropic linear-elastic constants (paper Table 1)."""
+
+    youngs_modulus: float = Field(gt=0, description="Young's modulus E, Pa")
+    poisson_ratio: float = Field(
+        gt=-1.0, lt=0.5, description="Poisson's ratio, in (-1, 0.5) for a stable solid"
+    )
+    density: float = Field(gt=0, description="mass density, kg/m^3 (lumped into node masses)")
+
+
+class BoxGeometry(_Strict):
+    """A rectangular block meshed as a regular lattice of nodes[0] x nodes[1] x nodes[2] nodes."""
+
+    type: Literal["box"] = "box"
+    size: tuple[float, float, float] = Field(description="edge lengths, m")
+    nodes: tuple[int, int, int] = Field(description="nodes along x, y, z (each at least 2)")
+    origin: Vector3 = (0.0, 0.0, 0.0)
+    connectivity: Connectivity = "full"
+
+    @field_validator("size")
+    @classmethod
+    def _positive_size(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if min(v) <= 0:
+            raise ValueError("every edge length must be > 0")
+        return v
+
+    @field_validator("nodes")
+    @classmethod
+    def _two_nodes(cls, v: tuple[int, int, int]) -> tuple[int, int, int]:
+        if min(v) < 2:
+            raise ValueError("need at least 2 nodes along each axis")
+        return v
+
+
+class VoxelGeometry(_Strict):
+    """An occupancy grid: ``occupancy[i][j][k]`` true fills the cell i (x), j (y), k (z)."""
+
+    type: Literal["voxels"] = "voxels"
+    occupancy: list[list[list[bool]]] = Field(description="cells along x, y, z; 1 = solid")
+    spacing: tuple[float, float, float] = Field(description="cell edge lengths, m")
+    origin: Vector3 = (0.0, 0.0, 0.0)
+    connectivity: Connectivity = "full"
+
+    @field_validator("spacing")
+    @classmethod
+    def _positive_spacing(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if min(v) <= 0:
+            raise ValueError("every spacing must be > 0")
+        return v
+
+    @field_validator("occupancy")
+    @classmethod
+    def _rectangular(cls, v: list[list[list[bool]]]) -> list[list[list[bool]]]:
+        if not v or not v[0] or not v[0][0]:
+            raise ValueError("occupancy must be a non-empty 3-D grid")
+        ny, nz = len(v[0]), len(v[0][0])
+        if any(len(p) != ny or any(len(r) != nz for r in p) for p in v):
+            raise ValueError("occupancy must be rectangular (every row the same length)")
+        if not any(c for p in v for r in p for c in r):
+            raise ValueError("occupancy has no solid cell")
+        return v
+
+
+class MeshGeometry(_Strict):
+    """Explicit nodes and 8-node hexahedra (node order: see :mod:`fpm.hexahedron`)."""
+
+    type: Literal["mesh"] = "mesh"
+    nodes: list[Vector3] = Field(min_length=8, description="node coordinates, m")
+    hexahedra: list[tuple[int, int, int, int, int, int, int, int]] = Field(min_length=1)
+    connectivity: Connectivity = "full"
+
+
+class NetworkGeometry(_Strict):
+    """A mass-spring network given directly (surface models, paper Fig. 4a-d). No FEM."""
+
+    type: Literal["network"] = "network"
+    nodes: list[Vector3] = Field(min_length=2, description="node coordinates, m")
+    springs: list[tuple[int, int]] = Field(min_length=1, description="node index pairs")
+    masses: float | list[float] = Field(description="node mass, kg: one for all, or one per node")
+
+    @field_validator("masses")
+    @classmethod
+    def _positive_masses(cls, v: float | list[float]) -> float | list[float]:
+        if min(v if isinstance(v, list) else [v]) <= 0:
+            raise ValueError("every node mass must be > 0")
+        return v
+
+
+Geometry = Annotated[
+    BoxGeometry | VoxelGeometry | MeshGeometry | NetworkGeometry, Field(discriminator="type")
+]
+
+
+class Selector(_Strict):
+    """Selects nodes: exactly one of ``face``, ``node``, ``at``, ``box``."""
+
+    face: Literal["x-", "x+", "y-", "y+", "z-", "z+"] | None = Field(
+        None, description="all nodes on that side of the solid's bounding box"
+    )
+    node: int | None = Field(None, ge=0, description="a node index")
+    at: Vector3 | None = Field(None, description="the node at this point, m")
+    box: tuple[Vector3, Vector3] | None = Field(
+        None, description="all nodes inside [[x0,y0,z0],[x1,y1,z1]], m"
+    )
+
+    @model_validator(mode="after")
+    def _exactly_one(self) -> Selector:
+        given = [n for n in ("face", "node", "at", "box") if getattr(self, n) is not None]
+        if len(given) != 1:
+            raise ValueError(
+                f"give exactly one of face, node, at, box (got {', '.join(given) or 'none'})"
+            )
+        return self
+
+
+class Force(_Strict):
+    """A constant nodal force, N, on the node given by ``node`` or ``at``."""
+
+    node: int | None = Field(None, ge=0)
+    at: Vector3 | None = None
+    vector: Vector3 = Field(description="force, N")
+
+    @model_validator(mode="after")
+    def _one_target(self) -> Force:
+        if (self.node is None) == (self.at is None):
+            raise ValueError("give exactly one of node, at")
+        return self
+
+
+class LoadCase(_Strict):
+    """A set of constant nodal forces applied together, from rest."""
+
+    name: str | None = None
+    forces: list[Force] = Field(min_length=1)
+
+
+class FpmSettings(_Strict):
+    """FPM settings (paper Sec. 3; physics.md)."""
+
+    depth: int | Literal["auto"] = Field(
+        "auto",
+        description="penetration depth in layers; 'auto' = the smallest depth within 1% of h "
+        "of the full-depth result at the fitted k, d",
+    )
+    dt: float = Field(1e-3, gt=0, description="time step, s (default 1 ms: a haptic 1 kHz loop)")
+    max_steps: int = Field(4000, ge=1, description="steps per load case before giving up")
+    settle_tolerance: float = Field(
+        1e-4,
+        ge=0,
+        description="settled when the largest unbalanced nodal force in a sweep is below this "
+        "times the largest applied nodal force; 0 = never settle",
+    )
+    stiffness_scale: Vector3 = Field(
+        (1.0, 1.0, 1.0),
+        description="per-axis stiffness factors (sx, sy, sz); a spring along unit vector e gets "
+        "k * (sx ex^2 + sy ey^2 + sz ez^2) (paper Fig. 5)",
+    )
+    gravity: Vector3 = Field((0.0, 0.0, 0.0), description="m/s^2; the paper ignores gravity")
+
+    @field_validator("depth")
+    @classmethod
+    def _depth_nonneg(cls, v: int | str) -> int | str:
+        if isinstance(v, int) and v < 0:
+            raise ValueError("depth must be >= 0 or 'auto'")
+        return v
+
+    @field_validator("stiffness_scale")
+    @classmethod
+    def _positive_scale(cls, v: Vector3) -> Vector3:
+        if min(v) <= 0:
+            raise ValueError("stiffness factors must be > 0")
+        return v
+
+
+class Bounds(_Strict):
+    """Search box for the annealer; None = derived (see :mod:`fpm.calibration`)."""
+
+    k: tuple[float, float] | None = Field(None, description="spring stiffness range, N/m")
+    d: tuple[float, float] | None = Field(None, description="nodal damping range, N s/m")
+
+    @field_validator("k", "d")
+    @classmethod
+    def _ordered(cls, v: tuple[float, float] | None) -> tuple[float, float] | None:
+        if v is not None and not 0 < v[0] < v[1]:
+            raise ValueError("need 0 < low < high")
+        return v
+
+
+class AnnealingSettings(_Strict):
+    """Simulated annealing settings (paper Sec. 4.2-4.3).
+
+    Temperatures and ``c_max`` are in units of the reference cost (the cost of an FPM that does
+    not move at all, i.e. the summed FEM displacement): a scale-free schedule that works for any
+    material. Lundy-Mees cooling T <- T / (1 + beta T), one move per temperature, so a chain
+    makes about (1/t_final - 1/t_initial) / beta moves.
+    """
+
+    seed: int = Field(0, ge=0)
+    chains: int = Field(2, ge=1, le=64, description="independent chains; the best one wins")
+    t_initial: float = Field(0.05, gt=0)
+    t_final: float = Field(2e-4, gt=0)
+    beta: float = Field(25.0, gt=0)
+    c_max: float = Field(2.0, gt=0, description="reject at once a candidate costing more")
+    bounds: Bounds = Field(default_factory=Bounds)
+
+    @model_validator(mode="after")
+    def _cooling(self) -> AnnealingSettings:
+        if self.t_final >= self.t_initial:
+            raise ValueError("t_final must be below t_initial")
+        moves = (1 / self.t_final - 1 / self.t_initial) / self.beta
+        if moves > 1e6:
+            raise ValueError(f"this schedule makes {moves:.3g} moves per chain (limit 1e6)")
+        return self
+
+    @property
+    def moves(self) -> int:
+        """Moves per chain implied by the cooling schedule."""
+        return math.ceil((1 / self.t_final - 1 / self.t_initial) / self.beta)
+
+
+class ProblemSpec(_Strict):
+    """A calibration (or simulation) problem."""
+
+    name: str = "unnamed"
+    material: Material
+    geometry: Geometry
+    fixed: list[Selector] = Field(description="fixed nodes; [] = none (FPM only)")
+    load_cases: list[LoadCase] = Field(min_length=1)
+    fpm: FpmSettings = Field(default_factory=FpmSettings)
+    annealing: AnnealingSettings = Field(default_factory=AnnealingSettings)
