@@ -1,6 +1,14 @@
 """Force propagation model (Choi et al. 2004) calibrated against a hexahedral FEM reference."""
 
 from .problem import LoadCase, Problem, load_problem
+from .simulation import SimulationResult, simulate
 from .spec import ProblemSpec
 
-__all__ = ["LoadCase", "Problem", "ProblemSpec", "load_problem"]
+__all__ = [
+    "LoadCase",
+    "Problem",
+    "ProblemSpec",
+    "SimulationResult",
+    "load_problem",
+    "simulate",
+]

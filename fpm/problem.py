@@ -66,6 +66,7 @@ class Problem:
         rest_lengths: (S,) spring rest lengths, m.
         h: shortest spring rest length, m (discrepancies are quoted in % of h).
         size: bounding-box diagonal, m (a node moving further than this has diverged).
+        cache: derived models kept with the problem (e.g. the FPM's neighbour arrays).
     """
 
     spec: ProblemSpec
@@ -75,6 +76,7 @@ class Problem:
     rest_lengths: np.ndarray = field(init=False)
     h: float = field(init=False)
     size: float = field(init=False)
+    cache: dict[str, Any] = field(init=False, repr=False, default_factory=dict)
 
     def __post_init__(self) -> None:
         s = self.solid.springs

@@ -1,0 +1,166 @@
+"""FPM simulation of one load case (paper Sec. 3.2): the Python API around the compiled step."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from .perturbed_list import Adjacency, PerturbedList, PerturbedListCache
+from .problem import Problem
+from .voigt import DIVERGED, SETTLED, run_steps
+
+
+@dataclass
+class SimulationResult:
+    """Outcome of one FPM run of one load case.
+
+    Attributes:
+        nodes: (N, 3) rest positions, m.
+        displacements: (N, 3) final displacements, m (zero outside the perturbed list).
+        steps: time steps taken.
+        settled: the run reached equilibrium within max_steps (physics.md criterion).
+        diverged: positions became non-finite or moved further than the solid's size.
+        perturbed: number of nodes in the perturbed list.
+        depth: layers actually reached (<= the depth asked for).
+        residual: largest unbalanced nodal force |F_i + F_s| in the last sweep, N.
+        load_case: index of the load case.
+    """
+
+    nodes: np.ndarray
+    displacements: np.ndarray
+    steps: int
+    settled: bool
+    diverged: bool
+    perturbed: int
+    depth: int
+    residual: float
+    load_case: int
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able form (arrays as nested lists)."""
+        out = asdict(self)
+        out["nodes"] = self.nodes.tolist()
+        out["displacements"] = self.displacements.tolist()
+        return out
+
+
+class FpmModel:
+    """A problem's FPM arrays, built once: neighbours, perturbed lists, work buffers.
+
+    Attributes:
+        problem: the problem.
+        adjacency: spring neighbours (:class:`fpm.perturbed_list.Adjacency`).
+        lists: the perturbed-list lookup table.
+    """
+
+    def __init__(self, problem: Problem):
+        self.problem = problem
+        solid = problem.solid
+        scale = np.asarray(problem.spec.fpm.stiffness_scale)
+        factor = None
+        if np.any(scale != 1.0):
+            e = solid.nodes[solid.springs[:, 1]] - solid.nodes[solid.springs[:, 0]]
+            e /= problem.rest_lengths[:, None]
+            factor = (e * e) @ scale
+        self.adjacency = Adjacency.from_springs(
+            len(solid.nodes), solid.springs, problem.rest_lengths, factor
+        )
+        self.lists = PerturbedListCache(self.adjacency, problem.fixed)
+        self._x = np.empty_like(solid.nodes)
+        self._v = np.empty_like(solid.nodes)
+        gravity = np.asarray(problem.spec.fpm.gravity, dtype=float)
+        self._weight = solid.masses[:, None] * gravity[None, :] if np.any(gravity) else None
+
+    def perturbed_list(self, load_case: int, depth: int | None) -> PerturbedList:
+        """The (cached) list of ``load_case`` for ``depth`` layers (None = all reachable)."""
+        return self.lists.get(self.problem.load_cases[load_case].nodes, depth)
+
+    def run(
+        self,
+        load_case: int,
+        *,
+        k: float,
+        d: float,
+        depth: int | None,
+        dt: float,
+        max_steps: int,
+        settle_tolerance: float,
+    ) -> SimulationResult:
+        """Simulate ``load_case`` from rest; see :func:`simulate`."""
+        p = self.problem
+        case = p.load_cases[load_case]
+        plist = self.perturbed_list(load_case, depth)
+        external = case.dense(p.n_nodes)
+        if self._weight is not None:
+            external += self._weight
+        settle_force = settle_tolerance * float(np.linalg.norm(external[plist.order], axis=1).max())
+        x, v = self._x, self._v
+        x[:] = p.nodes
+        v[:] = 0.0
+        a = self.adjacency
+        steps, state, residual = run_steps(
+            plist.order, a.ptr, a.neighbour, a.rest_length, a.stiffness_factor, p.nodes,
+            x, v, external, p.solid.masses, float(k), float(d), float(dt), int(max_steps),
+            settle_force, p.size,
+        )  # fmt: skip
+        return SimulationResult(
+            nodes=p.nodes,
+            displacements=x - p.nodes,
+            steps=int(steps),
+            settled=state == SETTLED,
+            diverged=state == DIVERGED,
+            perturbed=len(plist.order),
+            depth=plist.layers,
+            residual=float(residual),
+            load_case=load_case,
+        )
+
+
+def fpm_model(problem: Problem) -> FpmModel:
+    """The problem's :class:`FpmModel`, built on first use and kept on the problem."""
+    model = problem.cache.get("fpm_model")
+    if model is None:
+        model = problem.cache["fpm_model"] = FpmModel(problem)
+    return model
+
+
+def simulate(
+    problem: Problem,
+    *,
+    k: float,
+    d: float,
+    depth: int | None = None,
+    load_case: int = 0,
+    dt: float | None = None,
+    max_steps: int | None = None,
+    settle_tolerance: float | None = None,
+) -> SimulationResult:
+    """Run the FPM for one load case from rest.
+
+    Args:
+        problem: from :func:`fpm.load_problem`.
+        k: spring stiffness, N/m.
+        d: nodal damping, N s/m.
+        depth: penetration depth in layers; None = the spec's (its 'auto' means all layers).
+        load_case: index into the spec's load cases.
+        dt, max_steps, settle_tolerance: None = the spec's value; ``settle_tolerance=0`` never
+            settles.
+    """
+    s = problem.spec.fpm
+    if not 0 <= load_case < len(problem.load_cases):
+        raise ValueError(f"load_case must be in 0..{len(problem.load_cases) - 1}")
+    if k <= 0 or d < 0:
+        raise ValueError("need k > 0 and d >= 0")
+    if depth is None and s.depth != "auto":
+        depth = int(s.depth)
+    return fpm_model(problem).run(
+        load_case,
+        k=k,
+        d=d,
+        depth=depth,
+        dt=s.dt if dt is None else dt,
+        max_steps=s.max_steps if max_steps is None else max_steps,
+        settle_tolerance=s.settle_tolerance if settle_tolerance is None else settle_tolerance,
+    )
