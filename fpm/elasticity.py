@@ -1,0 +1,88 @@
+"""Linear elasticity on the 8-node hexahedron (paper Sec. 4.1): C, shape functions, element K.
+
+Strains and stresses are Voigt vectors in the order (xx, yy, zz, xy, yz, zx) with engineering
+shear strains gamma_xy = du/dy + dv/dx, so that ``sigma = C @ epsilon`` with ``C`` exactly as the
+paper prints it. An element's 24 unknowns are node-major: (u0, v0, w0, u1, v1, w1, ..., w7), local
+nodes in :mod:`fpm.hexahedron` order.
+"""
+
+from __future__ import annotations
+
+from itertools import product
+
+import numpy as np
+
+from .hexahedron import NATURAL
+
+GAUSS_POINTS = np.array(list(product((-1, 1), repeat=3)), dtype=float) / np.sqrt(3.0)
+"""(8, 3) natural coordinates of the 2x2x2 Gauss-Legendre points; every weight is 1."""
+
+SHEAR_PAIRS = ((0, 1), (1, 2), (2, 0))
+"""Axes (a, c) of the Voigt shear rows 3, 4, 5: xy, yz, zx."""
+
+
+def constitutive_matrix(youngs_modulus: float, poisson_ratio: float) -> np.ndarray:
+    """(6, 6) isotropic elasticity matrix C, Pa (paper Sec. 4.1, engineering shear strains)."""
+    nu = poisson_ratio
+    c = np.zeros((6, 6))
+    c[:3, :3] = nu
+    c[np.arange(3), np.arange(3)] = 1 - nu
+    c[np.arange(3, 6), np.arange(3, 6)] = (1 - 2 * nu) / 2
+    return youngs_modulus / ((1 + nu) * (1 - 2 * nu)) * c
+
+
+def shape_functions(point: np.ndarray) -> np.ndarray:
+    """(8,) trilinear N_i = (1 + r r_i)(1 + s s_i)(1 + t t_i) / 8 at ``point`` (paper Eq. 3)."""
+    return np.prod(1 + NATURAL * np.asarray(point), axis=1) / 8
+
+
+def shape_function_gradients(point: np.ndarray) -> np.ndarray:
+    """(8, 3) dN_i / d(r, s, t) at natural ``point`` (3,)."""
+    factors = 1 + NATURAL * np.asarray(point)  # (8, 3): (1 + r r_i), (1 + s s_i), (1 + t t_i)
+    grad = np.empty((8, 3))
+    for a in range(3):
+        others = [b for b in range(3) if b != a]
+        grad[:, a] = NATURAL[:, a] * factors[:, others[0]] * factors[:, others[1]] / 8
+    return grad
+
+
+def jacobians(coords: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """(H, 3, 3) J_ab = d x_b / d xi_a at natural ``point`` for ``coords`` (H, 8, 3), m."""
+    return np.einsum("na,hnb->hab", shape_function_gradients(point), coords)
+
+
+def strain_displacement(gradients: np.ndarray) -> np.ndarray:
+    """(H, 6, 24) B with epsilon = B u, from physical gradients dN_i/dx_b (H, 8, 3), 1/m."""
+    b = np.zeros((len(gradients), 6, 8, 3))
+    for a in range(3):
+        b[:, a, :, a] = gradients[:, :, a]  # normal strains
+    for row, (a, c) in enumerate(SHEAR_PAIRS, start=3):  # gamma_ac = du_a/dx_c + du_c/dx_a
+        b[:, row, :, a] = gradients[:, :, c]
+        b[:, row, :, c] = gradients[:, :, a]
+    return b.reshape(-1, 6, 24)
+
+
+def physical_gradients(coords: np.ndarray, point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """dN_i/dx (H, 8, 3), 1/m, and det J (H,) at natural ``point`` for ``coords`` (H, 8, 3)."""
+    jac = jacobians(coords, point)
+    grad = np.einsum("na,hba->hnb", shape_function_gradients(point), np.linalg.inv(jac))
+    return grad, np.linalg.det(jac)
+
+
+def element_stiffness(coords: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(H, 24, 24) K_e = sum over Gauss points of B^T C B det J, N/m, for ``coords`` (H, 8, 3).
+
+    2x2x2 Gauss quadrature (exact for a parallelepiped). The caller checks det J > 0.
+    """
+    ke = np.zeros((len(coords), 24, 24))
+    for point in GAUSS_POINTS:
+        grad, det = physical_gradients(coords, point)
+        b = strain_displacement(grad)
+        ke += np.einsum("hpa,pq,hqb->hab", b, c, b, optimize=True) * det[:, None, None]
+    return ke
+
+
+def min_jacobian_determinants(coords: np.ndarray) -> np.ndarray:
+    """(H,) smallest det J over the Gauss points and corners: <= 0 flags an inverted hexahedron."""
+    points = np.concatenate([GAUSS_POINTS, NATURAL])
+    return np.min([np.linalg.det(jacobians(coords, p)) for p in points], axis=0)
