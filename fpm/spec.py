@@ -170,9 +170,9 @@ class FpmSettings(_Strict):
         "of the full-depth result at the fitted k, d",
     )
     dt: float = Field(1e-3, gt=0, description="time step, s (default 1 ms: a haptic 1 kHz loop)")
-    max_steps: int = Field(4000, ge=1, description="steps per load case before giving up")
+    max_steps: int = Field(2000, ge=1, description="steps per load case before giving up")
     settle_tolerance: float = Field(
-        1e-4,
+        1e-5,
         ge=0,
         description="settled when the largest unbalanced nodal force in a sweep is below this "
         "times the largest applied nodal force; 0 = never settle",

@@ -8,7 +8,8 @@ One step visits the perturbed list node by node, always using the newest positio
     x_i <- x_i + dt v_i
 
 The loop is sequential by nature (each node sees its predecessors' new positions), so it is
-compiled with numba rather than vectorised; compilation is cached on disk.
+compiled with numba rather than vectorised; compilation is cached on disk, and the GIL is
+released so that annealing chains can run on threads.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from numba import njit
 RUNNING, SETTLED, DIVERGED = 0, 1, 2
 
 
-@njit(cache=True, fastmath=False, boundscheck=False)
+@njit(cache=True, nogil=True)
 def run_steps(
     order: np.ndarray,
     ptr: np.ndarray,

@@ -1,0 +1,185 @@
+"""Simulated annealing (paper Sec. 4.2-4.3) over a box in log space.
+
+Metropolis acceptance ``exp(-dc / T)`` (Boltzmann constant folded into T), Lundy-Mees cooling
+``T <- T / (1 + beta T)``, one move per temperature, stop once T is below ``t_final``. A
+candidate that diverged, or whose cost exceeds ``c_max``, is rejected at once (paper Fig. 8).
+
+Moves: a Gaussian step in log(parameter), reflected into the bounds; its width shrinks
+geometrically from ``step_initial`` to ``step_final`` (natural-log units) over the chain, so the
+early chain roams the whole box and the late chain resolves the optimum to a fraction of a
+percent. The generator is passed in: the same state gives the same chain, bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+STEP_INITIAL = 0.5
+STEP_FINAL = 0.002
+
+
+@dataclass
+class Schedule:
+    """Lundy-Mees cooling: T_{n+1} = T_n / (1 + beta T_n), from t_initial until T < t_final."""
+
+    t_initial: float
+    t_final: float
+    beta: float
+
+    def __post_init__(self) -> None:
+        if not 0 < self.t_final < self.t_initial or self.beta <= 0:
+            raise ValueError("need 0 < t_final < t_initial and beta > 0")
+
+    @property
+    def moves(self) -> int:
+        """Number of moves: 1/T grows by beta per move, from 1/t_initial past 1/t_final."""
+        return math.floor((1 / self.t_final - 1 / self.t_initial) / self.beta) + 1
+
+    def temperature(self, move: int) -> float:
+        """Temperature at which move ``move`` (0-based) is judged."""
+        return self.t_initial / (1 + move * self.beta * self.t_initial)
+
+
+@dataclass
+class State:
+    """A point of the search: parameters, their (normalised) cost, and what else was measured."""
+
+    x: list[float]
+    cost: float
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class AnnealResult:
+    """Outcome of one chain (like scipy's OptimizeResult: x, fun, nit, nfev)."""
+
+    best: State
+    history: list[float]
+    """Current cost after each move."""
+    evaluations: int
+    accepted: int
+    visited: list[State]
+    """Every finite-cost state evaluated, for the caller's choice among near-best states."""
+
+
+def metropolis(delta: float, temperature: float, u: float) -> bool:
+    """Accept a move of cost change ``delta`` given a uniform draw ``u`` in [0, 1)."""
+    return delta <= 0 or u < math.exp(-delta / temperature)
+
+
+def anneal(
+    objective: Callable[[list[float]], State],
+    lower: np.ndarray,
+    upper: np.ndarray,
+    schedule: Schedule,
+    rng: np.random.Generator,
+    *,
+    c_max: float,
+    progress: Callable[[dict[str, Any]], None] | None = None,
+    checkpoint: Callable[[dict[str, Any]], None] | None = None,
+    checkpoint_every: int = 10,
+    resume: dict[str, Any] | None = None,
+) -> AnnealResult:
+    """Minimise ``objective`` over the box [lower, upper] (positive bounds, log-space moves).
+
+    ``objective(x)`` returns a :class:`State` whose cost is inf for a diverged candidate.
+    ``checkpoint(state)`` receives a JSON-able dict every ``checkpoint_every`` moves; passing it
+    back as ``resume`` continues the chain exactly where it stood (same result as uninterrupted).
+    """
+    lo, hi = np.log(np.asarray(lower, float)), np.log(np.asarray(upper, float))
+    if not np.all(lo < hi):
+        raise ValueError("need 0 < lower < upper")
+    moves = schedule.moves
+    if resume is None:
+        start = 0
+        current = _start(objective, lo, hi, rng, c_max)
+        best = current
+        history: list[float] = []
+        visited = [current]
+        evaluations, accepted = int(current.info.pop("_evaluations")), 0
+    else:
+        start = resume["move"]
+        rng.bit_generator.state = resume["rng"]
+        current, best = State(**resume["current"]), State(**resume["best"])
+        history, evaluations, accepted = resume["history"], resume["evaluations"], resume["accepted"]
+        visited = [State(**s) for s in resume["visited"]]
+    for move in range(start, moves):
+        if checkpoint is not None and move > start and move % checkpoint_every == 0:
+            checkpoint(_snapshot(move, rng, current, best, history, evaluations, accepted, visited))
+        t = schedule.temperature(move)
+        width = STEP_INITIAL * (STEP_FINAL / STEP_INITIAL) ** (move / max(moves - 1, 1))
+        y = _reflect(np.log(current.x) + width * rng.standard_normal(len(lo)), lo, hi)
+        candidate = objective(np.exp(y).tolist())
+        evaluations += 1
+        u = rng.random()
+        if math.isfinite(candidate.cost):
+            visited.append(candidate)
+            if candidate.cost <= c_max and metropolis(candidate.cost - current.cost, t, u):
+                current = candidate
+                accepted += 1
+                if current.cost < best.cost:
+                    best = current
+        history.append(current.cost)
+        if progress is not None:
+            progress(
+                {
+                    "move": move + 1,
+                    "moves": moves,
+                    "temperature": t,
+                    "best_cost": best.cost,
+                    "current_cost": current.cost,
+                }
+            )
+    return AnnealResult(best, history, evaluations, accepted, _near(visited, best))
+
+
+NEAR_BEST = 0.01
+"""Visited states kept for the caller: those within this fraction of the chain's best cost."""
+
+
+def _near(visited: list[State], best: State) -> list[State]:
+    return [s for s in visited if s.cost <= best.cost * (1 + NEAR_BEST)]
+
+
+def _start(objective, lo, hi, rng, c_max, tries: int = 50) -> State:
+    """A random start inside the box whose cost is finite and below c_max."""
+    for n in range(1, tries + 1):
+        state = objective(np.exp(rng.uniform(lo, hi)).tolist())
+        if state.cost <= c_max:
+            state.info["_evaluations"] = n
+            return state
+    raise AnnealingError(
+        f"no acceptable starting point in {tries} random tries: every candidate diverged or cost "
+        f"more than c_max={c_max:g}; widen the bounds, lower dt, or raise c_max"
+    )
+
+
+class AnnealingError(RuntimeError):
+    """The search cannot proceed (e.g. every candidate diverges)."""
+
+
+def _reflect(y: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    span = hi - lo
+    z = np.mod(y - lo, 2 * span)
+    return lo + np.where(z > span, 2 * span - z, z)
+
+
+def _snapshot(move, rng, current, best, history, evaluations, accepted, visited) -> dict[str, Any]:
+    def state(s: State) -> dict[str, Any]:
+        return {"x": list(s.x), "cost": s.cost, "info": s.info}
+
+    return {
+        "move": move,
+        "rng": rng.bit_generator.state,
+        "current": state(current),
+        "best": state(best),
+        "history": list(history),
+        "evaluations": evaluations,
+        "accepted": accepted,
+        "visited": [state(s) for s in _near(visited, best)],
+    }
