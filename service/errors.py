@@ -1,0 +1,106 @@
+"""Errors as RFC 9457 problem details (``application/problem+json``).
+
+Every error the service returns goes through here: our own :class:`ProblemError`, FastAPI's
+request validation (422 naming the field), spec checks from :func:`fpm.load_problem`
+(422), an unreachable Redis (503), unknown routes (404/405) and anything unexpected (500,
+with no traceback in the answer).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import ValidationError
+from redis.exceptions import ConnectionError as RedisConnectionError
+from redis.exceptions import TimeoutError as RedisTimeoutError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+MEDIA_TYPE = "application/problem+json"
+log = logging.getLogger("service")
+
+
+class ProblemError(Exception):
+    """An error answered as problem+json: status, short title, human detail, extra members."""
+
+    def __init__(
+        self,
+        status: int,
+        title: str,
+        detail: str,
+        *,
+        headers: dict[str, str] | None = None,
+        **extra: Any,
+    ):
+        super().__init__(detail)
+        self.status = status
+        self.title = title
+        self.detail = detail
+        self.headers = headers
+        self.extra = extra
+
+
+def problem(
+    status: int, title: str, detail: str, headers: dict[str, str] | None = None, **extra: Any
+) -> JSONResponse:
+    """A problem+json response."""
+    body = {"type": "about:blank", "title": title, "status": status, "detail": detail, **extra}
+    return JSONResponse(body, status_code=status, media_type=MEDIA_TYPE, headers=headers)
+
+
+def field_errors(errors: Sequence[Any], strip: tuple[str, ...] = ()) -> list[dict[str, str]]:
+    """[{field, message}] from pydantic errors; ``field`` is the dotted location."""
+    out = []
+    for e in errors:
+        loc = [str(p) for p in e["loc"]]
+        if loc and loc[0] in strip:
+            loc = loc[1:]
+        out.append({"field": ".".join(loc) or "body", "message": e["msg"]})
+    return out
+
+
+def unprocessable(errors: list[dict[str, str]]) -> JSONResponse:
+    """422 naming every bad field; ``detail`` repeats them as one readable line."""
+    detail = "; ".join(f"{e['field']}: {e['message']}" for e in errors)
+    return problem(422, "Invalid input", detail, errors=errors)
+
+
+def install(app: FastAPI) -> None:
+    """Register the handlers on ``app``."""
+
+    @app.exception_handler(ProblemError)
+    async def _problem(request: Request, exc: ProblemError) -> JSONResponse:
+        return problem(exc.status, exc.title, exc.detail, exc.headers, **exc.extra)
+
+    @app.exception_handler(RequestValidationError)
+    async def _request(request: Request, exc: RequestValidationError) -> JSONResponse:
+        return unprocessable(field_errors(exc.errors(), strip=("body", "query", "path")))
+
+    @app.exception_handler(ValidationError)
+    async def _spec(request: Request, exc: ValidationError) -> JSONResponse:
+        return unprocessable(field_errors(exc.errors()))
+
+    @app.exception_handler(RedisConnectionError)
+    @app.exception_handler(RedisTimeoutError)
+    async def _redis(request: Request, exc: Exception) -> JSONResponse:
+        log.warning("Redis unavailable: %s", type(exc).__name__)
+        return problem(
+            503,
+            "Service unavailable",
+            "the queue and store (Redis) cannot be reached; try again later",
+            {"Retry-After": "5"},
+        )
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        title = {404: "Not found", 405: "Method not allowed"}.get(exc.status_code, "Error")
+        return problem(exc.status_code, title, str(exc.detail), exc.headers)
+
+    @app.exception_handler(Exception)
+    async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+        log.exception("unhandled error on %s %s", request.method, request.url.path)
+        return problem(500, "Internal server error", "an unexpected error; it has been logged")

@@ -1,0 +1,125 @@
+"""Configured limits: request body size (ASGI middleware) and problem size (spec checks).
+
+Both run before anything is built or written, so an oversized request costs little and
+leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import numpy as np
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from fpm import Problem, ProblemSpec, load_problem
+from fpm.spec import BoxGeometry, MeshGeometry, NetworkGeometry, VoxelGeometry
+
+from .errors import MEDIA_TYPE, ProblemError
+from .settings import Settings
+
+
+class BodySizeLimit:
+    """Answer 413 to a request whose body exceeds ``max_bytes`` (declared or streamed)."""
+
+    def __init__(self, app: ASGIApp, max_bytes: int):
+        self.app = app
+        self.max_bytes = max_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        declared = dict(scope["headers"]).get(b"content-length")
+        if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
+            await self._reject(send)
+            return
+        received = 0
+
+        async def counting_receive() -> Message:
+            nonlocal received
+            message = await receive()
+            received += len(message.get("body", b""))
+            if received > self.max_bytes:
+                raise _TooLarge
+            return message
+
+        try:
+            await self.app(scope, counting_receive, send)
+        except _TooLarge:
+            await self._reject(send)
+
+    async def _reject(self, send: Send) -> None:
+        body = json.dumps(
+            {
+                "type": "about:blank",
+                "title": "Request body too large",
+                "status": 413,
+                "detail": f"the request body exceeds the limit of {self.max_bytes} bytes",
+            }
+        ).encode()
+        headers = [(b"content-type", MEDIA_TYPE.encode()), (b"content-length", b"%d" % len(body))]
+        await send({"type": "http.response.start", "status": 413, "headers": headers})
+        await send({"type": "http.response.body", "body": body})
+
+
+class _TooLarge(Exception):
+    pass
+
+
+def node_count(spec: ProblemSpec) -> int:
+    """Nodes the solid of ``spec`` will have, computed without building it."""
+    g = spec.geometry
+    if isinstance(g, BoxGeometry):
+        return int(np.prod(g.nodes))
+    if isinstance(g, VoxelGeometry):
+        cells = np.asarray(g.occupancy, dtype=bool)
+        nx, ny, nz = cells.shape
+        used = np.zeros((nx + 1, ny + 1, nz + 1), dtype=bool)
+        for dx in (0, 1):
+            for dy in (0, 1):
+                for dz in (0, 1):
+                    used[dx : dx + nx, dy : dy + ny, dz : dz + nz] |= cells
+        return int(used.sum())
+    assert isinstance(g, MeshGeometry | NetworkGeometry)
+    return len(g.nodes)
+
+
+def _rejected(field: str, message: str) -> ProblemError:
+    errors = [{"field": field, "message": message}]
+    return ProblemError(422, "Invalid input", f"{field}: {message}", errors=errors)
+
+
+def check_calibration_spec(spec: ProblemSpec, settings: Settings) -> Problem:
+    """Check ``spec`` against the limits, then build it (:func:`fpm.load_problem`).
+
+    Raises:
+        ProblemError: 422 naming the field over a limit or that cannot be calibrated.
+        pydantic.ValidationError: a spec that does not fit its own solid (answered 422).
+    """
+    if isinstance(spec.geometry, NetworkGeometry):
+        raise _rejected(
+            "geometry.type", "a network has no FEM reference, so it cannot be calibrated"
+        )
+    nodes = node_count(spec)
+    if nodes > settings.max_nodes:
+        raise _rejected("geometry", f"{nodes} nodes is over the limit of {settings.max_nodes}")
+    if len(spec.load_cases) > settings.max_load_cases:
+        raise _rejected(
+            "load_cases",
+            f"{len(spec.load_cases)} load cases is over the limit of {settings.max_load_cases}",
+        )
+    if spec.annealing.chains > settings.max_chains:
+        raise _rejected(
+            "annealing.chains",
+            f"{spec.annealing.chains} chains is over the limit of {settings.max_chains}",
+        )
+    problem = load_problem(spec)
+    if not problem.fixed.any():
+        raise _rejected("fixed", "selects no node: the FEM reference needs the solid held")
+    return problem
+
+
+def dump_spec(spec: ProblemSpec) -> dict[str, Any]:
+    """The validated spec with every default filled in (what jobs and hashes see)."""
+    return spec.model_dump(mode="json")

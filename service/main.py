@@ -1,0 +1,38 @@
+"""Builds the FastAPI app: ``uvicorn service.main:app``.
+
+See /docs for the OpenAPI page (with the paper's material A spec as the example body).
+"""
+
+from __future__ import annotations
+
+from fastapi import Depends, FastAPI
+
+from . import errors
+from .deps import require_api_key
+from .limits import BodySizeLimit
+from .routers import calibrations, fem_references, health, parameter_sets
+from .settings import Settings, get_settings
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The app: routers under /v1 (API-key protected when keys are set), problem+json errors.
+
+    ``settings`` (tests) replaces :func:`get_settings` for every route and the middleware.
+    """
+    app = FastAPI(
+        title="FPM calibration service",
+        version="1.0",
+        description="Calibrates a force propagation model (Choi et al. 2004) against a "
+        "hexahedral FEM reference, on a pool of RQ workers.",
+    )
+    if settings is not None:
+        app.dependency_overrides[get_settings] = lambda: settings
+    protected = [Depends(require_api_key)]
+    for module in (calibrations, fem_references, parameter_sets, health):
+        app.include_router(module.router, dependencies=protected)
+    errors.install(app)
+    app.add_middleware(BodySizeLimit, max_bytes=(settings or get_settings()).max_body_bytes)
+    return app
+
+
+app = create_app()

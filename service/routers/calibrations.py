@@ -1,0 +1,165 @@
+"""/v1/calibrations: submit, read, list, cancel."""
+
+from __future__ import annotations
+
+import json
+from typing import Annotated
+
+from fastapi import APIRouter, Body, Query, Response, status
+
+from fpm import ProblemSpec
+from fpm.spec import AnnealingSettings
+from worker import graph, keys, store
+from worker.status import CalibrationStatus, FemStatus, Phase
+
+from ..deps import RedisDep, SettingsDep
+from ..errors import ProblemError
+from ..examples import openapi_examples
+from ..limits import check_calibration_spec, dump_spec
+from ..schemas import (
+    Calibration,
+    CalibrationPage,
+    CalibrationResult,
+    CalibrationSummary,
+    ChainProgress,
+    Progress,
+    Timings,
+)
+
+router = APIRouter(prefix="/v1/calibrations", tags=["calibrations"])
+
+SpecBody = Annotated[ProblemSpec, Body(openapi_examples=openapi_examples())]
+
+
+@router.post(
+    "",
+    status_code=status.HTTP_202_ACCEPTED,
+    responses={200: {"model": Calibration, "description": "the identical spec's calibration"}},
+)
+def submit(
+    spec: SpecBody, redis: RedisDep, settings: SettingsDep, response: Response
+) -> Calibration:
+    """Start a calibration (202 + Location).
+
+    An identical spec (after defaults) already queued, running or succeeded returns that
+    calibration with 200 instead; a failed or canceled one is started afresh.
+    """
+    check_calibration_spec(spec, settings)
+    record, created = graph.submit_calibration(redis, dump_spec(spec), settings.job_options)
+    response.headers["Location"] = f"{router.prefix}/{record.id}"
+    if not created:
+        response.status_code = status.HTTP_200_OK
+    return read(record.id, redis)
+
+
+@router.get("")
+def listing(
+    redis: RedisDep,
+    settings: SettingsDep,
+    status_filter: Annotated[CalibrationStatus | None, Query(alias="status")] = None,
+    offset: Annotated[int, Query(ge=0)] = 0,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 50,
+) -> CalibrationPage:
+    """Calibrations, newest first; ``status`` filters."""
+    limit = min(limit, settings.page_size_limit)
+    if status_filter is None:
+        total = redis.zcard(keys.calibrations())
+        ids = [i.decode() for i in redis.zrevrange(keys.calibrations(), offset, offset + limit - 1)]
+        records = store.get_calibrations(redis, ids)
+    else:
+        all_ids = [i.decode() for i in redis.zrevrange(keys.calibrations(), 0, -1)]
+        matching = [r for r in store.get_calibrations(redis, all_ids) if r.status == status_filter]
+        total, records = len(matching), matching[offset : offset + limit]
+    items = [
+        CalibrationSummary(
+            id=r.id,
+            name=r.name,
+            status=r.status,
+            created=r.created,
+            parameter_set_id=r.parameter_set_id or None,
+        )
+        for r in records
+    ]
+    return CalibrationPage(items=items, total=total, offset=offset, limit=limit)
+
+
+@router.get("/{calibration_id}")
+def read(calibration_id: str, redis: RedisDep) -> Calibration:
+    """Status, progress, and when done the result."""
+    pipe = redis.pipeline(transaction=False)
+    pipe.hgetall(keys.calibration(calibration_id))
+    pipe.hgetall(keys.calibration_progress(calibration_id))
+    raw, raw_progress = pipe.execute()
+    if not raw:
+        raise ProblemError(404, "Not found", f"no calibration {calibration_id!r}")
+    record = store.CalibrationRecord.from_hash(store.decode_hash(raw))
+    progress = {int(k): v for k, v in store.decode_hash(raw_progress).items()}
+    fem_running = False
+    if record.status == CalibrationStatus.QUEUED and not record.fem_cached:
+        fem_status = redis.hget(keys.fem_meta(record.fem_hash), "status")
+        fem_running = fem_status == FemStatus.RUNNING.value.encode()
+    return _view(record, progress, fem_running)
+
+
+@router.delete("/{calibration_id}", responses={409: {"description": "already finished"}})
+def cancel(calibration_id: str, redis: RedisDep) -> Calibration:
+    """Cancel: running chains are stopped, queued jobs dropped, the status becomes canceled.
+
+    Canceling a canceled calibration is a no-op; a succeeded or failed one answers 409.
+    """
+    record = store.get_calibration(redis, calibration_id)
+    if record is None:
+        raise ProblemError(404, "Not found", f"no calibration {calibration_id!r}")
+    if not graph.cancel_calibration(redis, calibration_id) and record.status in (
+        CalibrationStatus.SUCCEEDED,
+        CalibrationStatus.FAILED,
+    ):
+        raise ProblemError(
+            409, "Conflict", f"calibration {calibration_id} already {record.status.value}"
+        )
+    return read(calibration_id, redis)
+
+
+def _view(
+    record: store.CalibrationRecord, progress: dict[int, str], fem_running: bool
+) -> Calibration:
+    """The API view of a record and its chains' progress."""
+    chains = [ChainProgress(chain=c, **json.loads(p)) for c, p in sorted(progress.items())]
+    phase = record.phase
+    status_ = record.status
+    if fem_running:
+        phase, status_ = Phase.FEM, CalibrationStatus.RUNNING
+    temperatures = [c.temperature for c in chains if c.temperature is not None]
+    costs = [c.best_cost for c in chains if c.best_cost is not None]
+    per_chain = (
+        max([c.moves for c in chains] or [0]) or AnnealingSettings(**record.spec["annealing"]).moves
+    )
+    t = Timings(
+        created=record.created,
+        started=record.started or None,
+        finished=record.finished or None,
+        queued_seconds=(record.started - record.created) if record.started else None,
+        running_seconds=(record.finished - record.started)
+        if record.started and record.finished
+        else None,
+    )
+    return Calibration(
+        id=record.id,
+        name=record.name,
+        status=status_,
+        progress=Progress(
+            phase=phase,
+            iterations=sum(c.move for c in chains),
+            total_iterations=per_chain * record.chains,
+            temperature=max(temperatures) if temperatures else None,
+            best_cost=min(costs) if costs else None,
+            chains=chains,
+        ),
+        timings=t,
+        fem_reference_id=record.fem_hash,
+        fem_cached=record.fem_cached,
+        result=CalibrationResult(**record.result) if record.result else None,
+        parameter_set_id=record.parameter_set_id or None,
+        error=record.error or None,
+        spec_hash=record.spec_hash,
+    )

@@ -1,0 +1,73 @@
+"""/v1/fem-references: the FEM reference of a spec on its own."""
+
+from __future__ import annotations
+
+import json
+from typing import Annotated
+
+from fastapi import APIRouter, Body, Query, Response, status
+
+from fpm import ProblemSpec
+from worker import graph, store
+from worker.hashing import fem_hash
+from worker.status import FemStatus
+
+from ..deps import RedisDep, SettingsDep
+from ..errors import ProblemError
+from ..examples import openapi_examples
+from ..limits import check_calibration_spec, dump_spec
+from ..schemas import FemReference
+
+router = APIRouter(prefix="/v1/fem-references", tags=["fem-references"])
+
+
+@router.post(
+    "",
+    status_code=status.HTTP_202_ACCEPTED,
+    responses={200: {"model": FemReference, "description": "already computed or on its way"}},
+)
+def submit(
+    spec: Annotated[ProblemSpec, Body(openapi_examples=openapi_examples())],
+    redis: RedisDep,
+    settings: SettingsDep,
+    response: Response,
+) -> FemReference:
+    """Compute the FEM reference of a spec (only geometry, material, fixed and load cases count).
+
+    202 + Location when a job was started; 200 + Location when the same reference is already
+    stored or being computed. Its id is the content hash, so it can be shared.
+    """
+    check_calibration_spec(spec, settings)
+    dumped = dump_spec(spec)
+    digest = fem_hash(dumped)
+    meta = store.get_fem_meta(redis, digest)
+    pending = meta.get("status") in (FemStatus.QUEUED.value, FemStatus.RUNNING.value)
+    started = graph.submit_fem(redis, dumped, settings.job_options) if not pending else None
+    response.headers["Location"] = f"{router.prefix}/{digest}"
+    if started is None:
+        response.status_code = status.HTTP_200_OK
+    return read(digest, redis)
+
+
+@router.get("/{fem_id}")
+def read(
+    fem_id: str,
+    redis: RedisDep,
+    arrays: Annotated[bool, Query(description="include nodes and displacements")] = True,
+) -> FemReference:
+    """Status, and once computed the nodal coordinates and displacements per load case."""
+    meta = store.get_fem_meta(redis, fem_id)
+    if not meta:
+        raise ProblemError(404, "Not found", f"no FEM reference {fem_id!r}")
+    out = FemReference(
+        id=fem_id,
+        status=FemStatus(meta["status"]),
+        n_nodes=int(meta["n_nodes"]) if meta.get("n_nodes") else None,
+        load_cases=json.loads(meta["load_cases"]) if meta.get("load_cases") else None,
+        error=meta.get("error") or None,
+    )
+    if arrays and out.status == FemStatus.SUCCEEDED:
+        data = store.get_fem_reference(redis, fem_id)
+        if data is not None:
+            out.nodes, out.displacements = data["nodes"], data["displacements"]
+    return out

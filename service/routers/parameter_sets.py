@@ -1,0 +1,54 @@
+"""/v1/parameter-sets: stored (k, d, depth) sets, filtered by material constants."""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Query
+
+from worker import store
+
+from ..deps import RedisDep
+from ..errors import ProblemError
+from ..schemas import ParameterSet, ParameterSetPage
+
+router = APIRouter(prefix="/v1/parameter-sets", tags=["parameter-sets"])
+
+RELATIVE_TOLERANCE = 1e-6
+"""Material constants match when equal to this relative tolerance."""
+
+
+@router.get("")
+def listing(
+    redis: RedisDep,
+    youngs_modulus: Annotated[float | None, Query(gt=0, description="E, Pa")] = None,
+    poisson_ratio: Annotated[float | None, Query(gt=-1, lt=0.5)] = None,
+    density: Annotated[float | None, Query(gt=0, description="kg/m^3")] = None,
+    connectivity: Annotated[str | None, Query(description="axis | axis+face | full")] = None,
+    name: Annotated[str | None, Query(description="substring of the spec name")] = None,
+) -> ParameterSetPage:
+    """Stored parameter sets, newest first, filtered by material constants (and more)."""
+    wanted = {"youngs_modulus": youngs_modulus, "poisson_ratio": poisson_ratio, "density": density}
+
+    def matches(ps: dict[str, Any]) -> bool:
+        for key, value in wanted.items():
+            if value is not None and not math.isclose(
+                ps["material"][key], value, rel_tol=RELATIVE_TOLERANCE
+            ):
+                return False
+        if connectivity is not None and ps["geometry"].get("connectivity") != connectivity:
+            return False
+        return name is None or name.lower() in ps["name"].lower()
+
+    items = [ParameterSet(**ps) for ps in store.list_parameter_sets(redis) if matches(ps)]
+    return ParameterSetPage(items=items, total=len(items))
+
+
+@router.get("/{parameter_set_id}")
+def read(parameter_set_id: str, redis: RedisDep) -> ParameterSet:
+    """One stored parameter set."""
+    ps = store.get_parameter_set(redis, parameter_set_id)
+    if ps is None:
+        raise ProblemError(404, "Not found", f"no parameter set {parameter_set_id!r}")
+    return ParameterSet(**ps)

@@ -1,0 +1,63 @@
+"""Service settings from the environment (prefix ``FPM_``; ``REDIS_URL`` too).
+
+Examples: ``FPM_MAX_NODES=20000``, ``FPM_API_KEYS=key1,key2``, ``REDIS_URL=redis://redis:6379/0``.
+Tests override :func:`get_settings` through FastAPI's dependency overrides.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import Annotated
+
+from pydantic import AliasChoices, Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+from worker.graph import JobOptions
+
+
+class Settings(BaseSettings):
+    """What the service may accept and where its Redis is."""
+
+    model_config = SettingsConfigDict(env_prefix="FPM_", extra="ignore")
+
+    redis_url: str = Field(
+        "redis://localhost:6379/0",
+        validation_alias=AliasChoices("FPM_REDIS_URL", "REDIS_URL"),
+        description="Redis holding the queue and the stored results",
+    )
+    redis_timeout: float = Field(2.0, gt=0, description="socket timeouts for Redis calls, s")
+    api_keys: Annotated[list[SecretStr], NoDecode] = Field(
+        default_factory=list,
+        description="accepted X-API-Key values (comma-separated); empty = no authentication",
+    )
+    max_nodes: int = Field(20_000, ge=8, description="largest solid, in nodes")
+    max_load_cases: int = Field(20, ge=1)
+    max_chains: int = Field(16, ge=1, description="most annealing chains per calibration")
+    max_body_bytes: int = Field(2_000_000, ge=1024, description="largest request body, bytes")
+    page_size_limit: int = Field(200, ge=1, description="most items per page of a listing")
+    fem_timeout: int = Field(1800, ge=1, description="wall time of a FEM job, s")
+    chain_timeout: int = Field(6 * 3600, ge=1, description="wall time of one annealing chain, s")
+    finalize_timeout: int = Field(1800, ge=1, description="wall time of a finalize job, s")
+    job_retries: int = Field(2, ge=0, description="re-runs of a job whose worker died")
+
+    @field_validator("api_keys", mode="before")
+    @classmethod
+    def _split_keys(cls, v: object) -> object:
+        if isinstance(v, str):
+            return [key.strip() for key in v.split(",") if key.strip()]
+        return v
+
+    @property
+    def job_options(self) -> JobOptions:
+        return JobOptions(
+            fem_timeout=self.fem_timeout,
+            chain_timeout=self.chain_timeout,
+            finalize_timeout=self.finalize_timeout,
+            retries=self.job_retries,
+        )
+
+
+@lru_cache
+def get_settings() -> Settings:
+    """The settings, read from the environment once."""
+    return Settings()

@@ -1,0 +1,210 @@
+"""Build and cancel a calibration's job graph; used by the service (imports no numerics).
+
+A calibration is::
+
+    fem job (skipped if the reference is stored) --> chain 0 .. chain n-1 --> finalize
+
+Jobs are enqueued by dotted path with RQ's JSON serializer and carry only ids; the spec, the
+FEM reference and the chain results live under our own keys (:mod:`worker.keys`). Chains
+depend on the FEM job and finalize on the chains with ``allow_failure``: a failed dependency
+still wakes the next job, which then records the calibration as failed (no job is left
+waiting for ever).
+"""
+
+from __future__ import annotations
+
+import json
+import secrets
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from redis import Redis
+from rq import Callback, Queue, Retry
+from rq.command import send_stop_job_command
+from rq.exceptions import InvalidJobOperation, NoSuchJobError
+from rq.job import Dependency, Job, JobStatus
+from rq.serializers import JSONSerializer
+
+from . import keys, store
+from .hashing import fem_hash, fem_spec, spec_hash
+from .status import CalibrationStatus, FemStatus
+
+FAILURE_CALLBACK = "worker.jobs.on_failure"
+PENDING = (JobStatus.QUEUED, JobStatus.DEFERRED, JobStatus.SCHEDULED, JobStatus.STARTED)
+
+
+@dataclass(frozen=True)
+class JobOptions:
+    """Limits of the jobs a calibration enqueues.
+
+    Attributes:
+        fem_timeout, chain_timeout, finalize_timeout: wall time a job may run, s.
+        retries: times a job is re-run after its worker died (or it raised).
+        result_ttl: how long RQ keeps a finished job's return value, s (our records stay).
+        failure_ttl: how long RQ keeps a failed job, s.
+    """
+
+    fem_timeout: int = 1800
+    chain_timeout: int = 6 * 3600
+    finalize_timeout: int = 1800
+    retries: int = 2
+    result_ttl: int = 24 * 3600
+    failure_ttl: int = 7 * 24 * 3600
+
+
+def queue(redis: Redis) -> Queue:
+    """The project's queue with the JSON serializer."""
+    return Queue(keys.QUEUE, connection=redis, serializer=JSONSerializer)
+
+
+def submit_calibration(
+    redis: Redis, spec: dict[str, Any], options: JobOptions
+) -> tuple[store.CalibrationRecord, bool]:
+    """Start a calibration of the validated ``spec`` (a dumped ProblemSpec).
+
+    Returns (record, created): an identical spec already queued, running or succeeded gives
+    that calibration and ``created=False``; otherwise a new record and its jobs.
+    """
+    digest = spec_hash(spec)
+    by_spec = keys.calibration_by_spec(digest)
+    record = store.CalibrationRecord(
+        id=secrets.token_hex(8),
+        spec=spec,
+        spec_hash=digest,
+        fem_hash=fem_hash(spec),
+        chains=spec["annealing"]["chains"],
+        name=spec["name"],
+        fem_cached=bool(redis.exists(keys.fem_reference(fem_hash(spec)))),
+    )
+
+    def claim(pipe: Any) -> store.CalibrationRecord | None:
+        existing_id = pipe.get(by_spec)
+        if existing_id is not None:
+            existing = store.get_calibration(pipe, existing_id.decode())
+            if existing is not None and existing.status in (
+                CalibrationStatus.QUEUED,
+                CalibrationStatus.RUNNING,
+                CalibrationStatus.SUCCEEDED,
+            ):
+                pipe.unwatch()
+                return existing
+        pipe.multi()
+        store.write_calibration(pipe, record)
+        return None
+
+    existing = redis.transaction(claim, by_spec, value_from_callable=True)
+    if existing is not None:
+        return existing, False
+    _enqueue(redis, record, options)
+    return record, True
+
+
+def _enqueue(redis: Redis, record: store.CalibrationRecord, options: JobOptions) -> None:
+    q = queue(redis)
+    common = _common(options)
+    fem_job = None if record.fem_cached else submit_fem(redis, record.spec, options)
+    chains = [
+        q.enqueue_call(
+            "worker.jobs.anneal_chain",
+            args=(record.id, chain),
+            job_id=keys.chain_job_id(record.id, chain),
+            timeout=options.chain_timeout,
+            depends_on=Dependency(fem_job, allow_failure=True) if fem_job else None,
+            description=f"{record.name}: chain {chain}",
+            **common,
+        )
+        for chain in range(record.chains)
+    ]
+    q.enqueue_call(
+        "worker.jobs.finalize_calibration",
+        args=(record.id,),
+        job_id=keys.finalize_job_id(record.id),
+        timeout=options.finalize_timeout,
+        depends_on=Dependency(chains, allow_failure=True),
+        description=f"{record.name}: finalize",
+        **common,
+    )
+
+
+def submit_fem(redis: Redis, spec: dict[str, Any], options: JobOptions) -> Job | None:
+    """Make sure the FEM reference of ``spec`` is stored or on its way.
+
+    Returns the pending FEM job to wait for (an existing one if the same reference is already
+    being computed), or None if the reference is stored.
+    """
+    digest = fem_hash(spec)
+    if redis.exists(keys.fem_reference(digest)):
+        return None
+    q = queue(redis)
+    job_id = keys.fem_job_id(digest)
+    try:
+        job = Job.fetch(job_id, connection=redis, serializer=JSONSerializer)
+        if job.get_status() in PENDING:
+            return job
+    except NoSuchJobError:
+        pass
+    pipe = redis.pipeline()
+    pipe.hset(
+        keys.fem_meta(digest),
+        mapping={
+            "id": digest,
+            "status": FemStatus.QUEUED.value,
+            "spec": json.dumps(fem_spec(spec)),
+            "created": str(time.time()),
+            "error": "",
+        },
+    )
+    pipe.execute()
+    return q.enqueue_call(
+        "worker.jobs.fem_reference",
+        args=(digest,),
+        job_id=job_id,
+        timeout=options.fem_timeout,
+        description=f"FEM reference {digest[:12]}",
+        **_common(options),
+    )
+
+
+def _common(options: JobOptions) -> dict[str, Any]:
+    """Options every job gets: retries, RQ's TTLs, and the failure callback.
+
+    No queue ``ttl``: a job waiting behind a long queue must not silently expire.
+    """
+    return {
+        "retry": Retry(max=options.retries) if options.retries else None,
+        "result_ttl": options.result_ttl,
+        "failure_ttl": options.failure_ttl,
+        "on_failure": Callback(FAILURE_CALLBACK),
+    }
+
+
+def cancel_calibration(redis: Redis, calibration_id: str) -> bool:
+    """Mark a calibration canceled, stop its running chains and drop its queued jobs.
+
+    Returns False if it had already finished (nothing changed). The shared FEM job is left
+    alone: another calibration may need the same reference.
+    """
+    changed = store.update_calibration(
+        redis,
+        calibration_id,
+        {"status": CalibrationStatus.CANCELED, "finished": time.time()},
+    )
+    if not changed:
+        return False
+    record = store.get_calibration(redis, calibration_id)
+    assert record is not None
+    job_ids = [keys.chain_job_id(calibration_id, c) for c in range(record.chains)]
+    job_ids.append(keys.finalize_job_id(calibration_id))
+    for job in Job.fetch_many(job_ids, connection=redis, serializer=JSONSerializer):
+        if job is None:
+            continue
+        status = job.get_status()
+        try:
+            if status == JobStatus.STARTED:
+                send_stop_job_command(redis, job.id, serializer=JSONSerializer)
+            elif status in PENDING:
+                job.cancel()
+        except (InvalidJobOperation, NoSuchJobError):
+            pass  # it finished or was canceled meanwhile: the record says canceled anyway
+    return True

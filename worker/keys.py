@@ -1,0 +1,75 @@
+"""Every Redis key and RQ job id the project uses, built in one place.
+
+Our own data lives under ``fpm:`` (RQ keeps its own ``rq:`` keys). Records that must outlive
+the jobs (FEM references, parameter sets, calibration records) are stored with no expiry;
+scratch data (chain checkpoints and results, progress) carries a TTL set by the writer.
+"""
+
+PREFIX = "fpm"
+QUEUE = "fpm"
+"""The RQ queue every job goes to (a worker may listen on more)."""
+
+
+def calibration(calibration_id: str) -> str:
+    """Hash: the calibration record (status, spec, result, ...)."""
+    return f"{PREFIX}:calibration:{calibration_id}"
+
+
+def calibration_progress(calibration_id: str) -> str:
+    """Hash: chain index -> JSON progress of that chain."""
+    return f"{PREFIX}:calibration:{calibration_id}:progress"
+
+
+def calibrations() -> str:
+    """Sorted set: calibration ids scored by creation time."""
+    return f"{PREFIX}:calibrations"
+
+
+def calibration_by_spec(spec_hash: str) -> str:
+    """String: the calibration id last submitted for this spec hash."""
+    return f"{PREFIX}:calibration-by-spec:{spec_hash}"
+
+
+def chain_result(calibration_id: str, chain: int) -> str:
+    """String: JSON ChainResult of one chain (written once per chain)."""
+    return f"{PREFIX}:calibration:{calibration_id}:chain:{chain}"
+
+
+def chain_checkpoint(calibration_id: str, chain: int) -> str:
+    """String: JSON annealing state of one chain, so a retried chain resumes."""
+    return f"{PREFIX}:calibration:{calibration_id}:checkpoint:{chain}"
+
+
+def fem_reference(fem_hash: str) -> str:
+    """String: JSON FemResult (nodes, displacements per load case); no expiry."""
+    return f"{PREFIX}:fem:{fem_hash}"
+
+
+def fem_meta(fem_hash: str) -> str:
+    """Hash: FEM reference status, spec subset, summary."""
+    return f"{PREFIX}:fem:{fem_hash}:meta"
+
+
+def parameter_set(parameter_set_id: str) -> str:
+    """String: JSON parameter set (k, d, depth, material, provenance); no expiry."""
+    return f"{PREFIX}:parameter-set:{parameter_set_id}"
+
+
+def parameter_sets() -> str:
+    """Sorted set: parameter set ids scored by creation time."""
+    return f"{PREFIX}:parameter-sets"
+
+
+def fem_job_id(fem_hash: str) -> str:
+    """RQ job id of the FEM job for a reference (shared by every calibration that needs it)."""
+    return f"fem-{fem_hash[:40]}"
+
+
+def chain_job_id(calibration_id: str, chain: int) -> str:
+    """RQ job id of one annealing chain."""
+    return f"{calibration_id}-chain-{chain}"
+
+
+def finalize_job_id(calibration_id: str) -> str:
+    """RQ job id of the finalize job."""
+    return f"{calibration_id}-finalize"

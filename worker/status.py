@@ -1,0 +1,42 @@
+"""Statuses of the project's own records (RQ job statuses are RQ's business)."""
+
+from enum import Enum
+
+
+class CalibrationStatus(str, Enum):
+    """Lifecycle of a calibration: queued -> running -> succeeded | failed | canceled."""
+
+    QUEUED = "queued"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    CANCELED = "canceled"
+
+    @property
+    def terminal(self) -> bool:
+        """True once nothing will change the calibration any more."""
+        return self in TERMINAL
+
+
+TERMINAL = frozenset(
+    {CalibrationStatus.SUCCEEDED, CalibrationStatus.FAILED, CalibrationStatus.CANCELED}
+)
+
+
+class FemStatus(str, Enum):
+    """Lifecycle of a FEM reference: queued -> running -> succeeded | failed."""
+
+    QUEUED = "queued"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+
+
+class Phase(str, Enum):
+    """What a calibration is doing (shown with its progress)."""
+
+    QUEUED = "queued"
+    FEM = "fem"
+    ANNEALING = "annealing"
+    FINALIZE = "finalize"
+    DONE = "done"

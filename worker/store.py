@@ -1,0 +1,202 @@
+"""Reading and writing the project's records in Redis (no numerical code here).
+
+Values are JSON or plain strings; nothing is pickled. Multi-key writes go through one
+pipeline (MULTI/EXEC), and status changes that must not undo a cancel go through a WATCH
+transaction on the calibration record.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from redis import Redis
+from redis.client import Pipeline
+
+from . import keys
+from .status import TERMINAL, CalibrationStatus, FemStatus, Phase
+
+SCRATCH_TTL = 7 * 24 * 3600
+"""Seconds that chain checkpoints, chain results and progress are kept (s)."""
+
+
+def _text(value: bytes | str | None) -> str | None:
+    return value.decode() if isinstance(value, bytes) else value
+
+
+def decode_hash(raw: dict[Any, Any]) -> dict[str, str]:
+    """A Redis hash reply with bytes keys and values as str -> str."""
+    return {_text(k) or "": _text(v) or "" for k, v in raw.items()}
+
+
+@dataclass
+class CalibrationRecord:
+    """The calibration record (hash ``keys.calibration(id)``).
+
+    Attributes:
+        id: calibration id.
+        status, phase: see :mod:`worker.status`.
+        name: the spec's name.
+        spec: the validated spec with every default filled in.
+        spec_hash, fem_hash: content hashes (:mod:`worker.hashing`).
+        chains: number of annealing chains.
+        created, started, finished: Unix times, s (0 = not yet).
+        fem_cached: the FEM reference was already stored when this was submitted.
+        error: why it failed ('' otherwise).
+        result: the CalibrationResult as a dict once succeeded.
+        parameter_set_id: the stored parameter set once succeeded.
+    """
+
+    id: str
+    spec: dict[str, Any]
+    spec_hash: str
+    fem_hash: str
+    chains: int
+    status: CalibrationStatus = CalibrationStatus.QUEUED
+    phase: Phase = Phase.QUEUED
+    name: str = ""
+    created: float = field(default_factory=time.time)
+    started: float = 0.0
+    finished: float = 0.0
+    fem_cached: bool = False
+    error: str = ""
+    result: dict[str, Any] | None = None
+    parameter_set_id: str = ""
+
+    def to_hash(self) -> dict[str, str]:
+        """Flat str mapping for HSET."""
+        out = {k: v for k, v in asdict(self).items() if k not in ("spec", "result")}
+        out["status"] = self.status.value
+        out["phase"] = self.phase.value
+        out["fem_cached"] = int(self.fem_cached)
+        out["spec"] = json.dumps(self.spec)
+        out["result"] = json.dumps(self.result)
+        return {k: str(v) for k, v in out.items()}
+
+    @classmethod
+    def from_hash(cls, raw: dict[str, str]) -> CalibrationRecord:
+        return cls(
+            id=raw["id"],
+            spec=json.loads(raw["spec"]),
+            spec_hash=raw["spec_hash"],
+            fem_hash=raw["fem_hash"],
+            chains=int(raw["chains"]),
+            status=CalibrationStatus(raw["status"]),
+            phase=Phase(raw["phase"]),
+            name=raw.get("name", ""),
+            created=float(raw["created"]),
+            started=float(raw.get("started") or 0),
+            finished=float(raw.get("finished") or 0),
+            fem_cached=raw.get("fem_cached") == "1",
+            error=raw.get("error", ""),
+            result=json.loads(raw.get("result") or "null"),
+            parameter_set_id=raw.get("parameter_set_id", ""),
+        )
+
+
+def get_calibration(redis: Redis, calibration_id: str) -> CalibrationRecord | None:
+    """The record, or None if there is no such calibration."""
+    raw = redis.hgetall(keys.calibration(calibration_id))
+    return CalibrationRecord.from_hash(decode_hash(raw)) if raw else None
+
+
+def get_calibrations(redis: Redis, ids: Iterable[str]) -> list[CalibrationRecord]:
+    """Several records in one round trip (missing ones are skipped)."""
+    pipe = redis.pipeline(transaction=False)
+    for calibration_id in ids:
+        pipe.hgetall(keys.calibration(calibration_id))
+    return [CalibrationRecord.from_hash(decode_hash(raw)) for raw in pipe.execute() if raw]
+
+
+def get_progress(redis: Redis, calibration_id: str) -> dict[int, dict[str, Any]]:
+    """Chain index -> latest progress report of that chain."""
+    raw = decode_hash(redis.hgetall(keys.calibration_progress(calibration_id)))
+    return {int(k): json.loads(v) for k, v in raw.items()}
+
+
+def write_calibration(pipe: Pipeline, record: CalibrationRecord) -> None:
+    """Queue the writes of a new record: the hash, the listing, the spec-hash lookup."""
+    pipe.hset(keys.calibration(record.id), mapping=record.to_hash())
+    pipe.zadd(keys.calibrations(), {record.id: record.created})
+    pipe.set(keys.calibration_by_spec(record.spec_hash), record.id)
+
+
+def update_calibration(
+    redis: Redis,
+    calibration_id: str,
+    fields: dict[str, Any],
+    *,
+    extra: Any = None,
+) -> bool:
+    """Set ``fields`` on a calibration unless it is already finished (e.g. canceled).
+
+    ``extra(pipe)``, if given, queues more writes into the same MULTI/EXEC. Returns False
+    (and writes nothing) when the record is missing or terminal.
+    """
+    key = keys.calibration(calibration_id)
+    mapping = {k: _flat(v) for k, v in fields.items()}
+
+    def apply(pipe: Pipeline) -> bool:
+        status = _text(pipe.hget(key, "status"))
+        if status is None or CalibrationStatus(status) in TERMINAL:
+            pipe.unwatch()
+            return False
+        pipe.multi()
+        pipe.hset(key, mapping=mapping)
+        if extra is not None:
+            extra(pipe)
+        return True
+
+    return bool(redis.transaction(apply, key, value_from_callable=True))
+
+
+def _flat(value: Any) -> str:
+    if isinstance(value, CalibrationStatus | FemStatus | Phase):
+        return value.value
+    if isinstance(value, dict | list) or value is None:
+        return json.dumps(value)
+    return str(value)
+
+
+def save_progress(redis: Redis, calibration_id: str, chain: int, info: dict[str, Any]) -> None:
+    """Store the latest progress report of one chain."""
+    key = keys.calibration_progress(calibration_id)
+    pipe = redis.pipeline()
+    pipe.hset(key, str(chain), json.dumps(info))
+    pipe.expire(key, SCRATCH_TTL)
+    pipe.execute()
+
+
+def get_fem_meta(redis: Redis, fem_hash: str) -> dict[str, str]:
+    """The FEM reference's meta hash ({} if unknown): status, spec, n_nodes, error, ..."""
+    return decode_hash(redis.hgetall(keys.fem_meta(fem_hash)))
+
+
+def get_fem_reference(redis: Redis, fem_hash: str) -> dict[str, Any] | None:
+    """The stored FemResult dict, or None."""
+    raw = redis.get(keys.fem_reference(fem_hash))
+    return json.loads(raw) if raw else None
+
+
+def get_parameter_set(redis: Redis, parameter_set_id: str) -> dict[str, Any] | None:
+    """A stored parameter set, or None."""
+    raw = redis.get(keys.parameter_set(parameter_set_id))
+    return json.loads(raw) if raw else None
+
+
+def list_parameter_sets(redis: Redis) -> list[dict[str, Any]]:
+    """Every stored parameter set, newest first."""
+    ids = [_text(i) for i in redis.zrevrange(keys.parameter_sets(), 0, -1)]
+    if not ids:
+        return []
+    raws = redis.mget([keys.parameter_set(i or "") for i in ids])
+    return [json.loads(raw) for raw in raws if raw]
+
+
+def write_parameter_set(pipe: Pipeline, parameter_set: dict[str, Any]) -> None:
+    """Queue storing a parameter set once: a retry with the same id changes nothing."""
+    pipe.set(keys.parameter_set(parameter_set["id"]), json.dumps(parameter_set), nx=True)
+    pipe.zadd(keys.parameter_sets(), {parameter_set["id"]: parameter_set["created"]}, nx=True)
