@@ -1,0 +1,133 @@
+"""``fpm-client``: the service from the command line.
+
+    fpm-client submit examples/paper-material-a.json --wait
+    fpm-client status 3f2a9c...
+    fpm-client params --E 10000
+    fpm-client --json list --status running
+
+The service URL comes from --url, else $FPM_URL, else http://127.0.0.1:8000; the API key
+from --api-key, else $FPM_API_KEY.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from typing import Any
+
+import httpx
+
+from .sdk import ApiError, Client
+from .table import table
+
+DEFAULT_URL = "http://127.0.0.1:8000"
+STATUSES = ["queued", "running", "succeeded", "failed", "canceled"]
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="fpm-client", description="FPM calibration client")
+    parser.add_argument("--url", default=os.environ.get("FPM_URL", DEFAULT_URL))
+    parser.add_argument("--api-key", default=os.environ.get("FPM_API_KEY"))
+    parser.add_argument("--json", action="store_true", help="print the raw JSON answer")
+    sub = parser.add_subparsers(dest="command", required=True)
+    submit = sub.add_parser("submit", help="submit a calibration")
+    submit.add_argument("spec", help="problem spec JSON file")
+    submit.add_argument("--wait", action="store_true", help="wait, with a progress bar on stderr")
+    sub.add_parser("status", help="show a calibration").add_argument("id")
+    sub.add_parser("cancel", help="cancel a calibration").add_argument("id")
+    listing = sub.add_parser("list", help="list calibrations, newest first")
+    listing.add_argument("--status", choices=STATUSES)
+    listing.add_argument("--limit", type=int, default=20)
+    params = sub.add_parser("params", help="stored parameter sets, filtered by material")
+    params.add_argument("--E", dest="youngs_modulus", type=float, help="Young's modulus, Pa")
+    params.add_argument("--nu", dest="poisson_ratio", type=float, help="Poisson's ratio")
+    params.add_argument("--rho", dest="density", type=float, help="density, kg/m^3")
+    params.add_argument("--connectivity", choices=["axis", "axis+face", "full"])
+    params.add_argument("--name", help="substring of the spec name")
+    sub.add_parser("health", help="Redis, workers, queue depth")
+    return parser.parse_args(argv)
+
+
+def show_calibration(c: dict[str, Any]) -> str:
+    """A calibration as a short report."""
+    p = c["progress"]
+    lines = [
+        f"calibration {c['id']}  {c['name']}",
+        f"status      {c['status']} ({p['phase']})",
+        f"moves       {p['iterations']} of {p['total_iterations']}",
+    ]
+    if p.get("best_cost") is not None:
+        lines.append(f"best cost   {p['best_cost']:.5g} (T = {p['temperature']:.3g})")
+    if c.get("error"):
+        lines.append(f"error       {c['error']}")
+    r = c.get("result")
+    if r:
+        lines.append(f"k, d, depth {r['k']:.5g} N/m, {r['d']:.5g} N s/m, {r['depth']} layers")
+        lines.append(f"param set   {c['parameter_set_id']}")
+        names = [f"load case {i + 1}" for i in range(len(r["discrepancy"]))]
+        rows = list(zip(names, r["discrepancy"], r["settle_steps"], strict=True))
+        lines += ["", table(["load case", "discrepancy % h", "settle steps"], rows)]
+    return "\n".join(lines)
+
+
+def run(client: Client, args: argparse.Namespace) -> Any:
+    """Do the command; returns the JSON answer and prints the readable form unless --json."""
+    if args.command == "submit":
+        answer = client.calibrate(args.spec, wait=args.wait)
+        text = show_calibration(answer)
+    elif args.command == "status":
+        answer = client.get(args.id)
+        text = show_calibration(answer)
+    elif args.command == "cancel":
+        answer = client.cancel(args.id)
+        text = show_calibration(answer)
+    elif args.command == "list":
+        answer = client.calibrations(status=args.status, limit=args.limit)
+        rows = [[i["id"], i["name"], i["status"], i["parameter_set_id"]] for i in answer["items"]]
+        text = table(["id", "name", "status", "parameter set"], rows)
+        text += f"\n({len(rows)} of {answer['total']})"
+    elif args.command == "params":
+        filters = {k: getattr(args, k) for k in ("youngs_modulus", "poisson_ratio", "density")}
+        answer = client.parameter_sets(**filters, connectivity=args.connectivity, name=args.name)
+        rows = [
+            [
+                p["id"],
+                p["name"],
+                p["material"]["youngs_modulus"],
+                p["material"]["poisson_ratio"],
+                p["k"],
+                p["d"],
+                p["depth"],
+                sum(p["discrepancy"]) / len(p["discrepancy"]),
+            ]
+            for p in answer
+        ]
+        headers = ["id", "name", "E Pa", "nu", "k N/m", "d N s/m", "depth", "mean disc. % h"]
+        text = table(headers, rows)
+    else:
+        answer = client.health()
+        text = "\n".join(f"{k:<12}{v}" for k, v in answer.items())
+    print(json.dumps(answer, indent=2) if args.json else text)
+    return answer
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    with Client(args.url, api_key=args.api_key) as client:
+        try:
+            run(client, args)
+        except ApiError as e:
+            print(f"error: {e}", file=sys.stderr)
+            for err in e.errors:
+                print(f"  {err['field']}: {err['message']}", file=sys.stderr)
+            return 1
+        except httpx.HTTPError as e:
+            print(f"error: cannot reach {args.url}: {e}", file=sys.stderr)
+            return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

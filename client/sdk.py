@@ -1,0 +1,156 @@
+"""The SDK: a small class over the service's HTTP API.
+
+from client import Client
+c = Client("http://127.0.0.1:8000")
+done = c.calibrate("examples/paper-material-a.json", wait=True)
+print(done["result"]["k"], done["result"]["d"], done["result"]["depth"])
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from .progress import ProgressBar
+
+TERMINAL = ("succeeded", "failed", "canceled")
+SpecLike = dict[str, Any] | str | Path
+
+
+class ApiError(Exception):
+    """A problem+json answer: ``status``, ``title``, ``detail`` and the bad ``errors`` fields."""
+
+    def __init__(self, status: int, title: str, detail: str, errors: list[dict] | None = None):
+        super().__init__(f"{status} {title}: {detail}")
+        self.status = status
+        self.title = title
+        self.detail = detail
+        self.errors = errors or []
+
+
+def read_spec(spec: SpecLike) -> dict[str, Any]:
+    """A spec dict from a dict, a JSON file path, or a JSON string."""
+    if isinstance(spec, dict):
+        return spec
+    text = str(spec)
+    if not text.lstrip().startswith("{"):
+        text = Path(text).read_text()
+    return json.loads(text)
+
+
+class Client:
+    """Client of the calibration service.
+
+    Args:
+        base_url: e.g. ``http://127.0.0.1:8000``.
+        api_key: sent as X-API-Key when the service requires one.
+        timeout: per-request timeout, s.
+    """
+
+    def __init__(self, base_url: str, api_key: str | None = None, timeout: float = 30.0):
+        headers = {"X-API-Key": api_key} if api_key else {}
+        self.http = httpx.Client(base_url=base_url.rstrip("/"), headers=headers, timeout=timeout)
+
+    def close(self) -> None:
+        self.http.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _call(self, method: str, path: str, **kwargs: Any) -> Any:
+        response = self.http.request(method, path, **kwargs)
+        if response.status_code >= 400:
+            try:
+                body = response.json()
+            except ValueError:
+                body = {"title": response.reason_phrase, "detail": response.text[:200]}
+            raise ApiError(
+                response.status_code,
+                body.get("title", ""),
+                body.get("detail", ""),
+                body.get("errors"),
+            )
+        return response.json()
+
+    def calibrate(self, spec: SpecLike, wait: bool = False, progress: bool = True) -> dict:
+        """Submit a calibration; with ``wait`` return it once finished (see :meth:`wait`)."""
+        calibration = self._call("POST", "/v1/calibrations", json=read_spec(spec))
+        return self.wait(calibration["id"], progress=progress) if wait else calibration
+
+    def get(self, calibration_id: str) -> dict:
+        """A calibration: status, progress, result once succeeded."""
+        return self._call("GET", f"/v1/calibrations/{calibration_id}")
+
+    def calibrations(self, status: str | None = None, offset: int = 0, limit: int = 50) -> dict:
+        """A page of calibrations, newest first: {items, total, offset, limit}."""
+        params: dict[str, Any] = {"offset": offset, "limit": limit}
+        if status:
+            params["status"] = status
+        return self._call("GET", "/v1/calibrations", params=params)
+
+    def wait(
+        self,
+        calibration_id: str,
+        *,
+        poll: float = 0.5,
+        timeout: float | None = None,
+        progress: bool = True,
+    ) -> dict:
+        """Poll until the calibration is succeeded, failed or canceled; return it.
+
+        ``progress`` draws a text bar on stderr. Raises TimeoutError after ``timeout`` s.
+        """
+        bar = ProgressBar() if progress else None
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            calibration = self.get(calibration_id)
+            if bar is not None:
+                bar.update(calibration)
+            if calibration["status"] in TERMINAL:
+                if bar is not None:
+                    bar.close()
+                return calibration
+            if deadline is not None and time.monotonic() > deadline:
+                raise TimeoutError(f"calibration {calibration_id} still {calibration['status']}")
+            time.sleep(poll)
+
+    def cancel(self, calibration_id: str) -> dict:
+        """Cancel a calibration; returns it (status canceled)."""
+        return self._call("DELETE", f"/v1/calibrations/{calibration_id}")
+
+    def parameter_sets(self, **filters: Any) -> list[dict]:
+        """Stored parameter sets, newest first.
+
+        Filters: youngs_modulus, poisson_ratio, density (equal to 1e-6 relative),
+        connectivity, name (substring).
+        """
+        params = {k: v for k, v in filters.items() if v is not None}
+        return self._call("GET", "/v1/parameter-sets", params=params)["items"]
+
+    def parameter_set(self, parameter_set_id: str) -> dict:
+        """One stored parameter set."""
+        return self._call("GET", f"/v1/parameter-sets/{parameter_set_id}")
+
+    def fem_reference(
+        self, spec: SpecLike, *, poll: float = 0.5, timeout: float | None = None
+    ) -> dict:
+        """The FEM reference of ``spec`` (computed if not stored): nodes, displacements."""
+        reference = self._call("POST", "/v1/fem-references", json=read_spec(spec))
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while reference["status"] in ("queued", "running"):
+            if deadline is not None and time.monotonic() > deadline:
+                raise TimeoutError(f"FEM reference {reference['id']} still {reference['status']}")
+            time.sleep(poll)
+            reference = self._call("GET", f"/v1/fem-references/{reference['id']}")
+        return reference
+
+    def health(self) -> dict:
+        """Redis, workers, queue depth."""
+        return self._call("GET", "/v1/health")
