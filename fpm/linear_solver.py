@@ -20,10 +20,10 @@ import pyamg
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
-AMG_FROM_UNKNOWNS = 60_000
+AMG_FROM_UNKNOWNS = 5_000
 """``"auto"`` uses AMG from this many unknowns on (see bench/bench_fem.py for the crossover)."""
 
-AMG_TOLERANCE = 1e-10
+AMG_TOLERANCE = 1e-9
 """Relative residual ||K x - f|| / ||f|| at which conjugate gradients stops."""
 
 AMG_MAX_ITERATIONS = 1000
