@@ -49,11 +49,21 @@ class Client:
         base_url: e.g. ``http://127.0.0.1:8000``.
         api_key: sent as X-API-Key when the service requires one.
         timeout: per-request timeout, s.
+        http: an httpx.Client to send through instead (e.g. FastAPI's TestClient).
     """
 
-    def __init__(self, base_url: str, api_key: str | None = None, timeout: float = 30.0):
+    def __init__(
+        self,
+        base_url: str,
+        api_key: str | None = None,
+        timeout: float = 30.0,
+        http: httpx.Client | None = None,
+    ):
         headers = {"X-API-Key": api_key} if api_key else {}
-        self.http = httpx.Client(base_url=base_url.rstrip("/"), headers=headers, timeout=timeout)
+        if http is None:
+            http = httpx.Client(base_url=base_url.rstrip("/"), timeout=timeout)
+        http.headers.update(headers)
+        self.http = http
 
     def close(self) -> None:
         self.http.close()

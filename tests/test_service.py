@@ -1,0 +1,217 @@
+"""The REST API in-process (FastAPI TestClient) against a real Redis."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service.main import create_app
+from service.redis_server import free_port
+from service.settings import Settings
+from worker import keys
+
+pytestmark = pytest.mark.redis
+
+PROBLEM_JSON = "application/problem+json"
+EXAMPLE_A = Path(__file__).resolve().parents[1] / "examples" / "paper-material-a.json"
+
+
+def assert_problem(response, status: int, field: str | None = None) -> dict:
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"] == PROBLEM_JSON
+    body = response.json()
+    assert body["status"] == status and body["title"] and body["detail"]
+    assert "Traceback" not in response.text
+    if field is not None:
+        assert field in [e["field"] for e in body["errors"]], body
+        assert field in body["detail"]
+    return body
+
+
+def test_submit_read_list(api, run_workers, small_spec):
+    submitted = api.post("/v1/calibrations", json=small_spec)
+    assert submitted.status_code == 202
+    calibration = submitted.json()
+    assert submitted.headers["location"] == f"/v1/calibrations/{calibration['id']}"
+    assert calibration["status"] == "queued" and calibration["result"] is None
+    again = api.post("/v1/calibrations", json=small_spec)
+    assert again.status_code == 200 and again.json()["id"] == calibration["id"]
+
+    run_workers()
+    done = api.get(submitted.headers["location"]).json()
+    assert done["status"] == "succeeded"
+    assert done["progress"]["phase"] == "done"
+    assert done["progress"]["iterations"] == done["progress"]["total_iterations"] > 0
+    result = done["result"]
+    assert set(result) >= {"k", "d", "depth", "cost", "discrepancy", "settle_steps", "seconds"}
+    assert len(result["discrepancy"]) == len(small_spec["load_cases"])
+    assert done["timings"]["running_seconds"] > 0
+
+    page = api.get("/v1/calibrations", params={"status": "succeeded"}).json()
+    assert [i["id"] for i in page["items"]] == [calibration["id"]] and page["total"] == 1
+    assert api.get("/v1/calibrations", params={"status": "failed"}).json()["total"] == 0
+
+    ps = api.get(f"/v1/parameter-sets/{done['parameter_set_id']}").json()
+    assert (ps["k"], ps["d"], ps["depth"]) == (result["k"], result["d"], result["depth"])
+    assert ps["provenance"]["calibration_id"] == calibration["id"]
+
+
+def test_listing_is_newest_first_and_paginated(api, small_spec):
+    ids = []
+    for seed in range(3):
+        small_spec["annealing"]["seed"] = seed
+        ids.append(api.post("/v1/calibrations", json=small_spec).json()["id"])
+        time.sleep(0.01)
+    page = api.get("/v1/calibrations", params={"offset": 1, "limit": 1}).json()
+    assert page["total"] == 3 and [i["id"] for i in page["items"]] == [ids[1]]
+    assert [i["id"] for i in api.get("/v1/calibrations").json()["items"]] == ids[::-1]
+
+
+def test_parameter_sets_filtered_by_material(api, run_workers, small_spec):
+    api.post("/v1/calibrations", json=small_spec)
+    small_spec["material"]["youngs_modulus"] = 20000.0
+    api.post("/v1/calibrations", json=small_spec)
+    run_workers()
+    everything = api.get("/v1/parameter-sets").json()
+    assert everything["total"] == 2
+    soft = api.get("/v1/parameter-sets", params={"youngs_modulus": 1e4, "poisson_ratio": 0.45})
+    assert [p["material"]["youngs_modulus"] for p in soft.json()["items"]] == [1e4]
+    assert api.get("/v1/parameter-sets", params={"density": 999}).json()["total"] == 0
+    assert_problem(api.get("/v1/parameter-sets/ps-nothing"), 404)
+
+
+def test_cancel(api, small_spec):
+    calibration = api.post("/v1/calibrations", json=small_spec).json()
+    canceled = api.delete(f"/v1/calibrations/{calibration['id']}")
+    assert canceled.status_code == 200 and canceled.json()["status"] == "canceled"
+    assert api.delete(f"/v1/calibrations/{calibration['id']}").json()["status"] == "canceled"
+    # A canceled calibration does not block a new one of the same spec.
+    again = api.post("/v1/calibrations", json=small_spec)
+    assert again.status_code == 202 and again.json()["id"] != calibration["id"]
+    assert_problem(api.delete("/v1/calibrations/nope"), 404)
+
+
+def test_cancel_of_a_finished_calibration_conflicts(api, run_workers, small_spec):
+    calibration = api.post("/v1/calibrations", json=small_spec).json()
+    run_workers()
+    assert_problem(api.delete(f"/v1/calibrations/{calibration['id']}"), 409)
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        (lambda s: s["material"].update(poisson_ratio=0.6), "material.poisson_ratio"),
+        (lambda s: s["material"].pop("density"), "material.density"),
+        (lambda s: s.update(colour="red"), "colour"),
+        (
+            lambda s: s["load_cases"][0]["forces"][0].update(at=[0.011, 0.01, 0.03]),
+            "load_cases.0.forces.0.at",
+        ),
+        (lambda s: s["load_cases"][1].update(forces=[]), "load_cases.1.forces"),
+        (lambda s: s["geometry"].update(nodes=[20, 20, 20]), "geometry"),
+        (lambda s: s["annealing"].update(chains=5), "annealing.chains"),
+        (lambda s: s.update(fixed=[]), "fixed"),
+        (
+            lambda s: s.update(
+                geometry={
+                    "type": "network",
+                    "nodes": [[0, 0, 0], [1, 0, 0]],
+                    "springs": [[0, 1]],
+                    "masses": 1.0,
+                }
+            ),
+            "geometry.type",
+        ),
+    ],
+)
+def test_bad_spec_is_422_naming_the_field(api, redis, small_spec, change, field):
+    change(small_spec)
+    assert_problem(api.post("/v1/calibrations", json=small_spec), 422, field)
+    assert redis.dbsize() == 0  # nothing half-written
+
+
+def test_malformed_and_oversized_bodies(api, redis, settings, small_spec):
+    as_json = {"content-type": "application/json"}
+    body = assert_problem(api.post("/v1/calibrations", content=b"{not json", headers=as_json), 422)
+    assert body["errors"]
+    big = json.dumps({**small_spec, "name": "x" * settings.max_body_bytes})
+    assert_problem(api.post("/v1/calibrations", content=big, headers=as_json), 413)
+    assert redis.dbsize() == 0
+
+
+def test_fem_reference_on_its_own(api, run_workers, small_spec):
+    submitted = api.post("/v1/fem-references", json=small_spec)
+    assert submitted.status_code == 202 and submitted.json()["status"] == "queued"
+    assert api.post("/v1/fem-references", json=small_spec).status_code == 200
+    run_workers()
+    reference = api.get(submitted.headers["location"]).json()
+    assert reference["status"] == "succeeded" and reference["n_nodes"] == 64
+    assert len(reference["displacements"]) == 2 and len(reference["displacements"][0]) == 64
+    assert len(reference["nodes"]) == 64
+    # A calibration of the same problem finds it stored.
+    assert api.post("/v1/calibrations", json=small_spec).json()["fem_cached"] is True
+    assert_problem(api.get("/v1/fem-references/abc"), 404)
+
+
+def test_api_keys_protect_every_v1_route(settings, redis):
+    secured = Settings(redis_url=settings.redis_url, api_keys="s3cret, other")  # as in the env
+    client = TestClient(create_app(secured), raise_server_exceptions=False)
+    for path in ("/v1/health", "/v1/calibrations", "/v1/parameter-sets", "/v1/fem-references/x"):
+        assert_problem(client.get(path), 401)
+        assert_problem(client.get(path, headers={"X-API-Key": "wrong"}), 401)
+    assert client.get("/v1/health", headers={"X-API-Key": "other"}).status_code == 200
+    assert client.get("/docs").status_code == 200
+
+
+def test_openapi_shows_the_example_spec(api):
+    schema = api.get("/openapi.json").json()
+    body = schema["paths"]["/v1/calibrations"]["post"]["requestBody"]["content"]["application/json"]
+    example = body["examples"]["paper-material-a"]["value"]
+    assert example == json.loads(EXAMPLE_A.read_text())
+    assert "Swagger" in api.get("/docs").text
+
+
+def test_unknown_things_are_problems(api):
+    assert_problem(api.get("/v1/calibrations/nope"), 404)
+    assert_problem(api.get("/v1/nothing-here"), 404)
+    assert_problem(api.put("/v1/calibrations"), 405)
+    assert_problem(api.get("/v1/calibrations", params={"limit": 0}), 422, "limit")
+
+
+def test_redis_unreachable_is_503_quickly(settings):
+    nowhere = settings.model_copy(update={"redis_url": f"redis://127.0.0.1:{free_port()}/0"})
+    client = TestClient(create_app(nowhere), raise_server_exceptions=False)
+    started = time.monotonic()
+    assert_problem(client.get("/v1/health"), 503)
+    assert_problem(client.get("/v1/calibrations/x"), 503)
+    assert time.monotonic() - started < 5
+
+
+def test_redis_killed_and_restarted(api, redis_server, small_spec):
+    assert api.get("/v1/health").status_code == 200
+    redis_server.stop(kill=True)
+    try:
+        assert_problem(api.post("/v1/calibrations", json=small_spec), 503)
+        assert_problem(api.get("/v1/health"), 503)
+    finally:
+        redis_server.start()
+    assert api.get("/v1/health").json()["redis"] is True
+    assert api.post("/v1/calibrations", json=small_spec).status_code == 202
+
+
+def test_health_counts(api, small_spec):
+    api.post("/v1/calibrations", json=small_spec)
+    health = api.get("/v1/health").json()
+    assert health == {
+        "status": "degraded",  # no worker is running
+        "redis": True,
+        "workers": 0,
+        "queued_jobs": 1,  # the FEM job; chains and finalize wait on it
+        "running_jobs": 0,
+        "failed_jobs": 0,
+    }
+    assert keys.QUEUE == "fpm"

@@ -1,0 +1,162 @@
+"""The job graph against a real Redis and real RQ workers."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+from rq.job import Job, JobStatus
+from rq.registry import StartedJobRegistry
+from rq.serializers import JSONSerializer
+
+import fpm
+from fpm.calibration import calibrate
+from service.limits import dump_spec
+from worker import graph, keys, store
+from worker.hashing import fem_hash, spec_hash
+from worker.status import CalibrationStatus
+
+pytestmark = pytest.mark.redis
+
+
+def submit(redis, spec):
+    """Validate like the service does, then submit."""
+    dumped = dump_spec(fpm.load_problem(spec).spec)
+    return graph.submit_calibration(redis, dumped, graph.JobOptions(retries=1))
+
+
+def wait_for(predicate, timeout=20.0):
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.05)
+
+
+def test_result_equals_in_process_calibration(redis, run_workers, small_spec):
+    record, created = submit(redis, small_spec)
+    assert created and record.status == CalibrationStatus.QUEUED
+    run_workers()
+    done = store.get_calibration(redis, record.id)
+    assert done.status == CalibrationStatus.SUCCEEDED, done.error
+    expected = calibrate(fpm.load_problem(small_spec))
+    for name in ("k", "d", "depth", "cost", "discrepancy", "settle_steps"):
+        assert done.result[name] == pytest.approx(getattr(expected, name), rel=1e-12)
+    # Stored for good (no TTL): the FEM reference, the parameter set, the record.
+    for key in (
+        keys.fem_reference(record.fem_hash),
+        keys.parameter_set(done.parameter_set_id),
+        keys.calibration(record.id),
+    ):
+        assert redis.ttl(key) == -1
+    # Scratch is gone or expiring.
+    assert not redis.exists(keys.chain_checkpoint(record.id, 0))
+    assert redis.ttl(keys.chain_result(record.id, 0)) > 0
+
+
+def test_identical_spec_returns_the_same_calibration(redis, run_workers, small_spec):
+    first, _ = submit(redis, small_spec)
+    again, created = submit(redis, small_spec)
+    assert not created and again.id == first.id
+    run_workers()
+    done, created = submit(redis, small_spec)
+    assert not created and done.id == first.id and done.status == CalibrationStatus.SUCCEEDED
+
+
+def test_second_calibration_reuses_the_stored_fem_reference(redis, run_workers, small_spec):
+    first, _ = submit(redis, small_spec)
+    assert not first.fem_cached
+    run_workers()
+    small_spec["annealing"]["seed"] = 4  # another calibration, the same FEM reference
+    second, created = submit(redis, small_spec)
+    assert created and second.fem_cached and second.fem_hash == first.fem_hash
+    queued = (
+        graph.queue(redis).get_job_ids() + graph.queue(redis).deferred_job_registry.get_job_ids()
+    )
+    assert not any(job_id.startswith("fem-") for job_id in queued)
+    run_workers()
+    assert store.get_calibration(redis, second.id).status == CalibrationStatus.SUCCEEDED
+    assert redis.zcard(keys.parameter_sets()) == 2
+
+
+def test_finalize_twice_stores_one_parameter_set(redis, run_workers, small_spec):
+    record, _ = submit(redis, small_spec)
+    run_workers()
+    ps_id = store.get_calibration(redis, record.id).parameter_set_id
+    stored = redis.get(keys.parameter_set(ps_id))
+    # A retried finalize (e.g. its worker died after writing) changes nothing.
+    redis.hset(keys.calibration(record.id), "status", CalibrationStatus.RUNNING.value)
+    graph.queue(redis).enqueue_call("worker.jobs.finalize_calibration", args=(record.id,))
+    run_workers()
+    assert redis.zcard(keys.parameter_sets()) == 1
+    assert redis.get(keys.parameter_set(ps_id)) == stored
+
+
+def test_fem_failure_fails_the_calibration(redis, run_workers, small_spec):
+    small_spec["fixed"] = [{"node": 0}]  # one node cannot hold the solid: the FEM refuses
+    record, _ = submit(redis, small_spec)
+    run_workers()
+    done = store.get_calibration(redis, record.id)
+    assert done.status == CalibrationStatus.FAILED
+    assert "FEM" in done.error
+    assert store.get_fem_meta(redis, record.fem_hash)["status"] == "failed"
+
+
+def test_cancel_queued_calibration(redis, run_workers, small_spec):
+    record, _ = submit(redis, small_spec)
+    assert graph.cancel_calibration(redis, record.id)
+    assert not graph.cancel_calibration(redis, record.id)  # already canceled
+    run_workers()
+    done = store.get_calibration(redis, record.id)
+    assert done.status == CalibrationStatus.CANCELED and done.result is None
+    assert redis.zcard(keys.parameter_sets()) == 0
+    job = Job.fetch(keys.finalize_job_id(record.id), connection=redis, serializer=JSONSerializer)
+    assert job.get_status() == JobStatus.CANCELED
+
+
+def slow_spec(spec):
+    """The small spec with one chain of ~320 moves: it runs for a second or two."""
+    spec["annealing"].update(chains=1, beta=1.5, t_final=0.002, seed=11)
+    return spec
+
+
+def test_cancel_stops_a_running_chain(redis, worker_processes, small_spec):
+    record, _ = submit(redis, slow_spec(small_spec))
+    worker_processes.start()
+    wait_for(lambda: store.get_progress(redis, record.id).get(0, {}).get("move", 0) > 5)
+    assert graph.cancel_calibration(redis, record.id)
+    chain = Job.fetch(keys.chain_job_id(record.id, 0), connection=redis, serializer=JSONSerializer)
+    wait_for(lambda: chain.get_status() in (JobStatus.STOPPED, JobStatus.FINISHED), 10)
+    progress = store.get_progress(redis, record.id)[0]
+    assert progress["move"] < progress["moves"]
+    assert store.get_calibration(redis, record.id).status == CalibrationStatus.CANCELED
+    assert not redis.exists(keys.chain_result(record.id, 0))
+
+
+def test_chain_of_a_dead_worker_is_retried_and_resumes(
+    redis, worker_processes, run_workers, small_spec
+):
+    spec = slow_spec(small_spec)
+    record, _ = submit(redis, spec)
+    worker = worker_processes.start()
+    wait_for(lambda: redis.exists(keys.chain_checkpoint(record.id, 0)))
+    worker_processes.stop(worker, sig=9)  # the whole worker dies, work horse and all
+    registry = StartedJobRegistry(keys.QUEUE, connection=redis, serializer=JSONSerializer)
+    assert keys.chain_job_id(record.id, 0) in registry.get_job_ids(cleanup=False)
+    # What RQ's maintenance does once the dead worker's heartbeat has expired:
+    registry.cleanup(timestamp=time.time() + 3600)
+    run_workers()
+    done = store.get_calibration(redis, record.id)
+    assert done.status == CalibrationStatus.SUCCEEDED, done.error
+    expected = calibrate(fpm.load_problem(spec))
+    assert (done.result["k"], done.result["d"]) == pytest.approx(
+        (expected.k, expected.d), rel=1e-12
+    )
+
+
+def test_hashes_ignore_spelt_out_defaults(small_spec):
+    plain = dump_spec(fpm.load_problem(small_spec).spec)
+    small_spec["fpm"]["dt"] = 1e-3  # the default, spelt out
+    assert spec_hash(dump_spec(fpm.load_problem(small_spec).spec)) == spec_hash(plain)
+    small_spec["annealing"]["seed"] = 99
+    changed = dump_spec(fpm.load_problem(small_spec).spec)
+    assert spec_hash(changed) != spec_hash(plain) and fem_hash(changed) == fem_hash(plain)
