@@ -28,9 +28,15 @@ STARTUP_TIMEOUT = 30.0
 """Seconds the API may take to answer its health route."""
 
 
-def _spawn(args: list[str], env: dict[str, str]) -> subprocess.Popen[bytes]:
-    # A new session: the terminal's Ctrl-C reaches only us, and we stop the children in order.
-    return subprocess.Popen(args, env=env, start_new_session=True)
+def _spawn(args: list[str], env: dict[str, str], log: Path | None) -> subprocess.Popen[bytes]:
+    """A child in a new session (the terminal's Ctrl-C reaches only us; we stop the children
+    in order), its output appended to ``log`` if given."""
+    out = None if log is None else log.open("ab")
+    try:
+        return subprocess.Popen(args, env=env, stdout=out, stderr=out, start_new_session=True)
+    finally:
+        if out is not None:
+            out.close()
 
 
 def _stop(processes: list[subprocess.Popen[bytes]], grace: float) -> None:
@@ -79,18 +85,30 @@ def local_stack(
     port: int = 8000,
     host: str = "127.0.0.1",
     data_dir: Path = DATA_DIR,
+    redis_url: str | None = None,
+    log_dir: Path | None = None,
 ) -> Iterator[str]:
-    """Start Redis (unless $REDIS_URL is set), the API and ``workers`` workers; yield the URL."""
+    """Start Redis, the API and ``workers`` workers; yield the API's URL.
+
+    Redis: ``redis_url``'s server, else $REDIS_URL's, else an embedded one in ``data_dir``.
+    The API's and workers' logs go to the terminal, or to files in ``log_dir`` if given.
+    """
+    if log_dir is not None:
+        log_dir.mkdir(parents=True, exist_ok=True)
+
+    def log(name: str) -> Path | None:
+        return None if log_dir is None else log_dir / f"{name}.log"
+
     with ExitStack() as stack:
-        redis_url = os.environ.get("REDIS_URL")
+        redis_url = redis_url or os.environ.get("REDIS_URL")
         if not redis_url:
             redis_url = stack.enter_context(RedisServer(data_dir=data_dir / "redis")).url
         env = {**os.environ, "REDIS_URL": redis_url}
         uvicorn = ["-m", "uvicorn", "service.main:app", "--host", host, "--port", str(port)]
-        api = _spawn([sys.executable, *uvicorn], env)
+        api = _spawn([sys.executable, *uvicorn], env, log("api"))
         stack.callback(_stop, [api], 5.0)
         worker = [sys.executable, "-m", "worker", "--url", redis_url]
-        pool = [_spawn(worker, env) for _ in range(workers)]
+        pool = [_spawn(worker, env, log(f"worker-{i}")) for i in range(workers)]
         stack.callback(_stop, pool, 10.0)
         url = f"http://{host}:{port}"
         _wait_until_up(url, api)
