@@ -74,6 +74,7 @@ def show_calibration(c: dict[str, Any]) -> str:
 
 def run(client: Client, args: argparse.Namespace) -> Any:
     """Do the command; returns the JSON answer and prints the readable form unless --json."""
+    answer: Any
     if args.command == "submit":
         answer = client.calibrate(args.spec, wait=args.wait)
         text = show_calibration(answer)

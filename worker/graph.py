@@ -93,7 +93,8 @@ def submit_calibration(
         store.write_calibration(pipe, record)
         return None
 
-    existing = redis.transaction(claim, by_spec, value_from_callable=True)
+    transaction: Any = redis.transaction  # its stub wants a callable returning None
+    existing: store.CalibrationRecord | None = transaction(claim, by_spec, value_from_callable=True)
     if existing is not None:
         return existing, False
     _enqueue(redis, record, options)

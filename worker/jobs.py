@@ -47,13 +47,15 @@ def fem_reference(fem_hash: str) -> dict[str, Any]:
     meta = store.get_fem_meta(redis, fem_hash)
     redis.hset(meta_key, mapping={"status": FemStatus.RUNNING.value, "started": time.time()})
     result = solve_fem(load_problem(json.loads(meta["spec"])))
-    summary = {"n_nodes": len(result.nodes), "load_cases": json.dumps(result.load_cases)}
+    fields: store.Mapping = {
+        "status": FemStatus.SUCCEEDED.value,
+        "finished": time.time(),
+        "n_nodes": len(result.nodes),
+        "load_cases": json.dumps(result.load_cases),
+    }
     pipe = redis.pipeline()
     pipe.set(keys.fem_reference(fem_hash), json.dumps(result.to_dict()))
-    pipe.hset(
-        meta_key,
-        mapping={"status": FemStatus.SUCCEEDED.value, "finished": time.time(), **summary},
-    )
+    pipe.hset(meta_key, mapping=fields)
     pipe.execute()
     return {"id": fem_hash, "cached": False, "n_nodes": len(result.nodes)}
 
@@ -92,9 +94,7 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
             FemResult.from_dict(reference),
             chain,
             progress=reporter,
-            checkpoint=lambda state: redis.set(
-                checkpoint_key, json.dumps(state), ex=store.SCRATCH_TTL
-            ),
+            checkpoint=lambda state: store.save_checkpoint(redis, checkpoint_key, state),
             resume=json.loads(saved) if saved else None,
         )
     except Canceled:
@@ -239,7 +239,11 @@ def on_failure(job: Job, connection: Redis, exc_type: type, value: BaseException
         return
     error = f"{exc_type.__name__}: {value}" if str(value) else exc_type.__name__
     if job.func_name == "worker.jobs.fem_reference":
-        fields = {"status": FemStatus.FAILED.value, "error": error, "finished": time.time()}
+        fields: store.Mapping = {
+            "status": FemStatus.FAILED.value,
+            "error": error,
+            "finished": time.time(),
+        }
         connection.hset(keys.fem_meta(job.args[0]), mapping=fields)
     else:
         _fail(connection, job.args[0], f"{job.description}: {error}")

@@ -23,8 +23,17 @@ SCRATCH_TTL = 7 * 24 * 3600
 """Seconds that chain checkpoints, chain results and progress are kept (s)."""
 
 
+Mapping = dict[Any, Any]
+"""What redis-py's hset accepts (its stubs want a key type wider than str)."""
+
+
 def _text(value: bytes | str | None) -> str | None:
     return value.decode() if isinstance(value, bytes) else value
+
+
+def id_list(reply: Any) -> list[str]:
+    """A list reply of ids (bytes) as str."""
+    return [i.decode() for i in reply]
 
 
 def decode_hash(raw: dict[Any, Any]) -> dict[str, str]:
@@ -66,7 +75,7 @@ class CalibrationRecord:
     result: dict[str, Any] | None = None
     parameter_set_id: str = ""
 
-    def to_hash(self) -> dict[str, str]:
+    def to_hash(self) -> Mapping:
         """Flat str mapping for HSET."""
         out = {k: v for k, v in asdict(self).items() if k not in ("spec", "result")}
         out["status"] = self.status.value
@@ -137,7 +146,7 @@ def update_calibration(
     (and writes nothing) when the record is missing or terminal.
     """
     key = keys.calibration(calibration_id)
-    mapping = {k: _flat(v) for k, v in fields.items()}
+    mapping: Mapping = {k: _flat(v) for k, v in fields.items()}
 
     def apply(pipe: Pipeline) -> bool:
         status = _text(pipe.hget(key, "status"))
@@ -150,7 +159,8 @@ def update_calibration(
             extra(pipe)
         return True
 
-    return bool(redis.transaction(apply, key, value_from_callable=True))
+    transaction: Any = redis.transaction  # its stub wants a callable returning None
+    return bool(transaction(apply, key, value_from_callable=True))
 
 
 def _flat(value: Any) -> str:
@@ -168,6 +178,11 @@ def save_progress(redis: Redis, calibration_id: str, chain: int, info: dict[str,
     pipe.hset(key, str(chain), json.dumps(info))
     pipe.expire(key, SCRATCH_TTL)
     pipe.execute()
+
+
+def save_checkpoint(redis: Redis, key: str, state: dict[str, Any]) -> None:
+    """Store a chain's annealing state (JSON) so that a retried chain resumes from it."""
+    redis.set(key, json.dumps(state), ex=SCRATCH_TTL)
 
 
 def get_fem_meta(redis: Redis, fem_hash: str) -> dict[str, str]:
@@ -189,10 +204,10 @@ def get_parameter_set(redis: Redis, parameter_set_id: str) -> dict[str, Any] | N
 
 def list_parameter_sets(redis: Redis) -> list[dict[str, Any]]:
     """Every stored parameter set, newest first."""
-    ids = [_text(i) for i in redis.zrevrange(keys.parameter_sets(), 0, -1)]
+    ids = id_list(redis.zrevrange(keys.parameter_sets(), 0, -1))
     if not ids:
         return []
-    raws = redis.mget([keys.parameter_set(i or "") for i in ids])
+    raws = redis.mget([keys.parameter_set(i) for i in ids])
     return [json.loads(raw) for raw in raws if raw]
 
 

@@ -64,10 +64,10 @@ def listing(
     limit = min(limit, settings.page_size_limit)
     if status_filter is None:
         total = redis.zcard(keys.calibrations())
-        ids = [i.decode() for i in redis.zrevrange(keys.calibrations(), offset, offset + limit - 1)]
+        ids = store.id_list(redis.zrevrange(keys.calibrations(), offset, offset + limit - 1))
         records = store.get_calibrations(redis, ids)
     else:
-        all_ids = [i.decode() for i in redis.zrevrange(keys.calibrations(), 0, -1)]
+        all_ids = store.id_list(redis.zrevrange(keys.calibrations(), 0, -1))
         matching = [r for r in store.get_calibrations(redis, all_ids) if r.status == status_filter]
         total, records = len(matching), matching[offset : offset + limit]
     items = [
