@@ -22,7 +22,7 @@ def render(calibration: dict[str, Any]) -> str:
     p = calibration["progress"]
     fraction = fraction_done(calibration)
     filled = round(fraction * WIDTH)
-    line = f"{calibration.get('name', '')[:24]:<24} [{'#' * filled}{'.' * (WIDTH - filled)}]"
+    line = f"{calibration.get('name', '')[:28]:<28} [{'#' * filled}{'.' * (WIDTH - filled)}]"
     line += f" {fraction:4.0%} {calibration['status']:<9} {p['phase']:<9}"
     if p.get("temperature") is not None:
         line += f" T={p['temperature']:.2e}"

@@ -16,7 +16,8 @@ from redis import Redis
 from rq import SimpleWorker, Worker
 from rq.serializers import JSONSerializer
 
-from . import keys
+# jobs is imported before forking, so every work horse inherits fpm, NumPy and SciPy loaded.
+from . import jobs, keys  # noqa: F401
 
 MAINTENANCE_INTERVAL = 60
 """Seconds between RQ maintenance runs (which retry the jobs of dead workers)."""
