@@ -4,7 +4,7 @@ Metropolis acceptance ``exp(-dc / T)`` (Boltzmann constant folded into T), Lundy
 ``T <- T / (1 + beta T)``, one move per temperature, stop once T is below ``t_final``. A
 candidate that diverged, or whose cost exceeds ``c_max``, is rejected at once (paper Fig. 8).
 
-Moves: a Gaussian step in log(parameter), reflected into the bounds; its width shrinks
+Start: the best of a few random points of the box. Moves: a Gaussian step in log(parameter), reflected into the bounds; its width shrinks
 geometrically from ``step_initial`` to ``step_final`` (natural-log units) over the chain, so the
 early chain roams the whole box and the late chain resolves the optimum to a fraction of a
 percent. The generator is passed in: the same state gives the same chain, bit for bit.
@@ -21,6 +21,7 @@ import numpy as np
 
 STEP_INITIAL = 0.5
 STEP_FINAL = 0.002
+START_SAMPLES = 8
 
 
 @dataclass
@@ -146,17 +147,28 @@ def _near(visited: list[State], best: State) -> list[State]:
     return [s for s in visited if s.cost <= best.cost * (1 + NEAR_BEST)]
 
 
-def _start(objective, lo, hi, rng, c_max, tries: int = 50) -> State:
-    """A random start inside the box whose cost is finite and below c_max."""
-    for n in range(1, tries + 1):
+def _start(objective, lo, hi, rng, c_max, samples: int = START_SAMPLES, tries: int = 50) -> State:
+    """The best of ``samples`` random acceptable points of the box (log-uniform draws).
+
+    Starting from the best of a few draws rather than from one spares a chain the long walk
+    from a poor corner of the box, which at one move per temperature it may never finish.
+    """
+    found: list[State] = []
+    n = 0
+    while len(found) < samples and n < tries:
+        n += 1
         state = objective(np.exp(rng.uniform(lo, hi)).tolist())
         if state.cost <= c_max:
-            state.info["_evaluations"] = n
-            return state
-    raise AnnealingError(
-        f"no acceptable starting point in {tries} random tries: every candidate diverged or cost "
-        f"more than c_max={c_max:g}; widen the bounds, lower dt, or raise c_max"
-    )
+            found.append(state)
+    if not found:
+        raise AnnealingError(
+            f"no acceptable starting point in {tries} random tries: every candidate diverged, "
+            f"did not settle, or cost more than c_max={c_max:g}; widen the bounds, lower dt, "
+            "raise max_steps or c_max"
+        )
+    best = min(found, key=lambda st: st.cost)
+    best.info["_evaluations"] = n
+    return best
 
 
 class AnnealingError(RuntimeError):

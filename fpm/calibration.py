@@ -151,8 +151,13 @@ def run_chain(
     if cost.reference_cost <= 0:
         raise AnnealingError("the reference does not move: nothing to fit")
 
+    # An unsettled FPM is still moving: its cost measures a transient, not the model, and its
+    # parameters are no use in a real-time loop. Such a candidate is rejected like a divergent
+    # one, unless the spec asks never to settle (settle_tolerance 0).
+    settling = problem.spec.fpm.settle_tolerance > 0
+
     def objective(x: list[float]) -> State:
-        ev = cost(x[0], x[1])
+        ev = cost(x[0], x[1], stop_unsettled=settling)
         info = {"steps": ev.steps, "settled": ev.settled}
         return State(list(x), ev.cost / cost.reference_cost, info)
 

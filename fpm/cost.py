@@ -24,6 +24,8 @@ class Evaluation:
         steps: (L,) time steps per load case.
         settled: every load case settled.
         diverged: some load case diverged (the remaining ones were not run).
+        complete: every load case was run (False after a divergence, or after an unsettled
+            case when the cost function was asked to stop there).
     """
 
     cost: float
@@ -31,6 +33,7 @@ class Evaluation:
     steps: list[int]
     settled: bool
     diverged: bool
+    complete: bool = True
 
 
 class CostFunction:
@@ -69,16 +72,20 @@ class CostFunction:
             settle_tolerance=s.settle_tolerance,
         )
 
-    def __call__(self, k: float, d: float) -> Evaluation:
+    def __call__(self, k: float, d: float, *, stop_unsettled: bool = False) -> Evaluation:
+        """Eq. (2) at (k, d); ``stop_unsettled`` skips the remaining load cases (cost inf)
+        once one has not settled, for a caller that rejects unsettled states anyway."""
         self.evaluations += 1
         costs, steps, settled = [], [], True
         for j in range(len(self.problem.load_cases)):
             run = self.displacements(k, d, j)
-            if run.diverged:
-                return Evaluation(float("inf"), costs, steps + [run.steps], False, True)
-            costs.append(float(np.linalg.norm(run.displacements - self.reference[j], axis=1).sum()))
             steps.append(run.steps)
+            if run.diverged:
+                return Evaluation(float("inf"), costs, steps, False, True, False)
+            costs.append(float(np.linalg.norm(run.displacements - self.reference[j], axis=1).sum()))
             settled &= run.settled
+            if not run.settled and stop_unsettled:
+                return Evaluation(float("inf"), costs, steps, False, False, False)
         return Evaluation(float(sum(costs)), costs, steps, settled, False)
 
     def discrepancy(self, k: float, d: float, depth: int | None = None) -> list[float]:

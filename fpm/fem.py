@@ -1,10 +1,11 @@
 """The finite element reference (paper Sec. 4.1): static nodal displacements from ``F = K X``.
 
 Small-strain linear elasticity on the problem's 8-node hexahedra (:mod:`fpm.elasticity`),
-assembled into a sparse K (COO -> CSR), fixed nodes as Dirichlet conditions (their displacement
-is zero), the load cases' nodal forces as right-hand sides, one factorisation for all of them
-(:mod:`fpm.linear_solver`). Density plays no part. Nodes that belong to no hexahedron (possible in
-a ``mesh``) carry no stiffness; they stay at rest and may not be loaded.
+assembled into a block-sparse K (:mod:`fpm.assembly`), fixed nodes as Dirichlet conditions
+(their displacement is zero), the load cases' nodal forces as right-hand sides, one
+factorisation for all of them (:mod:`fpm.linear_solver`). Density plays no part. Nodes that
+belong to no hexahedron (possible in a ``mesh``) carry no stiffness; they stay at rest and may
+not be loaded.
 """
 
 from __future__ import annotations
@@ -15,13 +16,11 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from .elasticity import constitutive_matrix, element_stiffness, min_jacobian_determinants
+from .assembly import keep_nodes, stiffness_matrix
+from .elasticity import constitutive_matrix, min_jacobian_determinants
 from .linear_solver import SingularStiffnessError, choose_method, factorize, rigid_body_modes
 from .problem import Problem
 from .support import unheld_reason
-
-ASSEMBLY_CHUNK = 1 << 15
-"""Hexahedra per COO batch: bounds the assembly's memory at about 0.5 GB."""
 
 RESIDUAL_LIMIT = 1e-6
 """A relative residual above this after the solve means K was (nearly) singular."""
@@ -86,8 +85,8 @@ def solve_fem(problem: Problem, method: str = "auto") -> FemResult:
         method: ``"auto"`` (by size), ``"direct"`` or ``"amg"`` (see :mod:`fpm.linear_solver`).
 
     Raises:
-        FemError: a network geometry, an inverted hexahedron, a solid that is not held, or a
-            force on a node that belongs to no hexahedron.
+        FemError: a network geometry, an inverted or degenerate hexahedron, a solid that is
+            not held, or a force on a node that belongs to no hexahedron.
     """
     hexahedra = problem.solid.elements()
     if hexahedra is None:
@@ -101,6 +100,12 @@ def solve_fem(problem: Problem, method: str = "auto") -> FemResult:
     )
     if reason:
         raise FemError(reason)
+    bad = np.flatnonzero(min_jacobian_determinants(nodes[hexahedra]) <= 0)
+    if len(bad):
+        raise FemError(
+            f"{len(bad)} hexahedra are inverted or degenerate (e.g. hexahedron {int(bad[0])}): "
+            "check their node order (see fpm.hexahedron)"
+        )
     material = problem.spec.material
     k = stiffness_matrix(
         nodes, hexahedra, constitutive_matrix(material.youngs_modulus, material.poisson_ratio)
@@ -123,65 +128,13 @@ def solve_fem(problem: Problem, method: str = "auto") -> FemResult:
     )
 
 
-def stiffness_matrix(nodes: np.ndarray, hexahedra: np.ndarray, c: np.ndarray) -> sp.csr_matrix:
-    """(3N, 3N) global stiffness K, N/m, unknowns node-major (u0, v0, w0, u1, ...).
-
-    Element matrices are computed once per distinct element shape (:func:`identical_elements`:
-    on a box or voxel grid, once in all) and summed COO -> CSR in batches.
-
-    Args:
-        nodes: (N, 3) rest positions, m.
-        hexahedra: (H, 8) node indices, :mod:`fpm.hexahedron` order.
-        c: (6, 6) elasticity matrix, Pa.
-
-    Raises:
-        FemError: a hexahedron is inverted or degenerate (det J <= 0 somewhere).
-    """
-    shapes, which = identical_elements(nodes[hexahedra])
-    bad = np.flatnonzero(min_jacobian_determinants(shapes)[which] <= 0)
-    if len(bad):
-        raise FemError(
-            f"{len(bad)} hexahedra are inverted or degenerate (e.g. hexahedron {int(bad[0])}): "
-            "check their node order (see fpm.hexahedron)"
-        )
-    ke = element_stiffness(shapes, c)  # (U, 24, 24)
-    n = 3 * len(nodes)
-    index = np.int32 if n < 2**31 else np.int64
-    dofs = (3 * hexahedra[:, :, None] + np.arange(3)).reshape(-1, 24).astype(index)
-    k = sp.csr_matrix((n, n))
-    for start in range(0, len(hexahedra), ASSEMBLY_CHUNK):
-        d = dofs[start : start + ASSEMBLY_CHUNK]
-        rows = np.repeat(d, 24, axis=1).ravel()
-        cols = np.tile(d, (1, 24)).ravel()
-        data = ke[which[start : start + ASSEMBLY_CHUNK]].ravel()
-        k = k + sp.coo_matrix((data, (rows, cols)), shape=(n, n)).tocsr()
-    return k
-
-
-def identical_elements(coords: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Distinct hexahedron shapes up to translation.
-
-    Args:
-        coords: (H, 8, 3) node positions of each hexahedron, m.
-
-    Returns:
-        shapes (U, 8, 3) node positions relative to local node 0, m, and which (H,) shape of
-        each hexahedron. Positions equal to 1e-9 of the largest hexahedron extent count as equal.
-    """
-    local = coords - coords[:, :1]
-    grid = 1e-9 * max(float(np.abs(local).max()), np.finfo(float).tiny)
-    keys = np.round(local.reshape(len(coords), 24) / grid).astype(np.int64)
-    _, first, which = np.unique(keys, axis=0, return_index=True, return_inverse=True)
-    return local[first], which.ravel()
-
-
 def solve_dirichlet(
-    k: sp.csr_matrix, forces: np.ndarray, free: np.ndarray, nodes: np.ndarray, method: str
+    k: sp.bsr_matrix, forces: np.ndarray, free: np.ndarray, nodes: np.ndarray, method: str
 ) -> tuple[np.ndarray, np.ndarray]:
     """Solve K u = f with u = 0 on the unknowns that are not ``free``.
 
     Args:
-        k: (n, n) stiffness, N/m, n = 3N.
+        k: (n, n) stiffness, N/m, n = 3N, in 3x3 blocks (:func:`fpm.assembly.stiffness_matrix`).
         forces: (L, n) nodal forces, N.
         free: (n,) bool, unknowns to solve for (the rest are held at zero).
         nodes: (N, 3) rest positions, m (for the rigid-body modes of AMG).
@@ -193,15 +146,18 @@ def solve_dirichlet(
     Raises:
         FemError: the reduced K is singular (part of the solid can still move freely).
     """
-    kff = k[free][:, free].tocsr()
+    per_node = free.reshape(-1, 3)
+    if np.array_equal(per_node.all(axis=1), per_node.any(axis=1)):  # whole nodes: keep blocks
+        kff = keep_nodes(k, per_node[:, 0])
+    else:
+        kff = k.tocsr()[free][:, free]
     f = forces[:, free].T
-    whole_nodes = bool(np.all(free.reshape(-1, 3).all(axis=1) == free.reshape(-1, 3).any(axis=1)))
     singular = FemError(
         "the stiffness matrix is singular: part of the solid can still move freely "
         "(fix more nodes, or join loose hexahedra by a face)"
     )
     try:
-        solve = factorize(kff, method, rigid_body_modes(nodes)[free], whole_nodes)
+        solve = factorize(kff, method, rigid_body_modes(nodes)[free])
     except SingularStiffnessError:
         raise singular from None
     x = solve(f)

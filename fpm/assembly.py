@@ -1,0 +1,75 @@
+"""The global stiffness matrix K (paper Sec. 4.1, ``F = K X``) as 3x3 node blocks.
+
+K is block-sparse: one 3x3 block per pair of nodes sharing a hexahedron. Element matrices are
+computed once per distinct element shape (on a box or a voxel grid: once in all), cut into 8x8
+node blocks, and summed into a BSR matrix by one sort of the node-pair keys. Unknowns are
+node-major (u0, v0, w0, u1, ...), so K's block (i, j) couples node i to node j.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from .elasticity import element_stiffness
+
+
+def stiffness_matrix(nodes: np.ndarray, hexahedra: np.ndarray, c: np.ndarray) -> sp.bsr_matrix:
+    """(3N, 3N) global stiffness K, N/m, in 3x3 blocks.
+
+    Args:
+        nodes: (N, 3) rest positions, m.
+        hexahedra: (H, 8) node indices, :mod:`fpm.hexahedron` order, det J > 0.
+        c: (6, 6) elasticity matrix, Pa.
+    """
+    n = len(nodes)
+    shapes, which = identical_elements(nodes[hexahedra])
+    ke = element_stiffness(shapes, c)  # (U, 24, 24)
+    blocks = ke.reshape(-1, 8, 3, 8, 3).transpose(0, 1, 3, 2, 4).reshape(-1, 64, 9)
+    hexahedra = hexahedra.astype(np.int64)
+    keys = (np.repeat(hexahedra, 8, axis=1) * n + np.tile(hexahedra, (1, 8))).ravel()
+    pairs, slot = unique_inverse(keys)
+    data = np.empty((len(pairs), 9))
+    for entry in range(9):  # sum the H*64 element blocks into their global blocks
+        data[:, entry] = np.bincount(slot, blocks[:, :, entry][which].ravel(), len(pairs))
+    indptr = np.searchsorted(pairs // n, np.arange(n + 1))
+    return sp.bsr_matrix((data.reshape(-1, 3, 3), pairs % n, indptr), shape=(3 * n, 3 * n))
+
+
+def unique_inverse(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted distinct ``keys`` (M,) int and, for each key, its index among them (M,)."""
+    order = np.argsort(keys)
+    ordered = keys[order]
+    first = np.empty(len(keys), dtype=bool)
+    first[:1] = True
+    np.not_equal(ordered[1:], ordered[:-1], out=first[1:])
+    slot = np.empty(len(keys), dtype=np.int64)
+    slot[order] = np.cumsum(first) - 1
+    return ordered[first], slot
+
+
+def keep_nodes(k: sp.bsr_matrix, kept: np.ndarray) -> sp.bsr_matrix:
+    """K restricted to the rows and columns of the ``kept`` (N,) bool nodes, still in blocks."""
+    n = k.shape[0] // 3
+    ids = sp.csr_matrix((np.arange(1, len(k.indices) + 1), k.indices, k.indptr), shape=(n, n))
+    sub = ids[kept][:, kept].tocsr()
+    sub.sort_indices()
+    size = 3 * int(kept.sum())
+    return sp.bsr_matrix((k.data[sub.data - 1], sub.indices, sub.indptr), shape=(size, size))
+
+
+def identical_elements(coords: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct hexahedron shapes up to translation.
+
+    Args:
+        coords: (H, 8, 3) node positions of each hexahedron, m.
+
+    Returns:
+        shapes (U, 8, 3) node positions relative to local node 0, m, and which (H,) shape of
+        each hexahedron. Positions equal to 1e-9 of the largest hexahedron extent count as equal.
+    """
+    local = coords - coords[:, :1]
+    grid = 1e-9 * max(float(np.abs(local).max()), np.finfo(float).tiny)
+    keys = np.round(local.reshape(len(coords), 24) / grid).astype(np.int64)
+    _, first, which = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    return local[first], which.ravel()
