@@ -12,6 +12,7 @@ import pytest
 import scipy.sparse.linalg as spla
 
 import fpm
+from fpm.assembly import identical_elements, stiffness_matrix
 from fpm.elasticity import (
     GAUSS_POINTS,
     constitutive_matrix,
@@ -21,7 +22,7 @@ from fpm.elasticity import (
     shape_functions,
     strain_displacement,
 )
-from fpm.fem import FemError, FemResult, identical_elements, solve_dirichlet, stiffness_matrix
+from fpm.fem import FemError, FemResult, solve_dirichlet
 from fpm.geometry import box_hexahedra
 from fpm.hexahedron import NATURAL
 from fpm.linear_solver import rigid_body_modes
