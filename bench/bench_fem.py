@@ -47,6 +47,7 @@ def run_case(n: int, method: str) -> dict:
 
     problem = fpm.load_problem(cube_spec(n))
     hexahedra = problem.solid.elements()
+    assert hexahedra is not None
     t0 = time.perf_counter()
     stiffness_matrix(problem.nodes, hexahedra, constitutive_matrix(1e4, 0.45))
     assembly = time.perf_counter() - t0

@@ -88,6 +88,8 @@ def solve_fem(problem: Problem, method: str = "auto") -> FemResult:
         FemError: a network geometry, an inverted or degenerate hexahedron, a solid that is
             not held, or a force on a node that belongs to no hexahedron.
     """
+    if method not in ("auto", "direct", "amg"):
+        raise ValueError(f"unknown method {method!r} (use 'auto', 'direct' or 'amg')")
     hexahedra = problem.solid.elements()
     if hexahedra is None:
         raise FemError(
