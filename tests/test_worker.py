@@ -113,14 +113,14 @@ def test_cancel_queued_calibration(redis, run_workers, small_spec):
     assert job.get_status() == JobStatus.CANCELED
 
 
-def slow_spec(spec):
-    """The small spec with one chain of ~320 moves: it runs for a second or two."""
-    spec["annealing"].update(chains=1, beta=1.5, t_final=0.002, seed=11)
+def slow_spec(spec, beta=1.5):
+    """The small spec with one chain of ~480 / beta moves (~320: a second or so)."""
+    spec["annealing"].update(chains=1, beta=beta, t_final=0.002, seed=11)
     return spec
 
 
 def test_cancel_stops_a_running_chain(redis, worker_processes, small_spec):
-    record, _ = submit(redis, slow_spec(small_spec))
+    record, _ = submit(redis, slow_spec(small_spec, beta=0.2))
     worker_processes.start()
     wait_for(lambda: store.get_progress(redis, record.id).get(0, {}).get("move", 0) > 5)
     assert graph.cancel_calibration(redis, record.id)
@@ -135,7 +135,7 @@ def test_cancel_stops_a_running_chain(redis, worker_processes, small_spec):
 def test_chain_of_a_dead_worker_is_retried_and_resumes(
     redis, worker_processes, run_workers, small_spec
 ):
-    spec = slow_spec(small_spec)
+    spec = slow_spec(small_spec, beta=0.5)
     record, _ = submit(redis, spec)
     worker = worker_processes.start()
     wait_for(lambda: redis.exists(keys.chain_checkpoint(record.id, 0)))
