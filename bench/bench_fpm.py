@@ -1,0 +1,489 @@
+"""FPM speed and memory: the paper's Fig. 7 experiment, a C yardstick, the lookup table, 1M nodes.
+
+1. Fig. 7 (paper Sec. 3.3): a 31x15x31 box lattice (y is the 15-node height, 1 m cells, unit
+   interior node masses), ``axis`` springs, no fixed node, 1 N pulling the centre of the top face
+   (y+) along +y, 100 steps at dt = 0.05 (never settling), depth 1..15. The paper gives only the
+   end points, 0.83 ms per step at depth 1 and 28 ms at depth 15 (800 MHz Pentium III, list
+   generation excluded), and 2.7-5.5 s per 100 steps including overhead. Goal: 300x faster per
+   step than 28 ms at depth 15.
+2. Yardstick: the same Gauss-Seidel sweep (same CSR arrays, same order, same update, same settle
+   and divergence checks) as a plain C loop, compiled here with ``cc -O2`` and called through
+   ctypes on the same arrays. Goal: the numba kernel within 1.5x of it, and identical positions.
+3. Lookup table: a cached perturbed list against building it.
+4. Scale: a 100^3 ``full`` lattice (1M nodes, 12.7M springs), face z- fixed, one force at the
+   centre of the top face (z+), a few steps at full depth, in its own subprocess so that its peak
+   RSS is its own (it includes the ~100 MB of the interpreter and libraries). Goal: under 2 GB.
+
+Timings are the best of several repeats (the machine is shared and noisy): the best is the
+closest to the code's own cost. Run: ``python -m bench fpm`` or ``python -m bench.bench_fpm``.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import json
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+FIG7_NODES = (31, 15, 31)
+FIG7_DT = 0.05
+FIG7_STEPS = 100
+FIG7_K = 5.0
+FIG7_D = 1.0
+PAPER_MS = {1: 0.83, 15: 28.0}
+"""Paper, Fig. 7: ms per step at the two depths it quotes (800 MHz Pentium III)."""
+SPEEDUP_GOAL = 300.0
+YARDSTICK_GOAL = 1.5
+SCALE_SIDE = 100
+SCALE_STEPS = 3
+SCALE_MB_GOAL = 2048.0
+
+YARDSTICK_C = r"""
+#include <math.h>
+#include <stdint.h>
+
+/* fpm.voigt.run_steps, line for line: returns steps taken; *state = 0 running, 1 settled,
+   2 diverged; *worst = largest |F_i + F_s| of the last sweep. Arrays are C-contiguous. */
+int64_t run_steps(const int32_t *order, int64_t m, const int64_t *ptr, const int32_t *neighbour,
+                  const double *rest_length, const double *factor, int64_t scaled,
+                  const double *rest, double *x, double *v, const double *external,
+                  const double *mass, double k, double d, double dt, int64_t max_steps,
+                  double settle_force, double max_move, int64_t *state, double *worst_out)
+{
+    double limit2 = max_move * max_move, worst = 0.0;
+    for (int64_t step = 1; step <= max_steps; step++) {
+        double worst2 = 0.0;
+        for (int64_t o = 0; o < m; o++) {
+            int64_t i = order[o];
+            double xi0 = x[3 * i], xi1 = x[3 * i + 1], xi2 = x[3 * i + 2];
+            double f0 = external[3 * i], f1 = external[3 * i + 1], f2 = external[3 * i + 2];
+            for (int64_t e = ptr[i]; e < ptr[i + 1]; e++) {
+                int64_t j = neighbour[e];
+                double r0 = x[3 * j] - xi0, r1 = x[3 * j + 1] - xi1, r2 = x[3 * j + 2] - xi2;
+                double length = sqrt(r0 * r0 + r1 * r1 + r2 * r2);
+                double s = k * (length - rest_length[e]) / length;
+                if (scaled) s *= factor[e];
+                f0 += s * r0;
+                f1 += s * r1;
+                f2 += s * r2;
+            }
+            double f2sum = f0 * f0 + f1 * f1 + f2 * f2;
+            if (f2sum > worst2) worst2 = f2sum;
+            double a = dt / mass[i];
+            double damp = 1.0 / (1.0 + a * d);
+            double v0 = (v[3 * i] + a * f0) * damp;
+            double v1 = (v[3 * i + 1] + a * f1) * damp;
+            double v2 = (v[3 * i + 2] + a * f2) * damp;
+            v[3 * i] = v0; v[3 * i + 1] = v1; v[3 * i + 2] = v2;
+            xi0 += dt * v0;
+            xi1 += dt * v1;
+            xi2 += dt * v2;
+            x[3 * i] = xi0; x[3 * i + 1] = xi1; x[3 * i + 2] = xi2;
+            double u0 = xi0 - rest[3 * i], u1 = xi1 - rest[3 * i + 1], u2 = xi2 - rest[3 * i + 2];
+            if (!(u0 * u0 + u1 * u1 + u2 * u2 <= limit2)) {
+                *state = 2; *worst_out = sqrt(worst2); return step;
+            }
+        }
+        worst = sqrt(worst2);
+        if (worst < settle_force) { *state = 1; *worst_out = worst; return step; }
+    }
+    *state = 0; *worst_out = worst; return max_steps;
+}
+"""
+
+
+def best_of(fn, repeats: int, budget: float | None = None) -> float:
+    """Smallest wall time of ``fn()`` over ``repeats`` calls (fewer if ``budget`` s runs out)."""
+    best = float("inf")
+    start = time.perf_counter()
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+        if budget is not None and time.perf_counter() - start > budget:
+            break
+    return best
+
+
+def formula_count(n: int) -> int:
+    """Perturbed-list size for one node mid-face, ``axis`` springs, n layers (paper Sec. 3.3)."""
+    return (n + 1) * (2 * n * n + 4 * n + 3) // 3
+
+
+def fig7_spec() -> dict:
+    nx, ny, nz = FIG7_NODES
+    size = [nx - 1.0, ny - 1.0, nz - 1.0]  # 1 m cells; density 1 -> interior node mass 1 kg
+    return {
+        "name": "paper-fig7",
+        "material": {"youngs_modulus": 1e3, "poisson_ratio": 0.3, "density": 1.0},
+        "geometry": {
+            "type": "box",
+            "size": size,
+            "nodes": list(FIG7_NODES),
+            "connectivity": "axis",
+        },
+        "fixed": [],
+        "load_cases": [
+            {"forces": [{"at": [size[0] / 2, size[1], size[2] / 2], "vector": [0, 1.0, 0]}]}
+        ],
+        "fpm": {"dt": FIG7_DT, "max_steps": FIG7_STEPS, "settle_tolerance": 0.0},
+    }
+
+
+class Kernel:
+    """One load case's arrays, ready for the numba step or the C yardstick."""
+
+    def __init__(self, model, order: np.ndarray):
+        p = model.problem
+        a = model.adjacency
+        self.order = np.ascontiguousarray(order, dtype=np.int32)
+        self.ptr, self.neighbour = a.ptr, a.neighbour
+        self.rest_length, self.factor = a.rest_length, a.stiffness_factor
+        self.rest = p.nodes
+        self.external = p.load_cases[0].dense(p.n_nodes)
+        self.mass = p.solid.masses
+        self.size = p.size
+        self.x = p.nodes.copy()
+        self.v = np.zeros_like(self.x)
+
+    def reset(self) -> None:
+        self.x[:] = self.rest
+        self.v[:] = 0.0
+
+    def numba(self, k: float, d: float, dt: float, steps: int) -> tuple[int, int, float]:
+        from fpm.voigt import run_steps
+
+        return run_steps(
+            self.order, self.ptr, self.neighbour, self.rest_length, self.factor, self.rest,
+            self.x, self.v, self.external, self.mass, k, d, dt, steps, 0.0, self.size,
+        )  # fmt: skip
+
+    def c(self, lib, k: float, d: float, dt: float, steps: int) -> tuple[int, int, float]:
+        state, worst = ctypes.c_int64(), ctypes.c_double()
+        p = ctypes.c_void_p
+        factor = self.factor if len(self.factor) else np.zeros(1)
+        taken = lib.run_steps(
+            p(self.order.ctypes.data), len(self.order), p(self.ptr.ctypes.data),
+            p(self.neighbour.ctypes.data), p(self.rest_length.ctypes.data),
+            p(factor.ctypes.data), int(len(self.factor) > 0), p(self.rest.ctypes.data),
+            p(self.x.ctypes.data), p(self.v.ctypes.data), p(self.external.ctypes.data),
+            p(self.mass.ctypes.data), k, d, dt, steps, 0.0, self.size,
+            ctypes.byref(state), ctypes.byref(worst),
+        )  # fmt: skip
+        return taken, state.value, worst.value
+
+
+def build_yardstick(workdir: Path):
+    """The C loop as a ctypes function, or None (with the reason) if it cannot be built."""
+    cc = shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
+    if cc is None:
+        return None, "no C compiler (cc) on PATH"
+    src, lib_path = workdir / "yardstick.c", workdir / "yardstick.so"
+    src.write_text(YARDSTICK_C)
+    out = subprocess.run(
+        [cc, "-O2", "-shared", "-fPIC", "-o", str(lib_path), str(src), "-lm"],
+        capture_output=True,
+        text=True,
+    )
+    if out.returncode:
+        return None, f"cc failed: {out.stderr.strip()[:300]}"
+    lib = ctypes.CDLL(str(lib_path))
+    lib.run_steps.restype = ctypes.c_int64
+    lib.run_steps.argtypes = [
+        ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+        ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+        ctypes.c_void_p, ctypes.c_void_p, ctypes.c_double, ctypes.c_double, ctypes.c_double,
+        ctypes.c_int64, ctypes.c_double, ctypes.c_double, ctypes.c_void_p, ctypes.c_void_p,
+    ]  # fmt: skip
+    return lib, f"{cc} -O2"
+
+
+def fig7(failures: list[str]):
+    """Part 1; returns (model, kernel at depth 15) for parts 2 and 3."""
+    import fpm
+    from fpm.perturbed_list import perturbed_list
+    from fpm.simulation import FpmModel
+
+    problem = fpm.load_problem(fig7_spec())
+    model = problem.cache["fpm_model"] = FpmModel(problem)  # the one fpm.simulate uses
+    stimulated = problem.load_cases[0].nodes
+    print(
+        f"1. Paper Fig. 7: {'x'.join(map(str, FIG7_NODES))} lattice ({problem.n_nodes} nodes), "
+        f"axis springs, no fixed node, 1 N up at the top-face centre, k = {FIG7_K}, d = {FIG7_D}, "
+        f"unit masses,\n   {FIG7_STEPS} steps at dt = {FIG7_DT}. Times: best of several repeats "
+        "(shared, noisy machine). 'paper' only where the paper gives a value."
+    )
+    print(
+        f"{'depth':>5} {'nodes':>6} {'formula':>7} {'list ms':>8} {'ours ms/step':>12} "
+        f"{'paper ms/step':>13} {'paper/ours':>10} {'run() s/100 steps':>17} {'max |u| m':>9}"
+    )
+    kernel = None
+    for depth in range(1, 16):
+        plist = perturbed_list(model.adjacency, stimulated, problem.fixed, depth)
+        t_list = best_of(
+            lambda depth=depth: perturbed_list(model.adjacency, stimulated, problem.fixed, depth),
+            20,
+        )
+        kernel = Kernel(model, plist.order)
+
+        def steps(kernel=kernel):
+            kernel.reset()
+            kernel.numba(FIG7_K, FIG7_D, FIG7_DT, FIG7_STEPS)
+
+        steps()  # compile (from the disk cache) and warm up
+        t_step = best_of(steps, 30 if depth < 10 else 15) / FIG7_STEPS
+        kernel.reset()
+        taken, state, _ = kernel.numba(FIG7_K, FIG7_D, FIG7_DT, FIG7_STEPS)
+        u = np.linalg.norm(kernel.x - kernel.rest, axis=1).max()
+        # The whole public call, as a user makes it (list from the lookup table, arrays reset).
+        t_run = best_of(
+            lambda depth=depth: fpm.simulate(problem, k=FIG7_K, d=FIG7_D, depth=depth, dt=FIG7_DT,
+                                 max_steps=FIG7_STEPS, settle_tolerance=0.0),
+            10,
+        )  # fmt: skip
+        n = len(plist.order)
+        want = formula_count(depth)
+        paper = PAPER_MS.get(depth)
+        print(
+            f"{depth:>5} {n:>6} {want:>7} {1e3 * t_list:>8.3f} {1e3 * t_step:>12.5f} "
+            f"{paper if paper else '-':>13} "
+            f"{(f'{paper / (1e3 * t_step):.0f}x' if paper else '-'):>10} {t_run:>17.5f} {u:>9.3g}"
+        )
+        if state != 0 or taken != FIG7_STEPS:
+            failures.append(
+                f"Fig. 7 depth {depth}: run stopped after {taken} steps (state {state})"
+            )
+        # The lattice is 15 nodes high: from depth 15 on, the node straight below is missing.
+        if n != want - (depth >= FIG7_NODES[1]):
+            failures.append(f"Fig. 7 depth {depth}: {n} nodes, formula {want}")
+        if depth == 15:
+            run_15 = t_run
+            speedup = PAPER_MS[15] / (1e3 * t_step)
+            ok = speedup >= SPEEDUP_GOAL
+            print(
+                f"   goal: >= {SPEEDUP_GOAL:.0f}x faster than the paper's 28 ms/step at depth 15: "
+                f"{speedup:.0f}x, {'met' if ok else 'MISSED'}"
+            )
+            if not ok:
+                failures.append(f"Fig. 7: {speedup:.0f}x < {SPEEDUP_GOAL:.0f}x")
+    print(
+        "   nodes = (n+1)(2n^2+4n+3)/3 for n <= 14; at n = 15 the list needs 16 nodes of height "
+        "and the lattice has 15, so its apex is missing: 2735 = 2736 - 1.\n"
+        "   ours ms/step = the compiled step alone; run() = fpm.simulate for 100 steps; the "
+        "paper's 2.7-5.5 s per 100 steps including overhead\n"
+        f"   is {2.7 / run_15:.0f}-{5.5 / run_15:.0f}x our run() at depth 15."
+    )
+    return model, kernel
+
+
+def yardstick(kernel: Kernel, failures: list[str]) -> None:
+    """Part 2: numba against the same loop in C, at depth 15."""
+    print(f"\n2. Yardstick: the same sweep in plain C, depth 15 ({len(kernel.order)} nodes), "
+          f"{FIG7_STEPS} steps, best of repeats")  # fmt: skip
+    with tempfile.TemporaryDirectory() as tmp:
+        lib, how = build_yardstick(Path(tmp))
+        if lib is None:
+            print(f"   skipped: {how}")
+            return
+        kernel.reset()
+        kernel.numba(FIG7_K, FIG7_D, FIG7_DT, FIG7_STEPS)
+        x_numba, v_numba = kernel.x.copy(), kernel.v.copy()
+        kernel.reset()
+        kernel.c(lib, FIG7_K, FIG7_D, FIG7_DT, FIG7_STEPS)
+        x_c = kernel.x.copy()
+        same = np.array_equal(x_numba, x_c) and np.array_equal(v_numba, kernel.v)
+        close = np.allclose(x_numba, x_c, rtol=0, atol=1e-12)
+        max_diff = float(np.abs(x_numba - x_c).max())
+
+        def run_numba():
+            kernel.reset()
+            kernel.numba(FIG7_K, FIG7_D, FIG7_DT, FIG7_STEPS)
+
+        def run_c():
+            kernel.reset()
+            kernel.c(lib, FIG7_K, FIG7_D, FIG7_DT, FIG7_STEPS)
+
+        # Interleave the two so that both see the same machine load.
+        t_numba, t_c = float("inf"), float("inf")
+        for _ in range(10):
+            t_numba = min(t_numba, best_of(run_numba, 3))
+            t_c = min(t_c, best_of(run_c, 3))
+        ratio = t_numba / t_c
+        print(f"{'ours ms/step':>12} {f'C ({how}) ms/step':>22} {'ours/C':>7} {'positions':>30}")
+        agree = "bit-identical" if same else f"max diff {max_diff:.1e} m"
+        print(
+            f"{1e3 * t_numba / FIG7_STEPS:>12.5f} {1e3 * t_c / FIG7_STEPS:>22.5f} {ratio:>7.2f} "
+            f"{agree:>30}"
+        )
+        ok = ratio <= YARDSTICK_GOAL
+        print(f"   goal: ours within {YARDSTICK_GOAL}x of C: {'met' if ok else 'MISSED'}; "
+              f"same positions (allclose 1e-12): {'yes' if close else 'NO'}")  # fmt: skip
+        if not ok:
+            failures.append(f"yardstick: ours {ratio:.2f}x the C loop > {YARDSTICK_GOAL}x")
+        if not close:
+            failures.append(f"yardstick: positions differ by {max_diff:.1e} m")
+
+
+def lookup(model, failures: list[str]) -> None:
+    """Part 3: the perturbed-list lookup table."""
+    from fpm.perturbed_list import PerturbedListCache
+
+    problem = model.problem
+    stimulated = problem.load_cases[0].nodes
+    print(
+        "\n3. Lookup table (paper's conclusion): cached perturbed list vs building it, "
+        "best of repeats"
+    )
+    print(f"{'depth':>5} {'nodes':>6} {'build ms':>9} {'cached us':>10} {'build/cached':>12}")
+    for depth in (1, 5, 10, 15, None):
+
+        def build(depth=depth):
+            PerturbedListCache(model.adjacency, problem.fixed).get(stimulated, depth)
+
+        cache = PerturbedListCache(model.adjacency, problem.fixed)
+        n = len(cache.get(stimulated, depth).order)
+        t_build = best_of(build, 30)
+        t_hit = best_of(lambda cache=cache, depth=depth: cache.get(stimulated, depth), 2000)
+        label = "all" if depth is None else str(depth)
+        print(
+            f"{label:>5} {n:>6} {1e3 * t_build:>9.3f} {1e6 * t_hit:>10.2f} "
+            f"{t_build / t_hit:>11.0f}x"
+        )
+
+
+def scale_spec(n: int) -> dict:
+    h = 0.1 / (n - 1)
+    middle = (n - 1) // 2 * h
+    return {
+        "name": f"cube-{n}",
+        "material": {"youngs_modulus": 1e4, "poisson_ratio": 0.45, "density": 1040.0},
+        "geometry": {
+            "type": "box",
+            "size": [0.1, 0.1, 0.1],
+            "nodes": [n, n, n],
+            "connectivity": "full",
+        },
+        "fixed": [{"face": "z-"}],
+        "load_cases": [{"forces": [{"at": [middle, middle, 0.1], "vector": [0, 0, 1.0]}]}],
+        "fpm": {"dt": 1e-3, "settle_tolerance": 0.0},
+    }
+
+
+def run_scale(n: int, steps: int) -> dict:
+    """Part 4 in this process: build, list, steps; returns the row (peak RSS of this process)."""
+    import fpm
+    from fpm.simulation import FpmModel
+
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    t0 = time.perf_counter()
+    problem = fpm.load_problem(scale_spec(n))
+    t_load = time.perf_counter() - t0
+    rss_load = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    t0 = time.perf_counter()
+    model = problem.cache["fpm_model"] = FpmModel(problem)  # the one fpm.simulate uses
+    t_model = time.perf_counter() - t0
+    rss_model = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    t0 = time.perf_counter()
+    plist = model.perturbed_list(0, None)  # a miss: builds the list and keeps it
+    t_list = time.perf_counter() - t0
+    t_cached = best_of(lambda: model.perturbed_list(0, None), 200)
+    rss_list = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    # One step first (loads the compiled kernel), then the timed run through the public API.
+    fpm.simulate(problem, k=100.0, d=10.0, depth=None, max_steps=1, settle_tolerance=0.0)
+    t0 = time.perf_counter()
+    result = fpm.simulate(
+        problem, k=100.0, d=10.0, depth=None, max_steps=steps, settle_tolerance=0.0
+    )
+    t_run = time.perf_counter() - t0
+    a = model.adjacency
+    arrays = {
+        "nodes": problem.nodes, "springs": problem.solid.springs,
+        "rest_lengths": problem.rest_lengths, "masses": problem.solid.masses,
+        "fixed": problem.fixed, "adj.ptr": a.ptr, "adj.neighbour": a.neighbour,
+        "adj.rest_length": a.rest_length, "model._x": model._x, "model._v": model._v,
+        "list.order": plist.order,
+    }  # fmt: skip
+    return {
+        "nodes": problem.n_nodes,
+        "springs": len(problem.solid.springs),
+        "listed": len(plist.order),
+        "layers": plist.layers,
+        "steps": result.steps,
+        "load_s": t_load,
+        "model_s": t_model,
+        "list_s": t_list,
+        "cached_us": 1e6 * t_cached,
+        "ms_per_step": 1e3 * t_run / result.steps,
+        "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "rss_mb": {
+            "start": rss0,
+            "load_problem": rss_load,
+            "FpmModel": rss_model,
+            "list": rss_list,
+        },
+        "arrays_mb": {k: v.nbytes / 2**20 for k, v in arrays.items()},
+    }
+
+
+def scale(failures: list[str]) -> None:
+    """Part 4 in a subprocess, so that its peak RSS is its own."""
+    n = SCALE_SIDE
+    print(
+        f"\n4. Scale: {n}^3 'full' lattice, face z- fixed, 1 N at the top-face centre, "
+        f"{SCALE_STEPS} steps at full depth\n   (own subprocess; peak RSS includes the interpreter)"
+    )
+    out = subprocess.run(
+        [sys.executable, "-m", "bench.bench_fpm", "scale", str(n), str(SCALE_STEPS)],
+        capture_output=True,
+        text=True,
+    )
+    if out.returncode:
+        print(f"   FAILED:\n{out.stderr[-2000:]}")
+        failures.append(f"scale: subprocess failed ({out.returncode})")
+        return
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    print(
+        f"{'nodes':>9} {'springs':>10} {'listed':>9} {'layers':>6} {'load_problem s':>14} "
+        f"{'FpmModel s':>10} {'list s':>7} {'ms/step':>8} {'peak MB':>8}"
+    )
+    print(
+        f"{r['nodes']:>9} {r['springs']:>10} {r['listed']:>9} {r['layers']:>6} "
+        f"{r['load_s']:>14.2f} {r['model_s']:>10.2f} {r['list_s']:>7.2f} "
+        f"{r['ms_per_step']:>8.1f} {r['peak_mb']:>8.0f}"
+    )
+    print(
+        f"   lookup table at this size: cached list {r['cached_us']:.1f} us vs "
+        f"{r['list_s']:.2f} s to build ({r['list_s'] / (1e-6 * r['cached_us']):.0f}x)"
+    )
+    rss = r["rss_mb"]
+    print("   peak RSS after: " + ", ".join(f"{k} {v:.0f} MB" for k, v in rss.items()))
+    big = sorted(r["arrays_mb"].items(), key=lambda kv: -kv[1])
+    print("   arrays held: " + ", ".join(f"{k} {v:.0f}" for k, v in big) + f" MB "
+          f"(total {sum(v for _, v in big):.0f} MB)")  # fmt: skip
+    ok = r["peak_mb"] <= SCALE_MB_GOAL
+    print(f"   goal: peak RSS under {SCALE_MB_GOAL:.0f} MB: {'met' if ok else 'MISSED'}")
+    if not ok:
+        failures.append(f"scale: peak {r['peak_mb']:.0f} MB > {SCALE_MB_GOAL:.0f} MB")
+
+
+def main() -> None:
+    failures: list[str] = []
+    model, kernel = fig7(failures)
+    yardstick(kernel, failures)
+    lookup(model, failures)
+    scale(failures)
+    print("\ngoals: " + ("all met" if not failures else "MISSED " + "; ".join(failures)))
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 4 and sys.argv[1] == "scale":
+        print(json.dumps(run_scale(int(sys.argv[2]), int(sys.argv[3]))))
+    else:
+        main()
