@@ -28,7 +28,7 @@ class Solid:
         nodes: (N, 3) rest positions, m.
         hexahedra: (H, 8) node indices in :mod:`fpm.hexahedron` order; None for a network and
             for a box until :meth:`elements` is asked (a 1M-node lattice need not hold them).
-        springs: (S, 2) int32 node pairs, i < j, each pair once, sorted.
+        springs: (S, 2) int32 node pairs, i < j, each pair once.
         masses: (N,) lumped node masses, kg.
         shape: (nx, ny, nz) for a box lattice (node n = i + nx*(j + ny*k)), else None.
     """
@@ -93,8 +93,7 @@ def _box(g: BoxGeometry, density: float) -> Solid:
         src = index[max(0, -dz) : nz - max(0, dz), max(0, -dy) : ny - max(0, dy), max(0, -dx) : nx - max(0, dx)]
         pairs.append(np.stack([src.ravel(), src.ravel() + np.int32(dx + nx * (dy + ny * dz))], axis=1))
     springs = np.concatenate(pairs)
-    springs.sort(axis=1)
-    springs = springs[np.lexsort((springs[:, 1], springs[:, 0]))]
+    springs.sort(axis=1)  # i < j; the rows need no order (the neighbour lists sort them)
     cell = np.prod(np.asarray(g.size) / (np.asarray(shape) - 1))
     # Number of cells touching a node is a product of per-axis counts (1 at an end, 2 inside).
     counts = [np.where((np.arange(n) == 0) | (np.arange(n) == n - 1), 1.0, 2.0) for n in shape]
@@ -155,6 +154,17 @@ def lumped_masses(nodes: np.ndarray, hexahedra: np.ndarray, density: float) -> n
     masses = np.zeros(len(nodes))
     np.add.at(masses, hexahedra.ravel(), np.repeat(share, 8))
     return masses
+
+
+def spring_lengths(nodes: np.ndarray, springs: np.ndarray, chunk: int = 1 << 20) -> np.ndarray:
+    """(S,) rest lengths, m, of (S, 2) springs; in chunks, so a 1M-node lattice needs no
+    (S, 3) temporaries."""
+    out = np.empty(len(springs))
+    for a in range(0, len(springs), chunk):
+        s = springs[a : a + chunk]
+        d = nodes[s[:, 1]] - nodes[s[:, 0]]
+        out[a : a + chunk] = np.sqrt(np.einsum("ij,ij->i", d, d))
+    return out
 
 
 def _network(g: NetworkGeometry) -> Solid:

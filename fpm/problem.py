@@ -15,7 +15,7 @@ import numpy as np
 from pydantic import ValidationError
 from pydantic_core import InitErrorDetails, PydanticCustomError
 
-from .geometry import Solid, build_solid
+from .geometry import Solid, build_solid, spring_lengths
 from .spec import MeshGeometry, NetworkGeometry, ProblemSpec, Selector
 
 Loc = tuple[str | int, ...]
@@ -73,14 +73,12 @@ class Problem:
     solid: Solid
     fixed: np.ndarray
     load_cases: list[LoadCase]
-    rest_lengths: np.ndarray = field(init=False)
+    rest_lengths: np.ndarray
     h: float = field(init=False)
     size: float = field(init=False)
     cache: dict[str, Any] = field(init=False, repr=False, default_factory=dict)
 
     def __post_init__(self) -> None:
-        s = self.solid.springs
-        self.rest_lengths = np.linalg.norm(self.solid.nodes[s[:, 1]] - self.solid.nodes[s[:, 0]], axis=1)
         self.h = float(self.rest_lengths.min())
         self.size = float(np.linalg.norm(np.ptp(self.solid.nodes, axis=0)))
 
@@ -126,7 +124,7 @@ def build_problem(spec: ProblemSpec) -> Problem:
     _check_indices(spec)
     solid = build_solid(spec.geometry, spec.material.density)
     errors: list[tuple[Loc, str]] = []
-    lengths = np.linalg.norm(solid.nodes[solid.springs[:, 1]] - solid.nodes[solid.springs[:, 0]], axis=1)
+    lengths = spring_lengths(solid.nodes, solid.springs)
     if len(lengths) and lengths.min() <= 0:
         errors.append((("geometry",), "a spring joins two nodes at the same point"))
         raise SpecError(errors)
@@ -157,7 +155,7 @@ def build_problem(spec: ProblemSpec) -> Problem:
         load_cases.append(LoadCase(case.name or f"load case {c + 1}", nodes, forces))
     if errors:
         raise SpecError(errors)
-    return Problem(spec, solid, fixed, load_cases)
+    return Problem(spec, solid, fixed, load_cases, lengths)
 
 
 def _check_indices(spec: ProblemSpec) -> None:
@@ -167,8 +165,9 @@ def _check_indices(spec: ProblemSpec) -> None:
     if isinstance(g, MeshGeometry):
         n = len(g.nodes)
         for e, hexa in enumerate(g.hexahedra):
-            if max(hexa) >= n:
-                errors.append((("geometry", "hexahedra", e), f"node index {max(hexa)} out of range (0..{n - 1})"))
+            if max(hexa) >= n or min(hexa) < 0:
+                bad = max(hexa) if max(hexa) >= n else min(hexa)
+                errors.append((("geometry", "hexahedra", e), f"node index {bad} out of range (0..{n - 1})"))
             elif len(set(hexa)) != 8:
                 errors.append((("geometry", "hexahedra", e), "a hexahedron needs 8 distinct nodes"))
     if isinstance(g, NetworkGeometry):
