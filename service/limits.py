@@ -7,6 +7,7 @@ leaves nothing behind.
 from __future__ import annotations
 
 import json
+import math
 from typing import Any
 
 import numpy as np
@@ -71,7 +72,7 @@ def node_count(spec: ProblemSpec) -> int:
     """Nodes the solid of ``spec`` will have, computed without building it."""
     g = spec.geometry
     if isinstance(g, BoxGeometry):
-        return int(np.prod(g.nodes))
+        return math.prod(int(n) for n in g.nodes)  # Python ints: np.prod wraps past 2**63
     if isinstance(g, VoxelGeometry):
         cells = np.asarray(g.occupancy, dtype=bool)
         nx, ny, nz = cells.shape
