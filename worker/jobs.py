@@ -17,6 +17,7 @@ from rq import get_current_job
 from rq.job import Job
 
 from fpm import load_problem
+from fpm.annealing import AnnealingError
 from fpm.calibration import ChainResult, finalize, run_chain
 from fpm.fem import FemResult, solve_fem
 
@@ -99,6 +100,12 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
         )
     except Canceled:
         return {"canceled": True}
+    except AnnealingError as e:
+        # The spec cannot be fitted (e.g. every candidate diverges): a retry would fail the
+        # same way, so the calibration fails now, with the annealer's reason.
+        _fail(redis, calibration_id, f"annealing chain {chain} failed: {e}")
+        redis.delete(checkpoint_key)
+        return {"failed": True}
     reporter.flush()
     pipe = redis.pipeline()
     pipe.set(result_key, json.dumps(result.to_dict()), ex=store.SCRATCH_TTL)
