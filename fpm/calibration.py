@@ -8,7 +8,7 @@ Defaults (see also :class:`fpm.spec.AnnealingSettings`):
 - cost is normalised by the reference cost (the cost of an FPM that does not move), so
   temperatures and c_max are scale-free;
 - k bounds: [E h / 100, 10 E h] (a lattice of spacing h has an effective modulus of order k/h);
-- d bounds: [0.1, 30] sqrt(E h m), m the mean node mass: sqrt(k m) is the damping scale of a
+- d bounds: [0.1, 5] sqrt(E h m), m the mean node mass: sqrt(k m) is the damping scale of a
   node on springs of stiffness k ~ E h; below the range the run diverges at any practical time
   step, above it the run creeps and does not settle;
 - depth 'auto': fit at full depth, then the smallest depth whose FPM result is within 1% of h
@@ -31,6 +31,8 @@ from .problem import Problem
 
 NEAR_BEST = 0.001
 """States within this fraction of the best cost are equally good; the fastest-settling wins."""
+SAME_SPEED = 0.05
+"""Settle step counts within this fraction of the fewest are equally fast; the cheapest wins."""
 AUTO_DEPTH_TOLERANCE = 0.01
 """Depth 'auto': largest allowed mean nodal difference from full depth, as a fraction of h."""
 
@@ -116,7 +118,7 @@ def search_bounds(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
     eh = spec.material.youngs_modulus * problem.h
     k = spec.annealing.bounds.k or (eh / 100, 10 * eh)
     scale = float(np.sqrt(eh * problem.solid.masses.mean()))
-    d = spec.annealing.bounds.d or (0.1 * scale, 30 * scale)
+    d = spec.annealing.bounds.d or (0.1 * scale, 5 * scale)
     return np.array([k[0], d[0]]), np.array([k[1], d[1]])
 
 
@@ -198,14 +200,20 @@ def finalize(problem: Problem, reference: Any, chains: list[ChainResult]) -> Cal
     """The calibration result from the chains' outcomes.
 
     Among all states within 0.1% of the best cost over every chain, the one that settles in the
-    fewest total steps wins (physics.md); then the depth is resolved and the discrepancies are
-    measured at (k, d, depth).
+    fewest total steps wins (physics.md); step counts within 5% of the fewest count as equally
+    fast, and among those the cheapest wins (a few steps more or less mean nothing to a
+    real-time loop, while the cost still tells k apart). Then the depth is resolved and the
+    discrepancies are measured at (k, d, depth).
     """
     if not chains:
         raise ValueError("no chain results")
     best_cost = min(c.cost for c in chains)
     candidates = [s for c in chains for s in c.near_best if s["cost"] <= best_cost * (1 + NEAR_BEST)]
-    pick = min(candidates, key=lambda s: (not s["settled"], sum(s["steps"]), s["cost"]))
+    if any(s["settled"] for s in candidates):
+        candidates = [s for s in candidates if s["settled"]]
+    fewest = min(sum(s["steps"]) for s in candidates)
+    fast = [s for s in candidates if sum(s["steps"]) <= fewest * (1 + SAME_SPEED)]
+    pick = min(fast, key=lambda s: (s["cost"], sum(s["steps"])))
     k, d = pick["k"], pick["d"]
     disp = reference_displacements(reference)
     depth = fit_depth(problem)

@@ -167,9 +167,18 @@ def _check_indices(spec: ProblemSpec) -> None:
         for e, hexa in enumerate(g.hexahedra):
             if max(hexa) >= n or min(hexa) < 0:
                 bad = max(hexa) if max(hexa) >= n else min(hexa)
-                errors.append((("geometry", "hexahedra", e), f"node index {bad} out of range (0..{n - 1})"))
+                errors.append(
+                    (("geometry", "hexahedra", e), f"node index {bad} out of range (0..{n - 1})")
+                )
             elif len(set(hexa)) != 8:
                 errors.append((("geometry", "hexahedra", e), "a hexahedron needs 8 distinct nodes"))
+        if not errors:  # a node in no hexahedron would have no mass and no stiffness
+            used = np.zeros(n, dtype=bool)
+            used[np.asarray(g.hexahedra).ravel()] = True
+            errors.extend(
+                (("geometry", "nodes", int(i)), f"node {i} belongs to no hexahedron")
+                for i in np.flatnonzero(~used)
+            )
     if isinstance(g, NetworkGeometry):
         n = len(g.nodes)
         for s, (a, b) in enumerate(g.springs):
@@ -178,7 +187,9 @@ def _check_indices(spec: ProblemSpec) -> None:
             elif a == b:
                 errors.append((("geometry", "springs", s), "a spring needs two distinct nodes"))
         if isinstance(g.masses, list) and len(g.masses) != n:
-            errors.append((("geometry", "masses"), f"need {n} masses (one per node), got {len(g.masses)}"))
+            errors.append(
+                (("geometry", "masses"), f"need {n} masses (one per node), got {len(g.masses)}")
+            )
     if errors:
         raise SpecError(errors[:20])
 
@@ -204,7 +215,10 @@ class _NodeFinder:
             best = int(np.argmin(dist))
             if dist[best] > self.tol:
                 errors.append(
-                    ((*loc, "at"), f"no node at {list(sel.at)} (nearest node {best} is {dist[best]:.3g} m away)")
+                    (
+                        (*loc, "at"),
+                        f"no node at {list(sel.at)} (nearest node {best} is {dist[best]:.3g} m away)",
+                    )
                 )
                 return np.zeros(0, dtype=np.int64)
             return np.array([best])

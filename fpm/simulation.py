@@ -9,6 +9,7 @@ import numpy as np
 
 from .perturbed_list import Adjacency, PerturbedList, PerturbedListCache
 from .problem import Problem
+from .spec import FpmSettings
 from .voigt import DIVERGED, SETTLED, run_steps
 
 
@@ -151,16 +152,23 @@ def simulate(
     s = problem.spec.fpm
     if not 0 <= load_case < len(problem.load_cases):
         raise ValueError(f"load_case must be in 0..{len(problem.load_cases) - 1}")
-    if k <= 0 or d < 0:
+    if not (k > 0 and d >= 0):
         raise ValueError("need k > 0 and d >= 0")
     if depth is None and s.depth != "auto":
         depth = int(s.depth)
+    # Overrides pass the schema's own checks (dt > 0, max_steps >= 1, depth >= 0, ...).
+    given = {"dt": dt, "max_steps": max_steps, "settle_tolerance": settle_tolerance}
+    if depth is not None:
+        given["depth"] = depth
+    settings = FpmSettings.model_validate(
+        s.model_dump() | {key: v for key, v in given.items() if v is not None}
+    )
     return fpm_model(problem).run(
         load_case,
         k=k,
         d=d,
         depth=depth,
-        dt=s.dt if dt is None else dt,
-        max_steps=s.max_steps if max_steps is None else max_steps,
-        settle_tolerance=s.settle_tolerance if settle_tolerance is None else settle_tolerance,
+        dt=settings.dt,
+        max_steps=settings.max_steps,
+        settle_tolerance=settings.settle_tolerance,
     )

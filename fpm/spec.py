@@ -226,7 +226,7 @@ class AnnealingSettings(_Strict):
     chains: int = Field(2, ge=1, le=64, description="independent chains; the best one wins")
     t_initial: float = Field(0.05, gt=0)
     t_final: float = Field(2e-4, gt=0)
-    beta: float = Field(25.0, gt=0)
+    beta: float = Field(33.0, gt=0)
     c_max: float = Field(2.0, gt=0, description="reject at once a candidate costing more")
     bounds: Bounds = Field(default_factory=Bounds)
 

@@ -263,11 +263,6 @@ def test_simulate_refuses_bad_arguments():
             fpm.simulate(problem, **kwargs)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="fpm.simulate's keyword overrides bypass the schema's checks (FpmSettings: depth >= 0, "
-    "dt > 0, max_steps >= 1, settle_tolerance >= 0): they run and return a quiet result",
-)
 @pytest.mark.parametrize(
     "override",
     [{"depth": -1}, {"dt": 0.0}, {"dt": -1e-3}, {"max_steps": 0}, {"settle_tolerance": -1.0}],

@@ -204,11 +204,6 @@ def test_mesh_hexahedron_negative_node_index():
     assert "range" in message or "greater than or equal to 0" in message
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="fpm/problem.py accepts mesh nodes that belong to no hexahedron: such a node gets "
-    "lumped mass 0, and a force on it makes fpm.simulate raise ZeroDivisionError (numba)",
-)
 def test_mesh_node_in_no_hexahedron_is_refused():
     spec = mesh_spec(list(range(8)))
     spec["geometry"]["nodes"] = [*UNIT_CUBE, [2, 2, 2]]  # node 8: in no hexahedron, mass 0
