@@ -9,11 +9,15 @@ then re-queued (it has retries) and resumes from its last checkpoint.
 from __future__ import annotations
 
 import argparse
+import ctypes
 import logging
 import os
+import signal
+import sys
 
 from redis import Redis
-from rq import SimpleWorker, Worker
+from rq import Queue, SimpleWorker, Worker
+from rq.job import Job
 from rq.serializers import JSONSerializer
 
 # jobs is imported before forking, so every work horse inherits fpm, NumPy and SciPy loaded.
@@ -21,6 +25,36 @@ from . import jobs, keys  # noqa: F401
 
 MAINTENANCE_INTERVAL = 60
 """Seconds between RQ maintenance runs (which retry the jobs of dead workers)."""
+
+PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent(parent: int) -> None:
+    """Have the kernel SIGKILL this process when its parent dies (Linux; elsewhere a no-op).
+
+    RQ puts each work horse in a process group of its own, so a worker killed with SIGKILL
+    would otherwise leave its horse running the job on, unsupervised, beside the retry.
+    """
+    if not sys.platform.startswith("linux"):
+        return
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    if os.getppid() != parent:  # the parent died before prctl took effect
+        os._exit(1)
+
+
+class FpmWorker(Worker):
+    """RQ's forking worker whose work horses die with it."""
+
+    _parent_pid = 0
+
+    def fork_work_horse(self, job: Job, queue: Queue) -> None:
+        self._parent_pid = os.getpid()
+        super().fork_work_horse(job, queue)
+
+    def setup_work_horse_signals(self) -> None:
+        super().setup_work_horse_signals()
+        die_with_parent(self._parent_pid)
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -45,7 +79,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     redis = Redis.from_url(args.url, health_check_interval=30)
-    worker_class = SimpleWorker if args.simple else Worker
+    worker_class = SimpleWorker if args.simple else FpmWorker
     worker = worker_class(
         args.queues,
         connection=redis,
