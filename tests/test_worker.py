@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import json
+import os
+import signal
 import time
+from pathlib import Path
 
 import pytest
 from rq.job import Job, JobStatus
@@ -11,8 +15,10 @@ from rq.serializers import JSONSerializer
 
 import fpm
 from fpm.calibration import calibrate
+from fpm.cost import CostFunction
 from service.limits import dump_spec
 from worker import graph, keys, store
+from worker import jobs as worker_jobs
 from worker.hashing import fem_hash, spec_hash
 from worker.status import CalibrationStatus
 
@@ -132,18 +138,59 @@ def test_cancel_stops_a_running_chain(redis, worker_processes, small_spec):
     assert not redis.exists(keys.chain_result(record.id, 0))
 
 
+def child_pids(pid: int) -> list[int]:
+    """The children of a process (Linux /proc)."""
+    return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+
+
+def alive(pid: int) -> bool:
+    """True while ``pid`` runs (a zombie waiting to be reaped counts as dead)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] != "Z"
+    except (FileNotFoundError, IndexError):
+        return False
+
+
 def test_chain_of_a_dead_worker_is_retried_and_resumes(
-    redis, worker_processes, run_workers, small_spec
+    redis, worker_processes, run_workers, small_spec, monkeypatch
 ):
     spec = slow_spec(small_spec, beta=0.5)
     record, _ = submit(redis, spec)
     worker = worker_processes.start()
-    wait_for(lambda: redis.exists(keys.chain_checkpoint(record.id, 0)))
-    worker_processes.stop(worker, sig=9)  # the whole worker dies, work horse and all
+    wait_for(
+        lambda: (
+            json.loads(redis.get(keys.chain_checkpoint(record.id, 0)) or "{}").get("move", 0) >= 100
+        )
+    )
+    (horse,) = child_pids(worker.pid)
+    os.kill(worker.pid, signal.SIGKILL)  # the worker dies; its work horse must die with it
+    worker.wait()
+    wait_for(lambda: not alive(horse), 5)
+    checkpoint = json.loads(redis.get(keys.chain_checkpoint(record.id, 0)))
+    assert set(checkpoint) >= {"move", "rng", "current", "best", "evaluations"}
     registry = StartedJobRegistry(keys.QUEUE, connection=redis, serializer=JSONSerializer)
     assert keys.chain_job_id(record.id, 0) in registry.get_job_ids(cleanup=False)
     # What RQ's maintenance does once the dead worker's heartbeat has expired:
     registry.cleanup(timestamp=time.time() + 3600)
+    # Count the cost evaluations the retried chain really makes.
+    evaluations = []
+    real_run_chain = worker_jobs.run_chain
+
+    def counting_run_chain(problem, reference, chain, **kw):
+        calls = [0]
+        real_call = CostFunction.__call__
+
+        def counted(self, *a, **k):
+            calls[0] += 1
+            return real_call(self, *a, **k)
+
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(CostFunction, "__call__", counted)
+            result = real_run_chain(problem, reference, chain, **kw)
+        evaluations.append(calls[0])
+        return result
+
+    monkeypatch.setattr(worker_jobs, "run_chain", counting_run_chain)
     run_workers()
     done = store.get_calibration(redis, record.id)
     assert done.status == CalibrationStatus.SUCCEEDED, done.error
@@ -151,6 +198,13 @@ def test_chain_of_a_dead_worker_is_retried_and_resumes(
     assert (done.result["k"], done.result["d"]) == pytest.approx(
         (expected.k, expected.d), rel=1e-12
     )
+    # Resumed, not restarted: only the evaluations after the checkpoint were made again.
+    total = done.result["evaluations"]
+    assert total == expected.evaluations
+    assert evaluations == [total - checkpoint["evaluations"]] and evaluations[0] < total
+    # Exactly one parameter set, and no checkpoint left behind.
+    assert redis.zcard(keys.parameter_sets()) == 1
+    assert not redis.exists(keys.chain_checkpoint(record.id, 0))
 
 
 def test_hashes_ignore_spelt_out_defaults(small_spec):
