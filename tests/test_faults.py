@@ -1,0 +1,253 @@
+"""Faults done for real: Redis killed and restarted, diverging specs, timeouts, cancels.
+
+Each test runs the real API in-process against a real redis-server and real ``python -m worker``
+processes (or the in-process burst worker where the damage is in the job, not the process).
+The worker killed mid-chain (retry + checkpoint resume) is in tests/test_worker.py.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+
+import pytest
+from conftest import WorkerProcesses
+from fastapi.testclient import TestClient
+from redis import Redis
+from rq.job import Job, JobStatus
+from rq.registry import CanceledJobRegistry
+from rq.serializers import JSONSerializer
+from test_service import assert_problem
+
+from service.main import create_app
+from service.redis_server import RedisServer
+from service.settings import Settings
+from worker import graph, keys
+
+pytestmark = pytest.mark.redis
+
+
+def wait_for(predicate: Callable[[], object], timeout: float = 30.0, what: str = "") -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, f"timed out waiting for {what or predicate}"
+        time.sleep(0.05)
+
+
+def status_of(api: TestClient, calibration_id: str) -> dict:
+    response = api.get(f"/v1/calibrations/{calibration_id}")
+    assert response.status_code == 200, response.text
+    return response.json()
+
+
+def wait_until_done(api: TestClient, calibration_id: str, timeout: float = 30.0) -> dict:
+    """Poll the API until the calibration is terminal; returns its last answer."""
+    seen: dict = {}
+
+    def done() -> bool:
+        seen.update(status_of(api, calibration_id))
+        return seen["status"] in ("succeeded", "failed", "canceled")
+
+    wait_for(done, timeout, f"calibration {calibration_id}")
+    return seen
+
+
+def assert_no_work_left(redis: Redis, worker_count: int = 1) -> None:
+    """Nothing running, queued or waiting: no orphaned job survives the fault."""
+    q = graph.queue(redis)
+    wait_for(lambda: q.started_job_registry.count == 0, 20, "the started registry to empty")
+    assert q.count == 0, q.get_job_ids()
+    assert q.deferred_job_registry.count == 0, q.deferred_job_registry.get_job_ids()
+
+
+# --- Redis stopped and restarted (append-only file on) ------------------------------------------
+
+
+@pytest.fixture
+def durable_redis(tmp_path) -> Iterator[RedisServer]:
+    """A redis-server of this test's own with the append-only file on (in tmp_path)."""
+    server = RedisServer(data_dir=tmp_path / "redis").start()
+    yield server
+    server.stop()
+
+
+def test_redis_crash_loses_nothing_and_everyone_recovers(durable_redis, small_spec):
+    settings = Settings(redis_url=durable_redis.url, redis_timeout=0.5, max_chains=4)
+    workers = WorkerProcesses(durable_redis.url)
+    worker = workers.start()
+    try:
+        with TestClient(create_app(settings), raise_server_exceptions=False) as api:
+            submitted = api.post("/v1/calibrations", json=small_spec)
+            assert submitted.status_code == 202
+            calibration_id = submitted.json()["id"]
+            before = wait_until_done(api, calibration_id)
+            assert before["status"] == "succeeded", before["error"]
+            ps_id = before["parameter_set_id"]
+            parameter_set = api.get(f"/v1/parameter-sets/{ps_id}").json()
+            fem = api.get(f"/v1/fem-references/{before['fem_reference_id']}").json()
+
+            durable_redis.stop(kill=True)  # SIGKILL: a crash, no shutdown save
+            down_started = time.monotonic()
+            small_spec["annealing"]["seed"] = 8
+            for method, path, body in [
+                ("GET", "/v1/health", None),
+                ("GET", f"/v1/calibrations/{calibration_id}", None),
+                ("GET", "/v1/calibrations", None),
+                ("DELETE", f"/v1/calibrations/{calibration_id}", None),
+                ("GET", f"/v1/parameter-sets/{ps_id}", None),
+                ("GET", "/v1/parameter-sets", None),
+                ("GET", f"/v1/fem-references/{fem['id']}", None),
+                ("POST", "/v1/calibrations", small_spec),
+                ("POST", "/v1/fem-references", small_spec),
+            ]:
+                answer = api.request(method, path, json=body)
+                problem = assert_problem(answer, 503)
+                assert "Redis" in problem["detail"] and answer.headers["retry-after"]
+            # Nine requests, each refused quickly: no hang on a dead socket.
+            assert time.monotonic() - down_started < 9 * 2 * settings.redis_timeout + 2
+
+            durable_redis.start()  # same port, same directory: replays the append-only file
+            # The API recovers by itself (same app, same connection pool).
+            health = api.get("/v1/health")
+            assert health.status_code == 200 and health.json()["redis"] is True
+            after = status_of(api, calibration_id)
+            assert after["status"] == "succeeded" and after["result"] == before["result"]
+            assert api.get(f"/v1/parameter-sets/{ps_id}").json() == parameter_set
+            assert api.get("/v1/parameter-sets").json()["total"] == 1
+            assert api.get(f"/v1/fem-references/{fem['id']}").json() == fem
+            # The same worker process reconnects and runs the next calibration.
+            again = api.post("/v1/calibrations", json=small_spec)
+            assert again.status_code == 202
+            second = wait_until_done(api, again.json()["id"], timeout=60)
+            assert second["status"] == "succeeded", second["error"]
+            assert second["fem_cached"] is True  # the stored FEM reference survived too
+            assert worker.poll() is None
+            assert api.get("/v1/parameter-sets").json()["total"] == 2
+            assert_no_work_left(Redis.from_url(durable_redis.url))
+    finally:
+        for process in workers.started:
+            workers.stop(process)
+
+
+# --- A calibration that cannot be fitted --------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        pytest.param(lambda s: s["fpm"].update(dt=10.0), id="dt-far-too-large"),
+        pytest.param(
+            lambda s: s["annealing"].update(bounds={"d": [1e-9, 2e-9]}), id="tiny-damping"
+        ),
+    ],
+)
+def test_all_candidates_diverge_fails_with_a_reason(api, redis, run_workers, small_spec, change):
+    change(small_spec)
+    calibration_id = api.post("/v1/calibrations", json=small_spec).json()["id"]
+    run_workers()
+    done = status_of(api, calibration_id)
+    assert done["status"] == "failed" and done["result"] is None
+    error = done["error"]
+    assert "no acceptable starting point" in error and "diverged" in error, error
+    assert "lower dt" in error  # says what to do about it
+    assert "Traceback" not in error
+    assert done["parameter_set_id"] is None and redis.zcard(keys.parameter_sets()) == 0
+    # Not retried: the same spec fails the same way, so each chain ran once.
+    q = graph.queue(redis)
+    for chain in range(small_spec["annealing"]["chains"]):
+        job = Job.fetch(
+            keys.chain_job_id(calibration_id, chain), connection=redis, serializer=JSONSerializer
+        )
+        assert job.get_status() == JobStatus.FINISHED and job.retries_left == 2
+    assert q.failed_job_registry.count == 0
+    assert_no_work_left(redis)
+
+
+# --- Timeouts -----------------------------------------------------------------------------------
+
+
+def slow(spec: dict, beta: float = 0.2) -> dict:
+    """One chain of ~2400 moves: many seconds, far more than the timeouts below."""
+    spec["annealing"].update(chains=1, beta=beta, t_final=0.002, seed=11)
+    return spec
+
+
+def test_timed_out_chain_fails_cleanly_and_frees_its_worker(
+    settings, redis, worker_processes, small_spec
+):
+    limited = settings.model_copy(update={"chain_timeout": 2, "job_retries": 0})
+    worker = worker_processes.start()
+    with TestClient(create_app(limited), raise_server_exceptions=False) as api:
+        long_one = api.post("/v1/calibrations", json=slow(small_spec)).json()["id"]
+        started = time.monotonic()
+        failed = wait_until_done(api, long_one, timeout=30)
+        assert failed["status"] == "failed", failed
+        assert "timeout" in failed["error"].lower() and "2 seconds" in failed["error"]
+        assert time.monotonic() - started < 20
+        chain = Job.fetch(
+            keys.chain_job_id(long_one, 0), connection=redis, serializer=JSONSerializer
+        )
+        assert chain.get_status() == JobStatus.FAILED
+        # The worker is free again: the next calibration runs on the same process.
+        small_spec["annealing"].update(beta=10, chains=2)
+        quick = api.post("/v1/calibrations", json=small_spec).json()["id"]
+        done = wait_until_done(api, quick, timeout=30)
+        assert done["status"] == "succeeded", done["error"]
+        assert worker.poll() is None
+        assert_no_work_left(redis)
+
+
+# --- Cancel in each phase -----------------------------------------------------------------------
+
+
+def big_fem(spec: dict) -> dict:
+    """A 25^3-node box: its FEM reference takes a couple of seconds."""
+    spec["geometry"]["nodes"] = [25, 25, 25]
+    return spec
+
+
+@pytest.mark.parametrize("phase", ["fem", "annealing"])
+def test_cancel_in_each_phase_leaves_no_job_running(
+    settings, redis, worker_processes, small_spec, phase
+):
+    roomy = settings.model_copy(update={"max_nodes": 20_000})
+    spec = big_fem(small_spec) if phase == "fem" else slow(small_spec)
+    spec["annealing"]["chains"] = 2
+    worker_processes.start()
+    with TestClient(create_app(roomy), raise_server_exceptions=False) as api:
+        calibration_id = api.post("/v1/calibrations", json=spec).json()["id"]
+
+        def in_phase() -> bool:
+            view = status_of(api, calibration_id)
+            moved = any(c["move"] > 3 for c in view["progress"]["chains"])
+            return view["progress"]["phase"] == phase and (phase == "fem" or moved)
+
+        wait_for(in_phase, 60, f"phase {phase}")
+        canceled = api.delete(f"/v1/calibrations/{calibration_id}")
+        assert canceled.status_code == 200 and canceled.json()["status"] == "canceled"
+        assert_no_work_left(redis)  # the FEM job (shared) finishes; nothing else runs
+        view = status_of(api, calibration_id)
+        assert view["status"] == "canceled" and view["result"] is None
+        assert redis.zcard(keys.parameter_sets()) == 0
+        jobs = {
+            job.id: job.get_status()
+            for job in Job.fetch_many(
+                [keys.chain_job_id(calibration_id, c) for c in range(2)]
+                + [keys.finalize_job_id(calibration_id)],
+                connection=redis,
+                serializer=JSONSerializer,
+            )
+        }
+        assert jobs[keys.finalize_job_id(calibration_id)] == JobStatus.CANCELED
+        if phase == "fem":  # no chain ever started
+            assert set(jobs.values()) == {JobStatus.CANCELED}
+            assert view["progress"]["chains"] == []
+        else:  # one chain was stopped mid-way, the other (one worker) never started
+            (running,) = view["progress"]["chains"]
+            assert 3 < running["move"] < running["moves"]
+            chains = sorted(jobs[keys.chain_job_id(calibration_id, c)] for c in range(2))
+            assert chains == [JobStatus.CANCELED, JobStatus.STOPPED]
+        for c in range(2):
+            assert not redis.exists(keys.chain_result(calibration_id, c))
+        registry = CanceledJobRegistry(keys.QUEUE, connection=redis, serializer=JSONSerializer)
+        assert keys.finalize_job_id(calibration_id) in registry.get_job_ids()
