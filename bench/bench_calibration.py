@@ -55,7 +55,9 @@ def main() -> None:
               f"{r.evaluations / seconds:>9.1f}{r.k:>9.3f}{r.d:>8.3f}{r.discrepancy[0]:>12.3f}"
               f"{r.mean_discrepancy:>9.3f}{str(r.settled):>9}")  # fmt: skip
     best = min(s for name, s, _ in rows[1:])
-    quality = all(r.discrepancy[0] <= 1.0 and r.mean_discrepancy <= 2.5 and r.settled for *_, r in rows)
+    quality = all(
+        r.discrepancy[0] <= 1.0 and r.mean_discrepancy <= 2.5 and r.settled for *_, r in rows
+    )
     print(f"goal: material A in <= {GOAL_SECONDS:.0f} s on 2 cores: {best:.1f} s, "
           f"{'met' if best <= GOAL_SECONDS else 'NOT met'}; quality goals "
           f"{'met' if quality else 'NOT met'} on every row")  # fmt: skip

@@ -46,7 +46,9 @@ def main() -> None:
     for i in range(len(pa.load_cases)):
         label = f"discrepancy {pa.load_cases[i].name} / {pb.load_cases[i].name}"
         paper = "1.4" if i == 0 else "-"
-        print(f"{label:<26}{ra.discrepancy[i]:>13.3f}%{paper:>10}{rb.discrepancy[i]:>13.3f}%{paper:>10}")
+        print(
+            f"{label:<26}{ra.discrepancy[i]:>13.3f}%{paper:>10}{rb.discrepancy[i]:>13.3f}%{paper:>10}"
+        )
     print(f"{'discrepancy, mean':<26}{ra.mean_discrepancy:>13.3f}%{'~9':>10}"
           f"{rb.mean_discrepancy:>13.3f}%{'~9':>10}")  # fmt: skip
     print(f"{'settle steps (per force)':<26}{str(ra.settle_steps):>24}{str(rb.settle_steps):>24}")

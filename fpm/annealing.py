@@ -4,10 +4,10 @@ Metropolis acceptance ``exp(-dc / T)`` (Boltzmann constant folded into T), Lundy
 ``T <- T / (1 + beta T)``, one move per temperature, stop once T is below ``t_final``. A
 candidate that diverged, or whose cost exceeds ``c_max``, is rejected at once (paper Fig. 8).
 
-Start: the best of a few random points of the box. Moves: a Gaussian step in log(parameter), reflected into the bounds; its width shrinks
-geometrically from ``step_initial`` to ``step_final`` (natural-log units) over the chain, so the
-early chain roams the whole box and the late chain resolves the optimum to a fraction of a
-percent. The generator is passed in: the same state gives the same chain, bit for bit.
+Start: the best of a few random points of the box. Moves: a Gaussian step in log(parameter),
+reflected into the bounds; its width shrinks geometrically from STEP_INITIAL to STEP_FINAL
+(natural-log units) over the chain, so the early chain roams the whole box and the late chain
+resolves the optimum to a fraction of a percent. The generator is passed in: the same state gives the same chain, bit for bit.
 """
 
 from __future__ import annotations
@@ -107,7 +107,11 @@ def anneal(
         start = resume["move"]
         rng.bit_generator.state = resume["rng"]
         current, best = State(**resume["current"]), State(**resume["best"])
-        history, evaluations, accepted = resume["history"], resume["evaluations"], resume["accepted"]
+        history, evaluations, accepted = (
+            resume["history"],
+            resume["evaluations"],
+            resume["accepted"],
+        )
         visited = [State(**s) for s in resume["visited"]]
     for move in range(start, moves):
         if checkpoint is not None and move > start and move % checkpoint_every == 0:

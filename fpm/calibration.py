@@ -180,7 +180,13 @@ def run_chain(
         resume=resume,
     )
     near = [
-        {"k": s.x[0], "d": s.x[1], "cost": s.cost, "steps": s.info["steps"], "settled": s.info["settled"]}
+        {
+            "k": s.x[0],
+            "d": s.x[1],
+            "cost": s.cost,
+            "steps": s.info["steps"],
+            "settled": s.info["settled"],
+        }
         for s in result.visited
     ]
     return ChainResult(
@@ -208,7 +214,9 @@ def finalize(problem: Problem, reference: Any, chains: list[ChainResult]) -> Cal
     if not chains:
         raise ValueError("no chain results")
     best_cost = min(c.cost for c in chains)
-    candidates = [s for c in chains for s in c.near_best if s["cost"] <= best_cost * (1 + NEAR_BEST)]
+    candidates = [
+        s for c in chains for s in c.near_best if s["cost"] <= best_cost * (1 + NEAR_BEST)
+    ]
     if any(s["settled"] for s in candidates):
         candidates = [s for s in candidates if s["settled"]]
     fewest = min(sum(s["steps"]) for s in candidates)
@@ -235,7 +243,10 @@ def finalize(problem: Problem, reference: Any, chains: list[ChainResult]) -> Cal
         seconds=max(c.seconds for c in chains),
         history=winner.history,
         h=problem.h,
-        chains=[{"chain": c.chain, "k": c.k, "d": c.d, "cost": c.cost, "evaluations": c.evaluations} for c in chains],
+        chains=[
+            {"chain": c.chain, "k": c.k, "d": c.d, "cost": c.cost, "evaluations": c.evaluations}
+            for c in chains
+        ],
     )
 
 
@@ -245,7 +256,9 @@ def auto_depth(cost: CostFunction, k: float, d: float) -> int:
     deepest = max(r.depth for r in full)
     for depth in range(0, deepest + 1):
         worst = max(
-            np.linalg.norm(cost.displacements(k, d, j, depth).displacements - r.displacements, axis=1).mean()
+            np.linalg.norm(
+                cost.displacements(k, d, j, depth).displacements - r.displacements, axis=1
+            ).mean()
             for j, r in enumerate(full)
         )
         if worst <= AUTO_DEPTH_TOLERANCE * cost.problem.h:

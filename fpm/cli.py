@@ -105,7 +105,9 @@ def result_table(problem: Any, result: Any) -> str:
         "",
         f"{'load case':<16}{'discrepancy % of h':>20}{'settle steps':>14}",
     ]
-    for case, disc, steps in zip(problem.load_cases, result.discrepancy, result.settle_steps):
+    for case, disc, steps in zip(
+        problem.load_cases, result.discrepancy, result.settle_steps, strict=True
+    ):
         lines.append(f"{case.name:<16}{disc:>20.3f}{steps:>14d}")
     lines.append(f"{'mean':<16}{result.mean_discrepancy:>20.3f}")
     lines.append("")

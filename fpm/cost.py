@@ -76,7 +76,9 @@ class CostFunction:
         """Eq. (2) at (k, d); ``stop_unsettled`` skips the remaining load cases (cost inf)
         once one has not settled, for a caller that rejects unsettled states anyway."""
         self.evaluations += 1
-        costs, steps, settled = [], [], True
+        costs: list[float] = []
+        steps: list[int] = []
+        settled = True
         for j in range(len(self.problem.load_cases)):
             run = self.displacements(k, d, j)
             steps.append(run.steps)
@@ -93,5 +95,7 @@ class CostFunction:
         out = []
         for j in range(len(self.problem.load_cases)):
             u = self.displacements(k, d, j, depth).displacements
-            out.append(float(np.linalg.norm(u - self.reference[j], axis=1).mean() / self.problem.h * 100))
+            out.append(
+                float(np.linalg.norm(u - self.reference[j], axis=1).mean() / self.problem.h * 100)
+            )
         return out

@@ -46,7 +46,9 @@ class Solid:
         return self.hexahedra
 
 
-def build_solid(geometry: BoxGeometry | VoxelGeometry | MeshGeometry | NetworkGeometry, density: float) -> Solid:
+def build_solid(
+    geometry: BoxGeometry | VoxelGeometry | MeshGeometry | NetworkGeometry, density: float
+) -> Solid:
     """Arrays for ``geometry``; lumped mass ``density * volume / 8`` per hexahedron corner."""
     if isinstance(geometry, BoxGeometry):
         return _box(geometry, density)
@@ -63,7 +65,7 @@ def build_solid(geometry: BoxGeometry | VoxelGeometry | MeshGeometry | NetworkGe
 
 def box_nodes(g: BoxGeometry) -> np.ndarray:
     """(N, 3) lattice nodes, x fastest: node n = i + nx*(j + ny*k)."""
-    axes = [np.linspace(o, o + s, n) for o, s, n in zip(g.origin, g.size, g.nodes)]
+    axes = [np.linspace(o, o + s, n) for o, s, n in zip(g.origin, g.size, g.nodes, strict=True)]
     z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
     return np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
 
@@ -90,14 +92,22 @@ def _box(g: BoxGeometry, density: float) -> Solid:
         if not nonzero or nonzero[0] < 0 or len(nonzero) > _MAX_NONZERO[g.connectivity]:
             continue
         dx, dy, dz = d
-        src = index[max(0, -dz) : nz - max(0, dz), max(0, -dy) : ny - max(0, dy), max(0, -dx) : nx - max(0, dx)]
-        pairs.append(np.stack([src.ravel(), src.ravel() + np.int32(dx + nx * (dy + ny * dz))], axis=1))
+        src = index[
+            max(0, -dz) : nz - max(0, dz),
+            max(0, -dy) : ny - max(0, dy),
+            max(0, -dx) : nx - max(0, dx),
+        ]
+        pairs.append(
+            np.stack([src.ravel(), src.ravel() + np.int32(dx + nx * (dy + ny * dz))], axis=1)
+        )
     springs = np.concatenate(pairs)
     springs.sort(axis=1)  # i < j; the rows need no order (the neighbour lists sort them)
     cell = np.prod(np.asarray(g.size) / (np.asarray(shape) - 1))
     # Number of cells touching a node is a product of per-axis counts (1 at an end, 2 inside).
     counts = [np.where((np.arange(n) == 0) | (np.arange(n) == n - 1), 1.0, 2.0) for n in shape]
-    touching = (counts[2][:, None, None] * counts[1][None, :, None] * counts[0][None, None, :]).ravel()
+    touching = (
+        counts[2][:, None, None] * counts[1][None, :, None] * counts[0][None, None, :]
+    ).ravel()
     masses = density * cell / 8.0 * touching
     return Solid(nodes, None, springs, masses, shape=(nx, ny, nz))
 

@@ -217,7 +217,8 @@ class _NodeFinder:
                 errors.append(
                     (
                         (*loc, "at"),
-                        f"no node at {list(sel.at)} (nearest node {best} is {dist[best]:.3g} m away)",
+                        f"no node at {list(sel.at)} "
+                        f"(nearest node {best} is {dist[best]:.3g} m away)",
                     )
                 )
                 return np.zeros(0, dtype=np.int64)

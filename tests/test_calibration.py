@@ -50,7 +50,7 @@ def small():
 def test_schedule_follows_lundy_mees_and_stops_below_t_final():
     s = Schedule(t_initial=0.1, t_final=1e-3, beta=7.0)
     temps = [s.temperature(n) for n in range(s.moves)]
-    for t0, t1 in zip(temps, temps[1:]):
+    for t0, t1 in zip(temps, temps[1:], strict=False):
         assert t1 == pytest.approx(t0 / (1 + 7.0 * t0), rel=1e-12)
     # the last move is judged at or above t_final, the next temperature would be below it
     assert temps[-1] >= 1e-3 > s.temperature(s.moves)
