@@ -7,7 +7,8 @@ candidate that diverged, or whose cost exceeds ``c_max``, is rejected at once (p
 Start: the best of a few random points of the box. Moves: a Gaussian step in log(parameter),
 reflected into the bounds; its width shrinks geometrically from STEP_INITIAL to STEP_FINAL
 (natural-log units) over the chain, so the early chain roams the whole box and the late chain
-resolves the optimum to a fraction of a percent. The generator is passed in: the same state gives the same chain, bit for bit.
+resolves the optimum to a fraction of a percent. The generator is passed in: the same state
+gives the same chain, bit for bit.
 """
 
 from __future__ import annotations
