@@ -24,6 +24,53 @@ MEDIA_TYPE = "application/problem+json"
 log = logging.getLogger("service")
 
 
+PROBLEM_SCHEMA: dict[str, Any] = {
+    "title": "Problem",
+    "type": "object",
+    "required": ["type", "title", "status", "detail"],
+    "properties": {
+        "type": {"type": "string"},
+        "title": {"type": "string"},
+        "status": {"type": "integer"},
+        "detail": {"type": "string"},
+        "errors": {
+            "type": "array",
+            "description": "422 only: each bad field (dotted location) and why",
+            "items": {
+                "type": "object",
+                "required": ["field", "message"],
+                "properties": {"field": {"type": "string"}, "message": {"type": "string"}},
+            },
+        },
+    },
+}
+"""RFC 9457 problem details, as the OpenAPI document shows them (inline: no component)."""
+
+PROBLEM_DESCRIPTIONS = {
+    400: "the body cannot be read (e.g. not UTF-8)",
+    401: "missing or unknown API key",
+    404: "no such resource",
+    409: "the calibration has already finished",
+    413: "request body over the configured limit",
+    422: "invalid input: names each bad field and the reason",
+    503: "Redis (queue and store) unreachable; retry later",
+}
+
+
+def problem_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses`` documenting these error statuses as application/problem+json.
+
+    A documented 422 also replaces FastAPI's default (a JSON body of another shape).
+    """
+    return {
+        code: {
+            "description": PROBLEM_DESCRIPTIONS[code],
+            "content": {MEDIA_TYPE: {"schema": PROBLEM_SCHEMA}},
+        }
+        for code in codes
+    }
+
+
 class ProblemError(Exception):
     """An error answered as problem+json: status, short title, human detail, extra members."""
 
@@ -97,7 +144,9 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
-        title = {404: "Not found", 405: "Method not allowed"}.get(exc.status_code, "Error")
+        title = {400: "Bad request", 404: "Not found", 405: "Method not allowed"}.get(
+            exc.status_code, "Error"
+        )
         return problem(exc.status_code, title, str(exc.detail), dict(exc.headers or {}))
 
     @app.exception_handler(Exception)

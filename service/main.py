@@ -28,8 +28,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if settings is not None:
         app.dependency_overrides[get_settings] = lambda: settings
     protected = [Depends(require_api_key)]
+    documented = errors.problem_responses(401, 404, 413, 422, 503)
     for module in (calibrations, fem_references, parameter_sets, health):
-        app.include_router(module.router, dependencies=protected)
+        app.include_router(module.router, dependencies=protected, responses=documented)
     errors.install(app)
     app.add_middleware(BodySizeLimit, max_bytes=(settings or get_settings()).max_body_bytes)
     return app

@@ -13,7 +13,7 @@ from worker import graph, keys, store
 from worker.status import CalibrationStatus, FemStatus, Phase
 
 from ..deps import RedisDep, SettingsDep
-from ..errors import ProblemError
+from ..errors import ProblemError, problem_responses
 from ..examples import openapi_examples
 from ..limits import check_calibration_spec, dump_spec
 from ..schemas import (
@@ -34,7 +34,10 @@ SpecBody = Annotated[ProblemSpec, Body(openapi_examples=openapi_examples())]
 @router.post(
     "",
     status_code=status.HTTP_202_ACCEPTED,
-    responses={200: {"model": Calibration, "description": "the identical spec's calibration"}},
+    responses={
+        200: {"model": Calibration, "description": "the identical spec's calibration"},
+        **problem_responses(400),
+    },
 )
 def submit(
     spec: SpecBody, redis: RedisDep, settings: SettingsDep, response: Response
@@ -101,7 +104,7 @@ def read(calibration_id: str, redis: RedisDep) -> Calibration:
     return _view(record, progress, fem_running)
 
 
-@router.delete("/{calibration_id}", responses={409: {"description": "already finished"}})
+@router.delete("/{calibration_id}", responses=problem_responses(409))
 def cancel(calibration_id: str, redis: RedisDep) -> Calibration:
     """Cancel: running chains are stopped, queued jobs dropped, the status becomes canceled.
 

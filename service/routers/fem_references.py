@@ -13,7 +13,7 @@ from worker.hashing import fem_hash
 from worker.status import FemStatus
 
 from ..deps import RedisDep, SettingsDep
-from ..errors import ProblemError
+from ..errors import ProblemError, problem_responses
 from ..examples import openapi_examples
 from ..limits import check_calibration_spec, dump_spec
 from ..schemas import FemReference
@@ -24,7 +24,10 @@ router = APIRouter(prefix="/v1/fem-references", tags=["fem-references"])
 @router.post(
     "",
     status_code=status.HTTP_202_ACCEPTED,
-    responses={200: {"model": FemReference, "description": "already computed or on its way"}},
+    responses={
+        200: {"model": FemReference, "description": "already computed or on its way"},
+        **problem_responses(400),
+    },
 )
 def submit(
     spec: Annotated[ProblemSpec, Body(openapi_examples=openapi_examples())],
