@@ -186,3 +186,39 @@ def test_auto_depth_is_the_smallest_depth_close_to_full_depth(small):
     assert worst(result.depth) <= 0.01 * problem.h
     if result.depth > 0:
         assert worst(result.depth - 1) > 0.01 * problem.h
+
+
+def test_cli_calibrate_prints_a_table_and_draws_the_plot(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    spec = tmp_path / "small.json"
+    spec.write_text(json.dumps(small_spec(t_final=5e-3)))
+    png = tmp_path / "fit.png"
+    run = subprocess.run(
+        [sys.executable, "-m", "fpm.cli", "calibrate", str(spec), "--plot", str(png)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    assert "discrepancy % of h" in run.stdout and "settled: yes" in run.stdout
+    assert "annealing [" in run.stderr  # the progress bar
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_fem_writes_the_reference(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    spec = tmp_path / "small.json"
+    spec.write_text(json.dumps(small_spec()))
+    out = tmp_path / "fem.json"
+    run = subprocess.run(
+        [sys.executable, "-m", "fpm.cli", "fem", str(spec), "-o", str(out)],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    data = json.loads(out.read_text())
+    expected = fpm.solve_fem(fpm.load_problem(small_spec())).displacements
+    assert np.allclose(np.asarray(data["displacements"]), expected)
