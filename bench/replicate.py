@@ -57,7 +57,7 @@ def main() -> None:
     ratio = rb.k / ra.k
     print(f"\nk_B / k_A = {ratio:.4f} (E_B / E_A = 10; {abs(ratio / 10 - 1) * 100:.2f}% off; "
           f"paper: {PAPER['B']['k'] / PAPER['A']['k']:.4f})")  # fmt: skip
-    print(f"discrepancy in % of h = {pa.h * 1e3:.4f} mm; paper: {PAPER_DISCREPANCY}")
+    print(f"discrepancies in % of h (h = {pa.h * 1e3:.4f} mm); paper: {PAPER_DISCREPANCY}")
     goals = {
         "smallest force <= 1.0% of h": max(ra.discrepancy[0], rb.discrepancy[0]) <= 1.0,
         "mean over forces <= 2.5% of h": max(ra.mean_discrepancy, rb.mean_discrepancy) <= 2.5,
