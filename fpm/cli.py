@@ -118,12 +118,6 @@ def result_table(problem: Any, result: Any) -> str:
     return "\n".join(lines)
 
 
-def cmd_up(args: argparse.Namespace) -> None:
-    from service.stack import main as stack_main
-
-    stack_main(args.rest)
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fpmcal", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -152,13 +146,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_calibrate)
 
-    p = sub.add_parser("up", help="run the local stack: Redis, API, workers (Ctrl-C stops)")
-    p.add_argument("rest", nargs=argparse.REMAINDER, help="--workers N --port P --host H")
-    p.set_defaults(func=cmd_up)
+    # `up` hands its arguments to service.stack (see main); listed here for --help.
+    sub.add_parser("up", help="run the local stack: Redis, API, workers (Ctrl-C stops)")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["up"]:
+        from service.stack import main as stack_main
+
+        stack_main(argv[1:])
+        return 0
     args = build_parser().parse_args(argv)
     try:
         args.func(args)
