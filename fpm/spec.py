@@ -14,6 +14,11 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+MODEL_VERSION = "2026.11.21"
+"""Version of the numerics behind a result; bump it whenever a change alters fitted values.
+It is part of a calibration's identity, so a resubmitted spec is not answered from results
+that older numerics computed."""
+
 Vector3 = tuple[float, float, float]
 Connectivity = Literal["axis", "axis+face", "full"]
 FACES = ("x-", "x+", "y-", "y+", "z-", "z+")

@@ -8,6 +8,8 @@ import hashlib
 import json
 from typing import Any
 
+from fpm.spec import MODEL_VERSION
+
 FEM_FIELDS = ("geometry", "material", "fixed", "load_cases")
 """The spec fields the FEM reference depends on."""
 
@@ -18,8 +20,9 @@ def canonical(data: Any) -> bytes:
 
 
 def spec_hash(spec: dict[str, Any]) -> str:
-    """sha256 of the whole validated spec (a dumped :class:`fpm.spec.ProblemSpec`)."""
-    return hashlib.sha256(canonical(spec)).hexdigest()
+    """sha256 of the whole validated spec (a dumped :class:`fpm.spec.ProblemSpec`) and of
+    :data:`fpm.spec.MODEL_VERSION`, so results of older numerics are not handed out again."""
+    return hashlib.sha256(canonical({"model": MODEL_VERSION, "spec": spec})).hexdigest()
 
 
 def fem_spec(spec: dict[str, Any]) -> dict[str, Any]:
