@@ -36,18 +36,27 @@ class BodySizeLimit:
             await self._reject(send)
             return
         received = 0
+        too_large = False
 
         async def counting_receive() -> Message:
-            nonlocal received
+            nonlocal received, too_large
             message = await receive()
             received += len(message.get("body", b""))
             if received > self.max_bytes:
+                too_large = True
                 raise _TooLarge
             return message
 
+        async def guarded_send(message: Message) -> None:
+            # The body parser may turn _TooLarge into an answer of its own (400): drop it.
+            if not too_large:
+                await send(message)
+
         try:
-            await self.app(scope, counting_receive, send)
+            await self.app(scope, counting_receive, guarded_send)
         except _TooLarge:
+            pass
+        if too_large:
             await self._reject(send)
 
     async def _reject(self, send: Send) -> None:
