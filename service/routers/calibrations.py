@@ -28,6 +28,9 @@ from ..schemas import (
 
 router = APIRouter(prefix="/v1/calibrations", tags=["calibrations"])
 
+MAX_OFFSET = 10**9
+"""Largest listing offset (Redis range indexes are 64-bit: 2**63 answered 500)."""
+
 SpecBody = Annotated[ProblemSpec, Body(openapi_examples=openapi_examples())]
 
 
@@ -60,7 +63,7 @@ def listing(
     redis: RedisDep,
     settings: SettingsDep,
     status_filter: Annotated[CalibrationStatus | None, Query(alias="status")] = None,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
     limit: Annotated[int, Query(ge=1, le=1000)] = 50,
 ) -> CalibrationPage:
     """Calibrations, newest first; ``status`` filters."""
