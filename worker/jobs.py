@@ -19,7 +19,7 @@ from rq.job import Job
 from fpm import load_problem
 from fpm.annealing import AnnealingError
 from fpm.calibration import ChainResult, finalize, run_chain
-from fpm.fem import FemResult, solve_fem
+from fpm.fem import FemError, FemResult, solve_fem
 
 from . import keys, store
 from .status import CalibrationStatus, FemStatus, Phase
@@ -47,7 +47,18 @@ def fem_reference(fem_hash: str) -> dict[str, Any]:
         return {"id": fem_hash, "cached": True}
     meta = store.get_fem_meta(redis, fem_hash)
     redis.hset(meta_key, mapping={"status": FemStatus.RUNNING.value, "started": time.time()})
-    result = solve_fem(load_problem(json.loads(meta["spec"])))
+    try:
+        result = solve_fem(load_problem(json.loads(meta["spec"])))
+    except FemError as e:
+        # The problem cannot be solved (e.g. the solid is not held): a retry would fail the
+        # same way, so the reference fails now and the chains waiting on it say why.
+        failed: store.Mapping = {
+            "status": FemStatus.FAILED.value,
+            "error": str(e),
+            "finished": time.time(),
+        }
+        redis.hset(meta_key, mapping=failed)
+        return {"id": fem_hash, "failed": True}
     fields: store.Mapping = {
         "status": FemStatus.SUCCEEDED.value,
         "finished": time.time(),
