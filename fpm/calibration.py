@@ -17,6 +17,7 @@ Defaults (see also :class:`fpm.spec.AnnealingSettings`):
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -296,8 +297,6 @@ def calibrate(
     def one(chain: int) -> ChainResult:
         cb = None if progress is None else (lambda info: progress({"phase": "annealing", **info}))
         return run_chain(problem, reference, chain, progress=cb)
-
-    import os
 
     workers = min(n, threads or os.cpu_count() or 1)
     if workers == 1:
