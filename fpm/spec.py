@@ -175,7 +175,7 @@ class FpmSettings(_Strict):
         "of the full-depth result at the fitted k, d",
     )
     dt: float = Field(1e-3, gt=0, description="time step, s (default 1 ms: a haptic 1 kHz loop)")
-    max_steps: int = Field(2000, ge=1, description="steps per load case before giving up")
+    max_steps: int = Field(2000, ge=1, le=1_000_000, description="steps per load case before giving up")
     settle_tolerance: float = Field(
         1e-5,
         ge=0,
@@ -246,8 +246,8 @@ class AnnealingSettings(_Strict):
 
     @property
     def moves(self) -> int:
-        """Moves per chain implied by the cooling schedule."""
-        return math.ceil((1 / self.t_final - 1 / self.t_initial) / self.beta)
+        """Moves per chain implied by the cooling schedule (as :class:`fpm.annealing.Schedule`)."""
+        return math.floor((1 / self.t_final - 1 / self.t_initial) / self.beta) + 1
 
 
 class ProblemSpec(_Strict):

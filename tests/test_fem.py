@@ -9,8 +9,8 @@ from typing import Any
 
 import numpy as np
 import pytest
-from pydantic import ValidationError
 import scipy.sparse.linalg as spla
+from pydantic import ValidationError
 
 import fpm
 from fpm.assembly import identical_elements, stiffness_matrix
