@@ -175,7 +175,9 @@ class FpmSettings(_Strict):
         "of the full-depth result at the fitted k, d",
     )
     dt: float = Field(1e-3, gt=0, description="time step, s (default 1 ms: a haptic 1 kHz loop)")
-    max_steps: int = Field(2000, ge=1, le=1_000_000, description="steps per load case before giving up")
+    max_steps: int = Field(
+        2000, ge=1, le=1_000_000, description="steps per load case before giving up"
+    )
     settle_tolerance: float = Field(
         1e-5,
         ge=0,

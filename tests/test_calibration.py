@@ -222,3 +222,11 @@ def test_cli_fem_writes_the_reference(tmp_path):
     data = json.loads(out.read_text())
     expected = fpm.solve_fem(fpm.load_problem(small_spec())).displacements
     assert np.allclose(np.asarray(data["displacements"]), expected)
+
+
+def test_spec_and_schedule_agree_on_the_number_of_moves():
+    for t0, tf, beta in ((0.05, 2e-4, 33.0), (0.1, 1e-3, 7.0), (0.05, 1e-3, 15.0), (1.0, 0.5, 1.0)):
+        spec = fpm.ProblemSpec.model_validate(
+            small_spec(t_initial=t0, t_final=tf, beta=beta)
+        ).annealing
+        assert spec.moves == Schedule(t0, tf, beta).moves
