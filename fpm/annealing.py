@@ -99,7 +99,13 @@ def anneal(
     moves = schedule.moves
     if resume is None:
         start = 0
-        current = _start(objective, lo, hi, rng, c_max)
+
+        def started(samples: int) -> None:  # the start search reports too (and may be canceled)
+            if progress is not None:
+                progress({"move": 0, "moves": moves, "temperature": schedule.t_initial,
+                          "start_samples": samples})  # fmt: skip
+
+        current = _start(objective, lo, hi, rng, c_max, started)
         best = current
         history: list[float] = []
         visited = [current]
@@ -152,7 +158,9 @@ def _near(visited: list[State], best: State) -> list[State]:
     return [s for s in visited if s.cost <= best.cost * (1 + NEAR_BEST)]
 
 
-def _start(objective, lo, hi, rng, c_max, samples: int = START_SAMPLES, tries: int = 50) -> State:
+def _start(
+    objective, lo, hi, rng, c_max, report, samples: int = START_SAMPLES, tries: int = 50
+) -> State:
     """The best of ``samples`` random acceptable points of the box (log-uniform draws).
 
     Starting from the best of a few draws rather than from one spares a chain the long walk
@@ -165,6 +173,7 @@ def _start(objective, lo, hi, rng, c_max, samples: int = START_SAMPLES, tries: i
         state = objective(np.exp(rng.uniform(lo, hi)).tolist())
         if state.cost <= c_max:
             found.append(state)
+        report(n)
     if not found:
         raise AnnealingError(
             f"no acceptable starting point in {tries} random tries: every candidate diverged, "

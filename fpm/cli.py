@@ -60,6 +60,8 @@ class _Bar:
         if info.get("phase") != "annealing":
             print(f"  {info.get('phase')} ...", file=sys.stderr, flush=True)
             return
+        if "best_cost" not in info:  # still drawing the chain's starting point
+            return
         self.done[info["chain"]] = info["move"]
         frac = sum(self.done) / self.total
         if not self.tty and int(frac * 10) == self.last_tenth:
