@@ -15,6 +15,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from fpm import Problem, ProblemSpec, load_problem
 from fpm.spec import BoxGeometry, MeshGeometry, NetworkGeometry, VoxelGeometry
+from fpm.support import unheld_reason
 
 from .errors import MEDIA_TYPE, ProblemError
 from .settings import Settings
@@ -127,6 +128,14 @@ def check_calibration_spec(spec: ProblemSpec, settings: Settings) -> Problem:
     problem = load_problem(spec)
     if not problem.fixed.any():
         raise _rejected("fixed", "selects no node: the FEM reference needs the solid held")
+    reason = unheld_reason(
+        problem.nodes,
+        problem.solid.elements(),
+        problem.fixed,
+        one_block=problem.solid.shape is not None,
+    )
+    if reason:  # refused now rather than failed in a worker
+        raise _rejected("fixed", reason)
     return problem
 
 

@@ -115,6 +115,7 @@ def test_cancel_of_a_finished_calibration_conflicts(api, run_workers, small_spec
         (lambda s: s["geometry"].update(nodes=[20, 20, 20]), "geometry"),
         (lambda s: s["annealing"].update(chains=5), "annealing.chains"),
         (lambda s: s.update(fixed=[]), "fixed"),
+        (lambda s: s.update(fixed=[{"node": 0}, {"node": 1}]), "fixed"),  # a hinge: not held
         (
             lambda s: s.update(
                 geometry={
