@@ -128,11 +128,10 @@ def check_calibration_spec(spec: ProblemSpec, settings: Settings) -> Problem:
     problem = load_problem(spec)
     if not problem.fixed.any():
         raise _rejected("fixed", "selects no node: the FEM reference needs the solid held")
+    hexahedra = problem.solid.elements()
+    assert hexahedra is not None  # networks were refused above
     reason = unheld_reason(
-        problem.nodes,
-        problem.solid.elements(),
-        problem.fixed,
-        one_block=problem.solid.shape is not None,
+        problem.nodes, hexahedra, problem.fixed, one_block=problem.solid.shape is not None
     )
     if reason:  # refused now rather than failed in a worker
         raise _rejected("fixed", reason)
