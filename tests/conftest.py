@@ -164,16 +164,19 @@ def live_api(redis_server: RedisServer) -> Iterator[str]:
     )
     worker = spawn_worker(redis_url)
     url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 30
-    while True:
+    deadline = time.monotonic() + 90
+    while True:  # up, and the worker registered (its start-up may compile the kernel first)
         try:
-            httpx.get(f"{url}/v1/health", timeout=1).raise_for_status()
-            break
+            health = httpx.get(f"{url}/v1/health", timeout=1)
+            health.raise_for_status()
+            if health.json()["workers"] >= 1:
+                break
+            raise httpx.HTTPError("no worker yet")
         except httpx.HTTPError:
             if time.monotonic() > deadline or api.poll() is not None:
                 stop_process(api)
                 stop_process(worker)
-                raise RuntimeError("uvicorn did not start") from None
+                raise RuntimeError("uvicorn or its worker did not start") from None
             time.sleep(0.1)
     yield url
     stop_process(worker)
