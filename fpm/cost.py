@@ -19,13 +19,11 @@ class Evaluation:
     """The FPM at one (k, d) against the reference, over all load cases.
 
     Attributes:
-        cost: Eq. (2), m (inf if a load case diverged).
+        cost: Eq. (2), m (inf if a load case diverged, or did not settle when asked to stop).
         case_costs: (L,) per load case, m.
         steps: (L,) time steps per load case.
         settled: every load case settled.
         diverged: some load case diverged (the remaining ones were not run).
-        complete: every load case was run (False after a divergence, or after an unsettled
-            case when the cost function was asked to stop there).
     """
 
     cost: float
@@ -33,7 +31,6 @@ class Evaluation:
     steps: list[int]
     settled: bool
     diverged: bool
-    complete: bool = True
 
 
 class CostFunction:
@@ -83,11 +80,11 @@ class CostFunction:
             run = self.displacements(k, d, j)
             steps.append(run.steps)
             if run.diverged:
-                return Evaluation(float("inf"), costs, steps, False, True, False)
+                return Evaluation(float("inf"), costs, steps, False, True)
             costs.append(float(np.linalg.norm(run.displacements - self.reference[j], axis=1).sum()))
             settled &= run.settled
             if not run.settled and stop_unsettled:
-                return Evaluation(float("inf"), costs, steps, False, False, False)
+                return Evaluation(float("inf"), costs, steps, False, False)
         return Evaluation(float(sum(costs)), costs, steps, settled, False)
 
     def discrepancy(self, k: float, d: float, depth: int | None = None) -> list[float]:
