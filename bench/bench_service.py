@@ -11,6 +11,7 @@ Runs its own redis-server (no persistence), uvicorn and workers on free loopback
 
 from __future__ import annotations
 
+import json
 import statistics
 import tempfile
 import threading
@@ -35,16 +36,8 @@ POLLERS = 8
 """Threads sharing the polling schedule (each with its own connection)."""
 
 SMALL = {
+    **json.loads((Path(__file__).resolve().parents[1] / "examples" / "small-box.json").read_text()),
     "name": "bench box",
-    "material": {"youngs_modulus": 10000.0, "poisson_ratio": 0.45, "density": 1040.0},
-    "geometry": {"type": "box", "size": [0.03, 0.03, 0.03], "nodes": [4, 4, 4]},
-    "fixed": [{"face": "z-"}],
-    "load_cases": [
-        {"name": "0.05 N", "forces": [{"at": [0.01, 0.01, 0.03], "vector": [0, 0, 0.05]}]},
-        {"name": "0.1 N", "forces": [{"at": [0.01, 0.01, 0.03], "vector": [0, 0, 0.1]}]},
-    ],
-    "fpm": {"depth": 3, "max_steps": 400},
-    "annealing": {"chains": 2, "t_initial": 0.05, "t_final": 0.002, "beta": 10},
 }
 
 

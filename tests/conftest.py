@@ -9,11 +9,13 @@ under uvicorn on a free port.
 from __future__ import annotations
 
 import copy
+import json
 import os
 import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -29,18 +31,9 @@ from service.redis_server import RedisServer, free_port
 from service.settings import Settings
 from worker import keys
 
-SMALL_SPEC: dict[str, Any] = {
-    "name": "small box",
-    "material": {"youngs_modulus": 10000.0, "poisson_ratio": 0.45, "density": 1040.0},
-    "geometry": {"type": "box", "size": [0.03, 0.03, 0.03], "nodes": [4, 4, 4]},
-    "fixed": [{"face": "z-"}],
-    "load_cases": [
-        {"name": "0.05 N", "forces": [{"at": [0.01, 0.01, 0.03], "vector": [0, 0, 0.05]}]},
-        {"name": "0.1 N", "forces": [{"at": [0.01, 0.01, 0.03], "vector": [0, 0, 0.1]}]},
-    ],
-    "fpm": {"depth": 3, "max_steps": 400},
-    "annealing": {"seed": 3, "chains": 2, "t_initial": 0.05, "t_final": 0.002, "beta": 10},
-}
+SMALL_SPEC: dict[str, Any] = json.loads(
+    (Path(__file__).resolve().parents[1] / "examples" / "small-box.json").read_text()
+)
 """A 4x4x4 box, 2 chains of ~50 moves: a whole calibration in well under a second."""
 
 

@@ -18,7 +18,7 @@ from helpers_fpm import box_spec, lattice_index, network_spec, spec_errors
 import fpm
 
 ROOT = Path(__file__).resolve().parents[1]
-EXAMPLES = sorted((ROOT / "examples").glob("*.json"))
+EXAMPLES = sorted((ROOT / "examples").glob("paper-material-*.json"))
 
 UNIT_CUBE = [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]]
 """The 8 corners of the unit cube in fpm.hexahedron order (0-3 bottom, 4-7 top)."""
@@ -54,7 +54,7 @@ def only_error(spec: Any) -> tuple[tuple[Any, ...], str]:
 def test_examples_load_as_the_paper_describes(path: Path):
     """Table 1 setup: 10x10x10 nodes of a 0.1 m cube, face z=0 fixed, four central nodes of the
     face z=0.1 pulled along +z, three load cases."""
-    assert EXAMPLES, "no examples/*.json"
+    assert EXAMPLES, "no examples/paper-material-*.json"
     problem = fpm.load_problem(path)
     assert problem.n_nodes == 1000
     assert problem.h == pytest.approx(0.1 / 9)
@@ -250,3 +250,8 @@ def test_cli_bad_spec_exits_2_and_names_the_field(tmp_path: Path):
     assert "material.poisson_ratio" in run.stderr
     assert "less than 0.5" in run.stderr
     assert run.stdout == ""
+
+
+def test_every_example_loads():
+    for path in sorted((ROOT / "examples").glob("*.json")):
+        assert fpm.load_problem(path).n_nodes > 0, path.name
