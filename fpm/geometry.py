@@ -12,7 +12,7 @@ from itertools import product
 
 import numpy as np
 
-from .hexahedron import NATURAL, local_pairs
+from .hexahedron import NATURAL, local_families, local_pairs
 from .spec import BoxGeometry, MeshGeometry, NetworkGeometry, VoxelGeometry
 
 # A spring joins lattice offsets (dx, dy, dz) whose number of non-zero components is at most
@@ -30,6 +30,8 @@ class Solid:
             for a box until :meth:`elements` is asked (a 1M-node lattice need not hold them).
         springs: (S, 2) int32 node pairs, i < j, each pair once.
         masses: (N,) lumped node masses, kg.
+        families: (S,) int8 spring family (:data:`fpm.hexahedron.FAMILIES`): 0 hexahedron
+            edge (axis), 1 face diagonal, 2 body diagonal; all 0 for a network.
         shape: (nx, ny, nz) for a box lattice (node n = i + nx*(j + ny*k)), else None.
     """
 
@@ -37,6 +39,7 @@ class Solid:
     hexahedra: np.ndarray | None
     springs: np.ndarray
     masses: np.ndarray
+    families: np.ndarray
     shape: tuple[int, int, int] | None = None
 
     def elements(self) -> np.ndarray | None:
@@ -59,8 +62,8 @@ def build_solid(
     else:
         nodes = np.asarray(geometry.nodes, dtype=float)
         hexahedra = np.asarray(geometry.hexahedra, dtype=np.int64)
-    springs = hexahedron_springs(hexahedra, geometry.connectivity)
-    return Solid(nodes, hexahedra, springs, lumped_masses(nodes, hexahedra, density))
+    springs, families = hexahedron_springs(hexahedra, geometry.connectivity)
+    return Solid(nodes, hexahedra, springs, lumped_masses(nodes, hexahedra, density), families)
 
 
 def box_nodes(g: BoxGeometry) -> np.ndarray:
@@ -85,7 +88,7 @@ def _box(g: BoxGeometry, density: float) -> Solid:
     nx, ny, nz = shape
     nodes = box_nodes(g)
     index = np.arange(nx * ny * nz, dtype=np.int32).reshape(nz, ny, nx)
-    pairs = []
+    pairs, families = [], []
     for d in product((-1, 0, 1), repeat=3):
         # Half of the 26-neighbour stencil: the offsets whose first non-zero component is +1.
         nonzero = [c for c in d if c]
@@ -100,6 +103,7 @@ def _box(g: BoxGeometry, density: float) -> Solid:
         pairs.append(
             np.stack([src.ravel(), src.ravel() + np.int32(dx + nx * (dy + ny * dz))], axis=1)
         )
+        families.append(np.full(src.size, len(nonzero) - 1, dtype=np.int8))
     springs = np.concatenate(pairs)
     springs.sort(axis=1)  # i < j; the rows need no order (the neighbour lists sort them)
     cell = np.prod(np.asarray(g.size) / (np.asarray(shape) - 1))
@@ -109,7 +113,7 @@ def _box(g: BoxGeometry, density: float) -> Solid:
         counts[2][:, None, None] * counts[1][None, :, None] * counts[0][None, None, :]
     ).ravel()
     masses = density * cell / 8.0 * touching
-    return Solid(nodes, None, springs, masses, shape=(nx, ny, nz))
+    return Solid(nodes, None, springs, masses, np.concatenate(families), shape=(nx, ny, nz))
 
 
 def voxel_mesh(g: VoxelGeometry) -> tuple[np.ndarray, np.ndarray]:
@@ -129,12 +133,17 @@ def voxel_mesh(g: VoxelGeometry) -> tuple[np.ndarray, np.ndarray]:
     return nodes, hexahedra
 
 
-def hexahedron_springs(hexahedra: np.ndarray, connectivity: str) -> np.ndarray:
-    """(S, 2) unique sorted node pairs joined by springs in ``hexahedra`` (H, 8)."""
+def hexahedron_springs(hexahedra: np.ndarray, connectivity: str) -> tuple[np.ndarray, np.ndarray]:
+    """(S, 2) unique sorted node pairs joined by springs in ``hexahedra`` (H, 8), and (S,) their
+    families (a pair that two hexahedra see as different families takes the lower one)."""
     lp = local_pairs(connectivity)
     pairs = np.stack([hexahedra[:, lp[:, 0]].ravel(), hexahedra[:, lp[:, 1]].ravel()], axis=1)
     pairs.sort(axis=1)
-    return np.unique(pairs, axis=0).astype(np.int32)
+    family = np.tile(local_families(connectivity), len(hexahedra))
+    springs, inverse = np.unique(pairs, axis=0, return_inverse=True)
+    families = np.full(len(springs), 127, dtype=np.int8)
+    np.minimum.at(families, inverse.ravel(), family)
+    return springs.astype(np.int32), families
 
 
 def hexahedron_volumes(nodes: np.ndarray, hexahedra: np.ndarray) -> np.ndarray:
@@ -184,4 +193,4 @@ def _network(g: NetworkGeometry) -> Solid:
     springs = np.unique(springs, axis=0).astype(np.int32)
     m = g.masses
     masses = np.asarray(m, dtype=float) if isinstance(m, list) else np.full(len(nodes), float(m))
-    return Solid(nodes, None, springs, masses)
+    return Solid(nodes, None, springs, masses, np.zeros(len(springs), dtype=np.int8))
