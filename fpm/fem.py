@@ -159,10 +159,9 @@ def solve_dirichlet(
         "(fix more nodes, or join loose hexahedra by a face)"
     )
     try:
-        solve = factorize(kff, method, rigid_body_modes(nodes)[free])
+        x = factorize(kff, method, rigid_body_modes(nodes)[free])(f)
     except SingularStiffnessError:
         raise singular from None
-    x = solve(f)
     scale = np.linalg.norm(f, axis=0)
     residuals = np.linalg.norm(kff @ x - f, axis=0) / np.where(scale > 0, scale, 1.0)
     if not np.all(np.isfinite(x)) or residuals.max() > RESIDUAL_LIMIT:

@@ -75,6 +75,22 @@ SPRING_FAMILIES: dict[str, list[tuple[int, int]]] = {
 """Local node pairs joined by a spring, per connectivity (physics.md, Geometry)."""
 
 
+FAMILIES = ("axis", "face", "body")
+"""Spring families: hexahedron edges, face diagonals, body diagonals (physics.md, Round 2)."""
+
+
+def connectivity_families(connectivity: str) -> tuple[str, ...]:
+    """The families a connectivity has: axis 1, axis+face 2, full 3."""
+    return FAMILIES[: {"axis": 1, "axis+face": 2, "full": 3}[connectivity]]
+
+
+def local_families(connectivity: str) -> np.ndarray:
+    """(P,) int8 family index (into :data:`FAMILIES`) of each of :func:`local_pairs`."""
+    sizes = [len(EDGES), len(FACE_DIAGONALS), len(BODY_DIAGONALS)]
+    family = np.repeat(np.arange(3, dtype=np.int8), sizes)
+    return family[: len(SPRING_FAMILIES[connectivity])]
+
+
 def local_pairs(connectivity: str) -> np.ndarray:
     """(P, 2) local node pairs of one hexahedron for ``connectivity``."""
     return np.array(SPRING_FAMILIES[connectivity], dtype=np.int64)

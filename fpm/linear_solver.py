@@ -1,6 +1,8 @@
-"""Solving K X = F for many load cases with one factorisation (paper Sec. 4.1, ``F = K X``).
+"""Sparse linear solves shared by the FEM and the FPM's static equilibrium.
 
-Two methods, chosen by size (``"auto"``), measured in ``bench/bench_fem.py``:
+The FEM solves K X = F for many load cases with one factorisation (paper Sec. 4.1,
+``F = K X``) by one of two methods, chosen by size (``"auto"``), measured in
+``bench/bench_fem.py``:
 
 - ``"direct"``: sparse LU (SuperLU, symmetric mode, minimum-degree ordering on K + K^T).
   Exact to round-off; its fill-in grows fast with size on 3-D meshes.
@@ -10,30 +12,50 @@ Two methods, chosen by size (``"auto"``), measured in ``bench/bench_fem.py``:
   with size.
 
 The factorisation (or multigrid hierarchy) is built once and reused for every load case.
+
+The pieces of ``"amg"`` are used on their own by :mod:`fpm.equilibrium` (Newton steps on the
+springs' tangent): :func:`amg_hierarchy` (the one hierarchy setup, its finest level smoothed by
+a compiled 3x3 block Gauss-Seidel), :func:`v_cycle` (the preconditioner),
+:func:`conjugate_gradients` (tolerance, iteration limit, per-node stop, negative-curvature
+detection) and :func:`dot`.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
-from functools import partial
+from functools import cache, partial
+from typing import NamedTuple
 
 import numpy as np
 import pyamg
 import scipy.sparse as sp
+from pyamg.util.utils import get_block_diag
 from scipy.sparse.linalg import splu
 
 AMG_FROM_UNKNOWNS = 5_000
 """``"auto"`` uses AMG from this many unknowns on (see bench/bench_fem.py for the crossover)."""
 
 AMG_TOLERANCE = 1e-9
-"""Relative residual ||K x - f|| / ||f|| at which conjugate gradients stops."""
+"""The FEM's relative residual ||K x - f|| / ||f|| at which conjugate gradients stops."""
 
 AMG_MAX_ITERATIONS = 1000
-"""Conjugate-gradient iterations per load case before giving up (a well-held solid needs ~50)."""
+"""The FEM's CG iterations per load case before giving up (a well-held solid needs ~50)."""
+
+COMPILED_SMOOTHER_FROM = 50_000
+"""The FEM's ``"amg"`` smooths with the compiled sweep (:func:`amg_hierarchy`) from this many
+unknowns on. It saves about a third of the CG time (0.15 s at 22,800 unknowns, 0.8 s at 78,300,
+1.4 s at 187,200) but costs ~0.5 s once per process (importing numba, loading the compiled
+code); break-even is near 50,000 unknowns in a fresh process (bench/bench_fem.py runs each
+case in one)."""
 
 
 class SingularStiffnessError(ValueError):
     """The reduced stiffness matrix is singular: some part of the solid is not held."""
+
+
+class NegativeCurvature(ArithmeticError):
+    """CG met a direction of non-positive curvature; ``args[0]`` is the iterations done."""
 
 
 def rigid_body_modes(points: np.ndarray) -> np.ndarray:
@@ -66,8 +88,12 @@ def factorize(
         method: ``"direct"`` or ``"amg"``.
         near_null_space: (n, 6) rigid-body modes of the free unknowns (used by ``"amg"``).
 
+    ``"amg"`` solves each column by :func:`conjugate_gradients` to :data:`AMG_TOLERANCE` in at
+    most :data:`AMG_MAX_ITERATIONS` iterations; the caller checks the residual.
+
     Raises:
-        SingularStiffnessError: the LU factorisation found an exactly singular matrix.
+        SingularStiffnessError: the LU factorisation found an exactly singular matrix, or (when
+            solving) CG found ``k`` not positive definite.
     """
     if method == "direct":
         try:
@@ -81,26 +107,107 @@ def factorize(
             raise SingularStiffnessError(str(e)) from None
         return lambda f: lu.solve(np.asarray(f, dtype=float))
     if method == "amg":
-        hierarchy = pyamg.smoothed_aggregation_solver(
-            k if k.format == "bsr" else k.tocsr(),
-            B=near_null_space,
-            symmetry="symmetric",
-            improve_candidates=None,  # the rigid-body modes are exact: no need to smooth them
-            # Gershgorin row weights instead of a spectral-radius estimate: deterministic (the
-            # estimate starts from np.random) and no threaded BLAS, for ~10% more iterations.
-            smooth=("jacobi", {"weighting": "local"}),
-            # one forward sweep before, one backward after: a symmetric V-cycle, as CG needs,
-            # at half the cost of symmetric sweeps for ~25% more iterations (bench_fem).
-            presmoother=("block_gauss_seidel", {"sweep": "forward"}),
-            postsmoother=("block_gauss_seidel", {"sweep": "backward"}),
-        )
+        compiled = k.shape[0] >= COMPILED_SMOOTHER_FROM
+        cycle = partial(v_cycle, amg_hierarchy(k, near_null_space, compiled=compiled))
 
         def solve(f: np.ndarray) -> np.ndarray:
-            cycle = partial(v_cycle, hierarchy)
-            return np.stack([conjugate_gradients(k, b, cycle) for b in f.T], axis=1)
+            try:
+                return np.stack([conjugate_gradients(k, b, cycle).x for b in f.T], axis=1)
+            except NegativeCurvature:
+                raise SingularStiffnessError("CG: the matrix is not positive definite") from None
 
         return solve
     raise ValueError(f"unknown method {method!r} (use 'direct', 'amg' or 'auto')")
+
+
+def amg_hierarchy(
+    k: sp.bsr_matrix | sp.csr_matrix, near_null_space: np.ndarray, *, compiled: bool = True
+) -> pyamg.MultilevelSolver:
+    """Smoothed-aggregation hierarchy of ``k`` (n, n) SPD, for :func:`v_cycle`.
+
+    ``near_null_space``: (n, 6) rigid-body modes (:func:`rigid_body_modes`). ``k`` in 3x3 node
+    blocks (BSR) aggregates nodes; any other format is converted to CSR. One forward block
+    Gauss-Seidel sweep before the coarse correction, one backward after. ``compiled``: on a
+    finest level in 3x3 blocks, sweep with :func:`_block_gauss_seidel` compiled by numba
+    (pyamg's sweeps bit for bit, 3-4 times faster than its generic block code; the first use in
+    a process costs ~0.5 s, see :data:`COMPILED_SMOOTHER_FROM`). Sorts the indices of a BSR
+    ``k`` in place.
+    """
+    hierarchy = pyamg.smoothed_aggregation_solver(
+        k if k.format == "bsr" else k.tocsr(),
+        B=near_null_space,
+        symmetry="symmetric",
+        improve_candidates=None,  # the rigid-body modes are exact: no need to smooth them
+        # Gershgorin row weights instead of a spectral-radius estimate: deterministic (the
+        # estimate starts from np.random) and no threaded BLAS, for ~10% more iterations.
+        smooth=("jacobi", {"weighting": "local"}),
+        # one forward sweep before, one backward after: a symmetric V-cycle, as CG needs,
+        # at half the cost of symmetric sweeps for ~25% more iterations (bench_fem).
+        presmoother=("block_gauss_seidel", {"sweep": "forward"}),
+        postsmoother=("block_gauss_seidel", {"sweep": "backward"}),
+    )
+    finest = hierarchy.levels[0]
+    a = finest.A
+    if compiled and len(hierarchy.levels) > 1 and a.format == "bsr" and a.blocksize == (3, 3):
+        a.sort_indices()
+        inverse = get_block_diag(a, blocksize=3, inv_flag=True)
+        sweep = _compiled_sweep()
+        finest.presmoother = partial(_smooth, sweep=sweep, inverse=inverse, forward=True)
+        finest.postsmoother = partial(_smooth, sweep=sweep, inverse=inverse, forward=False)
+    return hierarchy
+
+
+def _smooth(
+    a: sp.bsr_matrix,
+    x: np.ndarray,
+    b: np.ndarray,
+    *,
+    sweep: Callable[..., None],
+    inverse: np.ndarray,
+    forward: bool,
+) -> None:
+    """One block Gauss-Seidel sweep on ``x`` in place (the V-cycle's smoother signature)."""
+    sweep(a.indptr, a.indices, a.data, inverse, x, b, forward)
+
+
+@cache
+def _compiled_sweep() -> Callable[..., None]:
+    """:func:`_block_gauss_seidel` compiled by numba, imported on first use: the FEM's LU path
+    and its smaller AMG solves do without it (~0.2 s and ~55 MB)."""
+    from numba import njit
+
+    return njit(cache=True, nogil=True)(_block_gauss_seidel)
+
+
+def _block_gauss_seidel(
+    indptr: np.ndarray,
+    indices: np.ndarray,
+    data: np.ndarray,
+    inverse: np.ndarray,
+    x: np.ndarray,
+    b: np.ndarray,
+    forward: bool,
+) -> None:
+    """One forward (or backward) block Gauss-Seidel sweep for A x = b, A in 3x3 blocks (BSR
+    arrays, sorted), ``inverse`` (n, 3, 3) the inverses of its diagonal blocks. Sums in
+    pyamg's order (the off-diagonal products first, then b minus them), so as to match it bit
+    for bit."""
+    n = len(indptr) - 1
+    for step in range(n):
+        i = step if forward else n - 1 - step
+        t0 = t1 = t2 = 0.0
+        for e in range(indptr[i], indptr[i + 1]):
+            j = indices[e]
+            if j != i:
+                x0, x1, x2 = x[3 * j], x[3 * j + 1], x[3 * j + 2]
+                t0 += data[e, 0, 0] * x0 + data[e, 0, 1] * x1 + data[e, 0, 2] * x2
+                t1 += data[e, 1, 0] * x0 + data[e, 1, 1] * x1 + data[e, 1, 2] * x2
+                t2 += data[e, 2, 0] * x0 + data[e, 2, 1] * x1 + data[e, 2, 2] * x2
+        s0, s1, s2 = b[3 * i] - t0, b[3 * i + 1] - t1, b[3 * i + 2] - t2
+        d = inverse[i]
+        x[3 * i] = d[0, 0] * s0 + d[0, 1] * s1 + d[0, 2] * s2
+        x[3 * i + 1] = d[1, 0] * s0 + d[1, 1] * s1 + d[1, 2] * s2
+        x[3 * i + 2] = d[2, 0] * s0 + d[2, 1] * s1 + d[2, 2] * s2
 
 
 def v_cycle(hierarchy: pyamg.MultilevelSolver, b: np.ndarray, level: int = 0) -> np.ndarray:
@@ -115,35 +222,72 @@ def v_cycle(hierarchy: pyamg.MultilevelSolver, b: np.ndarray, level: int = 0) ->
     return x
 
 
+class CgResult(NamedTuple):
+    """What :func:`conjugate_gradients` reached."""
+
+    x: np.ndarray
+    """The solution."""
+    iterations: int
+    """Iterations taken."""
+    residual: float
+    """||b - a x|| / ||b|| (0 when b = 0)."""
+    converged: bool
+    """It stopped on a tolerance (relative or per node), not on the iteration limit."""
+
+
 def conjugate_gradients(
-    a: sp.sparray | sp.spmatrix, b: np.ndarray, precondition: Callable[[np.ndarray], np.ndarray]
-) -> np.ndarray:
-    """Preconditioned CG for SPD ``a`` (n, n) until ||b - a x|| <= AMG_TOLERANCE ||b||.
+    a: sp.sparray | sp.spmatrix,
+    b: np.ndarray,
+    precondition: Callable[[np.ndarray], np.ndarray],
+    *,
+    rtol: float = AMG_TOLERANCE,
+    max_iterations: int = AMG_MAX_ITERATIONS,
+    nodal_stop: float = 0.0,
+) -> CgResult:
+    """Preconditioned CG from x = 0 for ``a`` (n, n) SPD until ||b - a x|| <= rtol ||b||, or,
+    with ``nodal_stop`` > 0, until every node's residual (3 consecutive unknowns) has a norm of
+    at most ``nodal_stop``; stops quietly after ``max_iterations`` (``converged`` False).
 
     Hand-written rather than pyamg's or scipy's so that no step calls multithreaded BLAS: on a
     busy 2-core machine a threaded dot product of 1e5 numbers took 5 ms instead of 0.02 ms.
-    Stops quietly after :data:`AMG_MAX_ITERATIONS`; the caller checks the residual.
+
+    Raises:
+        NegativeCurvature: a search direction p with p.a p <= 0 (``a`` is not positive
+            definite); ``args[0]`` is the iterations done.
     """
     x = np.zeros_like(b)
     r = b.copy()
+    norm_b = math.sqrt(dot(b, b))
+    if norm_b == 0.0:
+        return CgResult(x, 0, 0.0, True)
     z = precondition(r)
     p = z.copy()
-    rz = _dot(r, z)
-    stop = AMG_TOLERANCE * np.sqrt(_dot(b, b))
-    for _ in range(AMG_MAX_ITERATIONS):
+    rz = dot(r, z)
+    stop = rtol * norm_b
+    nodal2 = nodal_stop * nodal_stop
+    norm_r = norm_b
+    for it in range(1, max_iterations + 1):
         q = a @ p
-        alpha = rz / _dot(p, q)
+        pq = dot(p, q)
+        if not pq > 0.0:
+            raise NegativeCurvature(it)
+        alpha = rz / pq
         x += alpha * p
         r -= alpha * q
-        if np.sqrt(_dot(r, r)) <= stop:
-            break
+        norm_r = math.sqrt(dot(r, r))
+        if norm_r <= stop:
+            return CgResult(x, it, norm_r / norm_b, True)
+        if nodal2 > 0.0 and norm_r * norm_r <= nodal2 * (len(r) // 3):  # necessary for it
+            per_node = r.reshape(-1, 3)
+            if np.einsum("ij,ij->i", per_node, per_node).max() <= nodal2:
+                return CgResult(x, it, norm_r / norm_b, True)
         z = precondition(r)
-        rz, rz_old = _dot(r, z), rz
+        rz, rz_old = dot(r, z), rz
         p *= rz / rz_old
         p += z
-    return x
+    return CgResult(x, max_iterations, norm_r / norm_b, False)
 
 
-def _dot(u: np.ndarray, v: np.ndarray) -> float:
-    """u . v without BLAS (see :func:`conjugate_gradients`)."""
+def dot(u: np.ndarray, v: np.ndarray) -> float:
+    """u . v of two vectors without BLAS (see :func:`conjugate_gradients`)."""
     return float(np.einsum("i,i->", u, v))
