@@ -105,11 +105,11 @@ def anneal(
                 progress({"move": 0, "moves": moves, "temperature": schedule.t_initial,
                           "start_samples": samples})  # fmt: skip
 
-        current = _start(objective, lo, hi, rng, c_max, started)
+        current, evaluations = _start(objective, lo, hi, rng, c_max, started)
         best = current
         history: list[float] = []
         visited = [current]
-        evaluations, accepted = int(current.info.pop("_evaluations")), 0
+        accepted = 0
     else:
         start = resume["move"]
         rng.bit_generator.state = resume["rng"]
@@ -160,33 +160,52 @@ def _near(visited: list[State], best: State) -> list[State]:
 
 def _start(
     objective, lo, hi, rng, c_max, report, samples: int = START_SAMPLES, tries: int = 50
-) -> State:
-    """The best of ``samples`` random acceptable points of the box (log-uniform draws).
+) -> tuple[State, int]:
+    """The best of ``samples`` random acceptable points of the box (log-uniform draws), and the
+    number of evaluations made.
 
     Starting from the best of a few draws rather than from one spares a chain the long walk
     from a poor corner of the box, which at one move per temperature it may never finish.
+    A rejected draw is counted by its ``info["rejected"]`` reason (else "diverged" for an
+    infinite cost, "c_max" for a finite one).
     """
     found: list[State] = []
+    rejected: dict[str, int] = {}
     n = 0
     while len(found) < samples and n < tries:
         n += 1
         state = objective(np.exp(rng.uniform(lo, hi)).tolist())
         if state.cost <= c_max:
             found.append(state)
+        else:
+            reason = state.info.get("rejected") or (
+                "c_max" if math.isfinite(state.cost) else "diverged"
+            )
+            rejected[reason] = rejected.get(reason, 0) + 1
         report(n)
     if not found:
+        counts = ", ".join(f"{v} {k}" for k, v in sorted(rejected.items()))
         raise AnnealingError(
-            f"no acceptable starting point in {tries} random tries: every candidate diverged, "
-            f"did not settle, or cost more than c_max={c_max:g}; widen the bounds, lower dt, "
-            "raise max_steps or c_max"
+            f"no acceptable starting point in {tries} random tries ({counts}; c_max={c_max:g})",
+            rejected=rejected,
+            tries=tries,
         )
-    best = min(found, key=lambda st: st.cost)
-    best.info["_evaluations"] = n
-    return best
+    return min(found, key=lambda st: st.cost), n
 
 
 class AnnealingError(RuntimeError):
-    """The search cannot proceed (e.g. every candidate diverges)."""
+    """The search cannot proceed (e.g. every candidate diverges).
+
+    Attributes:
+        rejected: why the start search's candidates were rejected: {reason: count}, reasons
+            "diverged", "unsettled", "no equilibrium", "c_max".
+        tries: candidates drawn.
+    """
+
+    def __init__(self, message: str, rejected: dict[str, int] | None = None, tries: int = 0):
+        super().__init__(message)
+        self.rejected = rejected or {}
+        self.tries = tries
 
 
 def _reflect(y: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

@@ -1,4 +1,9 @@
-"""`fpmcal`: the numerical core from the command line (simulate, fem, calibrate, up)."""
+"""`fpmcal`: the numerical core from the command line (simulate, fem, calibrate, up).
+
+Errors are one line each on stderr, never a traceback (see :func:`main` for exit statuses);
+notes on the spec (e.g. which node a ``nearest`` selector took) and warnings (e.g. a reference
+outside small strain) go to stderr too, so stdout holds only the result.
+"""
 
 from __future__ import annotations
 
@@ -10,11 +15,53 @@ from typing import Any
 
 from pydantic import ValidationError
 
+MAX_FIELD_ERRORS = 20
+"""Field errors printed for a bad spec (the rest are counted)."""
+
+
+class SpecFileError(Exception):
+    """The SPEC argument is not a readable JSON file (exit status 2)."""
+
+
+def _read_spec(path: str) -> Any:
+    """The parsed JSON of the spec file ``path``; :class:`SpecFileError` if there is none."""
+    not_json = f"SPEC must be a JSON problem spec (got {path}, not JSON: "
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise SpecFileError(
+            f"SPEC {path}: no such file (give the path of a JSON problem spec, e.g. "
+            "examples/small-box.json)"
+        ) from None
+    except IsADirectoryError:
+        raise SpecFileError(f"SPEC {path} is a directory: give a JSON problem spec file") from None
+    except UnicodeDecodeError:
+        raise SpecFileError(not_json + "not UTF-8 text)") from None
+    except OSError as e:
+        raise SpecFileError(f"cannot read SPEC {path}: {e.strerror}") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise SpecFileError(not_json + f"{e})") from None
+
 
 def _load(path: str) -> Any:
+    """The problem of the spec file ``path``; its notes go to stderr."""
     from .problem import load_problem
 
-    return load_problem(Path(path))
+    problem = load_problem(_read_spec(path))
+    for note in problem.notes:
+        print(f"note: {note}", file=sys.stderr)
+    return problem
+
+
+def _warn(messages: list[str]) -> None:
+    for message in messages:
+        print(f"warning: {_one_line(message)}", file=sys.stderr)
+
+
+def _one_line(message: object) -> str:
+    return " ".join(str(message).split())
 
 
 def _emit(data: dict[str, Any], out: str | None) -> None:
@@ -27,10 +74,17 @@ def _emit(data: dict[str, Any], out: str | None) -> None:
 
 
 def cmd_simulate(args: argparse.Namespace) -> None:
+    from .diagnosis import stable_time_step
     from .simulation import simulate
 
+    problem = _load(args.spec)
+    dt = args.dt if args.dt is not None else problem.spec.fpm.dt
+    limit = stable_time_step(problem, args.k) if args.k > 0 else float("inf")
+    advice = f"the lattice's stability estimate for k = {args.k:g} N/m is dt <= {limit:.3g} s"
+    if dt > limit:
+        _warn([f"dt = {dt:.3g} s: {advice}; the run may diverge (lower --dt)"])
     result = simulate(
-        _load(args.spec),
+        problem,
         k=args.k,
         d=args.d,
         depth=args.depth,
@@ -38,13 +92,41 @@ def cmd_simulate(args: argparse.Namespace) -> None:
         dt=args.dt,
         max_steps=args.max_steps,
     )
+    if result.diverged:
+        _warn(
+            [
+                f"the run diverged after {result.steps} steps at dt = {dt:.3g} s: {advice}, and "
+                "the node-by-node step needs some damping: lower --dt or raise --d"
+            ]
+        )
     _emit(result.to_dict(), args.output)
 
 
+def cmd_equilibrium(args: argparse.Namespace) -> None:
+    from dataclasses import asdict
+
+    from .equilibrium import static_equilibrium
+
+    k = args.k[0] if len(args.k) == 1 else args.k
+    result = static_equilibrium(
+        _load(args.spec), k=k, depth=args.depth, load_case=args.load_case
+    ).check()
+    data = asdict(result)
+    data["displacements"] = result.displacements.tolist()
+    _emit(data, args.output)
+
+
 def cmd_fem(args: argparse.Namespace) -> None:
+    from .diagnosis import UnitsError, check_reference
     from .fem import solve_fem
 
-    _emit(solve_fem(_load(args.spec)).to_dict(), args.output)
+    problem = _load(args.spec)
+    result = solve_fem(problem)
+    try:
+        _warn(check_reference(problem, result.displacements))
+    except UnitsError as e:
+        _warn([str(e)])
+    _emit(result.to_dict(), args.output)
 
 
 class _Bar:
@@ -55,10 +137,13 @@ class _Bar:
         self.total = chains * moves
         self.tty = sys.stderr.isatty()
         self.last_tenth = -1
+        self.phase: Any = None
 
     def __call__(self, info: dict[str, Any]) -> None:
         if info.get("phase") != "annealing":
-            print(f"  {info.get('phase')} ...", file=sys.stderr, flush=True)
+            if info.get("phase") != self.phase:  # once per phase, not per report
+                print(f"  {info.get('phase')} ...", file=sys.stderr, flush=True)
+            self.phase = info.get("phase")
             return
         if "best_cost" not in info:  # still drawing the chain's starting point
             return
@@ -77,6 +162,7 @@ class _Bar:
 
 def cmd_calibrate(args: argparse.Namespace) -> None:
     from .calibration import calibrate
+    from .diagnosis import check_reference
     from .fem import solve_fem
 
     problem = _load(args.spec)
@@ -84,8 +170,11 @@ def cmd_calibrate(args: argparse.Namespace) -> None:
     chains = args.chains or a.chains
     print(f"{problem.spec.name}: {problem.n_nodes} nodes, h = {problem.h:.4g} m", file=sys.stderr)
     reference = solve_fem(problem)
+    warned = check_reference(problem, reference.displacements)  # a UnitsError stops here
+    _warn(warned)
     progress = None if args.quiet else _Bar(chains, a.moves)
     result = calibrate(problem, chains=chains, progress=progress, reference=reference)
+    _warn([w for w in getattr(result, "warnings", None) or [] if w not in warned])
     if args.json:
         print(json.dumps(result.to_dict()))
     else:
@@ -98,30 +187,48 @@ def cmd_calibrate(args: argparse.Namespace) -> None:
 
 
 def result_table(problem: Any, result: Any) -> str:
-    """The calibration result as a readable table."""
-    lines = [
-        f"k      {result.k:12.5g} N/m",
-        f"d      {result.d:12.5g} N s/m",
-        f"depth  {result.depth:12d} layers",
-        f"cost   {result.cost:12.5g} m (Eq. 2)",
-        "",
-        f"{'load case':<16}{'discrepancy % of h':>20}{'settle steps':>14}",
-    ]
-    for case, disc, steps in zip(
-        problem.load_cases, result.discrepancy, result.settle_steps, strict=True
+    """The calibration result as a readable table (the relative discrepancy beside % of h)."""
+    stiffness = getattr(result, "stiffness", None)
+    if isinstance(stiffness, dict) and len(set(stiffness.values())) > 1:
+        lines = [f"k {name:<5}{value:12.5g} N/m" for name, value in stiffness.items()]
+    else:
+        lines = [f"k      {result.k:12.5g} N/m"]
+    lines.append(f"d      {result.d:12.5g} N s/m")
+    d_min = getattr(result, "d_min", None)
+    if d_min is not None:
+        lines.append(f"d_min  {d_min:12.5g} N s/m (smallest d that settles)")
+    lines += [f"depth  {result.depth:12d} layers", f"cost   {result.cost:12.5g} m (Eq. 2)", ""]
+    relative = getattr(result, "relative_discrepancy", None)
+    h_percent = getattr(result, "discrepancy_h", None)
+    if h_percent is None:
+        h_percent = result.discrepancy
+    n = len(problem.load_cases)
+    relative = list(relative) if relative is not None else [float("nan")] * n
+    lines.append(
+        f"{'load case':<16}{'relative discrepancy %':>24}{'% of h':>10}{'settle steps':>14}"
+    )
+    for case, rel, disc, steps in zip(
+        problem.load_cases, relative, h_percent, result.settle_steps, strict=True
     ):
-        lines.append(f"{case.name:<16}{disc:>20.3f}{steps:>14d}")
-    lines.append(f"{'mean':<16}{result.mean_discrepancy:>20.3f}")
+        lines.append(f"{case.name:<16}{rel:>24.3f}{disc:>10.3f}{steps:>14d}")
+    lines.append(f"{'mean':<16}{_mean(relative):>24.3f}{_mean(h_percent):>10.3f}")
+    seconds = result.seconds
+    total = sum(seconds.values()) if isinstance(seconds, dict) else seconds
     lines.append("")
     lines.append(
         f"settled: {'yes' if result.settled else 'NO'}; {result.evaluations} cost evaluations "
-        f"in {result.seconds:.1f} s"
+        f"in {total:.1f} s"
     )
     return "\n".join(lines)
 
 
+def _mean(values: Any) -> float:
+    values = [float(v) for v in values]
+    return sum(values) / len(values) if values else float("nan")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="fpmcal", description=__doc__)
+    parser = argparse.ArgumentParser(prog="fpmcal", description=(__doc__ or "").split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("simulate", help="run the FPM for one load case, print JSON")
@@ -134,6 +241,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-steps", type=int, default=None)
     p.add_argument("-o", "--output", default=None, help="write JSON here instead of stdout")
     p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser(
+        "equilibrium", help="the settled FPM state of one load case, solved directly (JSON)"
+    )
+    p.add_argument("spec", help="problem spec JSON file")
+    p.add_argument(
+        "--k", type=float, nargs="+", required=True,
+        help="spring stiffness, N/m: one value, or one per family (axis face body)",
+    )  # fmt: skip
+    p.add_argument("--depth", type=int, default=None, help="penetration depth (layers)")
+    p.add_argument("--load-case", type=int, default=0)
+    p.add_argument("-o", "--output", default=None, help="write JSON here instead of stdout")
+    p.set_defaults(func=cmd_equilibrium)
 
     p = sub.add_parser("fem", help="solve the FEM reference, write JSON")
     p.add_argument("spec", help="problem spec JSON file")
@@ -154,6 +274,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run ``fpmcal``; every error is reported on stderr without a traceback.
+
+    Exit status: 0 done; 2 a bad command line, spec file or spec (each field error on a line
+    ``SPEC: field.path: message``) or a spec the FEM cannot solve; 1 a calibration that cannot
+    proceed (units, annealing start, damping search) or any other failure; 130 interrupted.
+    """
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["up"]:
         from service.stack import main as stack_main
@@ -163,16 +289,45 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         args.func(args)
-    except ValidationError as e:
-        print(f"invalid spec {getattr(args, 'spec', '')}:", file=sys.stderr)
-        for err in e.errors():
-            loc = ".".join(str(p) for p in err["loc"])
-            print(f"  {loc}: {err['msg']}", file=sys.stderr)
-        return 2
-    except (ValueError, FileNotFoundError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:
+        lines, status = error_report(e, getattr(args, "spec", "SPEC"))
+        for line in lines:
+            print(line, file=sys.stderr)
+        return status
     return 0
+
+
+def error_report(error: Exception, spec: str) -> tuple[list[str], int]:
+    """What ``fpmcal`` prints for ``error`` (one line, or one per field error) and its exit
+    status."""
+    from .annealing import AnnealingError
+    from .diagnosis import UnitsError
+
+    if isinstance(error, SpecFileError):
+        return [str(error)], 2
+    if isinstance(error, ValidationError):
+        errors = error.errors()
+        lines = []
+        for e in errors[:MAX_FIELD_ERRORS]:
+            loc = ".".join(str(p) for p in e["loc"]) or "spec"
+            lines.append(f"{spec}: {loc}: {_one_line(e['msg']).removeprefix('Value error, ')}")
+        if len(errors) > MAX_FIELD_ERRORS:
+            lines.append(f"{spec}: ... and {len(errors) - MAX_FIELD_ERRORS} more field errors")
+        return lines, 2
+    ours = type(error).__module__.startswith("fpm.")
+    if isinstance(error, UnitsError | AnnealingError) or (ours and isinstance(error, RuntimeError)):
+        return [f"error: {_one_line(error)}"], 1  # cannot proceed: units, start, damping search
+    if isinstance(error, ValueError):  # a spec the FEM cannot solve, an override out of range
+        return [f"error: {_one_line(error)}"], 2
+    if isinstance(error, OSError):  # e.g. an output file that cannot be written
+        return [f"error: {_one_line(error)}"], 1
+    return [
+        f"internal error ({type(error).__name__}): {_one_line(error)}; please report it with "
+        "the spec and the command"
+    ], 1
 
 
 if __name__ == "__main__":

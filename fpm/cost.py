@@ -1,29 +1,43 @@
-"""The cost of paper Eq. (2) and the paper's figure of merit, the mean nodal discrepancy.
+"""The cost of paper Eq. (2) and the figures of merit of a fit.
 
 ``c = sum over load cases j, sum over ALL nodes i of |p_i - q_i|`` where p is the FPM's final
 position and q the FEM's (nodes the FPM did not move count with their full FEM displacement).
+
+Two ways to get p: :class:`CostFunction` runs the FPM dynamically to rest at (stiffness, d)
+(the paper's); :class:`StaticCost` solves for the settled state directly
+(:mod:`fpm.equilibrium`), which does not depend on d. Figures of merit per load case
+(:func:`discrepancies`): the relative discrepancy (the headline: scale-free), the error at the
+loaded nodes relative to their FEM displacement, and the mean nodal discrepancy in % of h (the
+paper's unit, which shrinks with soft materials and small loads, so never shown alone).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from .problem import Problem
 from .simulation import FpmModel
+from .stiffness import spring_stiffness
+
+Theta = float | Sequence[float] | np.ndarray
+"""Stiffness parameters: k, or one k per spring family (:mod:`fpm.stiffness`), N/m."""
 
 
 @dataclass
 class Evaluation:
-    """The FPM at one (k, d) against the reference, over all load cases.
+    """The FPM at one parameter point against the reference, over all load cases.
 
     Attributes:
-        cost: Eq. (2), m (inf if a load case diverged, or did not settle when asked to stop).
+        cost: Eq. (2), m (inf if a load case diverged, did not settle when asked to stop, or
+            had no equilibrium).
         case_costs: (L,) per load case, m.
-        steps: (L,) time steps per load case.
-        settled: every load case settled.
+        steps: (L,) time steps (dynamic) or Newton iterations (static) per load case.
+        settled: every load case settled (dynamic) or converged (static).
         diverged: some load case diverged (the remaining ones were not run).
+        rejected: why the cost is inf: "diverged", "unsettled", "no equilibrium", or "".
     """
 
     cost: float
@@ -31,16 +45,38 @@ class Evaluation:
     steps: list[int]
     settled: bool
     diverged: bool
+    rejected: str = ""
 
 
-class CostFunction:
-    """Eq. (2) for a problem against its reference displacements, counting its evaluations.
+@dataclass
+class Discrepancies:
+    """How well FPM displacements match the FEM's, per load case.
 
-    Args:
-        problem: the problem.
-        reference: (L, N, 3) FEM displacements, m, one per load case in spec order.
-        depth: penetration depth (None = every layer reachable).
+    Attributes:
+        relative: 100 * sum_i |p_i - q_i| / sum_i |q_i - q0_i|, % (the headline figure).
+        loaded: the same over the loaded nodes only, %.
+        h_percent: mean nodal |p_i - q_i| over all nodes, % of h (the paper's unit).
     """
+
+    relative: list[float] = field(default_factory=list)
+    loaded: list[float] = field(default_factory=list)
+    h_percent: list[float] = field(default_factory=list)
+
+
+def discrepancies(problem: Problem, fpm: np.ndarray, reference: np.ndarray) -> Discrepancies:
+    """Figures of merit of FPM displacements ``fpm`` (L, N, 3) against ``reference`` (L, N, 3)."""
+    out = Discrepancies()
+    for j, case in enumerate(problem.load_cases):
+        error = np.linalg.norm(fpm[j] - reference[j], axis=1)
+        size = np.linalg.norm(reference[j], axis=1)
+        out.relative.append(float(100 * error.sum() / size.sum()))
+        out.loaded.append(float(100 * error[case.nodes].sum() / size[case.nodes].sum()))
+        out.h_percent.append(float(100 * error.mean() / problem.h))
+    return out
+
+
+class _Reference:
+    """Checks and holds (L, N, 3) reference displacements, m."""
 
     def __init__(self, problem: Problem, reference: np.ndarray, depth: int | None):
         self.problem = problem
@@ -51,48 +87,95 @@ class CostFunction:
                 f"{(len(problem.load_cases), problem.n_nodes, 3)}"
             )
         self.depth = depth
-        self.model = FpmModel(problem)  # own buffers: one cost function per thread
         self.evaluations = 0
         self.reference_cost = float(np.linalg.norm(self.reference, axis=2).sum())
         """Cost of an FPM that does not move at all: the natural unit of cost."""
 
-    def displacements(self, k: float, d: float, load_case: int, depth: int | None = None):
+    def case_cost(self, j: int, displacements: np.ndarray) -> float:
+        return float(np.linalg.norm(displacements - self.reference[j], axis=1).sum())
+
+
+class CostFunction(_Reference):
+    """Eq. (2) from dynamic FPM runs, counting its evaluations.
+
+    Args:
+        problem: the problem.
+        reference: (L, N, 3) FEM displacements, m, one per load case in spec order.
+        depth: penetration depth (None = every layer reachable).
+    """
+
+    def __init__(self, problem: Problem, reference: np.ndarray, depth: int | None):
+        super().__init__(problem, reference, depth)
+        self.model = FpmModel(problem)  # own buffers: one cost function per thread
+
+    def displacements(
+        self,
+        theta: Theta,
+        d: float,
+        load_case: int,
+        depth: int | None = None,
+        max_steps: int | None = None,
+    ):
         """The FPM run of one load case (depth None = this cost function's depth)."""
         s = self.problem.spec.fpm
         return self.model.run(
             load_case,
-            k=k,
+            k=spring_stiffness(self.problem, theta),
             d=d,
             depth=self.depth if depth is None else depth,
             dt=s.dt,
-            max_steps=s.max_steps,
+            max_steps=s.max_steps if max_steps is None else max_steps,
             settle_tolerance=s.settle_tolerance,
         )
 
-    def __call__(self, k: float, d: float, *, stop_unsettled: bool = False) -> Evaluation:
-        """Eq. (2) at (k, d); ``stop_unsettled`` skips the remaining load cases (cost inf)
+    def __call__(self, theta: Theta, d: float, *, stop_unsettled: bool = False) -> Evaluation:
+        """Eq. (2) at (theta, d); ``stop_unsettled`` skips the remaining load cases (cost inf)
         once one has not settled, for a caller that rejects unsettled states anyway."""
         self.evaluations += 1
         costs: list[float] = []
         steps: list[int] = []
         settled = True
         for j in range(len(self.problem.load_cases)):
-            run = self.displacements(k, d, j)
+            run = self.displacements(theta, d, j)
             steps.append(run.steps)
             if run.diverged:
-                return Evaluation(float("inf"), costs, steps, False, True)
-            costs.append(float(np.linalg.norm(run.displacements - self.reference[j], axis=1).sum()))
+                return Evaluation(float("inf"), costs, steps, False, True, "diverged")
+            costs.append(self.case_cost(j, run.displacements))
             settled &= run.settled
             if not run.settled and stop_unsettled:
-                return Evaluation(float("inf"), costs, steps, False, False)
+                return Evaluation(float("inf"), costs, steps, False, False, "unsettled")
         return Evaluation(float(sum(costs)), costs, steps, settled, False)
 
-    def discrepancy(self, k: float, d: float, depth: int | None = None) -> list[float]:
-        """Mean nodal discrepancy |p_i - q_i| over all nodes, in % of h, per load case."""
-        out = []
+
+class StaticCost(_Reference):
+    """Eq. (2) from static equilibria (:class:`fpm.equilibrium.StaticSolver`): no d, no dt.
+
+    One instance per thread (the solver keeps warm starts and preconditioners).
+    """
+
+    def __init__(self, problem: Problem, reference: np.ndarray, depth: int | None):
+        from .equilibrium import StaticSolver
+
+        super().__init__(problem, reference, depth)
+        self.solver = StaticSolver(problem)
+
+    def displacements(self, theta: Theta, load_case: int, depth: int | None = None):
+        """The equilibrium of one load case (depth None = this cost function's depth)."""
+        return self.solver.solve(
+            load_case,
+            spring_stiffness(self.problem, theta),
+            self.depth if depth is None else depth,
+        )
+
+    def __call__(self, theta: Theta, depth: int | None = None) -> Evaluation:
+        """Eq. (2) at ``theta`` (depth None = this cost function's)."""
+        self.evaluations += 1
+        costs: list[float] = []
+        steps: list[int] = []
         for j in range(len(self.problem.load_cases)):
-            u = self.displacements(k, d, j, depth).displacements
-            out.append(
-                float(np.linalg.norm(u - self.reference[j], axis=1).mean() / self.problem.h * 100)
-            )
-        return out
+            eq = self.displacements(theta, j, depth)
+            steps.append(eq.iterations)
+            if not eq.converged:
+                return Evaluation(float("inf"), costs, steps, False, False, "no equilibrium")
+            costs.append(self.case_cost(j, eq.displacements))
+        return Evaluation(float(sum(costs)), costs, steps, True, False)

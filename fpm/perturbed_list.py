@@ -22,12 +22,14 @@ class Adjacency:
         neighbour: (2S,) int32 neighbour node index.
         rest_length: (2S,) rest length of that spring, m.
         stiffness_factor: (2S,) per-spring stiffness factor (paper Fig. 5), or (0,) if all 1.
+        spring: (2S,) int64 index of the spring (a row of the (S, 2) pairs) of each entry.
     """
 
     ptr: np.ndarray
     neighbour: np.ndarray
     rest_length: np.ndarray
     stiffness_factor: np.ndarray
+    spring: np.ndarray
 
     @classmethod
     def from_springs(
@@ -41,7 +43,7 @@ class Adjacency:
         fac = np.zeros(0) if factor is None else np.concatenate([factor, factor])[order]
         ptr = np.zeros(n_nodes + 1, dtype=np.int64)
         np.cumsum(np.bincount(ends, minlength=n_nodes), out=ptr[1:])
-        return cls(ptr, neighbour, rest, fac)
+        return cls(ptr, neighbour, rest, fac, order % len(springs))
 
     def neighbours_of(self, nodes: np.ndarray) -> np.ndarray:
         """All neighbours (with repeats) of ``nodes`` (K,), as one flat int array."""

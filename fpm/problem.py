@@ -67,6 +67,8 @@ class Problem:
         h: shortest spring rest length, m (discrepancies are quoted in % of h).
         size: bounding-box diagonal, m (a node moving further than this has diverged).
         cache: derived models kept with the problem (e.g. the FPM's neighbour arrays).
+        notes: what the spec left to interpretation, one line each, for the user to check
+            (e.g. which node a ``nearest`` selector took and how far it is from the point).
     """
 
     spec: ProblemSpec
@@ -77,6 +79,7 @@ class Problem:
     h: float = field(init=False)
     size: float = field(init=False)
     cache: dict[str, Any] = field(init=False, repr=False, default_factory=dict)
+    notes: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.h = float(self.rest_lengths.min())
@@ -138,15 +141,34 @@ def build_problem(spec: ProblemSpec) -> Problem:
 
     load_cases = []
     for c, case in enumerate(spec.load_cases):
-        idx, vec = [], []
+        idx: list[int] = []
+        vec: list[np.ndarray] = []
         for f, force in enumerate(case.forces):
             loc: Loc = ("load_cases", c, "forces", f)
-            target = Selector(node=force.node) if force.node is not None else Selector(at=force.at)
-            picked = finder.select(target, loc, errors)
-            if len(picked) and fixed[picked[0]]:
-                errors.append((loc, f"node {int(picked[0])} is fixed; a force on it does nothing"))
+            where = _dotted((*loc, force.kind))
+            picked = finder.select(force, loc, errors)
+            free = picked[~fixed[picked]]
+            if len(picked) and not len(free):
+                errors.append((loc, _all_fixed(picked)))
+            elif len(free) < len(picked):
+                finder.notes.append(
+                    f"{where}: {len(picked) - len(free)} of its {len(picked)} nodes are fixed and "
+                    "take no force"
+                )
+            picked = free
+            if not len(picked):
+                continue
+            vector = np.asarray(force.vector, dtype=float)
+            if force.distribute:
+                vector = vector / len(picked)
+            elif len(picked) > 1:
+                finder.notes.append(
+                    f"{where}: {len(picked)} nodes each get {_fmt(force.vector)} N (total "
+                    f'{_fmt(vector * len(picked))} N); set "distribute": true to split the '
+                    "vector over them instead"
+                )
             idx.extend(picked.tolist())
-            vec.extend([force.vector] * len(picked))
+            vec.extend([vector] * len(picked))
         nodes, inverse = np.unique(np.asarray(idx, dtype=np.int64), return_inverse=True)
         forces = np.zeros((len(nodes), 3))
         np.add.at(forces, inverse, np.asarray(vec, dtype=float).reshape(-1, 3))
@@ -155,7 +177,25 @@ def build_problem(spec: ProblemSpec) -> Problem:
         load_cases.append(LoadCase(case.name or f"load case {c + 1}", nodes, forces))
     if errors:
         raise SpecError(errors)
-    return Problem(spec, solid, fixed, load_cases, lengths)
+    return Problem(spec, solid, fixed, load_cases, lengths, notes=finder.notes)
+
+
+def _all_fixed(picked: np.ndarray) -> str:
+    if len(picked) == 1:
+        return f"node {int(picked[0])} is fixed; a force on it does nothing (load a free node)"
+    return (
+        f"all {len(picked)} nodes it selects are fixed; a force on them does nothing (select "
+        "free nodes)"
+    )
+
+
+def _dotted(loc: Loc) -> str:
+    return ".".join(map(str, loc))
+
+
+def _fmt(v: Any) -> str:
+    """A vector as [a, b, c] with 4 significant digits."""
+    return "[" + ", ".join(f"{float(x):.4g}" for x in v) + "]"
 
 
 def _check_indices(spec: ProblemSpec) -> None:
@@ -195,43 +235,63 @@ def _check_indices(spec: ProblemSpec) -> None:
 
 
 class _NodeFinder:
-    """Resolves selectors to node indices; ``tol`` (m) is how far ``at`` may miss a node."""
+    """Resolves selectors to node indices; ``tol`` (m) is how far ``at`` may miss a node.
+
+    ``notes`` collects what the user should know about a selection (a ``nearest`` node's
+    distance), as ``field.path: text`` lines.
+    """
 
     def __init__(self, nodes: np.ndarray, tol: float):
         self.nodes = nodes
         self.tol = tol
         self.lo = nodes.min(axis=0)
         self.hi = nodes.max(axis=0)
+        self.notes: list[str] = []
 
     def select(self, sel: Selector, loc: Loc, errors: list[tuple[Loc, str]]) -> np.ndarray:
+        """Indices (ascending for face and box) of the nodes ``sel`` names; on a miss, an error
+        is appended to ``errors`` at ``loc`` + the selector's field and none is returned."""
         n = len(self.nodes)
+        none = np.zeros(0, dtype=np.int64)
         if sel.node is not None:
             if sel.node >= n:
                 errors.append(((*loc, "node"), f"node index {sel.node} out of range (0..{n - 1})"))
-                return np.zeros(0, dtype=np.int64)
+                return none
             return np.array([sel.node])
-        if sel.at is not None:
-            dist = np.linalg.norm(self.nodes - np.asarray(sel.at), axis=1)
+        point = sel.at if sel.at is not None else sel.nearest
+        if point is not None:
+            dist = np.linalg.norm(self.nodes - np.asarray(point), axis=1)
             best = int(np.argmin(dist))
-            if dist[best] > self.tol:
+            if sel.nearest is not None:
+                self.notes.append(
+                    f"{_dotted((*loc, 'nearest'))}: node {best} at {_fmt(self.nodes[best])} is "
+                    f"{dist[best] * 1e3:.3g} mm from the point"
+                )
+            elif dist[best] > self.tol:
                 errors.append(
                     (
                         (*loc, "at"),
-                        f"no node at {list(sel.at)} "
-                        f"(nearest node {best} is {dist[best]:.3g} m away)",
+                        f"no node at {list(point)} (nearest node {best} is {dist[best]:.3g} m "
+                        f"away, at {_fmt(self.nodes[best])}): give a node's coordinates, or use "
+                        '"nearest" to take the nearest node',
                     )
                 )
-                return np.zeros(0, dtype=np.int64)
+                return none
             return np.array([best])
         if sel.face is not None:
             axis = "xyz".index(sel.face[0])
             edge = self.lo[axis] if sel.face[1] == "-" else self.hi[axis]
-            picked = np.flatnonzero(np.abs(self.nodes[:, axis] - edge) <= self.tol)
-        else:
-            assert sel.box is not None
-            lo, hi = np.asarray(sel.box[0]), np.asarray(sel.box[1])
-            inside = np.all((self.nodes >= lo - self.tol) & (self.nodes <= hi + self.tol), axis=1)
-            picked = np.flatnonzero(inside)
-            if not len(picked):
-                errors.append(((*loc, "box"), "selects no node"))
+            return np.flatnonzero(np.abs(self.nodes[:, axis] - edge) <= self.tol)
+        assert sel.box is not None
+        lo, hi = np.asarray(sel.box[0]), np.asarray(sel.box[1])
+        inside = np.all((self.nodes >= lo - self.tol) & (self.nodes <= hi + self.tol), axis=1)
+        picked = np.flatnonzero(inside)
+        if not len(picked):
+            errors.append(
+                (
+                    (*loc, "box"),
+                    f"selects no node: the solid's nodes span {_fmt(self.lo)} to "
+                    f"{_fmt(self.hi)} m; move or widen the box",
+                )
+            )
         return picked

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -10,6 +11,7 @@ import numpy as np
 from .perturbed_list import Adjacency, PerturbedList, PerturbedListCache
 from .problem import Problem
 from .spec import FpmSettings
+from .stiffness import axis_factors, spring_stiffness
 from .voigt import DIVERGED, SETTLED, run_steps
 
 
@@ -59,14 +61,8 @@ class FpmModel:
     def __init__(self, problem: Problem):
         self.problem = problem
         solid = problem.solid
-        scale = np.asarray(problem.spec.fpm.stiffness_scale)
-        factor = None
-        if np.any(scale != 1.0):
-            e = solid.nodes[solid.springs[:, 1]] - solid.nodes[solid.springs[:, 0]]
-            e /= problem.rest_lengths[:, None]
-            factor = (e * e) @ scale
         self.adjacency = Adjacency.from_springs(
-            len(solid.nodes), solid.springs, problem.rest_lengths, factor
+            len(solid.nodes), solid.springs, problem.rest_lengths, axis_factors(problem)
         )
         self.lists = PerturbedListCache(self.adjacency, problem.fixed)
         self._x = np.empty_like(solid.nodes)
@@ -82,14 +78,19 @@ class FpmModel:
         self,
         load_case: int,
         *,
-        k: float,
+        k: float | np.ndarray,
         d: float,
         depth: int | None,
         dt: float,
         max_steps: int,
         settle_tolerance: float,
     ) -> SimulationResult:
-        """Simulate ``load_case`` from rest; see :func:`simulate`."""
+        """Simulate ``load_case`` from rest; see :func:`simulate`.
+
+        ``k`` is one stiffness for every spring (scaled by the spec's stiffness_scale), N/m, or
+        the (S,) stiffness of every spring (:func:`fpm.stiffness.spring_stiffness`, scale
+        included).
+        """
         p = self.problem
         case = p.load_cases[load_case]
         plist = self.perturbed_list(load_case, depth)
@@ -101,8 +102,11 @@ class FpmModel:
         x[:] = p.nodes
         v[:] = 0.0
         a = self.adjacency
+        factor = a.stiffness_factor
+        if np.ndim(k):  # per-spring stiffness: the kernel's factor carries it, with k = 1
+            factor, k = np.asarray(k, dtype=float)[a.spring], 1.0
         steps, state, residual = run_steps(
-            plist.order, a.ptr, a.neighbour, a.rest_length, a.stiffness_factor, p.nodes,
+            plist.order, a.ptr, a.neighbour, a.rest_length, factor, p.nodes,
             x, v, external, p.solid.masses, float(k), float(d), float(dt), int(max_steps),
             settle_force, p.size,
         )  # fmt: skip
@@ -130,7 +134,7 @@ def fpm_model(problem: Problem) -> FpmModel:
 def simulate(
     problem: Problem,
     *,
-    k: float,
+    k: float | Sequence[float],
     d: float,
     depth: int | None = None,
     load_case: int = 0,
@@ -142,7 +146,8 @@ def simulate(
 
     Args:
         problem: from :func:`fpm.load_problem`.
-        k: spring stiffness, N/m.
+        k: spring stiffness, N/m: one value for every spring, or one per spring family
+            (:mod:`fpm.stiffness`).
         d: nodal damping, N s/m.
         depth: penetration depth in layers; None = the spec's (its 'auto' means all layers).
         load_case: index into the spec's load cases.
@@ -152,8 +157,11 @@ def simulate(
     s = problem.spec.fpm
     if not 0 <= load_case < len(problem.load_cases):
         raise ValueError(f"load_case must be in 0..{len(problem.load_cases) - 1}")
-    if not (k > 0 and d >= 0):
+    if not (np.all(np.asarray(k) > 0) and d >= 0):
         raise ValueError("need k > 0 and d >= 0")
+    stiffness: float | np.ndarray = (
+        spring_stiffness(problem, k) if np.ndim(k) else float(k)  # type: ignore[arg-type]
+    )
     if depth is None and s.depth != "auto":
         depth = int(s.depth)
     # Overrides pass the schema's own checks (dt > 0, max_steps >= 1, depth >= 0, ...).
@@ -165,7 +173,7 @@ def simulate(
     )
     return fpm_model(problem).run(
         load_case,
-        k=k,
+        k=stiffness,
         d=d,
         depth=depth,
         dt=settings.dt,

@@ -3,18 +3,18 @@
 A spec names a material, a solid (geometry + spring connectivity), the fixed nodes, the load
 cases, and the FPM and annealing settings. All quantities are SI (m, N, Pa, kg/m^3, s).
 Validation here is what can be checked without building the solid; checks that need the nodes
-(a point with no node, a node index out of range, an empty face) happen in
+(a point with no node, a node index out of range, a box with no node) happen in
 :func:`fpm.problem.load_problem`, which raises the same kind of error with the field's location.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-MODEL_VERSION = "2026.11.21"
+MODEL_VERSION = "2026.11.22"
 """Version of the numerics behind a result; bump it whenever a change alters fitted values.
 It is part of a calibration's identity, so a resubmitted spec is not answered from results
 that older numerics computed."""
@@ -123,44 +123,87 @@ Geometry = Annotated[
 ]
 
 
+SELECTOR_FIELDS = ("face", "node", "at", "nearest", "box")
+"""The ways a :class:`Selector` (and a :class:`Force`) names nodes; give exactly one."""
+
+
 class Selector(_Strict):
-    """Selects nodes: exactly one of ``face``, ``node``, ``at``, ``box``."""
+    """Selects nodes: exactly one of ``face``, ``node``, ``at``, ``nearest``, ``box``.
+
+    - ``node``: one node by index;
+    - ``at``: the node at a point (it must lie within 1e-3 h of a node; else an error);
+    - ``nearest``: the node nearest a point, however far (the distance is reported in
+      :attr:`fpm.problem.Problem.notes`): for points read off a picture or another mesh;
+    - ``face``: every node on that side of the solid's bounding box;
+    - ``box``: every node inside an axis-aligned box (a box that holds no node is an error).
+    """
 
     face: Literal["x-", "x+", "y-", "y+", "z-", "z+"] | None = Field(
         None, description="all nodes on that side of the solid's bounding box"
     )
     node: int | None = Field(None, ge=0, description="a node index")
     at: Vector3 | None = Field(None, description="the node at this point, m")
+    nearest: Vector3 | None = Field(
+        None, description="the node nearest this point, m (its distance is reported)"
+    )
     box: tuple[Vector3, Vector3] | None = Field(
         None, description="all nodes inside [[x0,y0,z0],[x1,y1,z1]], m"
     )
 
+    @field_validator("box")
+    @classmethod
+    def _ordered_corners(cls, v: tuple[Vector3, Vector3] | None) -> tuple[Vector3, Vector3] | None:
+        if v is not None and any(lo > hi for lo, hi in zip(v[0], v[1], strict=True)):
+            raise ValueError(
+                "give the low corner first: [[x0,y0,z0],[x1,y1,z1]] with x0 <= x1, y0 <= y1, "
+                "z0 <= z1"
+            )
+        return v
+
     @model_validator(mode="after")
     def _exactly_one(self) -> Selector:
-        given = [n for n in ("face", "node", "at", "box") if getattr(self, n) is not None]
+        given = [n for n in SELECTOR_FIELDS if getattr(self, n) is not None]
         if len(given) != 1:
             raise ValueError(
-                f"give exactly one of face, node, at, box (got {', '.join(given) or 'none'})"
+                f"give exactly one of {', '.join(SELECTOR_FIELDS)} "
+                f"(got {', '.join(given) or 'none'})"
             )
         return self
 
+    @property
+    def kind(self) -> str:
+        """Which selector field is given (``"face"``, ``"node"``, ...)."""
+        return next(n for n in SELECTOR_FIELDS if getattr(self, n) is not None)
 
-class Force(_Strict):
-    """A constant nodal force, N, on the node given by ``node`` or ``at``."""
+    @property
+    def single(self) -> bool:
+        """True if it names one node (``node``, ``at``, ``nearest``)."""
+        return self.face is None and self.box is None
 
-    node: int | None = Field(None, ge=0)
-    at: Vector3 | None = None
-    vector: Vector3 = Field(description="force, N")
 
-    @model_validator(mode="after")
-    def _one_target(self) -> Force:
-        if (self.node is None) == (self.at is None):
-            raise ValueError("give exactly one of node, at")
-        return self
+class Force(Selector):
+    """A constant force, N, on the nodes of one selector (``node``, ``at``, ``nearest``,
+    ``face`` or ``box``: exactly one).
+
+    On a selector of several nodes, ``vector`` goes to each node, so the total force is
+    ``vector`` times the number of nodes; with ``"distribute": true`` the vector is split
+    evenly over them instead (a patch load: the total force is ``vector``). Fixed nodes among
+    a face's or box's nodes take no share (they are reported in
+    :attr:`fpm.problem.Problem.notes`); a force on a single fixed node, or on a selection that
+    is all fixed, is an error.
+    """
+
+    vector: Vector3 = Field(description="force, N (per node, or in total with distribute)")
+    distribute: bool = Field(
+        False,
+        description="split vector evenly over the selected nodes (total force = vector); "
+        "false: every selected node gets vector",
+    )
 
 
 class LoadCase(_Strict):
-    """A set of constant nodal forces applied together, from rest."""
+    """A set of constant nodal forces applied together, from rest (forces on the same node add
+    up)."""
 
     name: str | None = None
     forces: list[Force] = Field(min_length=1)
@@ -171,8 +214,20 @@ class FpmSettings(_Strict):
 
     depth: int | Literal["auto"] = Field(
         "auto",
-        description="penetration depth in layers; 'auto' = the smallest depth within 1% of h "
-        "of the full-depth result at the fitted k, d",
+        description="penetration depth in layers; 'auto' = the smallest depth whose Eq. 2 cost "
+        "at the stiffness fitted at full depth is within auto_depth_tolerance of full depth's",
+    )
+    auto_depth_tolerance: float = Field(
+        0.01,
+        ge=0,
+        le=1,
+        description="depth 'auto': allowed relative rise of the cost over full depth's (0.01 = "
+        "the relative discrepancy may grow by 1% of itself); larger trades realism for speed",
+    )
+    stiffness: Literal["single", "families"] = Field(
+        "single",
+        description="'single': one k for every spring (the paper's); 'families': one k per "
+        "spring family present (axis, face diagonal, body diagonal)",
     )
     dt: float = Field(1e-3, gt=0, description="time step, s (default 1 ms: a haptic 1 kHz loop)")
     max_steps: int = Field(
@@ -220,6 +275,9 @@ class Bounds(_Strict):
         return v
 
 
+DEFAULT_T_FINAL = {"paper": 2e-4, "two-stage": 2e-3}
+
+
 class AnnealingSettings(_Strict):
     """Simulated annealing settings (paper Sec. 4.2-4.3).
 
@@ -227,15 +285,35 @@ class AnnealingSettings(_Strict):
     not move at all, i.e. the summed FEM displacement): a scale-free schedule that works for any
     material. Lundy-Mees cooling T <- T / (1 + beta T), one move per temperature, so a chain
     makes about (1/t_final - 1/t_initial) / beta moves.
+
+    ``t_final`` defaults by method: 2e-4 for ``paper`` (151 moves, the joint (k, d) search on
+    dynamic runs) and 2e-3 for ``two-stage`` (15 moves: its stage 1 searches 1-3 stiffness
+    parameters of a smooth cost, where the anneal only has to find the basin and the bounded
+    polish that follows resolves the optimum).
     """
 
+    method: Literal["two-stage", "paper"] = Field(
+        "two-stage",
+        description="'two-stage': anneal the stiffness on static equilibria, then find the "
+        "fastest-settling d; 'paper': anneal (k, d) jointly on dynamic runs (paper Sec. 4.3)",
+    )
     seed: int = Field(0, ge=0)
     chains: int = Field(2, ge=1, le=64, description="independent chains; the best one wins")
     t_initial: float = Field(0.05, gt=0)
-    t_final: float = Field(2e-4, gt=0)
+    t_final: float = Field(
+        DEFAULT_T_FINAL["two-stage"], gt=0, description="default 2e-4 for paper, 2e-3 two-stage"
+    )
     beta: float = Field(33.0, gt=0)
     c_max: float = Field(2.0, gt=0, description="reject at once a candidate costing more")
     bounds: Bounds = Field(default_factory=Bounds)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_t_final(cls, data: Any) -> Any:
+        if isinstance(data, dict) and data.get("t_final") is None:
+            paper = data.get("method") == "paper"  # a bad method is the field's own error
+            data = {**data, "t_final": DEFAULT_T_FINAL["paper" if paper else "two-stage"]}
+        return data
 
     @model_validator(mode="after")
     def _cooling(self) -> AnnealingSettings:

@@ -118,7 +118,7 @@ def spec_errors(spec: Any) -> list[tuple[tuple[Any, ...], str]]:
 def spring_forces(
     x: np.ndarray, springs: np.ndarray, rest: np.ndarray, k: float | np.ndarray
 ) -> np.ndarray:
-    """(N, 3) net spring force on each node at positions ``x`` (physics.md, FPM):
+    """(N, 3) net spring force on each node at positions ``x`` (docs/physics.md, FPM):
     spring (i, j) pulls i by k (|r| - l) r / |r| with r = x_j - x_i, and j by the opposite."""
     r = x[springs[:, 1]] - x[springs[:, 0]]
     length = np.linalg.norm(r, axis=1)
