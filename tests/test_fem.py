@@ -5,15 +5,19 @@ from __future__ import annotations
 
 import copy
 import json
+from functools import partial
 from typing import Any
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from pyamg.relaxation.relaxation import block_gauss_seidel
+from pyamg.util.utils import get_block_diag
 from pydantic import ValidationError
 
 import fpm
-from fpm.assembly import identical_elements, stiffness_matrix
+from fpm.assembly import identical_elements, keep_nodes, stiffness_matrix
 from fpm.elasticity import (
     GAUSS_POINTS,
     constitutive_matrix,
@@ -26,7 +30,13 @@ from fpm.elasticity import (
 from fpm.fem import FemError, FemResult, solve_dirichlet
 from fpm.geometry import box_hexahedra
 from fpm.hexahedron import NATURAL
-from fpm.linear_solver import rigid_body_modes
+from fpm.linear_solver import (
+    NegativeCurvature,
+    amg_hierarchy,
+    conjugate_gradients,
+    rigid_body_modes,
+    v_cycle,
+)
 
 E, NU = 2.0e5, 0.3
 
@@ -372,3 +382,110 @@ def test_a_node_outside_every_hexahedron_is_refused():
     spec["load_cases"] = [{"forces": [{"node": 8, "vector": [0, 0, 1.0]}]}]
     with pytest.raises(ValidationError, match="node 8 belongs to no hexahedron"):
         fpm.load_problem(spec)
+
+
+# --- the shared linear solver (fpm.linear_solver, also used by fpm.equilibrium) ---------------
+
+
+def spd(n: int) -> sp.csr_matrix:
+    """(n, n) SPD: second differences plus 0.2 I (condition number ~ 20)."""
+    return sp.diags([-np.ones(n - 1), 2.2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]).tocsr()
+
+
+def no_preconditioner(r: np.ndarray) -> np.ndarray:
+    return r.copy()
+
+
+def test_cg_stops_at_the_tolerance_and_reports_its_iterations():
+    a, b = spd(90), np.linspace(1.0, 2.0, 90)
+    previous = 0
+    for rtol in (1e-2, 1e-6, 1e-10):
+        cg = conjugate_gradients(a, b, no_preconditioner, rtol=rtol, max_iterations=200)
+        true = np.linalg.norm(b - a @ cg.x) / np.linalg.norm(b)
+        assert cg.converged and cg.residual <= rtol
+        assert np.isclose(true, cg.residual, rtol=1e-3, atol=1e-14)
+        assert previous < cg.iterations < 90  # tighter takes longer
+        previous = cg.iterations
+    # One step short of the tolerance it had not stopped: the count is the first to meet it.
+    short = conjugate_gradients(a, b, no_preconditioner, rtol=1e-10, max_iterations=previous - 1)
+    assert not short.converged and short.iterations == previous - 1 and short.residual > 1e-10
+
+
+def test_cg_takes_one_iteration_per_distinct_eigenvalue():
+    a = sp.diags(np.repeat([1.0, 3.0, 10.0], 5)).tocsr()
+    cg = conjugate_gradients(a, np.ones(15), no_preconditioner, rtol=1e-12, max_iterations=50)
+    assert cg.iterations == 3 and np.allclose(cg.x, 1 / a.diagonal(), rtol=1e-12)
+
+
+def test_cg_of_a_zero_right_hand_side_is_zero():
+    cg = conjugate_gradients(spd(9), np.zeros(9), no_preconditioner, rtol=1e-9)
+    assert cg.iterations == 0 and cg.converged and not np.any(cg.x)
+
+
+def test_cg_detects_negative_curvature_on_an_indefinite_matrix():
+    a = sp.diags(np.r_[np.ones(5), -np.ones(5)]).tocsr()
+    with pytest.raises(NegativeCurvature) as caught:
+        conjugate_gradients(a, np.r_[np.ones(5), 2 * np.ones(5)], no_preconditioner, rtol=1e-9)
+    assert caught.value.args[0] == 1  # p = b: p.a p = 5 - 20 < 0 at once
+    # An indefinite matrix can hide it for a while: b mostly on the positive part.
+    a = sp.diags(np.r_[np.linspace(1.0, 2.0, 8), -1.0]).tocsr()
+    with pytest.raises(NegativeCurvature) as caught:
+        conjugate_gradients(a, np.r_[np.ones(8), 0.1], no_preconditioner, rtol=1e-12)
+    assert caught.value.args[0] > 1
+
+
+def test_cg_per_node_stop():
+    """With nodal_stop, CG stops once every node's residual (3 unknowns) is at most it, even
+    though the relative tolerance is far off."""
+    a, b = spd(90), np.linspace(1.0, 2.0, 90)
+    full = conjugate_gradients(a, b, no_preconditioner, rtol=1e-12, max_iterations=500)
+    nodal = 1e-3 * np.abs(b).max()
+    cg = conjugate_gradients(
+        a, b, no_preconditioner, rtol=1e-12, max_iterations=500, nodal_stop=nodal
+    )
+    per_node = np.linalg.norm((b - a @ cg.x).reshape(-1, 3), axis=1)
+    assert cg.converged and cg.iterations < full.iterations
+    assert per_node.max() <= nodal * (1 + 1e-9) and cg.residual > 1e-12
+
+
+def test_compiled_smoother_is_pyamgs_bit_for_bit_and_multigrid_cuts_iterations():
+    """The AMG hierarchy (the FEM's from COMPILED_SMOOTHER_FROM unknowns, the equilibrium's)
+    smooths its finest level with the compiled 3x3 block Gauss-Seidel; one sweep equals
+    pyamg's exactly, and the V-cycle preconditions CG."""
+    nodes = lattice((8, 8, 8), (0.1, 0.1, 0.1))
+    k = stiffness_matrix(nodes, box_hexahedra((8, 8, 8)), constitutive_matrix(E, NU))
+    free = nodes[:, 2] > 0
+    kff = keep_nodes(k, free)
+    modes = rigid_body_modes(nodes[free])
+    hierarchy = amg_hierarchy(kff, modes)
+    finest = hierarchy.levels[0]
+    assert len(hierarchy.levels) > 1 and finest.A.blocksize == (3, 3)
+    inverse = get_block_diag(finest.A, blocksize=3, inv_flag=True)
+    rng = np.random.default_rng(0)
+    b = rng.standard_normal(kff.shape[0])
+    for sweep, smoother in (("forward", finest.presmoother), ("backward", finest.postsmoother)):
+        ours = rng.standard_normal(len(b))
+        theirs = ours.copy()
+        smoother(finest.A, ours, b)
+        block_gauss_seidel(finest.A, theirs, b, sweep=sweep, Dinv=inverse, blocksize=3)
+        assert np.array_equal(ours, theirs)
+    cycle = partial(v_cycle, hierarchy)
+    with_amg = conjugate_gradients(kff, b, cycle, rtol=1e-9, max_iterations=1000)
+    plain = conjugate_gradients(kff, b, no_preconditioner, rtol=1e-9, max_iterations=1000)
+    assert with_amg.converged and plain.converged
+    assert with_amg.iterations < plain.iterations / 3
+    assert np.allclose(with_amg.x, plain.x, rtol=0, atol=1e-7 * np.abs(plain.x).max())
+
+
+def test_multigrid_solve_refuses_a_matrix_that_is_not_positive_definite():
+    """CG's negative-curvature detection reaches the FEM as its singular-stiffness error."""
+    nodes = lattice((8, 8, 8), (0.1, 0.1, 0.1))
+    k = stiffness_matrix(nodes, box_hexahedra((8, 8, 8)), constitutive_matrix(E, NU))
+    indefinite = (k - 0.1 * k.diagonal().mean() * sp.eye(k.shape[0])).tobsr(blocksize=(3, 3))
+    forces = np.zeros((1, k.shape[0]))
+    forces[0, -1] = 1.0
+    free = np.repeat(nodes[:, 2] > 0, 3)
+    with pytest.raises(FemError, match="singular"):
+        solve_dirichlet(indefinite, forces, free, nodes, "amg")
+    u, residuals = solve_dirichlet(k, forces, free, nodes, "amg")  # the matrix itself is fine
+    assert residuals.max() < 1e-8

@@ -90,6 +90,7 @@ def specs(draw: st.DrawFn) -> dict[str, Any]:
             "stiffness_scale": draw(st.sampled_from([[1, 1, 1], [0.1, 1, 10]])),
         },
         "annealing": {
+            "method": draw(st.sampled_from(["two-stage", "paper"])),
             "seed": draw(st.integers(0, 2**31)),
             "chains": draw(st.integers(1, 2)),
             "t_initial": 0.05,
@@ -170,8 +171,14 @@ CORRUPTIONS = [
 ]
 
 
-FAILURE_REASONS = ("annealing chain", "FEM reference failed")
-"""How a calibration of an accepted spec may fail: the annealer's reason or the FEM's refusal."""
+FAILURE_REASONS = (
+    "annealing chain",
+    "damping stage failed",
+    "FEM reference failed",
+    "units check failed",
+)
+"""How a calibration of an accepted spec may fail: the annealer's reason, the damping stage's
+(two-stage: no d settles), the FEM's refusal, or a FEM answer no small-strain solid gives."""
 
 
 @hyp_settings(
@@ -191,9 +198,10 @@ def test_any_spec_calibrates_or_is_refused(api, redis, run_workers, spec):
         assert redis.dbsize() == 0  # refused before anything was written or queued
         return
     assert submitted.status_code == 202, submitted.text
-    run_workers()  # FEM, chains and finalize, in this process
+    run_workers()  # FEM, chains, damping stage (two-stage) and finalize, in this process
     done = api.get(submitted.headers["location"]).json()
-    event(f"accepted, {done['status']}")
+    reason = next((r for r in FAILURE_REASONS if (done["error"] or "").startswith(r)), "")
+    event(f"accepted, {done['status']}" + (f" ({reason})" if reason else ""))
     assert done["status"] in ("succeeded", "failed"), done
     q = graph.queue(redis)
     assert q.count == 0 and q.deferred_job_registry.count == 0  # nothing stuck

@@ -1,5 +1,5 @@
 """The architecture's one rule that code can break silently: the service validates specs with
-fpm.spec / fpm.problem but never loads the numerical kernels (service.md)."""
+fpm.spec / fpm.problem but never loads the numerical kernels (docs/service.md)."""
 
 import subprocess
 import sys

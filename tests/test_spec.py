@@ -255,3 +255,126 @@ def test_cli_bad_spec_exits_2_and_names_the_field(tmp_path: Path):
 def test_every_example_loads():
     for path in sorted((ROOT / "examples").glob("*.json")):
         assert fpm.load_problem(path).n_nodes > 0, path.name
+
+
+# --- selectors: nearest, forces on faces and boxes, distribute ------------------------------
+
+
+def test_nearest_takes_the_nearest_node_and_reports_how_far_it_is():
+    point = [0.0104, 0.0197, 0.0203]  # nearest lattice point (1, 2, 2): node 25
+    spec = broken(BOX, ("load_cases", 0, "forces", 0), {"nearest": point, "vector": [0, 0, 1]})
+    spec["fixed"].append({"nearest": [0.021, -0.003, 0.0095]})  # lattice point (2, 0, 1): node 11
+    problem = fpm.load_problem(spec)
+    assert problem.load_cases[0].nodes.tolist() == [25]
+    assert problem.fixed[11] and problem.fixed.sum() == 10
+    distance = float(np.linalg.norm(problem.nodes[25] - point))
+    assert distance == pytest.approx(math.sqrt(0.4**2 + 0.3**2 + 0.3**2) * 1e-3)
+    assert (
+        f"load_cases.0.forces.0.nearest: node 25 at [0.01, 0.02, 0.02] is {distance * 1e3:.3g} mm "
+        "from the point" in problem.notes
+    )
+    assert any(
+        n.startswith("fixed.1.nearest: node 11 at [0.02, 0, 0.01] is ") for n in problem.notes
+    )
+
+
+def test_at_still_needs_a_node_and_points_to_nearest():
+    spec = broken(BOX, ("load_cases", 0, "forces", 0, "at"), [0.0104, 0.0197, 0.0203])
+    loc, message = only_error(spec)
+    assert loc == ("load_cases", 0, "forces", 0, "at")
+    assert "no node at" in message and "nearest node 25" in message and '"nearest"' in message
+
+
+def test_distribute_splits_the_vector_evenly_over_the_selected_nodes():
+    vector = [0.3, -0.6, 0.9]
+    spec = broken(BOX, ("load_cases", 0, "forces", 0), {"face": "z+", "vector": vector})
+    spec["load_cases"][0]["forces"][0]["distribute"] = True
+    case = fpm.load_problem(spec).load_cases[0]
+    assert case.nodes.tolist() == list(range(18, 27))  # the 9 nodes of face z+
+    assert np.all(case.forces == np.asarray(vector) / 9)  # an equal share each, bit for bit
+    assert case.forces.sum(axis=0) == pytest.approx(vector, rel=1e-14)
+    # A box of 4 top nodes: the total force is still the vector.
+    spec["load_cases"][0]["forces"][0] = {
+        "box": [[0, 0, 0.02], [0.01, 0.01, 0.02]],
+        "vector": vector,
+        "distribute": True,
+    }
+    case = fpm.load_problem(spec).load_cases[0]
+    assert case.nodes.tolist() == [18, 19, 21, 22]
+    assert np.all(case.forces == np.asarray(vector) / 4)
+    assert case.forces.sum(axis=0).tolist() == vector
+
+
+def test_face_and_box_forces_without_distribute_put_the_vector_on_each_node():
+    vector = [0.0, 0.0, 0.05]
+    spec = broken(BOX, ("load_cases", 0, "forces", 0), {"face": "z+", "vector": vector})
+    spec["load_cases"][0]["forces"].append(
+        {"box": [[0, 0, 0.02], [0.0, 0.01, 0.02]], "vector": vector}
+    )
+    problem = fpm.load_problem(spec)
+    case = problem.load_cases[0]
+    assert case.nodes.tolist() == list(range(18, 27))
+    expected = np.tile(vector, (9, 1))
+    expected[[0, 3]] *= 2  # nodes 18 and 21 are also in the box: forces on a node add up
+    assert np.array_equal(case.forces, expected)
+    assert any(
+        n.startswith("load_cases.0.forces.0.face: 9 nodes each get [0, 0, 0.05] N (total")
+        and '"distribute": true' in n
+        for n in problem.notes
+    )
+
+
+def test_fixed_nodes_of_a_loaded_face_take_no_force():
+    """Face x+ of BOX: 3 of its 9 nodes are on the fixed face z-; the force goes to the other 6."""
+    spec = broken(
+        BOX,
+        ("load_cases", 0, "forces", 0),
+        {"face": "x+", "vector": [0.6, 0, 0], "distribute": True},
+    )
+    problem = fpm.load_problem(spec)
+    case = problem.load_cases[0]
+    assert len(case.nodes) == 6 and not problem.fixed[case.nodes].any()
+    assert case.forces.sum(axis=0) == pytest.approx([0.6, 0, 0])
+    assert (
+        "load_cases.0.forces.0.face: 3 of its 9 nodes are fixed and take no force" in problem.notes
+    )
+
+
+@pytest.mark.parametrize(
+    ("force", "loc", "reason"),
+    [
+        ({"face": "z-", "vector": [0, 0, 1]}, ("load_cases", 0, "forces", 0), "all 9 nodes"),
+        (
+            {"box": [[1, 1, 1], [2, 2, 2]], "vector": [0, 0, 1]},
+            ("load_cases", 0, "forces", 0, "box"),
+            "selects no node",
+        ),
+        (
+            {"box": [[0.02, 0, 0], [0, 0.02, 0.02]], "vector": [0, 0, 1]},
+            ("load_cases", 0, "forces", 0, "box"),
+            "low corner first",
+        ),
+        (
+            {"node": 20, "face": "z+", "vector": [0, 0, 1]},
+            ("load_cases", 0, "forces", 0),
+            "exactly one of face, node, at, nearest, box (got face, node)",
+        ),
+        ({"vector": [0, 0, 1]}, ("load_cases", 0, "forces", 0), "(got none)"),
+        (
+            {"nearest": [0, 0, 0], "vector": [0, 0, 1]},
+            ("load_cases", 0, "forces", 0),
+            "node 0 is fixed",
+        ),
+    ],
+    ids=["all-fixed", "empty-box", "reversed-box", "two-targets", "no-target", "nearest-fixed"],
+)
+def test_bad_force_targets_name_the_field(force, loc, reason):
+    error_loc, message = only_error(broken(BOX, ("load_cases", 0, "forces", 0), force))
+    assert error_loc == loc
+    assert reason in message
+
+
+def test_a_fixed_box_with_no_node_names_the_field():
+    loc, message = only_error(broken(BOX, ("fixed", 0), {"box": [[1, 1, 1], [2, 2, 2]]}))
+    assert loc == ("fixed", 0, "box")
+    assert "selects no node" in message and "move or widen the box" in message
