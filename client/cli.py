@@ -50,26 +50,124 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
+def mean(values: list[float]) -> float | None:
+    """The mean, or None for no values."""
+    return sum(values) / len(values) if values else None
+
+
+def stiffness_text(stiffness: dict[str, float], mode: str | None = None, unit: str = "") -> str:
+    """Each family's k: '29.1 (all springs)' for one k, else 'axis 30.2, face 12.1, ...'."""
+    values = list(stiffness.values())
+    if not values:
+        return "-"
+    if mode == "single" or (mode is None and len(set(values)) == 1):
+        return f"{values[0]:.5g}{unit} (all springs)"
+    return ", ".join(f"{name} {k:.5g}" for name, k in stiffness.items()) + unit
+
+
+def stage_line(c: dict[str, Any]) -> str:
+    """Where the calibration is: its stage in words, and the phases it goes through."""
+    p = c["progress"]
+    stages = " > ".join(p.get("stages") or [])
+    return f"{p.get('stage') or p['phase']}" + (f"  [{stages}]" if stages else "")
+
+
+def discrepancy_rows(result: dict[str, Any], names: list[str] | None = None) -> list[list[Any]]:
+    """Per load case: relative % (the headline), loaded nodes %, % of h, settle steps; then the
+    mean. % of h is never shown without the relative figure beside it."""
+    relative = result["relative_discrepancy"]
+    names = names or [f"load case {i + 1}" for i in range(len(relative))]
+    columns = (
+        relative,
+        result["loaded_discrepancy"],
+        result["discrepancy_h"],
+        result["settle_steps"],
+    )
+    rows: list[list[Any]] = [[name, *values] for name, *values in zip(names, *columns, strict=True)]
+    if len(rows) > 1:
+        rows.append(["mean", *(mean(list(v)) for v in columns[:3]), None])
+    return rows
+
+
+DISCREPANCY_HEADERS = ["load case", "relative %", "loaded nodes %", "% of h", "settle steps"]
+"""Headers of :func:`discrepancy_rows`: the relative figure first."""
+
+
 def show_calibration(c: dict[str, Any]) -> str:
-    """A calibration as a short report."""
+    """A calibration as a short report: status and stage, then the fit with the relative
+    discrepancy per load case first."""
     p = c["progress"]
     lines = [
         f"calibration {c['id']}  {c['name']}",
         f"status      {c['status']} ({p['phase']})",
+        f"method      {p.get('method', '-')}",
+        f"stage       {stage_line(c)}",
         f"moves       {p['iterations']} of {p['total_iterations']}",
     ]
     if p.get("best_cost") is not None:
         lines.append(f"best cost   {p['best_cost']:.5g} (T = {p['temperature']:.3g})")
+    damping = p.get("damping")
+    if damping and c["status"] != "succeeded":
+        best = damping.get("best_d")
+        lines.append(
+            f"damping     {damping.get('step') or 'starting'}: {damping.get('runs', 0)} d tried"
+            + (f", fastest so far d = {best:.5g} N s/m" if best is not None else "")
+        )
     if c.get("error"):
         lines.append(f"error       {c['error']}")
     r = c.get("result")
     if r:
-        lines.append(f"k, d, depth {r['k']:.5g} N/m, {r['d']:.5g} N s/m, {r['depth']} layers")
-        lines.append(f"param set   {c['parameter_set_id']}")
-        names = [f"load case {i + 1}" for i in range(len(r["discrepancy"]))]
-        rows = list(zip(names, r["discrepancy"], r["settle_steps"], strict=True))
-        lines += ["", table(["load case", "discrepancy % h", "settle steps"], rows)]
+        d_min = r.get("d_min")
+        lines += [
+            f"stiffness   {stiffness_text(r['stiffness'], unit=' N/m')}",
+            f"d           {r['d']:.5g} N s/m"
+            + (f" (smallest that settles: {d_min:.5g})" if d_min is not None else ""),
+            f"depth       {r['depth']} layers (full depth {r['full_depth']})",
+            f"h           {r['h']:.5g} m",
+            f"param set   {c['parameter_set_id']}",
+            "",
+            table(DISCREPANCY_HEADERS, discrepancy_rows(r)),
+        ]
+        lines += [f"warning     {w}" for w in r.get("warnings", [])]
     return "\n".join(lines)
+
+
+def parameter_set_rows(sets: list[dict[str, Any]]) -> list[list[Any]]:
+    """One row per parameter set for :data:`PARAMETER_SET_HEADERS`."""
+    return [
+        [
+            p["id"],
+            p["name"],
+            p["material"]["youngs_modulus"],
+            p["material"]["poisson_ratio"],
+            f"{p['geometry']['type']} {p['geometry']['nodes']}",
+            p["geometry"]["h"],
+            stiffness_text(p["stiffness"], p.get("stiffness_mode")),
+            p["d"],
+            p["depth"],
+            mean(p["relative_discrepancy"]),
+            mean(p["loaded_discrepancy"]),
+            mean(p["discrepancy_h"]),
+        ]
+        for p in sets
+    ]
+
+
+PARAMETER_SET_HEADERS = [
+    "id",
+    "name",
+    "E Pa",
+    "nu",
+    "geometry",
+    "h m",
+    "stiffness N/m",
+    "d N s/m",
+    "depth",
+    "relative %",
+    "loaded %",
+    "% of h",
+]
+"""The parameter-set table; the discrepancies are means over the load cases."""
 
 
 def run(client: Client, args: argparse.Namespace) -> Any:
@@ -92,21 +190,8 @@ def run(client: Client, args: argparse.Namespace) -> Any:
     elif args.command == "params":
         filters = {k: getattr(args, k) for k in ("youngs_modulus", "poisson_ratio", "density")}
         answer = client.parameter_sets(**filters, connectivity=args.connectivity, name=args.name)
-        rows = [
-            [
-                p["id"],
-                p["name"],
-                p["material"]["youngs_modulus"],
-                p["material"]["poisson_ratio"],
-                p["k"],
-                p["d"],
-                p["depth"],
-                sum(p["discrepancy"]) / len(p["discrepancy"]),
-            ]
-            for p in answer
-        ]
-        headers = ["id", "name", "E Pa", "nu", "k N/m", "d N s/m", "depth", "mean disc. % h"]
-        text = table(headers, rows)
+        text = table(PARAMETER_SET_HEADERS, parameter_set_rows(answer))
+        text += "\n(discrepancies: means over the load cases; relative % is the headline)"
     else:
         answer = client.health()
         text = "\n".join(f"{k:<12}{v}" for k, v in answer.items())

@@ -3,7 +3,12 @@
 from client import Client
 c = Client("http://127.0.0.1:8000")
 done = c.calibrate("examples/paper-material-a.json", wait=True)
-print(done["result"]["k"], done["result"]["d"], done["result"]["depth"])
+r = done["result"]
+print(r["stiffness"], r["d"], r["depth"])  # N/m per spring family, N s/m, layers
+# The fit per load case: the relative discrepancy (%, scale-free) is the headline; the
+# loaded-node error and the paper's unit (% of h) go beside it, never % of h alone.
+for rel, loaded, h in zip(r["relative_discrepancy"], r["loaded_discrepancy"], r["discrepancy_h"]):
+    print(f"{rel:.1f}% (loaded nodes {loaded:.1f}%, {h:.2f}% of h)")
 """
 
 from __future__ import annotations
@@ -90,12 +95,25 @@ class Client:
         return response.json()
 
     def calibrate(self, spec: SpecLike, wait: bool = False, progress: bool = True) -> dict:
-        """Submit a calibration; with ``wait`` return it once finished (see :meth:`wait`)."""
+        """Submit a calibration; with ``wait`` return it once finished (see :meth:`wait`).
+
+        The spec's ``annealing.method`` picks the method: "two-stage" (the default: the
+        stiffness annealed on static equilibria, then the fastest-settling d) or "paper".
+        """
         calibration = self._call("POST", "/v1/calibrations", json=read_spec(spec))
         return self.wait(calibration["id"], progress=progress) if wait else calibration
 
     def get(self, calibration_id: str) -> dict:
-        """A calibration: status, progress, result once succeeded."""
+        """A calibration: status, progress, result once succeeded.
+
+        ``progress``: ``phase`` (queued, fem, annealing, damping, finalize, done), ``stage``
+        (in words; the two-stage method's annealing is its stiffness search), ``stages``, the
+        annealing's moves, temperature and best cost per chain, and ``damping`` (the damping
+        stage's step and the d values tried). ``result``: ``method``, ``stiffness`` (k per
+        spring family; ``k`` is the axis family's), ``d``, ``d_min``, ``depth``, per load case
+        ``relative_discrepancy`` (%, the headline), ``loaded_discrepancy`` (%) and
+        ``discrepancy_h`` (% of h), ``settle_steps``, ``seconds`` per stage, ``warnings``.
+        """
         return self._call("GET", f"/v1/calibrations/{calibration_id}")
 
     def calibrations(self, status: str | None = None, offset: int = 0, limit: int = 50) -> dict:
@@ -136,7 +154,9 @@ class Client:
         return self._call("DELETE", f"/v1/calibrations/{calibration_id}")
 
     def parameter_sets(self, **filters: Any) -> list[dict]:
-        """Stored parameter sets, newest first.
+        """Stored parameter sets, newest first: stiffness per family, d (with the dt it was
+        fitted at), depth, the discrepancies per load case, geometry (type, nodes, h),
+        material and provenance.
 
         Filters: youngs_modulus, poisson_ratio, density (equal to 1e-6 relative),
         connectivity, name (substring).

@@ -51,6 +51,7 @@ PROBLEM_DESCRIPTIONS = {
     401: "missing or unknown API key",
     404: "no such resource",
     409: "the calibration has already finished",
+    410: "stored by an older version of the service in a form it no longer serves",
     413: "request body over the configured limit",
     422: "invalid input: names each bad field and the reason",
     503: "Redis (queue and store) unreachable; retry later",

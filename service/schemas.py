@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -19,15 +19,52 @@ class ChainProgress(BaseModel):
     best_cost: float | None = Field(None, description="normalised cost (Eq. 2 / reference cost)")
 
 
-class Progress(BaseModel):
-    """Where a calibration is: phase, moves done over all chains, temperature, best cost."""
+class DampingProgress(BaseModel):
+    """Latest report of the damping stage (two-stage method, stage 2)."""
 
-    phase: Phase
+    step: Literal["polish", "depth", "damping"] | None = Field(
+        None,
+        description="'polish' (local search of the stiffness from the best chain's), 'depth' "
+        "(depth 'auto' on static equilibria), 'damping' (the fastest-settling d)",
+    )
+    runs: int = Field(0, description="d values tried (each a dynamic run of every load case)")
+    d: float | None = Field(None, description="the last d tried, N s/m")
+    total_steps: int | None = Field(
+        None, description="its settle steps over all load cases (null: some did not settle)"
+    )
+    best_d: float | None = Field(None, description="the fastest-settling d so far, N s/m")
+    best_total_steps: int | None = Field(None, description="its settle steps, all load cases")
+
+
+class Progress(BaseModel):
+    """Where a calibration is: its phase and stage, and the annealing's and the damping
+    stage's latest reports."""
+
+    phase: Phase = Field(
+        description="queued, fem (the FEM reference), annealing (the chains: stage 1, the "
+        "stiffness search, for two-stage), damping (two-stage stage 2: polish, depth, d), "
+        "finalize, done"
+    )
+    method: Literal["two-stage", "paper"] = Field(description="the spec's annealing.method")
+    stage: str = Field(description="what runs now, in words")
+    stages: list[Phase] = Field(description="the phases this calibration goes through, in order")
     iterations: int = Field(0, description="annealing moves done, all chains together")
     total_iterations: int = Field(0, description="annealing moves in all, all chains together")
     temperature: float | None = Field(None, description="highest current chain temperature")
     best_cost: float | None = Field(None, description="best normalised cost over all chains")
     chains: list[ChainProgress] = []
+    damping: DampingProgress | None = Field(
+        None, description="the damping stage's report, once it has started (two-stage)"
+    )
+
+
+class ChainSummary(BaseModel):
+    """One annealing chain's outcome."""
+
+    chain: int
+    x: list[float] = Field(description="best state: stiffness parameters, N/m (paper: then d)")
+    cost: float = Field(description="its normalised cost")
+    evaluations: int
 
 
 class CalibrationResult(BaseModel):
@@ -35,15 +72,36 @@ class CalibrationResult(BaseModel):
 
     model_config = ConfigDict(extra="allow")
 
-    k: float = Field(description="spring stiffness, N/m")
-    d: float = Field(description="nodal damping, N s/m")
+    method: str = Field(description="'two-stage' or 'paper'")
+    relative_discrepancy: list[float] = Field(
+        description="per load case: 100 sum_i |p_i - q_i| / sum_i |q_i|, % (scale-free; the "
+        "headline figure of the fit)"
+    )
+    loaded_discrepancy: list[float] = Field(
+        description="the same at the loaded nodes only, relative to their FEM displacement, %"
+    )
+    discrepancy_h: list[float] = Field(
+        description="mean nodal discrepancy per load case, % of h (the paper's unit; shrinks "
+        "with soft materials and small loads, so read it beside the relative figure)"
+    )
+    k: float = Field(description="stiffness of the axis family (the one k for 'single'), N/m")
+    stiffness: dict[str, float] = Field(description="k per spring family present, N/m")
+    d: float = Field(description="nodal damping, N s/m: the fastest-settling at the spec's dt")
+    d_min: float | None = Field(description="smallest d that still settles (two-stage), N s/m")
     depth: int = Field(description="penetration depth, layers")
-    cost: float = Field(description="Eq. (2) at (k, d, depth), m")
-    discrepancy: list[float] = Field(description="mean nodal discrepancy per load case, % of h")
+    full_depth: int = Field(description="the deepest perturbed list, layers")
+    cost: float = Field(description="Eq. (2) of the last dynamic run, m")
+    static_cost: float = Field(description="Eq. (2) of the static equilibria, m")
     settle_steps: list[int] = Field(description="time steps to settle, per load case")
     settled: bool
-    evaluations: int
-    seconds: float = Field(description="wall time of the annealing, s")
+    evaluations: int = Field(description="cost evaluations of the stiffness search")
+    damping_runs: int = Field(description="dynamic runs of the d search")
+    seconds: dict[str, float] = Field(description="wall time per stage, s")
+    h: float = Field(description="shortest spring rest length, m")
+    node_mass: dict[str, float] = Field(description="lumped node masses: min, max, mean, total, kg")
+    warnings: list[str] = []
+    history: list[float] = Field([], description="normalised cost per move, winning chain")
+    chains: list[ChainSummary] = []
 
 
 class Timings(BaseModel):
@@ -105,22 +163,61 @@ class FemReference(BaseModel):
     )
 
 
+class GeometrySummary(BaseModel):
+    """The solid a parameter set was fitted on."""
+
+    model_config = ConfigDict(extra="allow")
+
+    type: str = Field(description="box, voxels or mesh")
+    connectivity: str | None = Field(description="axis, axis+face or full")
+    size: list[float] | None = Field(None, description="box size, m (boxes only)")
+    nodes: int = Field(description="node count")
+    h: float = Field(description="shortest spring rest length, m")
+
+
+class Provenance(BaseModel):
+    """Where a parameter set comes from."""
+
+    model_config = ConfigDict(extra="allow")
+
+    calibration_id: str
+    spec_hash: str
+    fem_hash: str
+    method: str = Field(description="'two-stage' or 'paper'")
+    seed: int
+    chains: int
+    evaluations: int
+
+
 class ParameterSet(BaseModel):
-    """A stored (k, d, depth) with its material, geometry summary, fit and provenance."""
+    """A stored (stiffness, d, depth) with its material, geometry summary, fit and provenance."""
 
     model_config = ConfigDict(extra="allow")
 
     id: str
     name: str
     created: float
-    k: float
-    d: float
+    k: float = Field(description="stiffness of the axis family (the one k for 'single'), N/m")
+    stiffness: dict[str, float] = Field(description="k per spring family present, N/m")
+    stiffness_mode: Literal["single", "families"] = Field(description="the spec's fpm.stiffness")
+    stiffness_scale: list[float] = Field(description="per-axis stiffness factors (sx, sy, sz)")
+    d: float = Field(description="nodal damping, N s/m (meaningful only with dt)")
+    d_min: float | None = Field(description="smallest d that still settles (two-stage), N s/m")
     depth: int
     dt: float = Field(description="the time step the set was fitted at, s")
     material: dict[str, float]
-    geometry: dict[str, Any]
-    discrepancy: list[float]
-    provenance: dict[str, Any]
+    geometry: GeometrySummary
+    relative_discrepancy: list[float] = Field(
+        description="per load case, % (scale-free; the headline figure)"
+    )
+    loaded_discrepancy: list[float] = Field(description="per load case, loaded nodes only, %")
+    discrepancy_h: list[float] = Field(
+        description="per load case, % of h (the paper's unit; read it beside the relative figure)"
+    )
+    cost: float = Field(description="Eq. (2) of the last dynamic run, m")
+    node_mass: dict[str, float] = Field(description="lumped node masses: min, max, mean, total, kg")
+    warnings: list[str] = []
+    provenance: Provenance
 
 
 class ParameterSetPage(BaseModel):

@@ -9,7 +9,9 @@ import pytest
 
 import fpm
 from client import ApiError, Client
+from client.cli import discrepancy_rows, parameter_set_rows, show_calibration, stiffness_text
 from client.cli import main as cli
+from client.demo import report
 from client.progress import ProgressBar, render
 from fpm.calibration import calibrate
 from service.redis_server import free_port
@@ -24,8 +26,12 @@ def test_sdk_calibration_equals_fpm_calibrate(sdk, run_workers, small_spec):
     assert done["status"] == "succeeded"
     expected = calibrate(fpm.load_problem(small_spec))
     assert done["result"]["k"] == pytest.approx(expected.k, rel=1e-12)
+    assert done["result"]["stiffness"] == pytest.approx(expected.stiffness, rel=1e-12)
     assert done["result"]["d"] == pytest.approx(expected.d, rel=1e-12)
     assert done["result"]["depth"] == expected.depth
+    assert done["result"]["relative_discrepancy"] == pytest.approx(
+        expected.relative_discrepancy, rel=1e-12
+    )
 
     found = sdk.parameter_sets(youngs_modulus=1e4, density=1040)
     assert [p["id"] for p in found] == [done["parameter_set_id"]]
@@ -80,6 +86,104 @@ def test_progress_bar_on_a_pipe():
     assert render(calibration).startswith("box")
 
 
+def test_progress_bar_names_the_stage():
+    progress = {"phase": "annealing", "method": "two-stage", "iterations": 5}
+    calibration = {
+        "name": "box",
+        "status": "running",
+        "progress": {**progress, "total_iterations": 10},
+    }
+    words = render(calibration).split()
+    assert "stiffness" in words  # the two-stage method's annealing: its stiffness search
+    calibration["progress"]["method"] = "paper"
+    assert "annealing" in render(calibration).split()
+    damping = {"step": "damping", "runs": 4, "best_d": 0.125}
+    calibration["progress"].update(phase="damping", method="two-stage", damping=damping)
+    line = render(calibration)
+    assert "damping   d search d tried=4 fastest d=0.125" in line
+    calibration["progress"]["damping"] = None  # the stage has not reported yet
+    assert render(calibration).endswith("damping   starting")
+    stream = io.StringIO()
+    bar = ProgressBar(stream)
+    for step in ("polish", "depth", "damping", "damping"):
+        calibration["progress"]["damping"] = {"step": step, "runs": 0}
+        bar.update(calibration)
+    assert len(stream.getvalue().splitlines()) == 3  # one line per step of the damping stage
+
+
+RESULT = {
+    "method": "two-stage",
+    "k": 30.0,
+    "stiffness": {"axis": 30.0, "face": 12.5, "body": 4.0},
+    "d": 0.13,
+    "d_min": 0.09,
+    "depth": 3,
+    "full_depth": 3,
+    "relative_discrepancy": [20.0, 22.0],
+    "loaded_discrepancy": [10.0, 12.0],
+    "discrepancy_h": [0.5, 1.0],
+    "settle_steps": [130, 140],
+    "h": 0.01,
+    "warnings": ["outside small strain"],
+}
+
+
+def test_reports_lead_with_the_relative_discrepancy():
+    rows = discrepancy_rows(RESULT, ["0.05 N", "0.1 N"])
+    assert rows == [
+        ["0.05 N", 20.0, 10.0, 0.5, 130],
+        ["0.1 N", 22.0, 12.0, 1.0, 140],
+        ["mean", 21.0, 11.0, 0.75, None],
+    ]
+    assert stiffness_text(RESULT["stiffness"]) == "axis 30, face 12.5, body 4"
+    assert stiffness_text({"axis": 29.0, "face": 29.0}, "single") == "29 (all springs)"
+    calibration = {
+        "id": "c1",
+        "name": "box",
+        "status": "succeeded",
+        "parameter_set_id": "ps-1",
+        "progress": {
+            "phase": "done",
+            "method": "two-stage",
+            "stage": "done",
+            "stages": ["fem", "annealing", "damping", "finalize"],
+            "iterations": 20,
+            "total_iterations": 20,
+        },
+        "result": RESULT,
+    }
+    text = show_calibration(calibration)
+    header = next(line for line in text.splitlines() if line.startswith("load case"))
+    assert header.index("relative %") < header.index("loaded nodes %") < header.index("% of h")
+    assert "axis 30, face 12.5, body 4 N/m" in text and "smallest that settles: 0.09" in text
+    assert "warning     outside small strain" in text
+    parameter_set = {
+        "id": "ps-1",
+        "name": "box",
+        "material": {"youngs_modulus": 1e4, "poisson_ratio": 0.45, "density": 1040.0},
+        "geometry": {"type": "voxels", "connectivity": "full", "nodes": 748, "h": 0.01},
+        "stiffness_mode": "families",
+        **{k: RESULT[k] for k in ("k", "stiffness", "d", "depth")},
+        **{k: RESULT[k] for k in ("relative_discrepancy", "loaded_discrepancy", "discrepancy_h")},
+    }
+    (row,) = parameter_set_rows([parameter_set])
+    assert row[4:7] == ["voxels 748", 0.01, "axis 30, face 12.5, body 4"]
+    assert row[-3:] == [21.0, 11.0, 0.75]
+
+
+def test_demo_report_compares_with_table_1():
+    spec = {
+        "load_cases": [{"name": f"{f} N", "forces": [{"vector": [0, 0, f]}]} for f in (1, 0.25)]
+    }
+    text = report({"paper-material-a": {"result": RESULT}}, {"paper-material-a": spec})
+    assert "38.6" in text and "about 9" in text and "1.4" in text
+    assert "no relative figure" in text and "not given" in text
+    fit = text.split("fit (means over the load cases)\n")[1].splitlines()[2]
+    # relative (mean), the paper's (none), % of h (mean), the paper's, at the smallest force
+    assert fit.split()[1:4] == ["21", "not", "given"] and fit.split()[4] == "0.75"
+    assert fit.split()[7] == "1"  # the smallest force (0.25 N) is the second load case
+
+
 @pytest.mark.redis
 def test_sdk_and_cli_over_http(live_api, small_spec, tmp_path, capsys):
     small_spec["name"] = "over http"
@@ -95,12 +199,13 @@ def test_sdk_and_cli_over_http(live_api, small_spec, tmp_path, capsys):
     assert done["id"] in capsys.readouterr().out  # the same spec: the same calibration
     assert cli(["--url", live_api, "status", done["id"]]) == 0
     out = capsys.readouterr().out
-    assert "succeeded" in out and "discrepancy % h" in out
+    assert "succeeded" in out and "relative %" in out and "% of h" in out
     assert cli(["--url", live_api, "--json", "params", "--E", "10000"]) == 0
     sets = json.loads(capsys.readouterr().out)
     assert done["parameter_set_id"] in [p["id"] for p in sets]
     assert cli(["--url", live_api, "params", "--E", "10000", "--nu", "0.45"]) == 0
-    assert done["parameter_set_id"] in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert done["parameter_set_id"] in out and "box 64" in out and "(all springs)" in out
     assert cli(["--url", live_api, "list"]) == 0
     assert "over http" in capsys.readouterr().out
 

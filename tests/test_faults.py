@@ -2,11 +2,14 @@
 
 Each test runs the real API in-process against a real redis-server and real ``python -m worker``
 processes (or the in-process burst worker where the damage is in the job, not the process).
-The worker killed mid-chain (retry + checkpoint resume) is in tests/test_worker.py.
+The worker killed mid-chain (retry + checkpoint resume) is in tests/test_worker.py; the worker
+killed during the damping stage is here.
 """
 
 from __future__ import annotations
 
+import os
+import signal
 import time
 from collections.abc import Callable, Iterator
 
@@ -15,10 +18,13 @@ from conftest import WorkerProcesses
 from fastapi.testclient import TestClient
 from redis import Redis
 from rq.job import Job, JobStatus
-from rq.registry import CanceledJobRegistry
+from rq.registry import CanceledJobRegistry, StartedJobRegistry
 from rq.serializers import JSONSerializer
 from test_service import assert_problem
+from test_worker import alive, child_pids
 
+import fpm
+from fpm.calibration import calibrate
 from service.main import create_app
 from service.redis_server import RedisServer
 from service.settings import Settings
@@ -80,7 +86,7 @@ def test_redis_crash_loses_nothing_and_everyone_recovers(durable_redis, small_sp
             submitted = api.post("/v1/calibrations", json=small_spec)
             assert submitted.status_code == 202
             calibration_id = submitted.json()["id"]
-            before = wait_until_done(api, calibration_id)
+            before = wait_until_done(api, calibration_id, timeout=60)  # a cold kernel cache
             assert before["status"] == "succeeded", before["error"]
             ps_id = before["parameter_set_id"]
             parameter_set = api.get(f"/v1/parameter-sets/{ps_id}").json()
@@ -132,6 +138,7 @@ def test_redis_crash_loses_nothing_and_everyone_recovers(durable_redis, small_sp
 # --- A calibration that cannot be fitted --------------------------------------------------------
 
 
+@pytest.mark.parametrize("method", ["two-stage", "paper"])
 @pytest.mark.parametrize(
     "change",
     [
@@ -141,23 +148,31 @@ def test_redis_crash_loses_nothing_and_everyone_recovers(durable_redis, small_sp
         ),
     ],
 )
-def test_all_candidates_diverge_fails_with_a_reason(api, redis, run_workers, small_spec, change):
+def test_all_candidates_diverge_fails_with_a_reason(
+    api, redis, run_workers, small_spec, change, method
+):
     change(small_spec)
+    small_spec["annealing"]["method"] = method
     calibration_id = api.post("/v1/calibrations", json=small_spec).json()["id"]
     run_workers()
     done = status_of(api, calibration_id)
     assert done["status"] == "failed" and done["result"] is None
     error = done["error"]
-    assert "no acceptable starting point" in error and "diverged" in error, error
-    assert "lower dt" in error  # says what to do about it
+    if method == "paper":  # every (k, d) the annealer tries diverges
+        assert "no acceptable starting point" in error and "diverged" in error, error
+        assert "lower fpm.dt" in error or "annealing.bounds.d" in error  # what to do
+        failing = [keys.chain_job_id(calibration_id, c) for c in range(2)]
+    else:  # the static stiffness search succeeds; no d settles the dynamic runs
+        assert error.startswith("damping stage failed: no d in"), error
+        assert "lower fpm.dt" in error
+        assert done["progress"]["phase"] == "damping"
+        failing = [keys.damping_job_id(calibration_id)]
     assert "Traceback" not in error
     assert done["parameter_set_id"] is None and redis.zcard(keys.parameter_sets()) == 0
-    # Not retried: the same spec fails the same way, so each chain ran once.
+    # Not retried: the same spec fails the same way, so the failing job ran once.
     q = graph.queue(redis)
-    for chain in range(small_spec["annealing"]["chains"]):
-        job = Job.fetch(
-            keys.chain_job_id(calibration_id, chain), connection=redis, serializer=JSONSerializer
-        )
+    for job_id in failing:
+        job = Job.fetch(job_id, connection=redis, serializer=JSONSerializer)
         assert job.get_status() == JobStatus.FINISHED and job.retries_left == 2
     assert q.failed_job_registry.count == 0
     assert_no_work_left(redis)
@@ -187,7 +202,8 @@ def test_timed_out_chain_fails_cleanly_and_frees_its_worker(
         chain = Job.fetch(
             keys.chain_job_id(long_one, 0), connection=redis, serializer=JSONSerializer
         )
-        assert chain.get_status() == JobStatus.FAILED
+        # The failure callback marks the calibration before RQ marks the job.
+        wait_for(lambda: chain.get_status() == JobStatus.FAILED, 10, "the chain job to fail")
         # The worker is free again: the next calibration runs on the same process.
         small_spec["annealing"].update(beta=10, chains=2)
         quick = api.post("/v1/calibrations", json=small_spec).json()["id"]
@@ -206,12 +222,28 @@ def big_fem(spec: dict) -> dict:
     return spec
 
 
-@pytest.mark.parametrize("phase", ["fem", "annealing"])
+def slow_damping(spec: dict) -> dict:
+    """The small spec with a damping stage of a second or two (dt 2e-5 s: ~50x the steps)."""
+    spec["fpm"].update(dt=2e-5, max_steps=100_000)
+    return spec
+
+
+def in_damping(api: TestClient, calibration_id: str) -> Callable[[], bool]:
+    """True once the calibration reports the damping stage's d search."""
+
+    def check() -> bool:
+        p = status_of(api, calibration_id)["progress"]
+        return p["phase"] == "damping" and (p["damping"] or {}).get("step") == "damping"
+
+    return check
+
+
+@pytest.mark.parametrize("phase", ["fem", "annealing", "damping"])
 def test_cancel_in_each_phase_leaves_no_job_running(
     settings, redis, worker_processes, small_spec, phase
 ):
     roomy = settings.model_copy(update={"max_nodes": 20_000})
-    spec = big_fem(small_spec) if phase == "fem" else slow(small_spec)
+    spec = {"fem": big_fem, "annealing": slow, "damping": slow_damping}[phase](small_spec)
     spec["annealing"]["chains"] = 2
     worker_processes.start()
     with TestClient(create_app(roomy), raise_server_exceptions=False) as api:
@@ -222,32 +254,84 @@ def test_cancel_in_each_phase_leaves_no_job_running(
             moved = any(c["move"] > 3 for c in view["progress"]["chains"])
             return view["progress"]["phase"] == phase and (phase == "fem" or moved)
 
-        wait_for(in_phase, 60, f"phase {phase}")
+        wait_for(in_damping(api, calibration_id) if phase == "damping" else in_phase, 60, phase)
         canceled = api.delete(f"/v1/calibrations/{calibration_id}")
         assert canceled.status_code == 200 and canceled.json()["status"] == "canceled"
         assert_no_work_left(redis)  # the FEM job (shared) finishes; nothing else runs
         view = status_of(api, calibration_id)
         assert view["status"] == "canceled" and view["result"] is None
         assert redis.zcard(keys.parameter_sets()) == 0
+        chain_ids = [keys.chain_job_id(calibration_id, c) for c in range(2)]
+        damping_id, finalize_id = (
+            keys.damping_job_id(calibration_id),
+            keys.finalize_job_id(calibration_id),
+        )
         jobs = {
             job.id: job.get_status()
             for job in Job.fetch_many(
-                [keys.chain_job_id(calibration_id, c) for c in range(2)]
-                + [keys.finalize_job_id(calibration_id)],
+                [*chain_ids, damping_id, finalize_id],
                 connection=redis,
                 serializer=JSONSerializer,
             )
         }
-        assert jobs[keys.finalize_job_id(calibration_id)] == JobStatus.CANCELED
+        assert jobs[finalize_id] == JobStatus.CANCELED
         if phase == "fem":  # no chain ever started
             assert set(jobs.values()) == {JobStatus.CANCELED}
             assert view["progress"]["chains"] == []
-        else:  # one chain was stopped mid-way, the other (one worker) never started
+        elif phase == "annealing":  # one chain was stopped mid-way, the other never started
             (running,) = view["progress"]["chains"]
             assert 3 < running["move"] < running["moves"]
-            chains = sorted(jobs[keys.chain_job_id(calibration_id, c)] for c in range(2))
+            chains = sorted(jobs[c] for c in chain_ids)
             assert chains == [JobStatus.CANCELED, JobStatus.STOPPED]
-        for c in range(2):
-            assert not redis.exists(keys.chain_result(calibration_id, c))
+            assert jobs[damping_id] == JobStatus.CANCELED
+        else:  # the chains finished; the damping job was stopped mid-way
+            assert [jobs[c] for c in chain_ids] == [JobStatus.FINISHED] * 2
+            assert jobs[damping_id] == JobStatus.STOPPED
+            assert view["progress"]["phase"] == "damping"
+            assert not redis.exists(keys.damping_result(calibration_id))
+        if phase != "damping":
+            for c in range(2):
+                assert not redis.exists(keys.chain_result(calibration_id, c))
         registry = CanceledJobRegistry(keys.QUEUE, connection=redis, serializer=JSONSerializer)
-        assert keys.finalize_job_id(calibration_id) in registry.get_job_ids()
+        assert finalize_id in registry.get_job_ids()
+
+
+# --- A worker killed during the damping stage ---------------------------------------------------
+
+
+def test_worker_killed_in_the_damping_stage_is_retried(
+    settings, redis, worker_processes, small_spec
+):
+    spec = slow_damping(small_spec)
+    first = worker_processes.start()
+    with TestClient(create_app(settings), raise_server_exceptions=False) as api:
+        calibration_id = api.post("/v1/calibrations", json=spec).json()["id"]
+        wait_for(in_damping(api, calibration_id), 60, "the damping stage")
+        view = status_of(api, calibration_id)
+        progress = view["progress"]
+        assert progress["stages"] == ["fem", "annealing", "damping", "finalize"]
+        assert progress["stage"].startswith("stage 2 of 2: damping")
+        assert progress["iterations"] == progress["total_iterations"]  # the chains are done
+        (horse,) = child_pids(first.pid)
+        os.kill(first.pid, signal.SIGKILL)  # the worker dies; its work horse with it
+        first.wait()
+        wait_for(lambda: not alive(horse), 5, "the work horse to die")
+        damping_id = keys.damping_job_id(calibration_id)
+        registry = StartedJobRegistry(keys.QUEUE, connection=redis, serializer=JSONSerializer)
+        assert damping_id in registry.get_job_ids(cleanup=False)
+        # What RQ's maintenance does once the dead worker's heartbeat has expired:
+        registry.cleanup(timestamp=time.time() + 3600)
+        job = Job.fetch(damping_id, connection=redis, serializer=JSONSerializer)
+        assert job.get_status() == JobStatus.QUEUED and job.retries_left == 1
+        assert status_of(api, calibration_id)["status"] == "running"
+
+        worker_processes.start()  # another worker takes the retry
+        done = wait_until_done(api, calibration_id, timeout=60)
+        assert done["status"] == "succeeded", done["error"]
+        assert done["progress"]["phase"] == "done"
+        expected = calibrate(fpm.load_problem(spec))  # uninterrupted, in-process
+        for name in ("k", "d", "d_min", "depth", "relative_discrepancy", "settle_steps"):
+            assert done["result"][name] == pytest.approx(getattr(expected, name), rel=1e-12)
+        assert api.get("/v1/parameter-sets").json()["total"] == 1
+        assert not redis.exists(keys.damping_result(calibration_id))
+        assert_no_work_left(redis)

@@ -41,14 +41,42 @@ def test_submit_read_list(api, run_workers, small_spec):
     again = api.post("/v1/calibrations", json=small_spec)
     assert again.status_code == 200 and again.json()["id"] == calibration["id"]
 
+    assert calibration["progress"]["method"] == "two-stage"
+    assert calibration["progress"]["stages"] == ["fem", "annealing", "damping", "finalize"]
+
     run_workers()
     done = api.get(submitted.headers["location"]).json()
     assert done["status"] == "succeeded"
-    assert done["progress"]["phase"] == "done"
-    assert done["progress"]["iterations"] == done["progress"]["total_iterations"] > 0
+    progress = done["progress"]
+    assert progress["phase"] == "done" and progress["stage"] == "done"
+    assert progress["iterations"] == progress["total_iterations"] > 0
+    assert progress["damping"]["step"] == "damping" and progress["damping"]["runs"] > 0
     result = done["result"]
-    assert set(result) >= {"k", "d", "depth", "cost", "discrepancy", "settle_steps", "seconds"}
-    assert len(result["discrepancy"]) == len(small_spec["load_cases"])
+    assert result["method"] == "two-stage"
+    assert set(result) >= {
+        "k",
+        "stiffness",
+        "d",
+        "d_min",
+        "depth",
+        "full_depth",
+        "cost",
+        "static_cost",
+        "relative_discrepancy",
+        "loaded_discrepancy",
+        "discrepancy_h",
+        "settle_steps",
+        "seconds",
+        "node_mass",
+        "warnings",
+        "history",
+        "chains",
+    }
+    cases = len(small_spec["load_cases"])
+    for name in ("relative_discrepancy", "loaded_discrepancy", "discrepancy_h", "settle_steps"):
+        assert len(result[name]) == cases, name
+    assert result["stiffness"] == {"axis": result["k"], "face": result["k"], "body": result["k"]}
+    assert set(result["seconds"]) == {"stiffness", "damping", "finalize"}
     assert done["timings"]["running_seconds"] > 0
 
     page = api.get("/v1/calibrations", params={"status": "succeeded"}).json()
@@ -57,7 +85,65 @@ def test_submit_read_list(api, run_workers, small_spec):
 
     ps = api.get(f"/v1/parameter-sets/{done['parameter_set_id']}").json()
     assert (ps["k"], ps["d"], ps["depth"]) == (result["k"], result["d"], result["depth"])
+    for name in ("stiffness", "d_min", "relative_discrepancy", "loaded_discrepancy", "warnings"):
+        assert ps[name] == result[name], name
+    assert ps["discrepancy_h"] == result["discrepancy_h"] and ps["stiffness_mode"] == "single"
+    assert ps["geometry"]["nodes"] == 64 and ps["geometry"]["h"] == result["h"]
     assert ps["provenance"]["calibration_id"] == calibration["id"]
+    assert ps["provenance"]["method"] == "two-stage"
+
+
+def test_progress_names_each_stage(api, redis, small_spec):
+    """What the status says in each phase, from the records the worker writes."""
+    calibration_id = api.post("/v1/calibrations", json=small_spec).json()["id"]
+    key, progress_key = keys.calibration(calibration_id), keys.calibration_progress(calibration_id)
+
+    def view(phase: str) -> dict:
+        redis.hset(key, mapping={"status": "running", "phase": phase})
+        return api.get(f"/v1/calibrations/{calibration_id}").json()["progress"]
+
+    assert view("queued")["stage"] == "queued"
+    chain = {"move": 7, "moves": 10, "temperature": 0.01, "best_cost": 0.3}
+    redis.hset(progress_key, mapping={"0": json.dumps(chain), "1": json.dumps(chain)})
+    annealing = view("annealing")
+    assert annealing["stage"].startswith("stage 1 of 2: stiffness search")
+    assert annealing["iterations"] == 14 and annealing["total_iterations"] == 20
+    assert [c["chain"] for c in annealing["chains"]] == [0, 1]
+    assert annealing["damping"] is None
+    assert view("damping")["stage"] == "stage 2 of 2: damping (starting)"
+    report = {"step": "damping", "runs": 3, "d": 0.2, "total_steps": None}
+    redis.hset(progress_key, keys.DAMPING_PROGRESS, json.dumps({**report, "best_d": 0.1}))
+    damping = view("damping")
+    assert damping["stage"] == "stage 2 of 2: damping (finding the fastest-settling d)"
+    assert damping["damping"]["runs"] == 3 and damping["damping"]["best_d"] == 0.1
+    assert [c["chain"] for c in damping["chains"]] == [0, 1]  # the chain reports stay
+    assert view("finalize")["stage"] == "final dynamic run and figures"
+
+    small_spec["annealing"].update(method="paper", seed=5)
+    paper = api.post("/v1/calibrations", json=small_spec).json()
+    progress = paper["progress"]
+    assert progress["method"] == "paper" and progress["stages"] == ["fem", "annealing", "finalize"]
+    redis.hset(keys.calibration(paper["id"]), mapping={"status": "running", "phase": "annealing"})
+    stage = api.get(f"/v1/calibrations/{paper['id']}").json()["progress"]["stage"]
+    assert stage == "annealing (k, d) on dynamic runs"
+
+
+def test_records_of_an_older_version_are_served_without_a_500(api, redis, run_workers, small_spec):
+    """Results and parameter sets stored before the two-stage fields (e.g. in ./data)."""
+    calibration_id = api.post("/v1/calibrations", json=small_spec).json()["id"]
+    run_workers()
+    done = api.get(f"/v1/calibrations/{calibration_id}").json()
+    old_result = {k: v for k, v in done["result"].items() if k != "relative_discrepancy"}
+    redis.hset(keys.calibration(calibration_id), "result", json.dumps(old_result))
+    ps_id = done["parameter_set_id"]
+    old_set = api.get(f"/v1/parameter-sets/{ps_id}").json()
+    old_set.pop("relative_discrepancy")
+    redis.set(keys.parameter_set(ps_id), json.dumps(old_set))
+    view = api.get(f"/v1/calibrations/{calibration_id}").json()
+    assert view["status"] == "succeeded" and view["result"] is None
+    assert "older version" in view["error"]
+    assert api.get("/v1/parameter-sets").json() == {"items": [], "total": 0}
+    assert "older version" in assert_problem(api.get(f"/v1/parameter-sets/{ps_id}"), 410)["detail"]
 
 
 def test_listing_is_newest_first_and_paginated(api, small_spec):
@@ -74,6 +160,9 @@ def test_listing_is_newest_first_and_paginated(api, small_spec):
 def test_parameter_sets_filtered_by_material(api, run_workers, small_spec):
     api.post("/v1/calibrations", json=small_spec)
     small_spec["material"]["youngs_modulus"] = 20000.0
+    small_spec["geometry"]["connectivity"] = "axis"
+    small_spec.update(name="stiff axis box")
+    small_spec["fpm"]["stiffness"] = "families"
     api.post("/v1/calibrations", json=small_spec)
     run_workers()
     everything = api.get("/v1/parameter-sets").json()
@@ -81,6 +170,17 @@ def test_parameter_sets_filtered_by_material(api, run_workers, small_spec):
     soft = api.get("/v1/parameter-sets", params={"youngs_modulus": 1e4, "poisson_ratio": 0.45})
     assert [p["material"]["youngs_modulus"] for p in soft.json()["items"]] == [1e4]
     assert api.get("/v1/parameter-sets", params={"density": 999}).json()["total"] == 0
+    (axis,) = api.get("/v1/parameter-sets", params={"connectivity": "axis"}).json()["items"]
+    assert axis["material"]["youngs_modulus"] == 2e4 and axis["stiffness_mode"] == "families"
+    assert list(axis["stiffness"]) == ["axis"] and axis["k"] == axis["stiffness"]["axis"]
+    named = api.get("/v1/parameter-sets", params={"name": "STIFF"}).json()["items"]
+    assert [p["id"] for p in named] == [axis["id"]]
+    assert (
+        api.get("/v1/parameter-sets", params={"connectivity": "full", "name": "stiff"}).json()[
+            "total"
+        ]
+        == 0
+    )
     assert_problem(api.get("/v1/parameter-sets/ps-nothing"), 404)
 
 

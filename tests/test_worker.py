@@ -15,7 +15,7 @@ from rq.serializers import JSONSerializer
 
 import fpm
 from fpm.calibration import calibrate
-from fpm.cost import CostFunction
+from fpm.cost import StaticCost
 from service.limits import dump_spec
 from worker import graph, keys, store
 from worker import jobs as worker_jobs
@@ -45,8 +45,26 @@ def test_result_equals_in_process_calibration(redis, run_workers, small_spec):
     done = store.get_calibration(redis, record.id)
     assert done.status == CalibrationStatus.SUCCEEDED, done.error
     expected = calibrate(fpm.load_problem(small_spec))
-    for name in ("k", "d", "depth", "cost", "discrepancy", "settle_steps"):
-        assert done.result[name] == pytest.approx(getattr(expected, name), rel=1e-12)
+    assert done.result["method"] == expected.method == "two-stage"
+    for name in (
+        "k",
+        "d",
+        "d_min",
+        "depth",
+        "full_depth",
+        "cost",
+        "static_cost",
+        "relative_discrepancy",
+        "loaded_discrepancy",
+        "discrepancy_h",
+        "settle_steps",
+        "evaluations",
+        "damping_runs",
+        "h",
+    ):
+        assert done.result[name] == pytest.approx(getattr(expected, name), rel=1e-12), name
+    assert done.result["stiffness"] == pytest.approx(expected.stiffness, rel=1e-12)
+    assert set(done.result["seconds"]) == {"stiffness", "damping", "finalize"}
     # Stored for good (no TTL): the FEM reference, the parameter set, the record.
     for key in (
         keys.fem_reference(record.fem_hash),
@@ -56,7 +74,73 @@ def test_result_equals_in_process_calibration(redis, run_workers, small_spec):
         assert redis.ttl(key) == -1
     # Scratch is gone or expiring.
     assert not redis.exists(keys.chain_checkpoint(record.id, 0))
+    assert not redis.exists(keys.damping_result(record.id))
     assert redis.ttl(keys.chain_result(record.id, 0)) > 0
+    assert redis.ttl(keys.calibration_progress(record.id)) > 0
+    # The parameter set carries what the worker promises (service/schemas.py ParameterSet).
+    ps = store.get_parameter_set(redis, done.parameter_set_id)
+    for name in ("k", "stiffness", "d", "d_min", "depth", "relative_discrepancy", "node_mass"):
+        assert ps[name] == done.result[name], name
+    assert ps["stiffness_mode"] == "single" and ps["dt"] == small_spec["fpm"].get("dt", 1e-3)
+    assert ps["geometry"] == {
+        "type": "box",
+        "connectivity": "full",
+        "size": small_spec["geometry"]["size"],
+        "nodes": 64,
+        "h": done.result["h"],
+    }
+    assert ps["provenance"]["method"] == "two-stage"
+
+
+def graph_of(redis, record):
+    """{job id: (function, ids of the jobs it waits for)} of a calibration's jobs."""
+    ids = [keys.fem_job_id(record.fem_hash)]
+    ids += [keys.chain_job_id(record.id, c) for c in range(record.chains)]
+    ids += [keys.damping_job_id(record.id), keys.finalize_job_id(record.id)]
+    jobs = Job.fetch_many(ids, connection=redis, serializer=JSONSerializer)
+    return {j.id: (j.func_name, sorted(j.dependency_ids)) for j in jobs if j is not None}
+
+
+@pytest.mark.parametrize("method", ["two-stage", "paper"])
+def test_job_graph_of_each_method(redis, run_workers, small_spec, method):
+    small_spec["annealing"]["method"] = method
+    record, _ = submit(redis, small_spec)
+    fem = keys.fem_job_id(record.fem_hash)
+    chains = [keys.chain_job_id(record.id, c) for c in range(2)]
+    expected = {
+        fem: ("worker.jobs.fem_reference", []),
+        chains[0]: ("worker.jobs.anneal_chain", [fem]),
+        chains[1]: ("worker.jobs.anneal_chain", [fem]),
+    }
+    if method == "two-stage":  # fem -> chains -> damping -> finalize
+        damping = keys.damping_job_id(record.id)
+        expected[damping] = ("worker.jobs.fit_damping_stage", sorted(chains))
+        expected[keys.finalize_job_id(record.id)] = ("worker.jobs.finalize_calibration", [damping])
+    else:  # fem -> chains -> finalize: no damping job
+        expected[keys.finalize_job_id(record.id)] = (
+            "worker.jobs.finalize_calibration",
+            sorted(chains),
+        )
+    assert graph_of(redis, record) == expected
+    run_workers()
+    done = store.get_calibration(redis, record.id)
+    assert done.status == CalibrationStatus.SUCCEEDED, done.error
+    assert done.result["method"] == method
+    expected_result = calibrate(fpm.load_problem(small_spec))
+    assert (done.result["k"], done.result["d"]) == pytest.approx(
+        (expected_result.k, expected_result.d), rel=1e-12
+    )
+    chain_results = [json.loads(redis.get(keys.chain_result(record.id, c))) for c in range(2)]
+    n = 1 if method == "two-stage" else 2  # stiffness parameters, plus d for paper
+    assert [len(c["x"]) for c in chain_results] == [n, n]
+    damping = store.get_damping_progress(redis, record.id)
+    if method == "two-stage":
+        assert done.result["d_min"] is not None and done.result["damping_runs"] > 0
+        assert damping["step"] == "damping" and damping["runs"] > 0
+        assert damping["best_d"] == pytest.approx(done.result["d"], rel=1e-12)
+    else:
+        assert done.result["d_min"] is None and done.result["damping_runs"] == 0
+        assert damping is None
 
 
 def test_identical_spec_returns_the_same_calibration(redis, run_workers, small_spec):
@@ -115,8 +199,9 @@ def test_cancel_queued_calibration(redis, run_workers, small_spec):
     done = store.get_calibration(redis, record.id)
     assert done.status == CalibrationStatus.CANCELED and done.result is None
     assert redis.zcard(keys.parameter_sets()) == 0
-    job = Job.fetch(keys.finalize_job_id(record.id), connection=redis, serializer=JSONSerializer)
-    assert job.get_status() == JobStatus.CANCELED
+    for job_id in (keys.damping_job_id(record.id), keys.finalize_job_id(record.id)):
+        job = Job.fetch(job_id, connection=redis, serializer=JSONSerializer)
+        assert job.get_status() == JobStatus.CANCELED, job_id
 
 
 def slow_spec(spec, beta=1.5):
@@ -172,20 +257,21 @@ def test_chain_of_a_dead_worker_is_retried_and_resumes(
     assert keys.chain_job_id(record.id, 0) in registry.get_job_ids(cleanup=False)
     # What RQ's maintenance does once the dead worker's heartbeat has expired:
     registry.cleanup(timestamp=time.time() + 3600)
-    # Count the cost evaluations the retried chain really makes.
+    # Count the cost evaluations the retried chain really makes (two-stage chains evaluate
+    # static equilibria).
     evaluations = []
     real_run_chain = worker_jobs.run_chain
 
     def counting_run_chain(problem, reference, chain, **kw):
         calls = [0]
-        real_call = CostFunction.__call__
+        real_call = StaticCost.__call__
 
         def counted(self, *a, **k):
             calls[0] += 1
             return real_call(self, *a, **k)
 
         with pytest.MonkeyPatch.context() as mp:
-            mp.setattr(CostFunction, "__call__", counted)
+            mp.setattr(StaticCost, "__call__", counted)
             result = real_run_chain(problem, reference, chain, **kw)
         evaluations.append(calls[0])
         return result
@@ -199,8 +285,10 @@ def test_chain_of_a_dead_worker_is_retried_and_resumes(
         (expected.k, expected.d), rel=1e-12
     )
     # Resumed, not restarted: only the evaluations after the checkpoint were made again.
-    total = done.result["evaluations"]
-    assert total == expected.evaluations
+    assert done.result["evaluations"] == expected.evaluations
+    (chain,) = done.result["chains"]
+    total = chain["evaluations"]
+    assert total == expected.chains[0]["evaluations"]
     assert evaluations == [total - checkpoint["evaluations"]] and evaluations[0] < total
     # Exactly one parameter set, and no checkpoint left behind.
     assert redis.zcard(keys.parameter_sets()) == 1

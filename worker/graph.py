@@ -2,7 +2,9 @@
 
 A calibration is::
 
-    fem job (skipped if the reference is stored) --> chain 0 .. chain n-1 --> finalize
+    fem job (skipped if the reference is stored) --> chain 0 .. chain n-1 --> damping --> finalize
+
+(the damping job only for the two-stage method: polish, depth, fastest-settling d).
 
 Jobs are enqueued by dotted path with RQ's JSON serializer and carry only ids; the spec, the
 FEM reference and the chain results live under our own keys (:mod:`worker.keys`). Chains
@@ -39,7 +41,9 @@ class JobOptions:
     """Limits of the jobs a calibration enqueues.
 
     Attributes:
-        fem_timeout, chain_timeout, finalize_timeout: wall time a job may run, s.
+        fem_timeout, chain_timeout, finalize_timeout: wall time a job may run, s (the damping
+            stage, which runs dynamic simulations like a paper-method chain, gets
+            chain_timeout).
         retries: times a job is re-run after its worker died (or it raised).
         result_ttl: how long RQ keeps a finished job's return value, s (our records stay).
         failure_ttl: how long RQ keeps a failed job, s.
@@ -117,12 +121,25 @@ def _enqueue(redis: Redis, record: store.CalibrationRecord, options: JobOptions)
         )
         for chain in range(record.chains)
     ]
+    before_finalize = chains
+    if record.spec["annealing"]["method"] == "two-stage":
+        before_finalize = [
+            q.enqueue_call(
+                "worker.jobs.fit_damping_stage",
+                args=(record.id,),
+                job_id=keys.damping_job_id(record.id),
+                timeout=options.chain_timeout,
+                depends_on=Dependency(chains, allow_failure=True),
+                description=f"{record.name}: damping",
+                **common,
+            )
+        ]
     q.enqueue_call(
         "worker.jobs.finalize_calibration",
         args=(record.id,),
         job_id=keys.finalize_job_id(record.id),
         timeout=options.finalize_timeout,
-        depends_on=Dependency(chains, allow_failure=True),
+        depends_on=Dependency(before_finalize, allow_failure=True),
         description=f"{record.name}: finalize",
         **common,
     )
@@ -181,7 +198,8 @@ def _common(options: JobOptions) -> dict[str, Any]:
 
 
 def cancel_calibration(redis: Redis, calibration_id: str) -> bool:
-    """Mark a calibration canceled, stop its running chains and drop its queued jobs.
+    """Mark a calibration canceled, stop its running jobs (chains, damping stage, finalize) and
+    drop its queued ones.
 
     Returns False if it had already finished (nothing changed). The shared FEM job is left
     alone: another calibration may need the same reference.
@@ -196,7 +214,7 @@ def cancel_calibration(redis: Redis, calibration_id: str) -> bool:
     record = store.get_calibration(redis, calibration_id)
     assert record is not None
     job_ids = [keys.chain_job_id(calibration_id, c) for c in range(record.chains)]
-    job_ids.append(keys.finalize_job_id(calibration_id))
+    job_ids += [keys.damping_job_id(calibration_id), keys.finalize_job_id(calibration_id)]
     for job in Job.fetch_many(job_ids, connection=redis, serializer=JSONSerializer):
         if job is None:
             continue

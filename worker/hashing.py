@@ -13,6 +13,11 @@ from fpm.spec import MODEL_VERSION
 FEM_FIELDS = ("geometry", "material", "fixed", "load_cases")
 """The spec fields the FEM reference depends on."""
 
+RECORD_VERSION = 2
+"""Layout of the results and parameter sets the worker writes (2: two-stage fields, relative
+discrepancy, family stiffnesses). Part of the spec hash like fpm's MODEL_VERSION, so that a
+resubmitted spec is not answered with a record of the older layout."""
+
 
 def canonical(data: Any) -> bytes:
     """Canonical JSON bytes of ``data``."""
@@ -20,9 +25,11 @@ def canonical(data: Any) -> bytes:
 
 
 def spec_hash(spec: dict[str, Any]) -> str:
-    """sha256 of the whole validated spec (a dumped :class:`fpm.spec.ProblemSpec`) and of
-    :data:`fpm.spec.MODEL_VERSION`, so results of older numerics are not handed out again."""
-    return hashlib.sha256(canonical({"model": MODEL_VERSION, "spec": spec})).hexdigest()
+    """sha256 of the whole validated spec (a dumped :class:`fpm.spec.ProblemSpec`), of
+    :data:`fpm.spec.MODEL_VERSION` and of :data:`RECORD_VERSION`, so results of older numerics
+    or in an older layout are not handed out again."""
+    identity = {"model": MODEL_VERSION, "record": RECORD_VERSION, "spec": spec}
+    return hashlib.sha256(canonical(identity)).hexdigest()
 
 
 def fem_spec(spec: dict[str, Any]) -> dict[str, Any]:

@@ -1,9 +1,16 @@
-"""RQ job functions: FEM reference, one annealing chain, finalize (enqueued by dotted path).
+"""RQ job functions: FEM reference, one annealing chain, the damping stage (two-stage method),
+finalize (enqueued by dotted path).
 
 Every job takes ids only and reads what it needs from our keys; every job may run twice
 (a retry after its worker died) and writes its results once, under deterministic keys:
-a finished chain is not re-run, a stopped chain resumes from its checkpoint, and the
+a finished chain is not re-run, a stopped chain resumes from its checkpoint, a finished
+damping stage is not re-run (an interrupted one starts again: it is deterministic), and the
 parameter set is written with SET NX.
+
+Progress goes to the calibration's progress hash (:func:`worker.keys.calibration_progress`):
+one field per chain, and the field :data:`worker.keys.DAMPING_PROGRESS` for the damping stage.
+Each progress write also reads the calibration's status, and a job whose calibration has been
+canceled (or failed elsewhere) stops there.
 """
 
 from __future__ import annotations
@@ -18,18 +25,29 @@ from rq.job import Job
 
 from fpm import load_problem
 from fpm.annealing import AnnealingError
-from fpm.calibration import ChainResult, finalize, run_chain
+from fpm.calibration import (
+    ChainResult,
+    DampingStage,
+    check_reference,
+    finalize,
+    fit_damping,
+    run_chain,
+)
+from fpm.damping import DampingError
 from fpm.fem import FemError, FemResult, solve_fem
 
 from . import keys, store
 from .status import CalibrationStatus, FemStatus, Phase
 
 PROGRESS_INTERVAL = 0.5
-"""Seconds between progress writes of a chain (each also checks for a cancel)."""
+"""Seconds between progress writes of a job (each also checks for a cancel)."""
+
+DAMPING_HINT = "lower fpm.dt, widen annealing.bounds.d, or raise fpm.max_steps"
+"""What to change when no d settles every load case."""
 
 
 class Canceled(Exception):
-    """The calibration was canceled (or failed elsewhere) while this chain was running."""
+    """The calibration was canceled (or failed elsewhere) while this job was running."""
 
 
 def _job() -> Job:
@@ -97,13 +115,19 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
         },
     )
     problem = load_problem(record.spec)
+    fem = FemResult.from_dict(reference)
+    try:
+        check_reference(problem, fem)
+    except ValueError as e:  # a units mistake: no annealing can fix it
+        _fail(redis, calibration_id, f"units check failed: {e}")
+        return {"failed": True}
     checkpoint_key = keys.chain_checkpoint(calibration_id, chain)
     saved = redis.get(checkpoint_key)
-    reporter = _ProgressReporter(job, calibration_id, chain)
+    reporter = _ChainProgress(job, calibration_id, chain)
     try:
         result = run_chain(
             problem,
-            FemResult.from_dict(reference),
+            fem,
             chain,
             progress=reporter,
             checkpoint=lambda state: store.save_checkpoint(redis, checkpoint_key, state),
@@ -122,27 +146,28 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
     pipe.set(result_key, json.dumps(result.to_dict()), ex=store.SCRATCH_TTL)
     pipe.delete(checkpoint_key)
     pipe.execute()
-    return {"k": result.k, "d": result.d, "cost": result.cost}
+    return {"x": result.x, "cost": result.cost, "evaluations": result.evaluations}
 
 
-class _ProgressReporter:
-    """Writes a chain's progress to the calibration's progress hash and to the job meta.
+class _Reporter:
+    """Writes a job's progress to one field of the calibration's progress hash and to the job
+    meta.
 
-    At most every PROGRESS_INTERVAL seconds; each write also reads the calibration's status
-    and raises :class:`Canceled` once it is terminal, so a canceled chain stops even on a
-    worker that cannot kill its work horse (SimpleWorker).
+    At most every PROGRESS_INTERVAL seconds (or at once when asked); each write also reads the
+    calibration's status and raises :class:`Canceled` once it is terminal, so a canceled job
+    stops even on a worker that cannot kill its work horse (SimpleWorker).
     """
 
-    def __init__(self, job: Job, calibration_id: str, chain: int):
+    def __init__(self, job: Job, calibration_id: str, field: str):
         self.job = job
         self.calibration_id = calibration_id
-        self.chain = chain
+        self.field = field
         self.last = 0.0
         self.info: dict[str, Any] = {}
 
-    def __call__(self, info: dict[str, Any]) -> None:
-        self.info = {k: info[k] for k in ("move", "moves", "temperature", "best_cost") if k in info}
-        if time.monotonic() - self.last >= PROGRESS_INTERVAL:
+    def report(self, info: dict[str, Any], *, now: bool = False) -> None:
+        self.info = info
+        if now or time.monotonic() - self.last >= PROGRESS_INTERVAL:
             self.flush()
 
     def flush(self) -> None:
@@ -151,7 +176,7 @@ class _ProgressReporter:
         redis = self.job.connection
         key = keys.calibration_progress(self.calibration_id)
         pipe = redis.pipeline()
-        pipe.hset(key, str(self.chain), json.dumps(self.info))
+        pipe.hset(key, self.field, json.dumps(self.info))
         pipe.expire(key, store.SCRATCH_TTL)
         pipe.hget(keys.calibration(self.calibration_id), "status")
         status = pipe.execute()[-1]
@@ -161,30 +186,132 @@ class _ProgressReporter:
             raise Canceled(self.calibration_id)
 
 
+class _ChainProgress(_Reporter):
+    """A chain's progress: {move, moves, temperature, best_cost}."""
+
+    def __init__(self, job: Job, calibration_id: str, chain: int):
+        super().__init__(job, calibration_id, str(chain))
+
+    def __call__(self, info: dict[str, Any]) -> None:
+        keep = ("move", "moves", "temperature", "best_cost")
+        self.report({k: info[k] for k in keep if k in info})
+
+
+class _DampingProgress(_Reporter):
+    """The damping stage's progress: {step, runs, d, total_steps, best_d, best_total_steps}.
+
+    ``step`` is "polish", "depth" or "damping" (fpm.calibration.fit_damping's phases), written
+    at once when it changes; ``runs`` counts the d values tried, ``d`` and ``total_steps`` are
+    the last one's (total_steps None: some load case did not settle) and ``best_*`` the fastest
+    so far.
+    """
+
+    def __init__(self, job: Job, calibration_id: str):
+        super().__init__(job, calibration_id, keys.DAMPING_PROGRESS)
+        self.state: dict[str, Any] = {
+            "step": None,
+            "runs": 0,
+            "d": None,
+            "total_steps": None,
+            "best_d": None,
+            "best_total_steps": None,
+        }
+
+    def __call__(self, info: dict[str, Any]) -> None:
+        step = info.get("phase")
+        changed = step != self.state["step"]
+        self.state["step"] = step
+        if "d" in info:
+            total = info.get("total_steps")
+            self.state.update(runs=self.state["runs"] + 1, d=info["d"], total_steps=total)
+            best = self.state["best_total_steps"]
+            if total is not None and (best is None or total < best):
+                self.state.update(best_d=info["d"], best_total_steps=total)
+        self.report(dict(self.state), now=changed)
+
+
+def _chains_and_reference(
+    redis: Redis, record: store.CalibrationRecord
+) -> tuple[list[ChainResult], FemResult] | None:
+    """The finished chains' results and the FEM reference, or None (calibration failed)."""
+    raws = redis.mget([keys.chain_result(record.id, c) for c in range(record.chains)])
+    missing = [c for c, raw in enumerate(raws) if raw is None]
+    if missing:
+        _fail(redis, record.id, f"chain(s) {missing} did not finish")
+        return None
+    reference = store.get_fem_reference(redis, record.fem_hash)
+    if reference is None:
+        _fail(redis, record.id, "the FEM reference is gone")
+        return None
+    chains = [ChainResult.from_dict(json.loads(raw)) for raw in raws if raw is not None]
+    return chains, FemResult.from_dict(reference)
+
+
+def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
+    """Two-stage, stage 2: polish the stiffness, resolve the depth, find the fastest d.
+
+    Its result is written once (a retried job that finds it does nothing; one stopped half-way
+    starts again, as it is deterministic and keeps no checkpoint). Progress: the field
+    ``keys.DAMPING_PROGRESS`` of the progress hash.
+    """
+    job = _job()
+    redis = job.connection
+    record = store.get_calibration(redis, calibration_id)
+    if record is None or record.status.terminal:
+        return {"skipped": True}
+    result_key = keys.damping_result(calibration_id)
+    if redis.exists(result_key):
+        return {"skipped": True}
+    if not store.update_calibration(redis, calibration_id, {"phase": Phase.DAMPING}):
+        return {"skipped": True}  # canceled (or failed) meanwhile
+    found = _chains_and_reference(redis, record)
+    if found is None:
+        return {"failed": True}
+    chains, reference = found
+    problem = load_problem(record.spec)
+    reporter = _DampingProgress(job, calibration_id)
+    try:
+        stage = fit_damping(problem, reference, chains, progress=reporter)
+        reporter.flush()
+    except Canceled:
+        return {"canceled": True}
+    except (RuntimeError, ValueError) as e:
+        # DampingError (no d in the bounds settles every load case) or a static solve that
+        # failed: a retry would fail the same way, so the calibration fails now.
+        hint = f": {DAMPING_HINT}" if isinstance(e, DampingError) else ""
+        _fail(redis, calibration_id, f"damping stage failed: {e}{hint}")
+        return {"failed": True}
+    redis.set(result_key, json.dumps(stage.to_dict()), ex=store.SCRATCH_TTL)
+    return {"d": stage.d, "depth": stage.depth, "runs": stage.damping_runs}
+
+
 def finalize_calibration(calibration_id: str) -> dict[str, Any]:
-    """Pick the best chain, resolve the depth, store the parameter set and the result."""
+    """The last dynamic run and the figures; store the parameter set and the result."""
     redis = _job().connection
     record = store.get_calibration(redis, calibration_id)
     if record is None or record.status.terminal:
         return {"skipped": True}
     store.update_calibration(redis, calibration_id, {"phase": Phase.FINALIZE})
-    raws = redis.mget([keys.chain_result(calibration_id, c) for c in range(record.chains)])
-    missing = [c for c, raw in enumerate(raws) if raw is None]
-    if missing:
-        _fail(redis, calibration_id, f"chain(s) {missing} did not finish")
+    found = _chains_and_reference(redis, record)
+    if found is None:
         return {"failed": True}
-    reference = store.get_fem_reference(redis, record.fem_hash)
-    if reference is None:
-        _fail(redis, calibration_id, "the FEM reference is gone")
-        return {"failed": True}
+    chains, reference = found
+    damping = None
+    if record.spec["annealing"]["method"] == "two-stage":
+        raw = redis.get(keys.damping_result(calibration_id))
+        if raw is None:
+            _fail(redis, calibration_id, "the damping stage did not finish")
+            return {"failed": True}
+        damping = DampingStage.from_dict(json.loads(raw))
     problem = load_problem(record.spec)
-    chains = [ChainResult.from_dict(json.loads(raw)) for raw in raws if raw is not None]
-    result = finalize(problem, FemResult.from_dict(reference), chains).to_dict()
+    warnings = check_reference(problem, reference)
+    result = finalize(problem, reference, chains, damping, warnings=warnings).to_dict()
     parameter_set = _parameter_set(record, result, problem.n_nodes)
 
     def store_once(pipe: Any) -> None:
         store.write_parameter_set(pipe, parameter_set)
         pipe.delete(*[keys.chain_checkpoint(calibration_id, c) for c in range(record.chains)])
+        pipe.delete(keys.damping_result(calibration_id))
 
     store.update_calibration(
         redis,
@@ -213,7 +340,10 @@ def _parameter_set(record: store.CalibrationRecord, result: dict[str, Any], n_no
         "created": time.time(),
         "name": record.name,
         "k": result["k"],
+        "stiffness": result["stiffness"],
+        "stiffness_mode": spec["fpm"]["stiffness"],
         "d": result["d"],
+        "d_min": result["d_min"],
         "depth": result["depth"],
         "dt": spec["fpm"]["dt"],
         "stiffness_scale": spec["fpm"]["stiffness_scale"],
@@ -225,12 +355,17 @@ def _parameter_set(record: store.CalibrationRecord, result: dict[str, Any], n_no
             "nodes": n_nodes,
             "h": result["h"],
         },
-        "discrepancy": result["discrepancy"],
+        "relative_discrepancy": result["relative_discrepancy"],
+        "loaded_discrepancy": result["loaded_discrepancy"],
+        "discrepancy_h": result["discrepancy_h"],
+        "node_mass": result["node_mass"],
+        "warnings": result["warnings"],
         "cost": result["cost"],
         "provenance": {
             "calibration_id": record.id,
             "spec_hash": record.spec_hash,
             "fem_hash": record.fem_hash,
+            "method": result["method"],
             "seed": spec["annealing"]["seed"],
             "chains": record.chains,
             "evaluations": result["evaluations"],
@@ -249,7 +384,8 @@ def _fail(redis: Redis, calibration_id: str, error: str) -> None:
 def on_failure(job: Job, connection: Redis, exc_type: type, value: BaseException, tb: Any) -> None:
     """RQ failure callback of every job: record the failure once no retry is left.
 
-    A calibration job (chain, finalize) fails its calibration, which stops the other chains;
+    A calibration job (chain, damping, finalize) fails its calibration, which stops the
+    others;
     the FEM job marks its reference failed, and the chains waiting on it then fail their
     calibrations (they run anyway: their dependency allows failure).
     """

@@ -16,8 +16,13 @@ def calibration(calibration_id: str) -> str:
 
 
 def calibration_progress(calibration_id: str) -> str:
-    """Hash: chain index -> JSON progress of that chain."""
+    """Hash: chain index -> JSON progress of that chain; DAMPING_PROGRESS -> the damping
+    stage's (two-stage method)."""
     return f"{PREFIX}:calibration:{calibration_id}:progress"
+
+
+DAMPING_PROGRESS = "damping"
+"""The field of :func:`calibration_progress` the damping stage reports in."""
 
 
 def calibrations() -> str:
@@ -38,6 +43,11 @@ def chain_result(calibration_id: str, chain: int) -> str:
 def chain_checkpoint(calibration_id: str, chain: int) -> str:
     """String: JSON annealing state of one chain, so a retried chain resumes."""
     return f"{PREFIX}:calibration:{calibration_id}:checkpoint:{chain}"
+
+
+def damping_result(calibration_id: str) -> str:
+    """String: JSON DampingStage of a two-stage calibration (written once)."""
+    return f"{PREFIX}:calibration:{calibration_id}:damping"
 
 
 def fem_reference(fem_hash: str) -> str:
@@ -68,6 +78,11 @@ def fem_job_id(fem_hash: str) -> str:
 def chain_job_id(calibration_id: str, chain: int) -> str:
     """RQ job id of one annealing chain."""
     return f"{calibration_id}-chain-{chain}"
+
+
+def damping_job_id(calibration_id: str) -> str:
+    """RQ job id of the damping stage (two-stage calibrations)."""
+    return f"{calibration_id}-damping"
 
 
 def finalize_job_id(calibration_id: str) -> str:

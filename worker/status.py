@@ -38,5 +38,8 @@ class Phase(str, Enum):
     QUEUED = "queued"
     FEM = "fem"
     ANNEALING = "annealing"
+    """Stage 1: the annealing chains (over the stiffness for two-stage, (k, d) for paper)."""
+    DAMPING = "damping"
+    """Two-stage, stage 2: polish of the stiffness, depth, fastest-settling d."""
     FINALIZE = "finalize"
     DONE = "done"

@@ -123,7 +123,22 @@ def get_calibrations(redis: Redis, ids: Iterable[str]) -> list[CalibrationRecord
 def get_progress(redis: Redis, calibration_id: str) -> dict[int, dict[str, Any]]:
     """Chain index -> latest progress report of that chain."""
     raw = decode_hash(redis.hgetall(keys.calibration_progress(calibration_id)))
-    return {int(k): json.loads(v) for k, v in raw.items()}
+    return split_progress(raw)[0]
+
+
+def get_damping_progress(redis: Redis, calibration_id: str) -> dict[str, Any] | None:
+    """The damping stage's latest progress report (None before it has reported)."""
+    raw = redis.hget(keys.calibration_progress(calibration_id), keys.DAMPING_PROGRESS)
+    return json.loads(raw) if raw else None
+
+
+def split_progress(
+    raw: dict[str, str],
+) -> tuple[dict[int, dict[str, Any]], dict[str, Any] | None]:
+    """A decoded progress hash as ({chain: report}, damping stage report or None)."""
+    chains = {int(k): json.loads(v) for k, v in raw.items() if k.isdigit()}
+    damping = raw.get(keys.DAMPING_PROGRESS)
+    return chains, json.loads(damping) if damping else None
 
 
 def write_calibration(pipe: Pipeline, record: CalibrationRecord) -> None:

@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-import json
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Query, Response, status
 
@@ -22,6 +21,7 @@ from ..schemas import (
     CalibrationResult,
     CalibrationSummary,
     ChainProgress,
+    DampingProgress,
     Progress,
     Timings,
 )
@@ -30,6 +30,16 @@ router = APIRouter(prefix="/v1/calibrations", tags=["calibrations"])
 
 MAX_OFFSET = 10**9
 """Largest listing offset (Redis range indexes are 64-bit: 2**63 answered 500)."""
+
+DAMPING_STEPS = {
+    "polish": "polishing the stiffness",
+    "depth": "choosing the depth",
+    "damping": "finding the fastest-settling d",
+}
+LEGACY_RESULT = (
+    "this result was stored by an older version of the service (no relative discrepancy): "
+    "resubmit the spec to calibrate it again"
+)
 
 SpecBody = Annotated[ProblemSpec, Body(openapi_examples=openapi_examples())]
 
@@ -99,7 +109,7 @@ def read(calibration_id: str, redis: RedisDep) -> Calibration:
     if not raw:
         raise ProblemError(404, "Not found", f"no calibration {calibration_id!r}")
     record = store.CalibrationRecord.from_hash(store.decode_hash(raw))
-    progress = {int(k): v for k, v in store.decode_hash(raw_progress).items()}
+    progress = store.split_progress(store.decode_hash(raw_progress))
     fem_running = False
     if record.status == CalibrationStatus.QUEUED and not record.fem_cached:
         fem_status = redis.hget(keys.fem_meta(record.fem_hash), "status")
@@ -126,20 +136,46 @@ def cancel(calibration_id: str, redis: RedisDep) -> Calibration:
     return read(calibration_id, redis)
 
 
+def _stage(method: str, phase: Phase, damping: DampingProgress | None) -> str:
+    """What runs in ``phase``, in words."""
+    if phase == Phase.ANNEALING:
+        if method == "two-stage":
+            return "stage 1 of 2: stiffness search (annealing on static equilibria)"
+        return "annealing (k, d) on dynamic runs"
+    if phase == Phase.DAMPING:
+        step = DAMPING_STEPS.get(damping.step or "", "starting") if damping else "starting"
+        return f"stage 2 of 2: damping ({step})"
+    return {
+        Phase.QUEUED: "queued",
+        Phase.FEM: "FEM reference",
+        Phase.FINALIZE: "final dynamic run and figures",
+        Phase.DONE: "done",
+    }[phase]
+
+
 def _view(
-    record: store.CalibrationRecord, progress: dict[int, str], fem_running: bool
+    record: store.CalibrationRecord,
+    progress: tuple[dict[int, dict[str, Any]], dict[str, Any] | None],
+    fem_running: bool,
 ) -> Calibration:
-    """The API view of a record and its chains' progress."""
-    chains = [ChainProgress(chain=c, **json.loads(p)) for c, p in sorted(progress.items())]
+    """The API view of a record and its jobs' progress."""
+    chain_reports, damping_report = progress
+    chains = [ChainProgress(chain=c, **p) for c, p in sorted(chain_reports.items())]
+    damping = DampingProgress(**damping_report) if damping_report else None
+    annealing = record.spec["annealing"]
+    method = annealing.get("method", "paper")  # records of older versions ran the paper's
     phase = record.phase
     status_ = record.status
     if fem_running:
         phase, status_ = Phase.FEM, CalibrationStatus.RUNNING
+    stages = [Phase.ANNEALING, Phase.DAMPING] if method == "two-stage" else [Phase.ANNEALING]
+    stages = ([] if record.fem_cached else [Phase.FEM]) + stages + [Phase.FINALIZE]
     temperatures = [c.temperature for c in chains if c.temperature is not None]
     costs = [c.best_cost for c in chains if c.best_cost is not None]
-    per_chain = (
-        max([c.moves for c in chains] or [0]) or AnnealingSettings(**record.spec["annealing"]).moves
-    )
+    per_chain = max([c.moves for c in chains] or [0]) or AnnealingSettings(**annealing).moves
+    result, error = record.result, record.error or None
+    if result is not None and "relative_discrepancy" not in result:
+        result, error = None, LEGACY_RESULT
     t = Timings(
         created=record.created,
         started=record.started or None,
@@ -155,17 +191,21 @@ def _view(
         status=status_,
         progress=Progress(
             phase=phase,
+            method=method,
+            stage=_stage(method, phase, damping),
+            stages=stages,
             iterations=sum(c.move for c in chains),
             total_iterations=per_chain * record.chains,
             temperature=max(temperatures) if temperatures else None,
             best_cost=min(costs) if costs else None,
             chains=chains,
+            damping=damping,
         ),
         timings=t,
         fem_reference_id=record.fem_hash,
         fem_cached=record.fem_cached,
-        result=CalibrationResult(**record.result) if record.result else None,
+        result=CalibrationResult(**result) if result else None,
         parameter_set_id=record.parameter_set_id or None,
-        error=record.error or None,
+        error=error,
         spec_hash=record.spec_hash,
     )

@@ -10,13 +10,19 @@ from fastapi import APIRouter, Query
 from worker import store
 
 from ..deps import RedisDep
-from ..errors import ProblemError
+from ..errors import ProblemError, problem_responses
 from ..schemas import ParameterSet, ParameterSetPage
 
 router = APIRouter(prefix="/v1/parameter-sets", tags=["parameter-sets"])
 
 RELATIVE_TOLERANCE = 1e-6
 """Material constants match when equal to this relative tolerance."""
+
+
+def current(ps: dict[str, Any]) -> bool:
+    """False for a set stored by an older version (no relative discrepancy, no family
+    stiffnesses): the listing leaves it out and reading it answers 410."""
+    return "relative_discrepancy" in ps and "stiffness" in ps
 
 
 @router.get("")
@@ -28,7 +34,10 @@ def listing(
     connectivity: Annotated[str | None, Query(description="axis | axis+face | full")] = None,
     name: Annotated[str | None, Query(description="substring of the spec name")] = None,
 ) -> ParameterSetPage:
-    """Stored parameter sets, newest first, filtered by material constants (and more)."""
+    """Stored parameter sets, newest first, filtered by material constants (and more).
+
+    Sets stored by older versions of the service (before relative discrepancies) are left out.
+    """
     wanted = {"youngs_modulus": youngs_modulus, "poisson_ratio": poisson_ratio, "density": density}
 
     def matches(ps: dict[str, Any]) -> bool:
@@ -41,14 +50,22 @@ def listing(
             return False
         return name is None or name.lower() in ps["name"].lower()
 
-    items = [ParameterSet(**ps) for ps in store.list_parameter_sets(redis) if matches(ps)]
+    stored = store.list_parameter_sets(redis)
+    items = [ParameterSet(**ps) for ps in stored if current(ps) and matches(ps)]
     return ParameterSetPage(items=items, total=len(items))
 
 
-@router.get("/{parameter_set_id}")
+@router.get("/{parameter_set_id}", responses=problem_responses(410))
 def read(parameter_set_id: str, redis: RedisDep) -> ParameterSet:
-    """One stored parameter set."""
+    """One stored parameter set (410 for one stored by an older version: recalibrate)."""
     ps = store.get_parameter_set(redis, parameter_set_id)
     if ps is None:
         raise ProblemError(404, "Not found", f"no parameter set {parameter_set_id!r}")
+    if not current(ps):
+        raise ProblemError(
+            410,
+            "Gone",
+            f"parameter set {parameter_set_id} was stored by an older version of the service "
+            "(no relative discrepancy): calibrate its spec again",
+        )
     return ParameterSet(**ps)
