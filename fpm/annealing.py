@@ -4,7 +4,8 @@ Metropolis acceptance ``exp(-dc / T)`` (Boltzmann constant folded into T), Lundy
 ``T <- T / (1 + beta T)``, one move per temperature, stop once T is below ``t_final``. A
 candidate that diverged, or whose cost exceeds ``c_max``, is rejected at once (paper Fig. 8).
 
-Start: the best of a few random points of the box. Moves: a Gaussian step in log(parameter),
+Start: a given point when acceptable (the two-stage calibration passes its linear estimate),
+else the best of a few random points of the box. Moves: a Gaussian step in log(parameter),
 reflected into the bounds; its width shrinks geometrically from STEP_INITIAL to STEP_FINAL
 (natural-log units) over the chain, so the early chain roams the whole box and the late chain
 resolves the optimum to a fraction of a percent. The generator is passed in: the same state
@@ -86,10 +87,13 @@ def anneal(
     checkpoint: Callable[[dict[str, Any]], None] | None = None,
     checkpoint_every: int = 10,
     resume: dict[str, Any] | None = None,
+    initial: list[float] | None = None,
 ) -> AnnealResult:
     """Minimise ``objective`` over the box [lower, upper] (positive bounds, log-space moves).
 
     ``objective(x)`` returns a :class:`State` whose cost is inf for a diverged candidate.
+    ``initial``: where the chain starts when that point is acceptable (else, and when None, the
+    best of a few random points of the box).
     ``checkpoint(state)`` receives a JSON-able dict every ``checkpoint_every`` moves; passing it
     back as ``resume`` continues the chain exactly where it stood (same result as uninterrupted).
     """
@@ -105,7 +109,13 @@ def anneal(
                 progress({"move": 0, "moves": moves, "temperature": schedule.t_initial,
                           "start_samples": samples})  # fmt: skip
 
-        current, evaluations = _start(objective, lo, hi, rng, c_max, started)
+        given = objective(list(initial)) if initial is not None else None
+        if given is not None and given.cost <= c_max:
+            current, evaluations = given, 1
+            started(1)
+        else:
+            current, evaluations = _start(objective, lo, hi, rng, c_max, started)
+            evaluations += given is not None
         best = current
         history: list[float] = []
         visited = [current]

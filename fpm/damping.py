@@ -5,16 +5,25 @@ at the spec's dt. So once the stiffness is fitted, d is chosen for the real-time
 in the search bounds that settles every load case in the fewest total time steps, found with the
 real dynamic kernel (:class:`fpm.simulation.FpmModel`).
 
-First guess (:func:`critical_damping`): the slowest motion a load excites is close to the
-static deflection u = K^-1 f, so Rayleigh's quotient of that shape, omega^2 = f.u / (u^T M u),
-estimates its frequency, and critical damping of a mode with nodal damping d I and lumped masses
-M is d = 2 omega (u^T M u) / (u^T u). The search (:func:`fastest_damping`) brackets the fewest
-total steps around the guess on a log scale (steps from 1.25x, growing), refines it by a few
-parabolic steps through the best d and its neighbours (or halves the gap towards a neighbour
-that did not settle), and then looks for the smallest d that still settles every load case
-within MARGIN_CAP times its fastest steps, walking down from the smallest settling d (the
-stability margin: the fastest d sits near that edge, and below it runs diverge or creep). The
-runs of the fastest d are kept: they are the calibration's final dynamic check.
+First guesses (:func:`critical_damping`): critical damping of a mode with nodal damping d I and
+lumped masses M is d = 2 omega (u^T M u) / (u^T u), and Rayleigh's quotient of a shape u that
+loads f hold, omega^2 = f.u / (u^T M u), estimates omega. Two shapes bracket the slow motion a
+load excites: the static deflection u0 = K^-1 f (an upper estimate: it mixes in faster modes)
+and the deflection under its own inertia, u1 = K^-1 M u0 (one step of inverse iteration, near
+the lowest mode the load excites). Measured: the fastest d sat at the first on the paper's cube
+and between the two (1.3x above the second) on a soft organ. The search
+(:func:`fastest_damping`) starts from the two and their geometric mean, walks on a log scale
+(each step 1.6x longer) until the fewest total steps are bracketed, refines by a few golden-section
+steps between the best d and its neighbours (which needs only "faster or not", so every d
+slower than the best can be stopped early), and then looks for the smallest d that still settles every load case within
+MARGIN_CAP times its fastest steps, walking down from the smallest settling d (the stability
+margin: the fastest d sits near that edge, and below it runs diverge or creep).
+
+Runs advance in pieces of CHUNK steps (:class:`fpm.simulation.DynamicRun`), all load cases
+together, and a d is dropped as soon as its load cases have taken as many steps between them as
+the best d's total: it can no longer win, so a poor d costs at most the best total, not a
+full run of every case. The runs of the fastest d are kept: they are the calibration's final
+dynamic check.
 """
 
 from __future__ import annotations
@@ -22,24 +31,30 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from .problem import Problem
-from .simulation import FpmModel
+from .simulation import DynamicRun, FpmModel
+from .voigt import SETTLED
 
 BRACKET_STEP = 1.25
-"""The bracket walks from the guess by this factor (the Rayleigh guess is usually close)."""
+"""Smallest first step of the bracket, as a factor on d (used when the two guesses are closer
+than this)."""
 WALK_GROWTH = 1.6
 """Each further bracket step is this much longer (on log d) than the last."""
 RESOLUTION = 1.02
-"""Parabolic steps stop once a new d is within this factor of one already tried."""
+"""The refinement stops once the best d's neighbours are within this factor squared of it."""
+GOLDEN = (3 - math.sqrt(5)) / 2
+"""Golden-section fraction: where in the wider gap the next d goes."""
 REFINE_STEPS = 4
 """At most this many refining runs after the bracket."""
-MARGIN_CAP = 3
+CHUNK = 200
+"""Time steps each load case advances between checks of a d's running total."""
+MARGIN_CAP = 2
 """A d 'still settles' for the margin if every load case settles within this many times its
 steps at the fastest d (below the margin a run diverges or creeps; capping keeps the margin
 search as cheap as the rest)."""
@@ -55,7 +70,7 @@ class DampingFit:
         displacements: (L, N, 3) the settled displacements at d, m.
         d_min: smallest d found that settles every load case within MARGIN_CAP times its
             steps at d, N s/m (to a factor of about 1.12; the lower bound if that settles).
-        guess: the critical-damping estimate the search started from, N s/m.
+        guess: the geometric mean of the two estimates the search started from, N s/m.
         runs: dynamic runs made (one per load case per d tried).
         tried: (d, total steps or None when some load case did not settle) for every d tried.
     """
@@ -73,17 +88,20 @@ class DampingFit:
         return int(sum(self.steps))
 
 
-def critical_damping(problem: Problem, displacements: np.ndarray) -> float:
-    """Critical damping estimate, N s/m, from static displacements (L, N, 3) (Rayleigh).
+def critical_damping(
+    problem: Problem, displacements: np.ndarray, loads: np.ndarray | None = None
+) -> float:
+    """Critical damping estimate, N s/m, from shapes (L, N, 3) held by ``loads`` (L, N, 3), N
+    (None: each load case's forces, so the shapes are static displacements).
 
-    The geometric mean over load cases of ``2 omega (u^T M u) / (u^T u)`` with
+    The geometric mean over load cases of ``2 omega (u^T M u) / (u^T u)`` with Rayleigh's
     ``omega^2 = f.u / (u^T M u)``.
     """
     m = problem.solid.masses
     estimates = []
     for j, case in enumerate(problem.load_cases):
         u = displacements[j]
-        f = case.dense(problem.n_nodes)
+        f = case.dense(problem.n_nodes) if loads is None else loads[j]
         mu2 = float(np.einsum("n,ni,ni->", m, u, u))
         u2 = float(np.einsum("ni,ni->", u, u))
         work = float(np.einsum("ni,ni->", f, u))
@@ -95,31 +113,52 @@ def critical_damping(problem: Problem, displacements: np.ndarray) -> float:
 
 
 class _Runs:
-    """Runs every load case at one d (in threads: the kernel releases the GIL)."""
+    """Runs every load case at one d, in pieces, on threads (the kernel releases the GIL)."""
 
     def __init__(self, problem: Problem, stiffness: np.ndarray, depth: int | None):
         self.problem = problem
         self.stiffness = stiffness
         self.depth = depth
-        cases = len(problem.load_cases)
-        self.models = [FpmModel(problem) for _ in range(cases)]
-        self.threads = min(cases, os.cpu_count() or 1)
+        self.model = FpmModel(problem)
+        self.cases = len(problem.load_cases)
+        self.threads = min(self.cases, os.cpu_count() or 1)
+        self.pool = ThreadPoolExecutor(self.threads)
         self.count = 0
 
-    def __call__(self, d: float, max_steps: int) -> list[Any]:
+    def __call__(self, d: float, caps: list[int], budget: int | None = None) -> list[DynamicRun]:
+        """Every load case at d, case j for at most ``caps[j]`` steps, all stopped once their
+        steps add up to ``budget`` (None: no such limit) while one still runs."""
         s = self.problem.spec.fpm
-
-        def one(j: int) -> Any:
-            return self.models[j].run(
+        runs = [
+            self.model.start(
                 j, k=self.stiffness, d=d, depth=self.depth, dt=s.dt,
-                max_steps=max_steps, settle_tolerance=s.settle_tolerance,
+                settle_tolerance=s.settle_tolerance,
             )  # fmt: skip
+            for j in range(self.cases)
+        ]
+        self.count += self.cases
+        # Each free thread takes a piece of the case that has taken the fewest steps (so 3
+        # cases keep 2 threads busy), until every case is done or the budget is spent.
+        running: dict[Future[bool], DynamicRun] = {}
+        while True:
+            spent = budget is not None and sum(r.steps for r in runs) >= budget
+            waiting = [
+                (r, c) for r, c in zip(runs, caps, strict=True)
+                if not r.finished and r.steps < c and r not in running.values()
+            ]  # fmt: skip
+            while waiting and not spent and len(running) < self.threads:
+                r, c = min(waiting, key=lambda rc: rc[0].steps)
+                waiting.remove((r, c))
+                running[self.pool.submit(r.advance, min(CHUNK, c - r.steps))] = r
+            if not running:
+                return runs
+            done, _ = wait(running, return_when=FIRST_COMPLETED)
+            for future in done:
+                future.result()
+                del running[future]
 
-        self.count += len(self.models)
-        if self.threads == 1:
-            return [one(j) for j in range(len(self.models))]
-        with ThreadPoolExecutor(self.threads) as pool:
-            return list(pool.map(one, range(len(self.models))))
+    def close(self) -> None:
+        self.pool.shutdown()
 
 
 def fastest_damping(
@@ -127,7 +166,7 @@ def fastest_damping(
     stiffness: np.ndarray,
     depth: int | None,
     bounds: tuple[float, float],
-    guess: float,
+    guesses: tuple[float, float],
     *,
     progress: Callable[[dict[str, Any]], None] | None = None,
 ) -> DampingFit:
@@ -138,40 +177,63 @@ def fastest_damping(
         stiffness: (S,) per-spring stiffness, N/m (:func:`fpm.stiffness.spring_stiffness`).
         depth: penetration depth (None = every layer).
         bounds: (low, high) for d, N s/m.
-        guess: where to start (e.g. :func:`critical_damping`), clipped into the bounds.
+        guesses: two estimates of d to start from (e.g. :func:`critical_damping` of the
+            static and of the inertia-loaded shapes; equal when only one is known), clipped
+            into the bounds.
         progress: called with {"d", "total_steps"} after each d tried.
 
     Raises:
         DampingError: no d in the bounds settles every load case within max_steps.
     """
-    lo, hi = round(math.log(bounds[0]), 12), round(math.log(bounds[1]), 12)
-    max_steps = problem.spec.fpm.max_steps
     runs = _Runs(problem, stiffness, depth)
+    try:
+        return _search(runs, bounds, guesses, progress)
+    finally:
+        runs.close()
+
+
+def _search(
+    runs: _Runs,
+    bounds: tuple[float, float],
+    guesses: tuple[float, float],
+    progress: Callable[[dict[str, Any]], None] | None,
+) -> DampingFit:
+    lo, hi = round(math.log(bounds[0]), 12), round(math.log(bounds[1]), 12)
+    max_steps = runs.problem.spec.fpm.max_steps
     steps: dict[float, list[int] | None] = {}  # log d -> steps per case (None: not settled)
+    slower: dict[float, int] = {}  # log d -> steps taken when stopped (at least the best total)
     best: list[Any] = []  # [log d, displacements (L, N, 3)] of the fewest total steps so far
 
     def total(y: float) -> float:
-        """Total steps at d = exp(y); inf if some case did not settle within the cap."""
+        """Total steps at d = exp(y) (for a d stopped at the best total, the steps it had
+        taken: a lower bound); inf if some case did not settle within max_steps."""
         y = round(min(max(y, lo), hi), 12)  # one key per d, whatever path computed it
-        if y not in steps:
-            # No need to run past the best total so far: such a d cannot win.
-            cap = min(max_steps, _total(steps[best[0]]) + 1) if best else max_steps
-            results = runs(math.exp(y), cap)
-            ok = all(r.settled for r in results)
-            steps[y] = [int(r.steps) for r in results] if ok else None
-            if ok and (not best or _total(steps[y]) < _total(steps[best[0]])):
-                best[:] = [y, np.stack([r.displacements for r in results])]
+        if y not in steps and y not in slower:
+            # A d whose steps already add up to the best total cannot win: stop it there.
+            budget = _total(steps[best[0]]) if best else None
+            results = runs(math.exp(y), [max_steps] * runs.cases, budget)
+            taken = sum(r.steps for r in results)
+            if budget is not None and taken >= budget and not any(r.diverged for r in results):
+                slower[y] = taken
+            elif all(r.state == SETTLED for r in results):
+                steps[y] = [r.steps for r in results]
+                best[:] = [y, np.stack([r.result().displacements for r in results])]
+            else:
+                steps[y] = None
             if progress is not None:
-                found = steps[y]
+                found = steps.get(y)
                 progress({"d": math.exp(y), "total_steps": None if found is None else sum(found)})
+        if y in slower:
+            return float(slower[y])
         return float(_total(steps[y])) if steps[y] is not None else math.inf
 
-    # Bracket: walk from the guess towards fewer steps, each step 1.6x longer (the guess can
-    # be a few times off: a soft organ's lowest modes are slower than its static deflection).
-    y0 = min(max(math.log(guess), lo), hi)
-    step = math.log(BRACKET_STEP)
+    # Bracket: start from the two guesses and their geometric mean, then walk towards fewer
+    # steps, each step 1.6x longer than the last, until the fewest are bracketed.
+    g_low, g_high = sorted(min(max(math.log(g), lo), hi) for g in guesses)
+    y0 = (g_low + g_high) / 2
+    step = max((g_high - g_low) / 2, math.log(BRACKET_STEP))
     left, mid, right = max(y0 - step, lo), y0, min(y0 + step, hi)
-    f_left, f_mid, f_right = total(left), total(mid), total(right)
+    f_mid, f_left, f_right = total(mid), total(left), total(right)
     walk = step
     while f_left < f_mid and left > lo:
         walk *= WALK_GROWTH
@@ -183,7 +245,7 @@ def fastest_damping(
         left, f_left, mid, f_mid = mid, f_mid, right, f_right
         right = min(mid + walk, hi)
         f_right = total(right)
-    if not best:  # nothing settled around the guess: scan the whole range
+    if not best:  # nothing settled around the guesses: scan the whole range
         for y in np.linspace(lo, hi, 9):
             total(float(y))
         if not best:
@@ -192,10 +254,9 @@ def fastest_damping(
                 f"within max_steps={max_steps}: raise max_steps, lower dt (see the lattice's "
                 "stability estimate, fpm.diagnosis.stable_time_step) or widen annealing.bounds.d"
             )
-    # Refine: a parabolic step through the best d and its neighbours, or, where a neighbour
-    # did not settle, halve the gap towards it.
+    # Refine: golden-section steps between the best d and its tried neighbours.
     for _ in range(REFINE_STEPS):
-        y = _next_point(steps, best[0])
+        y = _next_point([*steps, *slower], best[0])
         if y is None:
             break
         total(y)
@@ -204,10 +265,13 @@ def fastest_damping(
         d=math.exp(y_best),
         steps=list(steps[y_best] or []),
         displacements=displacements,
-        d_min=math.exp(_smallest_settling(runs, steps, y_best, lo, max_steps, step)),
+        d_min=math.exp(_smallest_settling(runs, steps, y_best, lo, max_steps, math.log(BRACKET_STEP))),
         guess=math.exp(y0),
         runs=runs.count,
-        tried=sorted((math.exp(y), None if s is None else sum(s)) for y, s in steps.items()),
+        tried=sorted(
+            [(math.exp(y), None if s is None else sum(s)) for y, s in steps.items()]
+            + [(math.exp(y), None) for y in slower]
+        ),
     )
 
 
@@ -215,31 +279,20 @@ def _total(steps: list[int] | None) -> int:
     return sum(steps) if steps is not None else 1 << 62
 
 
-def _next_point(steps: dict[float, list[int] | None], y_best: float) -> float | None:
-    """Where to look next (log d), or None once the best is resolved to RESOLUTION.
-
-    With a tried d on each side of the best: the vertex of the parabola through the three when
-    both settled, else the middle of the gap to the side that did not settle (the wider such
-    gap first). A point closer than RESOLUTION to a tried d is not worth a run."""
-    tried = sorted(steps)
+def _next_point(tried: list[float], y_best: float) -> float | None:
+    """Where to look next (log d): a golden-section step into the wider of the gaps between the
+    best d and its tried neighbours (every other tried d is slower, stopped at the best total,
+    or does not settle), or None once both gaps are below RESOLUTION."""
+    tried = sorted(tried)
     i = tried.index(y_best)
-    left = tried[i - 1] if i > 0 else None
-    right = tried[i + 1] if i + 1 < len(tried) else None
-    resolution = math.log(RESOLUTION)
-    candidates = []
-    if left is not None and right is not None and steps[left] and steps[right]:
-        (a, b, c) = (left, y_best, right)
-        fa, fb, fc = _total(steps[a]), _total(steps[b]), _total(steps[c])
-        denominator = (b - a) * (fb - fc) - (b - c) * (fb - fa)
-        if denominator != 0:
-            vertex = b - 0.5 * ((b - a) ** 2 * (fb - fc) - (b - c) ** 2 * (fb - fa)) / denominator
-            candidates.append(min(max(vertex, a), c))
-    gaps = [(abs(y_best - n), n) for n in (left, right) if n is not None and not steps[n]]
-    candidates += [(y_best + n) / 2 for _, n in sorted(gaps, reverse=True)]
-    for y in candidates:
-        if min(abs(y - t) for t in tried) >= resolution:
-            return y
-    return None
+    gaps = [n - y_best for n in (tried[i - 1] if i > 0 else None,
+                                 tried[i + 1] if i + 1 < len(tried) else None) if n is not None]  # fmt: skip
+    if not gaps:
+        return None
+    wide = max(gaps, key=abs)
+    if abs(wide) < 2 * math.log(RESOLUTION):
+        return None
+    return y_best + GOLDEN * wide
 
 
 def _smallest_settling(
@@ -259,8 +312,8 @@ def _smallest_settling(
     def settles(y: float) -> bool:
         if steps.get(y) is not None:
             return all(s <= c for s, c in zip(steps[y] or [], caps, strict=True))
-        results = runs(math.exp(y), max(caps))
-        return all(r.settled and r.steps <= c for r, c in zip(results, caps, strict=True))
+        results = runs(math.exp(y), caps)
+        return all(r.state == SETTLED for r in results)
 
     y_ok = min(y for y, s in steps.items() if s is not None and settles(y))
     while y_ok > lo:

@@ -647,12 +647,16 @@ class StaticSolver:
                     self._predictors.pop(other, None)
         return system, layers
 
-    def forces(self, load_case: int, system: SpringSystem) -> np.ndarray:
-        """(M, 3) constant nodal forces on the free nodes, N (load case plus weight)."""
+    def loads(self, load_case: int) -> np.ndarray:
+        """(N, 3) constant nodal forces, N: the load case's plus the weight."""
         external = self.problem.load_cases[load_case].dense(self.problem.n_nodes)
         if self._weight is not None:
             external += self._weight
-        return external[system.free]
+        return external
+
+    def forces(self, load_case: int, system: SpringSystem) -> np.ndarray:
+        """(M, 3) constant nodal forces on the free nodes, N (load case plus weight)."""
+        return self.loads(load_case)[system.free]
 
     def forget(self, *, multigrid: bool = True) -> None:
         """Drop the warm starts (the next solves start from rest) and, unless ``multigrid`` is
@@ -882,14 +886,7 @@ class StaticSolver:
         """
         if 3 * system.n_free < self.amg_from:
             return _direct_solve(tangent, rhs), 0
-        key = system.free.tobytes()
-        mg = self._multigrid.get(key)
-        if mg is None or mg.stale:
-            reference = system.tangent(u, k, modified=True, shift=SHIFT * 1e-3)
-            nodes = self.problem.nodes[system.free]
-            mg = _Multigrid(amg_hierarchy(reference, rigid_body_modes(nodes)))
-            self._multigrid[key] = mg
-            self.hierarchies_built += 1
+        mg = self._hierarchy(system, u, k)
         cg = conjugate_gradients(
             tangent,
             rhs,
@@ -900,6 +897,49 @@ class StaticSolver:
         )
         mg.record(cg.iterations, cg.residual, cg.converged)
         return cg.x, cg.iterations
+
+    def _hierarchy(self, system: SpringSystem, u: np.ndarray, k: np.ndarray) -> _Multigrid:
+        """The list's multigrid hierarchy, built on the clamped tangent at u when missing or
+        stale."""
+        key = system.free.tobytes()
+        mg = self._multigrid.get(key)
+        if mg is None or mg.stale:
+            reference = system.tangent(u, k, modified=True, shift=SHIFT * 1e-3)
+            nodes = self.problem.nodes[system.free]
+            mg = _Multigrid(amg_hierarchy(reference, rigid_body_modes(nodes)))
+            self._multigrid[key] = mg
+            self.hierarchies_built += 1
+        return mg
+
+    def linear_response(
+        self, load_case: int, stiffness: np.ndarray, depth: int | None, loads: np.ndarray
+    ) -> np.ndarray:
+        """(N, 3) displacements, m, of ``load_case``'s list linearised at rest (each spring
+        acting along its rest direction) under nodal ``loads`` (N, 3), N; zero off the list.
+
+        Solved to a relative residual of 1e-8 (LU or multigrid CG as for Newton steps; the
+        solve does not count towards the hierarchy's staleness).
+
+        Raises:
+            SingularStiffnessError, NegativeCurvature: the linear lattice is not held (e.g. an
+                'axis' lattice at rest is a mechanism).
+        """
+        system, _ = self.system(load_case, depth)
+        k = np.asarray(stiffness, dtype=float)[system.springs]
+        rest = np.zeros((system.n_free, 3))
+        tangent = system.tangent(rest, k, modified=True)
+        rhs = np.ascontiguousarray(loads[system.free]).ravel()
+        if 3 * system.n_free < self.amg_from:
+            x = _direct_solve(tangent, rhs)
+        else:
+            mg = self._hierarchy(system, rest, k)
+            cg = conjugate_gradients(
+                tangent, rhs, mg.precondition, rtol=1e-8, max_iterations=10 * MAX_CG_ITERATIONS
+            )
+            x = cg.x
+        out = np.zeros_like(self.problem.nodes)
+        out[system.free] = x.reshape(-1, 3)
+        return out
 
 
 def _galerkin(

@@ -12,7 +12,7 @@ from .perturbed_list import Adjacency, PerturbedList, PerturbedListCache
 from .problem import Problem
 from .spec import FpmSettings
 from .stiffness import axis_factors, spring_stiffness
-from .voigt import DIVERGED, SETTLED, run_steps
+from .voigt import DIVERGED, RUNNING, SETTLED, run_steps
 
 
 @dataclass
@@ -91,35 +91,121 @@ class FpmModel:
         the (S,) stiffness of every spring (:func:`fpm.stiffness.spring_stiffness`, scale
         included).
         """
+        run = self.start(load_case, k=k, d=d, depth=depth, dt=dt, settle_tolerance=settle_tolerance)
+        run.advance(max_steps, buffers=(self._x, self._v))
+        return run.result()
+
+    def start(
+        self,
+        load_case: int,
+        *,
+        k: float | np.ndarray,
+        d: float,
+        depth: int | None,
+        dt: float,
+        settle_tolerance: float,
+    ) -> DynamicRun:
+        """A run of ``load_case`` from rest that advances in pieces (:class:`DynamicRun`);
+        arguments as :meth:`run`."""
         p = self.problem
-        case = p.load_cases[load_case]
         plist = self.perturbed_list(load_case, depth)
-        external = case.dense(p.n_nodes)
+        external = p.load_cases[load_case].dense(p.n_nodes)
         if self._weight is not None:
             external += self._weight
-        settle_force = settle_tolerance * float(np.linalg.norm(external[plist.order], axis=1).max())
-        x, v = self._x, self._v
-        x[:] = p.nodes
-        v[:] = 0.0
         a = self.adjacency
         factor = a.stiffness_factor
         if np.ndim(k):  # per-spring stiffness: the kernel's factor carries it, with k = 1
             factor, k = np.asarray(k, dtype=float)[a.spring], 1.0
-        steps, state, residual = run_steps(
-            plist.order, a.ptr, a.neighbour, a.rest_length, factor, p.nodes,
-            x, v, external, p.solid.masses, float(k), float(d), float(dt), int(max_steps),
-            settle_force, p.size,
+        return DynamicRun(
+            model=self,
+            load_case=load_case,
+            plist=plist,
+            external=external,
+            factor=factor,
+            k=float(k),
+            d=float(d),
+            dt=float(dt),
+            settle_force=settle_tolerance
+            * float(np.linalg.norm(external[plist.order], axis=1).max()),
+        )
+
+
+class DynamicRun:
+    """One load case simulated from rest, advanced in pieces: ``advance(n)`` continues exactly
+    where the last piece stopped (the state is x and v), so a caller can stop runs that can no
+    longer matter (the damping search stops a d once its steps exceed the best total).
+
+    Attributes:
+        steps: time steps taken so far.
+        state: voigt.RUNNING, SETTLED or DIVERGED.
+        residual: largest unbalanced nodal force of the last sweep, N.
+    """
+
+    def __init__(
+        self,
+        *,
+        model: FpmModel,
+        load_case: int,
+        plist: PerturbedList,
+        external: np.ndarray,
+        factor: np.ndarray,
+        k: float,
+        d: float,
+        dt: float,
+        settle_force: float,
+    ):
+        p = model.problem
+        self.model, self.load_case, self.plist = model, load_case, plist
+        self.external, self.factor = external, factor
+        self.k, self.d, self.dt, self.settle_force = k, d, dt, settle_force
+        self.x: np.ndarray | None = None  # own buffers, made on the first piece
+        self.v: np.ndarray | None = None
+        self.steps, self.state, self.residual = 0, RUNNING, 0.0
+        self._rest = p.nodes
+
+    @property
+    def diverged(self) -> bool:
+        return self.state == DIVERGED
+
+    @property
+    def finished(self) -> bool:
+        """Settled or diverged."""
+        return self.state != RUNNING
+
+    def advance(
+        self, steps: int, *, buffers: tuple[np.ndarray, np.ndarray] | None = None
+    ) -> bool:
+        """Up to ``steps`` more time steps (fewer once settled or diverged); True once finished.
+        ``buffers``: (N, 3) x and v arrays to use (from rest) instead of new ones."""
+        if self.finished or steps < 1:
+            return self.finished
+        if self.x is None or self.v is None:
+            self.x, self.v = buffers or (np.empty_like(self._rest), np.empty_like(self._rest))
+            self.x[:] = self._rest
+            self.v[:] = 0.0
+        a, p = self.model.adjacency, self.model.problem
+        taken, self.state, self.residual = run_steps(
+            self.plist.order, a.ptr, a.neighbour, a.rest_length, self.factor, p.nodes,
+            self.x, self.v, self.external, p.solid.masses, self.k, self.d, self.dt,
+            int(steps), self.settle_force, p.size,
         )  # fmt: skip
+        self.steps += int(taken)
+        return self.finished
+
+    def result(self) -> SimulationResult:
+        """Where the run stands, as a :class:`SimulationResult` (displacements copied)."""
+        p = self.model.problem
+        x = self._rest if self.x is None else self.x
         return SimulationResult(
             nodes=p.nodes,
             displacements=x - p.nodes,
-            steps=int(steps),
-            settled=state == SETTLED,
-            diverged=state == DIVERGED,
-            perturbed=len(plist.order),
-            depth=plist.layers,
-            residual=float(residual),
-            load_case=load_case,
+            steps=self.steps,
+            settled=self.state == SETTLED,
+            diverged=self.state == DIVERGED,
+            perturbed=len(self.plist.order),
+            depth=self.plist.layers,
+            residual=float(self.residual),
+            load_case=self.load_case,
         )
 
 

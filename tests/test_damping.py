@@ -1,0 +1,115 @@
+"""Stage 2 of the calibration (:mod:`fpm.damping`): runs in pieces, the critical-damping
+estimates against an exact mode, the linear response against the small-load limit of the static
+equilibrium, early stopping, and the fastest d against a grid of d."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import fpm
+from fpm.damping import CHUNK, _Runs, critical_damping, fastest_damping
+from fpm.equilibrium import StaticSolver, static_equilibrium
+from fpm.simulation import FpmModel
+from fpm.stiffness import spring_stiffness
+
+K = 50.0
+"""N/m."""
+
+
+@pytest.fixture(scope="module")
+def bar() -> fpm.Problem:
+    """A 3x3x5 axis+face lattice, bottom fixed, pulled at the top centre in two ways."""
+    return fpm.load_problem(
+        {
+            "name": "bar",
+            "material": {"youngs_modulus": 5000.0, "poisson_ratio": 0.3, "density": 1000.0},
+            "geometry": {"type": "box", "size": [0.02, 0.02, 0.04], "nodes": [3, 3, 5],
+                         "connectivity": "axis+face"},
+            "fixed": [{"face": "z-"}],
+            "load_cases": [
+                {"forces": [{"at": [0.01, 0.01, 0.04], "vector": [0, 0, 0.05]}]},
+                {"forces": [{"at": [0.01, 0.01, 0.04], "vector": [0.02, 0, 0.1]}]},
+            ],
+            "fpm": {"max_steps": 2000},
+        }  # fmt: skip
+    )
+
+
+def total_steps(problem: fpm.Problem, d: float) -> float:
+    runs = [fpm.simulate(problem, k=K, d=d, load_case=j) for j in range(2)]
+    return sum(r.steps for r in runs) if all(r.settled for r in runs) else math.inf
+
+
+def test_a_run_in_pieces_is_the_run(bar: fpm.Problem):
+    s = bar.spec.fpm
+    model = FpmModel(bar)
+    whole = model.run(1, k=K, d=0.1, depth=None, dt=s.dt, max_steps=900, settle_tolerance=1e-4)
+    run = model.start(1, k=K, d=0.1, depth=None, dt=s.dt, settle_tolerance=1e-4)
+    while not run.advance(7) and run.steps < 900:
+        pass
+    pieces = run.result()
+    assert whole.settled and pieces.settled and pieces.steps == whole.steps
+    assert np.array_equal(pieces.displacements, whole.displacements)
+
+
+def test_critical_damping_of_an_exact_mode(bar: fpm.Problem):
+    """For an eigenmode phi (K phi = w^2 M phi) held by loads w^2 M phi, the estimate is the
+    mode's critical damping 2 w (phi^T M phi) / (phi^T phi) exactly."""
+    solver = StaticSolver(bar)
+    system, _ = solver.system(0, None)
+    k = spring_stiffness(bar, K)[system.springs]
+    stiff = system.tangent(np.zeros((system.n_free, 3)), k).toarray()
+    m = np.repeat(bar.solid.masses[system.free], 3)
+    scale = 1 / np.sqrt(m)
+    values, vectors = np.linalg.eigh(scale[:, None] * stiff * scale[None, :])
+    w2, phi_free = values[0], scale * vectors[:, 0]
+    phi = np.zeros((bar.n_nodes, 3))
+    phi[system.free] = phi_free.reshape(-1, 3)
+    shapes = np.stack([phi, phi])
+    loads = w2 * bar.solid.masses[None, :, None] * shapes
+    expected = 2 * math.sqrt(w2) * (phi_free @ (m * phi_free)) / (phi_free @ phi_free)
+    assert critical_damping(bar, shapes, loads) == pytest.approx(expected, rel=1e-10)
+
+
+def test_linear_response_is_the_small_load_limit(bar: fpm.Problem):
+    """K^-1 f of the lattice at rest is what the static equilibrium tends to as f -> 0 (first
+    order in f), by LU and by multigrid CG alike."""
+    stiffness = spring_stiffness(bar, K)
+    f = 1e-6 * bar.load_cases[1].dense(bar.n_nodes)
+    lu = StaticSolver(bar).linear_response(1, stiffness, None, f)
+    cg = StaticSolver(bar, amg_from=0).linear_response(1, stiffness, None, f)
+    assert np.allclose(cg, lu, rtol=0, atol=1e-6 * np.abs(lu).max())
+    spec = bar.spec.model_dump()
+    spec["load_cases"][1]["forces"][0]["vector"] = [2e-8, 0, 1e-7]  # 1e-6 of the load
+    tiny = static_equilibrium(fpm.load_problem(spec), k=K, load_case=1, tolerance=1e-10)
+    assert np.allclose(lu, tiny.displacements, rtol=0, atol=1e-4 * np.abs(lu).max())
+
+
+def test_a_d_that_cannot_win_stops_at_the_budget(bar: fpm.Problem):
+    runs = _Runs(bar, spring_stiffness(bar, K), None)
+    try:
+        full = runs(0.4, [2000, 2000])
+        assert all(r.settled for r in (run.result() for run in full))
+        total = sum(r.steps for r in full)
+        stopped = runs(0.4, [2000, 2000], budget=total // 2)
+        taken = sum(r.steps for r in stopped)
+        assert total // 2 <= taken < total // 2 + 2 * CHUNK
+        assert not all(r.finished for r in stopped)
+    finally:
+        runs.close()
+
+
+@pytest.mark.parametrize("guesses", [(0.1, 0.2), (1.5, 1.5), (0.02, 0.02)])
+def test_the_fastest_d_is_as_fast_as_a_grid_from_any_start(bar: fpm.Problem, guesses):
+    """From good guesses and from guesses 10x too high or too low (the walk finds the way),
+    the d found settles in at most 1.05x the fewest total steps of a 30-point log grid."""
+    bounds = (0.01, 2.0)
+    grid = min(total_steps(bar, d) for d in np.geomspace(*bounds, 30))
+    fit = fastest_damping(bar, spring_stiffness(bar, K), None, bounds, guesses)
+    assert fit.total_steps == total_steps(bar, fit.d)
+    assert fit.total_steps <= 1.05 * grid
+    assert bounds[0] <= fit.d_min <= fit.d
+    assert total_steps(bar, fit.d_min) <= 2 * fit.total_steps
