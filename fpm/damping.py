@@ -126,8 +126,9 @@ class _Runs:
         self.count = 0
 
     def __call__(self, d: float, caps: list[int], budget: int | None = None) -> list[DynamicRun]:
-        """Every load case at d, case j for at most ``caps[j]`` steps, all stopped once their
-        steps add up to ``budget`` (None: no such limit) while one still runs."""
+        """Every load case at d, case j for at most ``caps[j]`` steps; all are stopped once
+        their steps add up to ``budget`` (None: no such limit) while one still runs, or once
+        one has diverged or reached its cap unsettled (the d has failed either way)."""
         s = self.problem.spec.fpm
         runs = [
             self.model.start(
@@ -138,10 +139,14 @@ class _Runs:
         ]
         self.count += self.cases
         # Each free thread takes a piece of the case that has taken the fewest steps (so 3
-        # cases keep 2 threads busy), until every case is done or the budget is spent.
+        # cases keep 2 threads busy), until every case is done or the d has lost.
         running: dict[Future[bool], DynamicRun] = {}
         while True:
             spent = budget is not None and sum(r.steps for r in runs) >= budget
+            spent = spent or any(
+                r.diverged or (not r.finished and r.steps >= c)
+                for r, c in zip(runs, caps, strict=True)
+            )
             waiting = [
                 (r, c) for r, c in zip(runs, caps, strict=True)
                 if not r.finished and r.steps < c and r not in running.values()
