@@ -13,11 +13,12 @@ and the deflection under its own inertia, u1 = K^-1 M u0 (one step of inverse it
 the lowest mode the load excites). Measured: the fastest d sat at the first on the paper's cube
 and between the two (1.3x above the second) on a soft organ. The search
 (:func:`fastest_damping`) starts from the two and their geometric mean, walks on a log scale
-(each step 1.6x longer) until the fewest total steps are bracketed, refines by a few golden-section
-steps between the best d and its neighbours (which needs only "faster or not", so every d
-slower than the best can be stopped early), and then looks for the smallest d that still settles every load case within
-MARGIN_CAP times its fastest steps, walking down from the smallest settling d (the stability
-margin: the fastest d sits near that edge, and below it runs diverge or creep).
+(each step 1.6x longer) until the fewest total steps are bracketed, refines by a few
+golden-section steps between the best d and its neighbours (which needs only "faster or not",
+so every d slower than the best can be stopped early), and then looks for the smallest d that
+still settles every load case within MARGIN_CAP times its fastest steps, walking down from the
+smallest settling d (the stability margin: the fastest d sits near that edge, and below it runs
+diverge or creep).
 
 Runs advance in pieces of CHUNK steps (:class:`fpm.simulation.DynamicRun`), all load cases
 together, and a d is dropped as soon as its load cases have taken as many steps between them as
@@ -132,7 +133,11 @@ class _Runs:
         s = self.problem.spec.fpm
         runs = [
             self.model.start(
-                j, k=self.stiffness, d=d, depth=self.depth, dt=s.dt,
+                j,
+                k=self.stiffness,
+                d=d,
+                depth=self.depth,
+                dt=s.dt,
                 settle_tolerance=s.settle_tolerance,
             )  # fmt: skip
             for j in range(self.cases)
@@ -270,7 +275,9 @@ def _search(
         d=math.exp(y_best),
         steps=list(steps[y_best] or []),
         displacements=displacements,
-        d_min=math.exp(_smallest_settling(runs, steps, y_best, lo, max_steps, math.log(BRACKET_STEP))),
+        d_min=math.exp(
+            _smallest_settling(runs, steps, y_best, lo, max_steps, math.log(BRACKET_STEP))
+        ),
         guess=math.exp(y0),
         runs=runs.count,
         tried=sorted(
@@ -290,8 +297,8 @@ def _next_point(tried: list[float], y_best: float) -> float | None:
     or does not settle), or None once both gaps are below RESOLUTION."""
     tried = sorted(tried)
     i = tried.index(y_best)
-    gaps = [n - y_best for n in (tried[i - 1] if i > 0 else None,
-                                 tried[i + 1] if i + 1 < len(tried) else None) if n is not None]  # fmt: skip
+    neighbours = tried[max(i - 1, 0) : i] + tried[i + 1 : i + 2]
+    gaps = [n - y_best for n in neighbours]
     if not gaps:
         return None
     wide = max(gaps, key=abs)

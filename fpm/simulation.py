@@ -172,9 +172,7 @@ class DynamicRun:
         """Settled or diverged."""
         return self.state != RUNNING
 
-    def advance(
-        self, steps: int, *, buffers: tuple[np.ndarray, np.ndarray] | None = None
-    ) -> bool:
+    def advance(self, steps: int, *, buffers: tuple[np.ndarray, np.ndarray] | None = None) -> bool:
         """Up to ``steps`` more time steps (fewer once settled or diverged); True once finished.
         ``buffers``: (N, 3) x and v arrays to use (from rest) instead of new ones."""
         if self.finished or steps < 1:

@@ -26,8 +26,12 @@ def bar() -> fpm.Problem:
         {
             "name": "bar",
             "material": {"youngs_modulus": 5000.0, "poisson_ratio": 0.3, "density": 1000.0},
-            "geometry": {"type": "box", "size": [0.02, 0.02, 0.04], "nodes": [3, 3, 5],
-                         "connectivity": "axis+face"},
+            "geometry": {
+                "type": "box",
+                "size": [0.02, 0.02, 0.04],
+                "nodes": [3, 3, 5],
+                "connectivity": "axis+face",
+            },
             "fixed": [{"face": "z-"}],
             "load_cases": [
                 {"forces": [{"at": [0.01, 0.01, 0.04], "vector": [0, 0, 0.05]}]},
