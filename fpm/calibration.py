@@ -41,7 +41,7 @@ import numpy as np
 from scipy.optimize import minimize, minimize_scalar
 
 from .annealing import AnnealingError, Schedule, State, anneal
-from .cost import CostFunction, StaticCost, discrepancies
+from .cost import CostFunction, Evaluation, StaticCost, discrepancies
 from .damping import critical_damping, fastest_damping
 from .equilibrium import StaticSolver
 from .linear_solver import NegativeCurvature, SingularStiffnessError
@@ -66,6 +66,9 @@ UNIFORM_SPAN = 1.5
 family polish may move each log k this far (family stiffnesses can differ several-fold)."""
 POLISH_TOLERANCE = 1e-4
 """The polish resolves log(k) to about this (0.01% in k)."""
+CEILING_PENALTY = 10.0
+"""Weight of a load case's excess over its ceiling in a families polish
+(:func:`constrained_cost`)."""
 
 Progress = Callable[[dict[str, Any]], None]
 
@@ -444,22 +447,23 @@ def polish(
     *,
     span: float = POLISH_SPAN,
     uniform: int = 1,
+    ceilings: list[float] | None = None,
 ):
     """Bounded local minimisation of the static cost from ``theta`` (log space).
 
     One parameter: bounded Brent on log k within +-``span``. Several: Nelder-Mead with
-    bounds. ``uniform`` > 1 searches one k given to that many families. Returns (theta,
-    normalised cost); never worse than the start.
+    bounds. ``uniform`` > 1 searches one k given to that many families. ``ceilings``: (L,)
+    per-case costs, m, not to be exceeded (:func:`constrained_cost`). Returns (theta,
+    normalised cost, with any penalty); never worse than the start.
     """
     lo, hi = np.log(bounds[0]), np.log(bounds[1])
     y0 = np.log(np.asarray(theta, dtype=float))
-    scale = cost.reference_cost
 
     def f(y: np.ndarray) -> float:
         ev = cost(np.repeat(np.exp(np.atleast_1d(y)), uniform))
         if progress is not None:
             progress({"phase": "polish", "evaluations": cost.evaluations})
-        return ev.cost / scale if math.isfinite(ev.cost) else 1e6
+        return constrained_cost(ev, cost.reference_cost, ceilings)
 
     start = f(y0)
     a, b = np.maximum(y0 - span, lo), np.minimum(y0 + span, hi)
@@ -489,6 +493,22 @@ def polish(
     if value > start:
         return list(np.exp(y0)), start
     return list(np.exp(y)), value
+
+
+def constrained_cost(ev: Evaluation, scale: float, ceilings: list[float] | None) -> float:
+    """Eq. (2) over ``scale`` (the reference cost), plus CEILING_PENALTY times every load
+    case's excess over its ceiling (m, also over ``scale``); 1e6 for no equilibrium.
+
+    A families fit is polished under ceilings at the single-k fit's case costs: it may lower
+    the total only by improving load cases, never by trading one case's accuracy for another's
+    against one k (an exact penalty: a weight above the 1:1 rate at which the sum trades cases
+    keeps the minimum within the ceilings)."""
+    if not math.isfinite(ev.cost):
+        return 1e6
+    excess = 0.0
+    if ceilings is not None:
+        excess = sum(max(c - top, 0.0) for c, top in zip(ev.case_costs, ceilings, strict=True))
+    return (ev.cost + CEILING_PENALTY * excess) / scale
 
 
 def resolve_depth(
@@ -552,16 +572,19 @@ def fit_damping(
     if progress is not None:
         progress({"phase": "polish"})
     bounds = stiffness_bounds(problem)
-    start = best.x
+    start, ceilings = best.x, None
     if len(start) > 1:
-        uniform, uniform_cost = polish(
+        uniform, _ = polish(
             cost, [float(np.exp(np.mean(np.log(start))))], (bounds[0][:1], bounds[1][:1]),
             progress, span=UNIFORM_SPAN, uniform=len(start),
         )  # fmt: skip
-        if uniform_cost < best.cost:
+        ceilings = cost(uniform * len(start)).case_costs
+        chains_best = constrained_cost(cost(start), cost.reference_cost, ceilings)
+        if constrained_cost(cost(uniform * len(start)), cost.reference_cost, None) < chains_best:
             start = uniform * len(start)
     span = UNIFORM_SPAN if len(start) > 1 else POLISH_SPAN
-    theta, static_cost = polish(cost, start, bounds, progress, span=span)
+    theta, _ = polish(cost, start, bounds, progress, span=span, ceilings=ceilings)
+    static_cost = cost(theta).cost / cost.reference_cost
     evaluations = cost.evaluations
     depth = fit_depth(problem)
     if progress is not None:
