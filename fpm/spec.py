@@ -18,6 +18,10 @@ MODEL_VERSION = "2026.11.22"
 """Version of the numerics behind a result; bump it whenever a change alters fitted values.
 It is part of a calibration's identity, so a resubmitted spec is not answered from results
 that older numerics computed."""
+FEM_VERSION = "2026.11.22"
+"""Version of the FEM reference's numerics; bump it whenever a change alters FEM displacements.
+It is part of a stored reference's identity (references are kept without expiry), so new
+calibrations are never served a reference that older FEM numerics computed."""
 
 Vector3 = tuple[float, float, float]
 Connectivity = Literal["axis", "axis+face", "full"]

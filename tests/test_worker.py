@@ -302,3 +302,14 @@ def test_hashes_ignore_spelt_out_defaults(small_spec):
     small_spec["annealing"]["seed"] = 99
     changed = dump_spec(fpm.load_problem(small_spec).spec)
     assert spec_hash(changed) != spec_hash(plain) and fem_hash(changed) == fem_hash(plain)
+
+
+def test_newer_fem_numerics_make_a_new_reference(small_spec, monkeypatch):
+    """A stored reference is kept without expiry: after a change to the FEM numerics (a new
+    FEM_VERSION) the same spec must name a different reference."""
+    import worker.hashing
+
+    plain = dump_spec(fpm.load_problem(small_spec).spec)
+    before = fem_hash(plain)
+    monkeypatch.setattr(worker.hashing, "FEM_VERSION", "newer")
+    assert fem_hash(plain) != before

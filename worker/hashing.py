@@ -8,7 +8,7 @@ import hashlib
 import json
 from typing import Any
 
-from fpm.spec import MODEL_VERSION
+from fpm.spec import FEM_VERSION, MODEL_VERSION
 
 FEM_FIELDS = ("geometry", "material", "fixed", "load_cases")
 """The spec fields the FEM reference depends on."""
@@ -38,5 +38,7 @@ def fem_spec(spec: dict[str, Any]) -> dict[str, Any]:
 
 
 def fem_hash(spec: dict[str, Any]) -> str:
-    """sha256 of geometry + material + fixed + load cases: the FEM reference's identity."""
-    return hashlib.sha256(canonical(fem_spec(spec))).hexdigest()
+    """sha256 of geometry + material + fixed + load cases and of
+    :data:`fpm.spec.FEM_VERSION`: the FEM reference's identity."""
+    identity = {"fem": FEM_VERSION, "spec": fem_spec(spec)}
+    return hashlib.sha256(canonical(identity)).hexdigest()
