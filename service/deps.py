@@ -1,16 +1,19 @@
-"""FastAPI dependencies: settings, the Redis client, the API-key check."""
+"""FastAPI dependencies: settings, the Redis client, the API-key check, ids in paths."""
 
 from __future__ import annotations
 
 import hmac
+import re
 from functools import lru_cache
 from typing import Annotated
 
-from fastapi import Depends, Security
+from fastapi import Depends, Path, Security
 from fastapi.security import APIKeyHeader
 from redis import Redis
 from redis.backoff import NoBackoff
 from redis.retry import Retry
+
+from worker import keys
 
 from .errors import ProblemError
 from .settings import Settings, get_settings
@@ -62,3 +65,39 @@ def require_api_key(
             "missing or unknown API key (send it in the X-API-Key header)",
             headers={"WWW-Authenticate": "X-API-Key"},
         )
+
+
+def _known_form(value: str, pattern: re.Pattern[str], what: str) -> str:
+    """``value`` if it has the form of ``what``'s ids, else 404 like an unknown id.
+
+    Ids go into Redis keys: ``<id>:progress`` would name another key of that calibration (of
+    another type: a 500), so no id reaches a key unchecked.
+    """
+    if pattern.fullmatch(value) is None:
+        raise ProblemError(404, "Not found", f"no {what} {value!r}")
+    return value
+
+
+def calibration_id(
+    calibration_id: Annotated[str, Path(description="16 lowercase hex digits")],
+) -> str:
+    """The path's calibration id, checked against :data:`worker.keys.CALIBRATION_ID`."""
+    return _known_form(calibration_id, keys.CALIBRATION_ID, "calibration")
+
+
+def fem_id(fem_id: Annotated[str, Path(description="64 lowercase hex digits (sha256)")]) -> str:
+    """The path's FEM reference id, checked against :data:`worker.keys.FEM_ID`."""
+    return _known_form(fem_id, keys.FEM_ID, "FEM reference")
+
+
+def parameter_set_id(
+    parameter_set_id: Annotated[str, Path(description="'ps-' and 16 lowercase hex digits")],
+) -> str:
+    """The path's parameter set id, checked against :data:`worker.keys.PARAMETER_SET_ID`."""
+    return _known_form(parameter_set_id, keys.PARAMETER_SET_ID, "parameter set")
+
+
+# Route parameters of these types are checked before the route runs (404 otherwise).
+CalibrationId = Annotated[str, Depends(calibration_id)]
+FemId = Annotated[str, Depends(fem_id)]
+ParameterSetId = Annotated[str, Depends(parameter_set_id)]

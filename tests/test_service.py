@@ -288,7 +288,7 @@ def test_redis_unreachable_is_503_quickly(settings):
     client = TestClient(create_app(nowhere), raise_server_exceptions=False)
     started = time.monotonic()
     assert_problem(client.get("/v1/health"), 503)
-    assert_problem(client.get("/v1/calibrations/x"), 503)
+    assert_problem(client.get("/v1/calibrations/0123456789abcdef"), 503)  # a well-formed id
     assert time.monotonic() - started < 5
 
 

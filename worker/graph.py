@@ -16,7 +16,6 @@ waiting for ever).
 from __future__ import annotations
 
 import json
-import secrets
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -73,7 +72,7 @@ def submit_calibration(
     digest = spec_hash(spec)
     by_spec = keys.calibration_by_spec(digest)
     record = store.CalibrationRecord(
-        id=secrets.token_hex(8),
+        id=keys.new_calibration_id(),
         spec=spec,
         spec_hash=digest,
         fem_hash=fem_hash(spec),

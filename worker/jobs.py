@@ -336,7 +336,7 @@ def _parameter_set(record: store.CalibrationRecord, result: dict[str, Any], n_no
     spec = record.spec
     geometry = spec["geometry"]
     return {
-        "id": f"ps-{record.spec_hash[:16]}",
+        "id": keys.parameter_set_id(record.spec_hash),
         "created": time.time(),
         "name": record.name,
         "k": result["k"],

@@ -3,11 +3,37 @@
 Our own data lives under ``fpm:`` (RQ keeps its own ``rq:`` keys). Records that must outlive
 the jobs (FEM references, parameter sets, calibration records) are stored with no expiry;
 scratch data (chain checkpoints and results, progress) carries a TTL set by the writer.
+
+Ids are made here too, each with the pattern it always matches: the service checks an id from a
+URL against it before the id goes into a key, so ``<id>:progress`` cannot name another key.
 """
+
+import re
+import secrets
 
 PREFIX = "fpm"
 QUEUE = "fpm"
 """The RQ queue every job goes to (a worker may listen on more)."""
+
+
+CALIBRATION_ID = re.compile(r"[0-9a-f]{16}")
+"""Every calibration id: 16 lowercase hex digits (:func:`new_calibration_id`)."""
+
+FEM_ID = re.compile(r"[0-9a-f]{64}")
+"""Every FEM reference id: the sha256 hex digest of :func:`worker.hashing.fem_hash`."""
+
+PARAMETER_SET_ID = re.compile(r"ps-[0-9a-f]{16}")
+"""Every parameter set id (:func:`parameter_set_id`)."""
+
+
+def new_calibration_id() -> str:
+    """A fresh random calibration id (64 bits: no collision in practice)."""
+    return secrets.token_hex(8)
+
+
+def parameter_set_id(spec_hash: str) -> str:
+    """The id of the parameter set a spec's calibration stores (one per spec hash)."""
+    return f"ps-{spec_hash[:16]}"
 
 
 def calibration(calibration_id: str) -> str:

@@ -11,7 +11,7 @@ from fpm.spec import AnnealingSettings
 from worker import graph, keys, store
 from worker.status import CalibrationStatus, FemStatus, Phase
 
-from ..deps import RedisDep, SettingsDep
+from ..deps import CalibrationId, RedisDep, SettingsDep
 from ..errors import ProblemError, problem_responses
 from ..examples import openapi_examples
 from ..limits import check_calibration_spec, dump_spec
@@ -100,7 +100,7 @@ def listing(
 
 
 @router.get("/{calibration_id}")
-def read(calibration_id: str, redis: RedisDep) -> Calibration:
+def read(calibration_id: CalibrationId, redis: RedisDep) -> Calibration:
     """Status, progress, and when done the result."""
     pipe = redis.pipeline(transaction=False)
     pipe.hgetall(keys.calibration(calibration_id))
@@ -118,7 +118,7 @@ def read(calibration_id: str, redis: RedisDep) -> Calibration:
 
 
 @router.delete("/{calibration_id}", responses=problem_responses(409))
-def cancel(calibration_id: str, redis: RedisDep) -> Calibration:
+def cancel(calibration_id: CalibrationId, redis: RedisDep) -> Calibration:
     """Cancel: running chains are stopped, queued jobs dropped, the status becomes canceled.
 
     Canceling a canceled calibration is a no-op; a succeeded or failed one answers 409.

@@ -12,7 +12,7 @@ from worker import graph, store
 from worker.hashing import fem_hash
 from worker.status import FemStatus
 
-from ..deps import RedisDep, SettingsDep
+from ..deps import FemId, RedisDep, SettingsDep
 from ..errors import ProblemError, problem_responses
 from ..examples import openapi_examples
 from ..limits import check_calibration_spec, dump_spec
@@ -54,7 +54,7 @@ def submit(
 
 @router.get("/{fem_id}")
 def read(
-    fem_id: str,
+    fem_id: FemId,
     redis: RedisDep,
     arrays: Annotated[bool, Query(description="include nodes and displacements")] = True,
 ) -> FemReference:

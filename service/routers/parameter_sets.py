@@ -9,7 +9,7 @@ from fastapi import APIRouter, Query
 
 from worker import store
 
-from ..deps import RedisDep
+from ..deps import ParameterSetId, RedisDep
 from ..errors import ProblemError, problem_responses
 from ..schemas import ParameterSet, ParameterSetPage
 
@@ -56,7 +56,7 @@ def listing(
 
 
 @router.get("/{parameter_set_id}", responses=problem_responses(410))
-def read(parameter_set_id: str, redis: RedisDep) -> ParameterSet:
+def read(parameter_set_id: ParameterSetId, redis: RedisDep) -> ParameterSet:
     """One stored parameter set (410 for one stored by an older version: recalibrate)."""
     ps = store.get_parameter_set(redis, parameter_set_id)
     if ps is None:
