@@ -20,7 +20,7 @@ from typing import Any
 import httpx
 
 from .sdk import ApiError, Client
-from .table import table
+from .table import printable, table
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 STATUSES = ["queued", "running", "succeeded", "failed", "canceled"]
@@ -98,7 +98,7 @@ def show_calibration(c: dict[str, Any]) -> str:
     discrepancy per load case first."""
     p = c["progress"]
     lines = [
-        f"calibration {c['id']}  {c['name']}",
+        f"calibration {c['id']}  {printable(c['name'])}",
         f"status      {c['status']} ({p['phase']})",
         f"method      {p.get('method', '-')}",
         f"stage       {stage_line(c)}",

@@ -5,6 +5,8 @@ from __future__ import annotations
 import sys
 from typing import Any, TextIO
 
+from .table import printable
+
 WIDTH = 30
 
 
@@ -38,7 +40,8 @@ def render(calibration: dict[str, Any]) -> str:
     p = calibration["progress"]
     fraction = fraction_done(calibration)
     filled = round(fraction * WIDTH)
-    line = f"{calibration.get('name', '')[:28]:<28} [{'#' * filled}{'.' * (WIDTH - filled)}]"
+    name = printable(calibration.get("name", ""))
+    line = f"{name[:28]:<28} [{'#' * filled}{'.' * (WIDTH - filled)}]"
     line += f" {fraction:4.0%} {calibration['status']:<9} {phase_label(p):<9}"
     if p["phase"] == "damping":
         damping = p.get("damping") or {}

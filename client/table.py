@@ -6,13 +6,22 @@ from collections.abc import Sequence
 from typing import Any
 
 
+def printable(text: str) -> str:
+    """``text`` with unprintable characters escaped (``\\x1b``, ``\\r``): names come from the
+    server, and one stored before it refused control characters could drive the terminal."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 def cell(value: Any) -> str:
-    """A readable cell: floats to 5 significant digits, None as '-'."""
+    """A readable cell: floats to 5 significant digits, None as '-', text escaped
+    (:func:`printable`)."""
     if value is None:
         return "-"
     if isinstance(value, float):
         return f"{value:.5g}"
-    return str(value)
+    return printable(str(value))
 
 
 def table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:

@@ -20,6 +20,8 @@ from redis.exceptions import ConnectionError as RedisConnectionError
 from redis.exceptions import TimeoutError as RedisTimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from worker.text import escape
+
 MEDIA_TYPE = "application/problem+json"
 log = logging.getLogger("service")
 
@@ -101,13 +103,17 @@ def problem(
 
 
 def field_errors(errors: Sequence[Any], strip: tuple[str, ...] = ()) -> list[dict[str, str]]:
-    """[{field, message}] from pydantic errors; ``field`` is the dotted location."""
+    """[{field, message}] from pydantic errors; ``field`` is the dotted location.
+
+    Location parts can be the client's own keys (an unknown field), and messages may quote
+    input, so both are escaped: a lone surrogate would make the answer unencodable (a 500).
+    """
     out = []
     for e in errors:
-        loc = [str(p) for p in e["loc"]]
+        loc = [escape(str(p)) for p in e["loc"]]
         if loc and loc[0] in strip:
             loc = loc[1:]
-        out.append({"field": ".".join(loc) or "body", "message": e["msg"]})
+        out.append({"field": ".".join(loc) or "body", "message": escape(e["msg"])})
     return out
 
 
@@ -152,5 +158,5 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
-        log.exception("unhandled error on %s %s", request.method, request.url.path)
+        log.exception("unhandled error on %s %r", request.method, request.url.path)
         return problem(500, "Internal server error", "an unexpected error; it has been logged")

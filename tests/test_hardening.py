@@ -1,18 +1,27 @@
-"""Issue 12: ids checked before they reach a key (item 1)."""
+"""Issue 12: ids checked before they reach a key (item 1), free text without control
+characters or lone surrogates and user text escaped in the worker log (items 2, 3)."""
 
 from __future__ import annotations
 
 import json
+import logging
 
 import pytest
 from fastapi.testclient import TestClient
+from rq import SimpleWorker
+from rq.serializers import JSONSerializer
 from test_service import assert_problem
 
+from fpm import ProblemSpec
+from service.limits import dump_spec
 from service.main import create_app
-from worker import keys
+from worker import graph, keys
+from worker.graph import JobOptions
 from worker.hashing import spec_hash
 
 pytestmark = pytest.mark.redis
+
+FORGED = "x\r\n2026-01-01 00:00:00,000 rq.worker FORGED"
 
 # --- 1. ids in paths ---------------------------------------------------------------------------
 
@@ -87,3 +96,68 @@ def test_an_unauthenticated_bad_id_is_401_not_404(settings, redis):
     keyed = type(settings)(**{**settings.model_dump(), "api_keys": "k3y"})
     client = TestClient(create_app(keyed), raise_server_exceptions=False)
     assert_problem(client.get("/v1/calibrations/abc:progress"), 401)
+
+
+# --- 2 and 3. free text ------------------------------------------------------------------------
+
+
+def post_raw(api: TestClient, path: str, spec: dict) -> object:
+    """POST ``spec`` as JSON text: a lone surrogate goes as the escape "\\ud800"."""
+    body = json.dumps(spec)  # ensure_ascii: "\ud800" is written as the six characters \ud800
+    return api.post(path, content=body, headers={"content-type": "application/json"})
+
+
+@pytest.mark.parametrize(
+    "text", ["\ud800", "a\udfffb", FORGED, "\x00", "bell\x07", "\x1b[31mred", "\x85", "\u2028"]
+)
+@pytest.mark.parametrize(
+    ("place", "field"),
+    [
+        (lambda s, t: s.update(name=t), "name"),
+        (lambda s, t: s["load_cases"][1].update(name=t), "load_cases.1.name"),
+    ],
+)
+@pytest.mark.parametrize("path", ["/v1/calibrations", "/v1/fem-references"])
+def test_control_characters_and_lone_surrogates_are_422_naming_the_field(
+    api, redis, small_spec, text, place, field, path
+):
+    place(small_spec, text)
+    body = assert_problem(post_raw(api, path, small_spec), 422, field)
+    assert not any(c in body["detail"] for c in "\r\n\x00\x07\x1b\x85\u2028")
+    assert redis.dbsize() == 0  # nothing stored
+
+
+@pytest.mark.parametrize(
+    ("key", "field"), [("\ud800", None), ("\ud800x", None), ("bad\x1bkey", "bad\\x1bkey")]
+)
+def test_unknown_fields_named_with_refused_characters_are_422(api, redis, small_spec, key, field):
+    small_spec[key] = 1
+    body = assert_problem(post_raw(api, "/v1/calibrations", small_spec), 422, field)
+    assert "\x1b" not in body["detail"]
+    assert redis.dbsize() == 0
+
+
+def test_printable_unicode_names_are_fine(api, small_spec):
+    small_spec["name"] = 'Gewebe Ü 材料 ✓ – it\'s "soft" \\r'
+    small_spec["load_cases"][0]["name"] = "0.05 N ↑"
+    created = post_raw(api, "/v1/calibrations", small_spec)
+    assert created.status_code == 202, created.text
+    assert created.json()["name"] == small_spec["name"]
+
+
+def test_user_text_reaches_the_worker_log_escaped(redis, small_spec, caplog):
+    # A record stored before names were checked (the API now refuses this name).
+    small_spec["name"] = FORGED + "\x00\x07\x1b[2J"
+    spec = dump_spec(ProblemSpec(**small_spec))
+    record, _ = graph.submit_calibration(redis, spec, JobOptions(retries=0))
+    caplog.set_level(logging.INFO)
+    SimpleWorker([keys.QUEUE], connection=redis, serializer=JSONSerializer).work(
+        burst=True, logging_level="INFO"
+    )
+    assert graph.queue(redis).count == 0
+    logged = [r.getMessage() for r in caplog.records]
+    escaped = "x\\r\\n2026-01-01 00:00:00,000 rq.worker FORGED\\x00\\x07\\x1b[2J"
+    assert any(escaped in m for m in logged)
+    for message in logged:
+        assert not any(c in message for c in "\r\n\x00\x07\x1b"), message
+    assert any(record.id in m for m in logged)

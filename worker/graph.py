@@ -30,6 +30,7 @@ from rq.serializers import JSONSerializer
 from . import keys, store
 from .hashing import fem_hash, fem_spec, spec_hash
 from .status import CalibrationStatus, FemStatus
+from .text import escape
 
 FAILURE_CALLBACK = "worker.jobs.on_failure"
 PENDING = (JobStatus.QUEUED, JobStatus.DEFERRED, JobStatus.SCHEDULED, JobStatus.STARTED)
@@ -115,7 +116,7 @@ def _enqueue(redis: Redis, record: store.CalibrationRecord, options: JobOptions)
             job_id=keys.chain_job_id(record.id, chain),
             timeout=options.chain_timeout,
             depends_on=Dependency(fem_job, allow_failure=True) if fem_job else None,
-            description=f"{record.name}: chain {chain}",
+            description=f"{escape(record.name)}: chain {chain}",
             **common,
         )
         for chain in range(record.chains)
@@ -129,7 +130,7 @@ def _enqueue(redis: Redis, record: store.CalibrationRecord, options: JobOptions)
                 job_id=keys.damping_job_id(record.id),
                 timeout=options.chain_timeout,
                 depends_on=Dependency(chains, allow_failure=True),
-                description=f"{record.name}: damping",
+                description=f"{escape(record.name)}: damping",
                 **common,
             )
         ]
@@ -139,7 +140,7 @@ def _enqueue(redis: Redis, record: store.CalibrationRecord, options: JobOptions)
         job_id=keys.finalize_job_id(record.id),
         timeout=options.finalize_timeout,
         depends_on=Dependency(before_finalize, allow_failure=True),
-        description=f"{record.name}: finalize",
+        description=f"{escape(record.name)}: finalize",
         **common,
     )
 
