@@ -230,7 +230,15 @@ class Health(BaseModel):
 
     status: str = Field(description="'ok', or 'degraded' when no worker is alive")
     redis: bool
-    workers: int
+    workers: int = Field(
+        description="alive workers: a heartbeat within the last heartbeat_window seconds"
+    )
+    silent_workers: int = Field(
+        description="registered workers with no heartbeat for longer: dead (killed, lost) or hung"
+    )
+    heartbeat_window: int = Field(
+        description="seconds without a heartbeat after which a worker counts as dead"
+    )
     queued_jobs: int
     running_jobs: int
     failed_jobs: int

@@ -1,21 +1,26 @@
-"""Issue 12: ids checked before they reach a key (item 1), free text without control
-characters or lone surrogates and user text escaped in the worker log (items 2, 3)."""
+"""Issue 12, items 1-3 and 6: ids checked before they reach a key, free text without control
+characters or lone surrogates, user text escaped in the worker log, health counting only
+workers with a recent heartbeat."""
 
 from __future__ import annotations
 
 import json
 import logging
+import signal
+import time
+from datetime import timedelta
 
 import pytest
 from fastapi.testclient import TestClient
-from rq import SimpleWorker
+from rq import SimpleWorker, Worker
 from rq.serializers import JSONSerializer
+from rq.utils import now, utcformat
 from test_service import assert_problem
 
 from fpm import ProblemSpec
 from service.limits import dump_spec
 from service.main import create_app
-from worker import graph, keys
+from worker import graph, keys, liveness
 from worker.graph import JobOptions
 from worker.hashing import spec_hash
 
@@ -161,3 +166,39 @@ def test_user_text_reaches_the_worker_log_escaped(redis, small_spec, caplog):
     for message in logged:
         assert not any(c in message for c in "\r\n\x00\x07\x1b"), message
     assert any(record.id in m for m in logged)
+
+
+# --- 6. health ---------------------------------------------------------------------------------
+
+
+def age_heartbeat(redis, worker_key: str, seconds: float) -> None:
+    """Make a worker's last heartbeat ``seconds`` old (as if that time had passed)."""
+    redis.hset(worker_key, "last_heartbeat", utcformat(now() - timedelta(seconds=seconds)))
+
+
+def test_health_counts_only_workers_with_a_recent_heartbeat(api, redis):
+    ghost = Worker([keys.QUEUE], connection=redis, name="ghost")
+    ghost.register_birth()
+    age_heartbeat(redis, ghost.key, liveness.WORKER_TTL + 1)
+    health = api.get("/v1/health").json()
+    assert (health["status"], health["workers"], health["silent_workers"]) == ("degraded", 0, 1)
+    assert health["heartbeat_window"] == liveness.WORKER_TTL
+    Worker([keys.QUEUE], connection=redis, name="alive").register_birth()
+    health = api.get("/v1/health").json()
+    assert (health["status"], health["workers"], health["silent_workers"]) == ("ok", 1, 1)
+
+
+def test_health_notices_a_killed_worker_process(api, redis, worker_processes):
+    process = worker_processes.start()
+    deadline = time.monotonic() + 60
+    while api.get("/v1/health").json()["workers"] < 1:
+        assert time.monotonic() < deadline, "the worker did not register"
+        time.sleep(0.1)
+    worker_processes.stop(process, signal.SIGKILL)  # no chance to unregister
+    q = graph.queue(redis)
+    (worker_key,) = Worker.all_keys(queue=q)
+    assert Worker.count(queue=q) == 1  # RQ's registry still lists it
+    age_heartbeat(redis, worker_key, liveness.WORKER_TTL + 1)  # a heartbeat window later
+    health = api.get("/v1/health").json()
+    assert health["status"] == "degraded"
+    assert (health["workers"], health["silent_workers"]) == (0, 1)

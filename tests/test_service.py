@@ -12,7 +12,7 @@ from fastapi.testclient import TestClient
 from service.main import create_app
 from service.redis_server import free_port
 from service.settings import Settings
-from worker import keys
+from worker import keys, liveness
 
 pytestmark = pytest.mark.redis
 
@@ -311,6 +311,8 @@ def test_health_counts(api, small_spec):
         "status": "degraded",  # no worker is running
         "redis": True,
         "workers": 0,
+        "silent_workers": 0,
+        "heartbeat_window": liveness.WORKER_TTL,
         "queued_jobs": 1,  # the FEM job; chains and finalize wait on it
         "running_jobs": 0,
         "failed_jobs": 0,

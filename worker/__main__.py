@@ -22,6 +22,7 @@ from rq.serializers import JSONSerializer
 
 # jobs is imported before forking, so every work horse inherits fpm, NumPy and SciPy loaded.
 from . import jobs, keys  # noqa: F401
+from .liveness import WORKER_TTL
 
 MAINTENANCE_INTERVAL = 60
 """Seconds between RQ maintenance runs (which retry the jobs of dead workers)."""
@@ -86,6 +87,7 @@ def main(argv: list[str] | None = None) -> None:
         serializer=JSONSerializer,
         name=args.name,
         maintenance_interval=MAINTENANCE_INTERVAL,
+        worker_ttl=WORKER_TTL,
     )
     worker.work(burst=args.burst, with_scheduler=False)
 

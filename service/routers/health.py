@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 from fastapi import APIRouter
-from rq import Worker
 
-from worker import graph
+from worker import graph, liveness
 
 from ..deps import RedisDep
 from ..schemas import Health
@@ -15,14 +14,20 @@ router = APIRouter(prefix="/v1/health", tags=["health"])
 
 @router.get("")
 def health(redis: RedisDep) -> Health:
-    """200 with counts when Redis answers (503 problem+json when it does not)."""
+    """200 with counts when Redis answers (503 problem+json when it does not).
+
+    Workers count as alive only with a heartbeat in the last ``heartbeat_window`` seconds:
+    RQ's registry alone keeps a killed worker listed (for ever, once none is left to clean it).
+    """
     redis.ping()
     q = graph.queue(redis)
-    workers = Worker.count(queue=q)
+    alive, silent = liveness.workers(q)
     return Health(
-        status="ok" if workers else "degraded",
+        status="ok" if alive else "degraded",
         redis=True,
-        workers=workers,
+        workers=alive,
+        silent_workers=silent,
+        heartbeat_window=liveness.WORKER_TTL,
         queued_jobs=q.count,
         running_jobs=q.started_job_registry.count,
         failed_jobs=q.failed_job_registry.count,

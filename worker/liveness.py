@@ -1,0 +1,30 @@
+"""Which workers are alive, by their heartbeats.
+
+RQ's worker registry keeps a worker that was killed (SIGKILL, lost machine) until a live
+worker's maintenance cleans it up, which never happens when no worker is left: counting the
+registry reports dead workers as alive. A live worker writes ``last_heartbeat`` at least every
+:data:`WORKER_TTL` seconds (a busy one every 30 s, an idle one each time its blocking dequeue
+times out, ``WORKER_TTL - 15`` s), so a worker silent for longer is dead (or hung).
+"""
+
+from __future__ import annotations
+
+from rq import Queue, Worker
+from rq.utils import now
+
+WORKER_TTL = 420
+"""Seconds a worker may go without a heartbeat (RQ's default; every worker is started with it,
+and :func:`workers` judges them by it, so the two cannot disagree)."""
+
+
+def workers(queue: Queue, window: float = WORKER_TTL) -> tuple[int, int]:
+    """(alive, silent): the workers registered on ``queue`` whose last heartbeat is at most
+    ``window`` seconds old, and those whose is older (or missing)."""
+    alive = silent = 0
+    for worker in Worker.all(queue=queue):  # drops those whose key RQ already let expire
+        beat = worker.last_heartbeat  # UTC-aware
+        if beat is not None and (now() - beat).total_seconds() <= window:
+            alive += 1
+        else:
+            silent += 1
+    return alive, silent
