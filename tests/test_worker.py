@@ -281,8 +281,11 @@ def test_chain_of_a_dead_worker_is_retried_and_resumes(
     done = store.get_calibration(redis, record.id)
     assert done.status == CalibrationStatus.SUCCEEDED, done.error
     expected = calibrate(fpm.load_problem(spec))
+    # The resumed chain makes the same moves (same draws, same evaluation count), but its
+    # static solves start warm from a different history after the restart, so costs agree to
+    # the solver's tolerance (about 1e-7 of the force), not bit for bit: k and d to 1e-6.
     assert (done.result["k"], done.result["d"]) == pytest.approx(
-        (expected.k, expected.d), rel=1e-12
+        (expected.k, expected.d), rel=1e-6
     )
     # Resumed, not restarted: only the evaluations after the checkpoint were made again.
     assert done.result["evaluations"] == expected.evaluations
