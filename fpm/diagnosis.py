@@ -63,16 +63,17 @@ class UnitsError(ValueError):
 
 
 def check_reference(problem: Problem, displacements: Any) -> list[str]:
-    """Check that the linear FEM reference is plausible; return warnings (one line each).
+    """Check that the FEM reference is plausible; return warnings (one line each).
 
     Args:
         problem: the problem.
         displacements: (L, N, 3) FEM displacements, m (or a :class:`fpm.fem.FemResult`).
 
     Returns:
-        One warning per load case whose largest nodal displacement is above 10% of the solid's
-        smallest bounding-box extent (outside small strain, where a linear reference is only
-        approximate).
+        For the linear model, one warning per load case whose largest nodal displacement is
+        above 10% of the solid's smallest bounding-box extent (outside small strain, where a
+        linear reference is only approximate); none for the neo-Hookean model, which is made
+        for large deformation.
 
     Raises:
         UnitsError: a load case moves a node further than the smallest extent: with linear
@@ -81,6 +82,7 @@ def check_reference(problem: Problem, displacements: Any) -> list[str]:
             reference is meaningless there anyway.
     """
     u = np.asarray(getattr(displacements, "displacements", displacements), dtype=float)
+    linear = problem.spec.material.model == "linear"
     extents = np.ptp(problem.nodes, axis=0)
     extent = float(extents[extents > 0].min())
     largest = np.linalg.norm(u, axis=2).max(axis=1)  # (L,)
@@ -92,12 +94,18 @@ def check_reference(problem: Problem, displacements: Any) -> list[str]:
         more = len(too_far) - 1
         others = f" (and {more} more load case{'s' if more > 1 else ''})" if more else ""
         force = float(np.linalg.norm(problem.load_cases[j].forces, axis=1).max())
+        advice = (
+            "the load is far too large for a linear reference: lower the forces"
+            if linear
+            else "the load moves the solid further than it is thick: lower the forces"
+        )
         raise UnitsError(
-            f"load case '{names[j]}'{others}: the linear FEM reference moves node {node} by "
+            f"load case '{names[j]}'{others}: the {'linear' if linear else 'neo-Hookean'} FEM "
+            f"reference moves node {node} by "
             f"{largest[j]:.3g} m, more than the solid's smallest extent ({extent:.3g} m): check "
             f"the units: {UNITS_HINT} (this spec: E = {problem.spec.material.youngs_modulus:g} "
             f"Pa, largest nodal force {force:.3g} N, solid {_dims(extents)} m); if they are "
-            "right, the load is far too large for a linear reference: lower the forces"
+            f"right, {advice}"
         )
     return [
         f"load case '{names[j]}': the largest FEM displacement, {largest[j]:.3g} m, is "
@@ -106,7 +114,7 @@ def check_reference(problem: Problem, displacements: Any) -> list[str]:
         "inherits its error; consider smaller forces, or check E and the units "
         f"({UNITS_HINT})"
         for j in range(len(names))
-        if largest[j] > SMALL_STRAIN * extent
+        if linear and largest[j] > SMALL_STRAIN * extent
     ]
 
 

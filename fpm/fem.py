@@ -6,11 +6,15 @@ assembled into a block-sparse K (:mod:`fpm.assembly`), fixed nodes as Dirichlet 
 factorisation for all of them (:mod:`fpm.linear_solver`). Density plays no part. Nodes that
 belong to no hexahedron (possible in a ``mesh``) carry no stiffness; they stay at rest and may
 not be loaded.
+
+With ``material.model: "neo-hookean"`` the same hexahedra, supports and loads go to the
+large-deformation reference instead (:mod:`fpm.hyperelastic`); :func:`solve_fem` dispatches on
+the model, and the result carries its load steps and Newton iterations.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -37,9 +41,13 @@ class FemResult:
     Attributes:
         nodes: (N, 3) rest positions, m.
         displacements: (L, N, 3) nodal displacements, m, load cases in spec order.
-        residuals: (L,) ||K u - f|| / ||f|| over the free unknowns (reactions excluded).
+        residuals: (L,) ||K u - f|| / ||f|| over the free unknowns (reactions excluded); for
+            the neo-Hookean model the final unbalanced force ||f_int(u) - f|| / ||f||.
         load_cases: (L,) load case names.
         method: linear solver used, ``"direct"`` or ``"amg"``.
+        model: the material model, ``"linear"`` or ``"neo-hookean"``.
+        load_steps: (L,) load steps taken per load case (neo-Hookean; empty for linear).
+        newton_iterations: (L, steps) Newton iterations of each load step (neo-Hookean).
     """
 
     nodes: np.ndarray
@@ -47,6 +55,9 @@ class FemResult:
     residuals: list[float]
     load_cases: list[str]
     method: str
+    model: str = "linear"
+    load_steps: list[int] = field(default_factory=list)
+    newton_iterations: list[list[int]] = field(default_factory=list)
 
     @property
     def positions(self) -> np.ndarray:
@@ -61,11 +72,14 @@ class FemResult:
             "residuals": [float(r) for r in self.residuals],
             "load_cases": list(self.load_cases),
             "method": self.method,
+            "model": self.model,
+            "load_steps": list(self.load_steps),
+            "newton_iterations": [list(steps) for steps in self.newton_iterations],
         }
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> FemResult:
-        """Inverse of :meth:`to_dict`."""
+        """Inverse of :meth:`to_dict` (a dict stored before the model fields reads as linear)."""
         nodes = np.asarray(data["nodes"], dtype=float).reshape(-1, 3)
         displacements = np.asarray(data["displacements"], dtype=float).reshape(-1, len(nodes), 3)
         return cls(
@@ -74,19 +88,26 @@ class FemResult:
             [float(r) for r in data["residuals"]],
             list(data["load_cases"]),
             data["method"],
+            data.get("model", "linear"),
+            [int(n) for n in data.get("load_steps", [])],
+            [[int(n) for n in steps] for steps in data.get("newton_iterations", [])],
         )
 
 
-def solve_fem(problem: Problem, method: str = "auto") -> FemResult:
-    """Nodal displacements of ``problem`` for every load case.
+def solve_fem(problem: Problem, method: str = "auto", *, load_steps: int = 1) -> FemResult:
+    """Nodal displacements of ``problem`` for every load case, by the spec's material model.
 
     Args:
         problem: from :func:`fpm.load_problem`; needs a box, voxels or mesh geometry.
         method: ``"auto"`` (by size), ``"direct"`` or ``"amg"`` (see :mod:`fpm.linear_solver`).
+        load_steps: neo-Hookean only: planned load steps per load case (halved where Newton
+            fails, :mod:`fpm.hyperelastic`).
 
     Raises:
         FemError: a network geometry, an inverted or degenerate hexahedron, a solid that is
             not held, or a force on a node that belongs to no hexahedron.
+        fpm.hyperelastic.NewtonError (a FemError): neo-Hookean, a load case whose equilibrium
+            was not found (the message names it, the load step and why).
     """
     if method not in ("auto", "direct", "amg"):
         raise ValueError(f"unknown method {method!r} (use 'auto', 'direct' or 'amg')")
@@ -109,9 +130,6 @@ def solve_fem(problem: Problem, method: str = "auto") -> FemResult:
             "check their node order (see fpm.hexahedron)"
         )
     material = problem.spec.material
-    k = stiffness_matrix(
-        nodes, hexahedra, constitutive_matrix(material.youngs_modulus, material.poisson_ratio)
-    )
     forces = np.stack([case.dense(len(nodes)) for case in problem.load_cases])  # (L, N, 3)
     in_solid = np.zeros(len(nodes), dtype=bool)
     in_solid[hexahedra] = True
@@ -120,14 +138,30 @@ def solve_fem(problem: Problem, method: str = "auto") -> FemResult:
         raise FemError(f"node {int(stray[0])} is loaded but belongs to no hexahedron")
     free = np.repeat(in_solid & ~problem.fixed, 3)
     method = choose_method(int(free.sum())) if method == "auto" else method
-    u, residuals = solve_dirichlet(k, forces.reshape(len(forces), -1), free, nodes, method)
-    return FemResult(
-        nodes.copy(),
-        u.reshape(forces.shape),
-        residuals.tolist(),
-        [case.name for case in problem.load_cases],
-        method,
+    names = [case.name for case in problem.load_cases]
+    if material.model == "neo-hookean":
+        from .hyperelastic import solve_hyperelastic
+        from .neo_hookean import lame_constants
+
+        mu, lam = lame_constants(material.youngs_modulus, material.poisson_ratio)
+        u, paths = solve_hyperelastic(
+            nodes, hexahedra, mu, lam, forces, free, method, names, load_steps
+        )
+        return FemResult(
+            nodes.copy(),
+            u,
+            [path.residual for path in paths],
+            names,
+            method,
+            material.model,
+            [path.load_steps for path in paths],
+            [path.newton_iterations for path in paths],
+        )
+    k = stiffness_matrix(
+        nodes, hexahedra, constitutive_matrix(material.youngs_modulus, material.poisson_ratio)
     )
+    u, residuals = solve_dirichlet(k, forces.reshape(len(forces), -1), free, nodes, method)
+    return FemResult(nodes.copy(), u.reshape(forces.shape), residuals.tolist(), names, method)
 
 
 def solve_dirichlet(

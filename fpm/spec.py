@@ -34,14 +34,29 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
+MaterialModel = Literal["linear", "neo-hookean"]
+
+
 class Material(_Strict):
-    """Isotropic linear-elastic constants (paper Table 1)."""
+    """Isotropic elastic constants (paper Table 1) and the FEM reference's material model.
+
+    ``model``: ``"linear"`` (small-strain linear elasticity, the paper's, default) or
+    ``"neo-hookean"`` (compressible neo-Hookean, large deformation: :mod:`fpm.hyperelastic`),
+    both from the same E and nu. ``"linear"`` is left out of dumps, so the identity (content
+    hash) of a linear spec is what it was before the field existed.
+    """
 
     youngs_modulus: float = Field(gt=0, description="Young's modulus E, Pa")
     poisson_ratio: float = Field(
         gt=-1.0, lt=0.5, description="Poisson's ratio, in (-1, 0.5) for a stable solid"
     )
     density: float = Field(gt=0, description="mass density, kg/m^3 (lumped into node masses)")
+    model: MaterialModel = Field(
+        "linear",
+        description="FEM reference: 'linear' (small-strain linear elasticity, the paper's) or "
+        "'neo-hookean' (compressible neo-Hookean, large deformation, Lame constants from E, nu)",
+        exclude_if=lambda v: v == "linear",
+    )
 
 
 class BoxGeometry(_Strict):
