@@ -10,6 +10,12 @@ solve); total = the whole call. Goals on a 2-core machine: 30^3 nodes in 5 s, 50
 
 The sparse LU runs only up to :data:`DIRECT_UP_TO` nodes a side: its fill-in grows fast on 3-D
 meshes (measured once at 30^3: 67 s and 2.5 GB, against 3 s and 0.4 GB for AMG).
+
+Then the neo-Hookean reference (``material.model: "neo-hookean"``, :mod:`fpm.hyperelastic`)
+against the linear one on the same :data:`MODEL_SIDE`^3 cube and load, each model in its own
+process, :data:`MODEL_REPEATS` times (the fastest run counts): goals at most
+:data:`MODEL_GOALS` times the linear solve's time and peak memory. ``python -m bench.bench_fem
+models`` runs only this part.
 """
 
 from __future__ import annotations
@@ -25,6 +31,12 @@ DIRECT_UP_TO = 20
 """Largest side (nodes) at which the sparse LU is timed too."""
 GOALS = {30: (5.0, None), 50: (30.0, 4096.0)}
 """Nodes a side -> (seconds, MB or None) that the default method must meet."""
+MODEL_SIDE = 20
+"""Nodes a side of the cube on which the neo-Hookean and linear references are compared."""
+MODEL_REPEATS = 2
+"""Processes per model in that comparison; the fastest counts."""
+MODEL_GOALS = (10.0, 2.0)
+"""Neo-Hookean over linear: (time, peak memory) ratios not to exceed."""
 
 
 def cube_spec(n: int) -> dict:
@@ -66,6 +78,74 @@ def run_case(n: int, method: str) -> dict:
     }
 
 
+def run_model(n: int, model: str) -> dict:
+    """Time one ``solve_fem`` of the n^3 cube with material ``model`` in this process."""
+    import fpm
+    import fpm.fem  # imported before the clock starts, as in run_case
+
+    spec = cube_spec(n)
+    spec["material"]["model"] = model
+    problem = fpm.load_problem(spec)
+    problem.solid.elements()
+    t0 = time.perf_counter()
+    result = fpm.solve_fem(problem)
+    return {
+        "model": model,
+        "method": result.method,
+        "total": time.perf_counter() - t0,
+        "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "residual": max(result.residuals),
+        "steps": result.load_steps,
+        "newton": result.newton_iterations,
+    }
+
+
+def compare_models() -> list[str]:
+    """The neo-Hookean reference against the linear one (module docstring); returns failures."""
+    n = MODEL_SIDE
+    print(
+        f"\nneo-Hookean against linear reference, {n}^3 nodes, same cube and load, "
+        f"best of {MODEL_REPEATS} processes each"
+    )
+    print(
+        f"{'model':>12} {'method':>7} {'total s':>8} {'peak MB':>8} {'residual':>9}  "
+        "Newton iterations per load step"
+    )
+    rows = {}
+    for model in ("linear", "neo-hookean"):
+        runs = []
+        for _ in range(MODEL_REPEATS):
+            out = subprocess.run(
+                [sys.executable, "-m", "bench.bench_fem", "model", str(n), model],
+                capture_output=True,
+                text=True,
+                check=True,
+            )
+            runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
+        row = min(runs, key=lambda r: r["total"])
+        row["peak_mb"] = max(r["peak_mb"] for r in runs)
+        rows[model] = row
+        newton = ", ".join(str(steps) for steps in row["newton"]) or "-"
+        print(
+            f"{model:>12} {row['method']:>7} {row['total']:>8.2f} {row['peak_mb']:>8.0f} "
+            f"{row['residual']:>9.1e}  {newton}",
+            flush=True,
+        )
+    time_ratio = rows["neo-hookean"]["total"] / rows["linear"]["total"]
+    memory_ratio = rows["neo-hookean"]["peak_mb"] / rows["linear"]["peak_mb"]
+    failures = []
+    if time_ratio > MODEL_GOALS[0]:
+        failures.append(f"neo-Hookean {time_ratio:.1f}x the linear time > {MODEL_GOALS[0]:g}x")
+    if memory_ratio > MODEL_GOALS[1]:
+        failures.append(f"neo-Hookean {memory_ratio:.2f}x the linear memory > {MODEL_GOALS[1]:g}x")
+    print(
+        f"{'ratio':>12} {'':>7} {time_ratio:>7.1f}x {memory_ratio:>7.2f}x   goals: <= "
+        f"{MODEL_GOALS[0]:g}x time, <= {MODEL_GOALS[1]:g}x peak memory: "
+        + ("met" if not failures else "MISSED")
+    )
+    return failures
+
+
 def main() -> None:
     from fpm.linear_solver import choose_method
 
@@ -99,11 +179,17 @@ def main() -> None:
             if megabytes is not None and row["peak_mb"] > megabytes:
                 failures.append(f"{n}^3: {row['peak_mb']:.0f} MB > {megabytes} MB")
     print("* = the method solve_fem picks at that size")
+    failures += compare_models()
     print("goals: " + ("all met" if not failures else "MISSED " + "; ".join(failures)))
 
 
 if __name__ == "__main__":
-    if len(sys.argv) == 3:
+    if len(sys.argv) == 4 and sys.argv[1] == "model":
+        print(json.dumps(run_model(int(sys.argv[2]), sys.argv[3])))
+    elif len(sys.argv) == 3:
         print(json.dumps(run_case(int(sys.argv[1]), sys.argv[2])))
+    elif sys.argv[1:] == ["models"]:
+        failures = compare_models()
+        print("goals: " + ("all met" if not failures else "MISSED " + "; ".join(failures)))
     else:
         main()
