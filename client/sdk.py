@@ -47,6 +47,43 @@ def read_spec(spec: SpecLike) -> dict[str, Any]:
     return json.loads(text)
 
 
+def spec_from_mesh(
+    mesh: str | Path,
+    *,
+    fix: list[str],
+    forces: list[str],
+    youngs_modulus: float,
+    poisson_ratio: float,
+    density: float = 1000.0,
+    spacing: float | None = None,
+    **options: Any,
+) -> dict[str, Any]:
+    """A problem spec (a dict, ready for :meth:`Client.calibrate`) from a mesh file meshio reads
+    (Gmsh .msh, VTK .vtu/.vtk, Abaqus .inp, STL, ...): hexahedra as they are, tetrahedra and
+    closed triangle surfaces voxelised at ``spacing`` (m). The same as ``fpmcal spec from-mesh``.
+
+    ``fix``: fixed nodes as short selectors (``"face:z-"``, ``"box:x0,y0,z0:x1,y1,z1"``,
+    ``"nearest:x,y,z"``, ...); ``forces``: one load case each, ``"SELECTOR:fx,fy,fz"`` (N; append
+    ``":distribute"`` to share the vector over the selected nodes; ``;`` between forces of one
+    load case). ``options``: ``connectivity``, ``scale`` (e.g. 0.001 for a mesh in mm),
+    ``voxelise``, ``name``, ``dt`` (s, or "auto"); see :func:`fpm.meshes.spec_from_mesh`.
+    Raises :class:`fpm.meshes.MeshError` (e.g. an open surface) or ValueError (a bad selector).
+    """
+    from fpm.meshes import spec_from_mesh as build
+
+    spec, _ = build(
+        mesh,
+        fix=fix,
+        forces=forces,
+        youngs_modulus=youngs_modulus,
+        poisson_ratio=poisson_ratio,
+        density=density,
+        spacing=spacing,
+        **options,
+    )
+    return spec
+
+
 class Client:
     """Client of the calibration service.
 
@@ -80,6 +117,9 @@ class Client:
         self.close()
 
     def _call(self, method: str, path: str, **kwargs: Any) -> Any:
+        return self._request(method, path, **kwargs).json()
+
+    def _request(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
         response = self.http.request(method, path, **kwargs)
         if response.status_code >= 400:
             try:
@@ -92,7 +132,7 @@ class Client:
                 body.get("detail", ""),
                 body.get("errors"),
             )
-        return response.json()
+        return response
 
     def calibrate(self, spec: SpecLike, wait: bool = False, progress: bool = True) -> dict:
         """Submit a calibration; with ``wait`` return it once finished (see :meth:`wait`).

@@ -1,4 +1,5 @@
-"""`fpmcal`: the numerical core from the command line (simulate, fem, calibrate, up).
+"""`fpmcal`: the numerical core from the command line (simulate, fem, calibrate, spec from-mesh,
+up).
 
 Errors are one line each on stderr, never a traceback (see :func:`main` for exit statuses);
 notes on the spec (e.g. which node a ``nearest`` selector took) and warnings (e.g. a reference
@@ -36,13 +37,25 @@ def _read_spec(path: str) -> Any:
     except IsADirectoryError:
         raise SpecFileError(f"SPEC {path} is a directory: give a JSON problem spec file") from None
     except UnicodeDecodeError:
-        raise SpecFileError(not_json + "not UTF-8 text)") from None
+        raise SpecFileError(not_json + "not UTF-8 text)" + _mesh_hint(path)) from None
     except OSError as e:
         raise SpecFileError(f"cannot read SPEC {path}: {e.strerror}") from None
     try:
         return json.loads(text)
     except json.JSONDecodeError as e:
-        raise SpecFileError(not_json + f"{e})") from None
+        raise SpecFileError(not_json + f"{e})" + _mesh_hint(path)) from None
+
+
+def _mesh_hint(path: str) -> str:
+    """For a mesh file given as SPEC: how to make a spec of it."""
+    from .meshes import mesh_suffix
+
+    if mesh_suffix(path) is None:
+        return ""
+    return (
+        f"; {path} looks like a mesh: make a spec of it first with fpmcal spec from-mesh "
+        f"{path} --spacing H --fix face:z- --force 'nearest:X,Y,Z:FX,FY,FZ' --E PA --nu NU"
+    )
 
 
 def _load(path: str) -> Any:
@@ -186,6 +199,39 @@ def cmd_calibrate(args: argparse.Namespace) -> None:
         print(f"wrote {args.plot}", file=sys.stderr)
 
 
+def cmd_spec_from_mesh(args: argparse.Namespace) -> None:
+    from .meshes import spec_from_mesh
+
+    dt: float | str = args.dt if args.dt == "auto" else _positive(args.dt, "--dt")
+    spec, notes = spec_from_mesh(
+        args.spec,
+        fix=args.fix,
+        forces=args.force,
+        youngs_modulus=args.E,
+        poisson_ratio=args.nu,
+        density=args.density,
+        spacing=args.spacing,
+        connectivity=args.connectivity,
+        scale=args.scale,
+        voxelise=args.voxelise,
+        name=args.name,
+        dt=dt,
+    )
+    for note in notes:
+        print(f"note: {note}", file=sys.stderr)
+    _emit(spec, args.output)
+
+
+def _positive(text: str, flag: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value > 0 or value == float("inf"):
+        raise ValueError(f"{flag} must be a number > 0 or 'auto' (got {text!r})")
+    return value
+
+
 def result_table(problem: Any, result: Any) -> str:
     """The calibration result as a readable table (the relative discrepancy beside % of h)."""
     stiffness = getattr(result, "stiffness", None)
@@ -267,6 +313,42 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_calibrate)
+
+    from .meshes import FORCE_HELP, SELECTOR_HELP
+
+    p = sub.add_parser("spec", help="make a problem spec (spec from-mesh FILE ...)")
+    spec_sub = p.add_subparsers(dest="spec_command", required=True)
+    p = spec_sub.add_parser(
+        "from-mesh",
+        help="a spec JSON from a mesh file (Gmsh .msh, VTK .vtu/.vtk, Abaqus .inp, STL, ...)",
+        description="Hexahedral meshes are used as they are; tetrahedral meshes and closed "
+        "triangle surfaces are voxelised at --spacing (a cell is solid when its centre lies "
+        "inside). Lengths in m (see --scale), forces in N, E in Pa.",
+    )
+    p.add_argument("spec", metavar="MESH", help="mesh file")
+    p.add_argument("--spacing", type=float, default=None, help="lattice spacing h, m")
+    p.add_argument(
+        "--fix", action="append", default=[], metavar="SELECTOR",
+        help=f"fixed nodes (repeatable): {SELECTOR_HELP}",
+    )  # fmt: skip
+    p.add_argument(
+        "--force", action="append", default=[], metavar="FORCE",
+        help=f"one load case (repeatable): {FORCE_HELP}",
+    )  # fmt: skip
+    p.add_argument("--E", type=float, required=True, help="Young's modulus, Pa (5 kPa = 5000)")
+    p.add_argument("--nu", type=float, required=True, help="Poisson's ratio")
+    p.add_argument("--density", type=float, default=1000.0, help="kg/m^3 (default 1000)")
+    p.add_argument("--connectivity", choices=["axis", "axis+face", "full"], default="full")
+    p.add_argument("--scale", type=float, default=1.0, help="coordinate factor (0.001: mm)")
+    p.add_argument("--voxelise", action="store_true", help="voxelise a hexahedral mesh too")
+    p.add_argument("--name", default=None, help="the spec's name (default: the file name)")
+    p.add_argument(
+        "--dt", default="auto",
+        help="FPM time step, s, or 'auto' (half the lattice's stability estimate at "
+        "k = 1.05 E h, at most 1 ms)",
+    )  # fmt: skip
+    p.add_argument("-o", "--output", default=None, help="write the spec here instead of stdout")
+    p.set_defaults(func=cmd_spec_from_mesh)
 
     # `up` hands its arguments to service.stack (see main); listed here for --help.
     sub.add_parser("up", help="run the local stack: Redis, API, workers (Ctrl-C stops)")

@@ -55,7 +55,9 @@ def test_not_json_says_so(tmp_path: Path):
     assert run.returncode == 2
     assert run.stderr.splitlines() == [
         "SPEC must be a JSON problem spec (got lobe.vtu, not JSON: Expecting value: line 1 "
-        "column 1 (char 0))"
+        "column 1 (char 0)); lobe.vtu looks like a mesh: make a spec of it first with fpmcal "
+        "spec from-mesh lobe.vtu --spacing H --fix face:z- --force 'nearest:X,Y,Z:FX,FY,FZ' "
+        "--E PA --nu NU"
     ]
 
 

@@ -1,0 +1,585 @@
+"""Mesh files in, problem specs out: real geometry for the calibration.
+
+A mesh is read with meshio (Gmsh ``.msh``, VTK ``.vtu``/``.vtk``, Abaqus ``.inp``, STL, ...) and
+becomes a spec geometry (:mod:`fpm.spec`):
+
+- **hexahedra** (8-node; the corners of 20- and 27-node ones) become a ``mesh`` geometry as they
+  are: meshio hands them over in VTK node order, which is :mod:`fpm.hexahedron`'s; a hexahedron
+  numbered inside out (negative volume) is renumbered, and nodes in no hexahedron are dropped;
+- **tetrahedra** (and wedges and pyramids, split into tetrahedra) and **closed triangle
+  surfaces** (quads split in two) are voxelised into a ``voxels`` lattice at a spacing ``h`` the
+  user chooses: a cell is solid when its centre lies inside the solid. Both inside tests are
+  exact and vectorised over cells (no per-cell Python loop):
+
+  * tetrahedra: barycentric coordinates of the cell centres in each tetrahedron, the candidates
+    found by binning every tetrahedron's bounding box onto the lattice;
+  * surfaces: parity of the crossings of a vertical ray from each cell centre, the triangles
+    binned onto the lattice's columns by their bounding boxes; a ray through an edge or a
+    vertex is decided by simulation of simplicity (the ray origin perturbed by (e, e^2)), with
+    every edge evaluated once from its lower-numbered vertex, so a crossing on an edge shared
+    by two triangles counts exactly once. A surface that does not enclose a volume (an edge
+    that belongs to an odd number of triangles) is refused with a clear message.
+
+The lattice is centred on the mesh's bounding box, ``ceil(extent / h)`` cells per axis, and
+cropped to the solid cells. :func:`spec_from_mesh` adds the material, fixed nodes and load
+cases given as short selector strings (:func:`parse_selector`, :func:`parse_force`) and
+``fpmcal spec from-mesh`` is its command line.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+from dataclasses import dataclass, field
+from fractions import Fraction
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+TOLERANCE = 1e-9
+"""A cell centre within this (relative) barycentric margin of a tetrahedron counts as inside it:
+a centre on a face shared by two tetrahedra is never lost to rounding."""
+CHUNK = 1 << 21
+"""Candidate (element, cell) pairs handled at once (bounds the temporaries)."""
+
+VOLUME_CELLS = {"tetra": 4, "tetra10": 4, "wedge": 6, "wedge15": 6, "pyramid": 5, "pyramid13": 5}
+"""meshio cell types voxelised as volumes, with their corner count (corners come first)."""
+HEXAHEDRA = {"hexahedron": 8, "hexahedron20": 8, "hexahedron24": 8, "hexahedron27": 8}
+SURFACE_CELLS = {"triangle": 3, "triangle6": 3, "triangle7": 3, "quad": 4, "quad8": 4, "quad9": 4}
+
+# Tetrahedra of the volume cells, by local corner index (VTK order).
+_SPLIT = {
+    4: np.array([[0, 1, 2, 3]]),
+    5: np.array([[0, 1, 2, 4], [0, 2, 3, 4]]),
+    6: np.array([[0, 1, 2, 3], [1, 2, 3, 4], [2, 3, 4, 5]]),
+    8: np.array(
+        [[0, 1, 3, 4], [1, 2, 3, 6], [1, 4, 5, 6], [3, 4, 6, 7], [1, 3, 4, 6]]
+    ),  # 5 tetrahedra of a hexahedron
+}
+_MIRROR = np.array([0, 3, 2, 1, 4, 7, 6, 5])
+"""Renumbering that turns an inside-out hexahedron right side out."""
+
+
+class MeshError(ValueError):
+    """A mesh file that cannot become a solid (unreadable, open surface, no cells, ...)."""
+
+
+@dataclass
+class MeshGeometry:
+    """A spec geometry made from a mesh.
+
+    Attributes:
+        geometry: the spec's ``geometry`` (a ``mesh`` or ``voxels`` dict).
+        kind: what the mesh held: ``"hexahedra"``, ``"tetrahedra"`` or ``"surface"``.
+        notes: what the user should know (cells dropped, renumbered, the lattice's size).
+    """
+
+    geometry: dict[str, Any]
+    kind: str
+    notes: list[str] = field(default_factory=list)
+
+
+def mesh_suffix(path: str | Path) -> str | None:
+    """The mesh format suffix of ``path`` meshio knows (``.vtu``, ``.vol.gz``, ...), or None."""
+    import meshio
+
+    name = Path(path).name.lower()
+    known = sorted(meshio.extension_to_filetypes, key=len, reverse=True)
+    return next((s for s in known if name.endswith(s)), None)
+
+
+def read_mesh(path: str | Path) -> Any:
+    """The meshio Mesh in ``path``; :class:`MeshError` with the reason when it cannot be read.
+
+    (meshio prints and exits on a file it cannot parse; that is caught here.)
+    """
+    import meshio
+
+    p = Path(path)
+    if not p.is_file():
+        raise MeshError(f"{p}: no such mesh file")
+    if mesh_suffix(p) is None:
+        raise MeshError(
+            f"{p}: not a mesh format meshio reads by its suffix (known: .msh, .vtu, .vtk, "
+            ".inp, .stl, .obj, .ply, .off, .mesh, .xdmf, ...)"
+        )
+    printed = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed):
+            return meshio.read(p)
+    except (Exception, SystemExit) as e:
+        said = " ".join((printed.getvalue() + " " + str(e)).split()).strip(" 1")
+        raise MeshError(f"{p}: cannot read it as a mesh ({said or type(e).__name__})") from None
+
+
+def geometry_from_mesh(
+    mesh: Any,
+    *,
+    spacing: float | None = None,
+    connectivity: str = "full",
+    scale: float = 1.0,
+    voxelise: bool = False,
+) -> MeshGeometry:
+    """The spec geometry of a meshio ``mesh`` (see the module docstring).
+
+    Args:
+        mesh: a ``meshio.Mesh``.
+        spacing: lattice spacing h, m (after ``scale``); needed unless the mesh is hexahedral.
+        connectivity: the springs (``axis``, ``axis+face``, ``full``).
+        scale: multiplies the coordinates (e.g. 0.001 for a mesh in mm).
+        voxelise: voxelise a hexahedral mesh too (resample it onto a lattice of ``spacing``).
+    """
+    points = np.asarray(mesh.points, dtype=float)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise MeshError(f"the mesh has {points.shape[-1]}-D points: a solid needs 3-D coordinates")
+    if not np.all(np.isfinite(points)):
+        raise MeshError("the mesh has non-finite coordinates")
+    points = points * float(scale)
+    blocks = [(c.type, np.asarray(c.data, dtype=np.int64)) for c in mesh.cells]
+    hexes = [d[:, :8] for t, d in blocks if t in HEXAHEDRA and len(d)]
+    volumes = [(VOLUME_CELLS[t], d[:, : VOLUME_CELLS[t]]) for t, d in blocks if t in VOLUME_CELLS]
+    surfaces = [
+        (SURFACE_CELLS[t], d[:, : SURFACE_CELLS[t]]) for t, d in blocks if t in SURFACE_CELLS
+    ]
+    types = ", ".join(sorted({f"{len(d)} {t}" for t, d in blocks})) or "no cells"
+    if hexes and not voxelise and not any(len(d) for _, d in volumes):
+        return _hexahedral(points, np.concatenate(hexes), connectivity, spacing)
+    if hexes and not voxelise:
+        raise MeshError(
+            f"the mesh mixes hexahedra with other volume cells ({types}): voxelise it "
+            "(--voxelise, with --spacing) or convert it to hexahedra only"
+        )
+    if spacing is None or not spacing > 0:
+        raise MeshError(
+            f"this mesh ({types}) is voxelised into a lattice: give its spacing h > 0 in m "
+            "(--spacing), e.g. a tenth of the solid's smallest extent"
+        )
+    volumes += [(8, h) for h in hexes]
+    if any(len(d) for _, d in volumes):
+        tets = np.concatenate([d[:, _SPLIT[n]].reshape(-1, 4) for n, d in volumes if len(d)])
+        occupancy, origin = voxelise_tetrahedra(points, tets, spacing)
+        kind, what = "tetrahedra", f"{len(tets)} tetrahedra"
+    elif any(len(d) for _, d in surfaces):
+        tris = np.concatenate(
+            [d[:, [[0, 1, 2], [0, 2, 3]][: n - 2]].reshape(-1, 3) for n, d in surfaces if len(d)]
+        )
+        occupancy, origin = voxelise_surface(points, tris, spacing)
+        kind, what = "surface", f"a closed surface of {len(tris)} triangles"
+    else:
+        raise MeshError(
+            f"the mesh has no volume cells and no surface triangles ({types}): give "
+            "hexahedra, tetrahedra or a closed triangle surface"
+        )
+    occupancy, origin = _crop(occupancy, origin, spacing)
+    cells = int(occupancy.sum())
+    notes = [
+        f"voxelised {what} at h = {spacing:.4g} m: {cells} cells of a "
+        f"{'x'.join(map(str, occupancy.shape))} lattice"
+    ]
+    geometry = {
+        "type": "voxels",
+        "occupancy": occupancy.astype(np.uint8).tolist(),
+        "spacing": [spacing] * 3,
+        "origin": origin.tolist(),
+        "connectivity": connectivity,
+    }
+    return MeshGeometry(geometry, kind, notes)
+
+
+def _hexahedral(
+    points: np.ndarray, hexes: np.ndarray, connectivity: str, spacing: float | None
+) -> MeshGeometry:
+    from .geometry import hexahedron_volumes
+
+    notes = []
+    if spacing is not None:
+        notes.append(
+            "the mesh is hexahedral and is used as it is (--spacing ignored; --voxelise "
+            "resamples it onto a lattice)"
+        )
+    if hexes.min() < 0 or hexes.max() >= len(points):
+        raise MeshError("a hexahedron names a node that is not in the mesh")
+    used, inverse = np.unique(hexes, return_inverse=True)
+    hexes = inverse.reshape(-1, 8)
+    nodes = points[used]
+    if len(used) < len(points):
+        notes.append(f"{len(points) - len(used)} nodes in no hexahedron were dropped")
+    volume = hexahedron_volumes(nodes, hexes)
+    inside_out = volume < 0
+    if inside_out.any():
+        hexes[inside_out] = hexes[inside_out][:, _MIRROR]
+        notes.append(
+            f"{int(inside_out.sum())} hexahedra numbered inside out (negative volume) were "
+            "renumbered"
+        )
+    geometry = {
+        "type": "mesh",
+        "nodes": nodes.tolist(),
+        "hexahedra": hexes.tolist(),
+        "connectivity": connectivity,
+    }
+    return MeshGeometry(geometry, "hexahedra", notes)
+
+
+def lattice(lo: np.ndarray, hi: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """(origin, cells per axis) of the lattice of ``spacing`` centred on the box [lo, hi]:
+    ``ceil(extent / h)`` cells per axis (at least 1)."""
+    extent = np.asarray(hi, dtype=float) - np.asarray(lo, dtype=float)
+    cells = np.maximum(1, np.ceil(extent / spacing - 1e-9)).astype(np.int64)
+    origin = (np.asarray(lo) + np.asarray(hi)) / 2 - cells * spacing / 2
+    return origin, cells
+
+
+def cell_centres(origin: np.ndarray, cells: np.ndarray, spacing: float) -> list[np.ndarray]:
+    """Per axis, the coordinates of the lattice's cell centres."""
+    return [origin[a] + spacing * (np.arange(cells[a]) + 0.5) for a in range(3)]
+
+
+def _index_ranges(
+    lo: np.ndarray, hi: np.ndarray, origin: np.ndarray, cells: np.ndarray, spacing: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(E, D) first and last cell index whose centre lies in each element's box [lo, hi]
+    (and perhaps one more on either side)."""
+    d = lo.shape[1]
+    # Widened by a hair: a centre on the box's edge must stay a candidate despite rounding
+    # (the inside tests decide).
+    first = np.ceil((lo - origin[:d]) / spacing - 0.5 - 1e-6).astype(np.int64)
+    last = np.floor((hi - origin[:d]) / spacing - 0.5 + 1e-6).astype(np.int64)
+    return np.maximum(first, 0), np.minimum(last, cells[:d] - 1)
+
+
+def _pairs(first: np.ndarray, last: np.ndarray) -> Any:
+    """Yields (element, (K, D) cell indices) chunks: every cell index in each element's range."""
+    extent = np.maximum(last - first + 1, 0)
+    counts = np.prod(extent, axis=1)
+    ends = np.cumsum(counts)
+    start = 0
+    while start < len(counts):
+        base = ends[start - 1] if start else 0
+        stop = int(np.searchsorted(ends, base + CHUNK, side="right"))
+        stop = max(stop, start + 1)
+        c = counts[start:stop]
+        element = np.repeat(np.arange(start, stop), c)
+        local = np.arange(int(c.sum())) - np.repeat(np.cumsum(c) - c, c)
+        ext = extent[element]
+        index = np.empty((len(element), first.shape[1]), dtype=np.int64)
+        for a in range(first.shape[1]):
+            index[:, a] = first[element, a] + local % ext[:, a]
+            local = local // ext[:, a]
+        yield element, index
+        start = stop
+
+
+def voxelise_tetrahedra(
+    points: np.ndarray, tets: np.ndarray, spacing: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(cx, cy, cz) bool occupancy and the lattice origin: cells whose centre lies in a
+    tetrahedron (barycentric coordinates all >= -:data:`TOLERANCE`)."""
+    tets = np.asarray(tets, dtype=np.int64)
+    if tets.min() < 0 or tets.max() >= len(points):
+        raise MeshError("a cell names a node that is not in the mesh")
+    used = points[np.unique(tets)]
+    origin, cells = lattice(used.min(axis=0), used.max(axis=0), spacing)
+    v = points[tets]  # (T, 4, 3)
+    edges = np.transpose(v[:, 1:] - v[:, :1], (0, 2, 1))  # (T, 3, 3): columns b-a, c-a, d-a
+    det = np.linalg.det(edges)
+    size = np.abs(edges).max(axis=(1, 2))
+    keep = np.abs(det) > 1e-12 * size**3  # flat tetrahedra hold no cell centre
+    v, edges = v[keep], edges[keep]
+    inverse = np.linalg.inv(edges)
+    occupancy = np.zeros(cells, dtype=bool)
+    if not len(v):
+        return occupancy, origin
+    first, last = _index_ranges(v.min(axis=1), v.max(axis=1), origin, cells, spacing)
+    for element, index in _pairs(first, last):
+        centre = origin + spacing * (index + 0.5)
+        lam = np.einsum("kij,kj->ki", inverse[element], centre - v[element, 0])
+        inside = (lam.min(axis=1) >= -TOLERANCE) & (lam.sum(axis=1) <= 1 + TOLERANCE)
+        hit = index[inside]
+        occupancy[hit[:, 0], hit[:, 1], hit[:, 2]] = True
+    return occupancy, origin
+
+
+def open_edges(triangles: np.ndarray) -> np.ndarray:
+    """(E, 2) edges (sorted node pairs) that belong to an odd number of ``triangles``: empty
+    for a surface that encloses a volume."""
+    edges = np.sort(triangles[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    return unique[counts % 2 == 1]
+
+
+def voxelise_surface(
+    points: np.ndarray, triangles: np.ndarray, spacing: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(cx, cy, cz) bool occupancy and the lattice origin: cells whose centre a closed triangle
+    surface encloses (odd number of crossings of a vertical ray below the centre).
+
+    Raises:
+        MeshError: the surface is open (an edge belongs to an odd number of triangles).
+    """
+    triangles = np.asarray(triangles, dtype=np.int64)
+    if triangles.min() < 0 or triangles.max() >= len(points):
+        raise MeshError("a cell names a node that is not in the mesh")
+    # The same point given twice (STL repeats them per triangle) is one vertex.
+    unique, inverse = np.unique(points, axis=0, return_inverse=True)
+    triangles = inverse.reshape(-1)[triangles]
+    triangles = triangles[
+        (triangles[:, 0] != triangles[:, 1])
+        & (triangles[:, 1] != triangles[:, 2])
+        & (triangles[:, 0] != triangles[:, 2])
+    ]
+    if not len(triangles):
+        raise MeshError("the surface has no triangle with three distinct corners")
+    loose = open_edges(triangles)
+    if len(loose):
+        a, b = unique[loose[0, 0]], unique[loose[0, 1]]
+        raise MeshError(
+            f"the surface is not closed: {len(loose)} of its edges belong to an odd number of "
+            f"triangles (one runs from {_fmt(a)} to {_fmt(b)}), so it encloses no volume to "
+            "voxelise: close its holes, or give a tetrahedral mesh of the solid"
+        )
+    used = unique[np.unique(triangles)]
+    origin, cells = lattice(used.min(axis=0), used.max(axis=0), spacing)
+    v = unique[triangles]  # (T, 3, 3)
+    # Each edge evaluated from its lower-numbered vertex: bitwise the same for both triangles.
+    ends = np.stack([triangles, np.roll(triangles, -1, axis=1)], axis=2)  # (T, 3, 2): a -> b
+    flip = ends[:, :, 0] > ends[:, :, 1]
+    low = np.where(flip, ends[:, :, 1], ends[:, :, 0])
+    high = np.where(flip, ends[:, :, 0], ends[:, :, 1])
+    ex = unique[high, 0] - unique[low, 0]
+    ey = unique[high, 1] - unique[low, 1]
+    area2 = (v[:, 1, 0] - v[:, 0, 0]) * (v[:, 2, 1] - v[:, 0, 1]) - (v[:, 1, 1] - v[:, 0, 1]) * (
+        v[:, 2, 0] - v[:, 0, 0]
+    )
+    keep = area2 != 0  # a triangle seen edge-on from below is crossed by no (perturbed) ray
+    toggles = np.zeros((cells[0], cells[1], cells[2] + 1), dtype=np.int64)
+    tri = np.flatnonzero(keep)
+    first, last = _index_ranges(
+        v[tri, :, :2].min(axis=1), v[tri, :, :2].max(axis=1), origin, cells, spacing
+    )
+    for element, index in _pairs(first, last):
+        t = tri[element]
+        px = (origin[0] + spacing * (index[:, 0] + 0.5))[:, None]
+        py = (origin[1] + spacing * (index[:, 1] + 0.5))[:, None]
+        lx, ly = unique[low[t], 0], unique[low[t], 1]
+        hx, hy = unique[high[t], 0], unique[high[t], 1]
+        w = ex[t] * (py - ly) - ey[t] * (px - lx)  # (K, 3) canonical edge functions
+        sign = _orientation(
+            lx, ly, hx, hy, np.broadcast_to(px, w.shape), np.broadcast_to(py, w.shape), w
+        )
+        tie = np.where(ey[t] != 0, -np.sign(ey[t]), np.sign(ex[t]))  # sign of w at (e, e^2)
+        sign = np.where(sign != 0, sign, tie)
+        sign = np.where(flip[t], -sign, sign)  # the triangle's own edge direction
+        inside = (sign == sign[:, :1]).all(axis=1)
+        if not inside.any():
+            continue
+        t, index, w = t[inside], index[inside], np.where(flip[t[inside]], -1, 1) * w[inside]
+        # Barycentric weight of each corner: the edge function of the opposite edge.
+        weight = w[:, [1, 2, 0]] / area2[t][:, None]
+        z = (weight * v[t, :, 2]).sum(axis=1)
+        above = np.ceil((z - origin[2]) / spacing - 0.5).astype(np.int64)
+        np.add.at(toggles, (index[:, 0], index[:, 1], np.clip(above, 0, cells[2])), 1)
+    occupancy = np.cumsum(toggles, axis=2)[:, :, : cells[2]] % 2 == 1
+    return occupancy, origin
+
+
+ORIENT_BOUND = (3.0 + 16.0 * 2.0**-53) * 2.0**-53
+"""Shewchuk's error bound for the floating-point 2-D orientation (``ccwerrboundA``): a value
+smaller than this times the sum of the products' magnitudes may have the wrong sign."""
+
+
+def _orientation(
+    lx: np.ndarray,
+    ly: np.ndarray,
+    hx: np.ndarray,
+    hy: np.ndarray,
+    px: np.ndarray,
+    py: np.ndarray,
+    w: np.ndarray,
+) -> np.ndarray:
+    """The exact sign of ``(hx - lx)(py - ly) - (hy - ly)(px - lx)``, whose rounded value is
+    ``w``: the rounded sign where the error bound certifies it, else exact rational arithmetic
+    (a ray passing within rounding of an edge's line: rare, except on meshes aligned with the
+    lattice)."""
+    sign = np.sign(w)
+    bound = ORIENT_BOUND * (np.abs((hx - lx) * (py - ly)) + np.abs((hy - ly) * (px - lx)))
+    for k in zip(*np.nonzero(np.abs(w) <= bound), strict=True):
+        f = [Fraction(float(a[k])) for a in (lx, ly, hx, hy, px, py)]
+        exact = (f[2] - f[0]) * (f[5] - f[1]) - (f[3] - f[1]) * (f[4] - f[0])
+        sign[k] = (exact > 0) - (exact < 0)
+    return sign
+
+
+def _crop(occupancy: np.ndarray, origin: np.ndarray, spacing: float) -> tuple[np.ndarray, Any]:
+    """The occupancy cropped to its solid cells, and the origin moved with it."""
+    if not occupancy.any():
+        raise MeshError(
+            f"no cell centre lies inside the solid at h = {spacing:.4g} m: the spacing is too "
+            "coarse for it (or the mesh is in other units: see --scale)"
+        )
+    lo = [int(np.flatnonzero(occupancy.any(axis=tuple(b for b in range(3) if b != a)))[0])
+          for a in range(3)]  # fmt: skip
+    hi = [int(np.flatnonzero(occupancy.any(axis=tuple(b for b in range(3) if b != a)))[-1])
+          for a in range(3)]  # fmt: skip
+    cropped = occupancy[lo[0] : hi[0] + 1, lo[1] : hi[1] + 1, lo[2] : hi[2] + 1]
+    return cropped, origin + spacing * np.asarray(lo)
+
+
+def _fmt(v: Any) -> str:
+    return "[" + ", ".join(f"{float(x):.4g}" for x in v) + "]"
+
+
+# ---------------------------------------------------------------- selectors as short strings
+
+SELECTOR_HELP = "face:z- | node:I | at:X,Y,Z | nearest:X,Y,Z | box:X0,Y0,Z0:X1,Y1,Z1 (lengths in m)"
+FORCE_HELP = (
+    "SELECTOR:FX,FY,FZ[:distribute] (N; e.g. nearest:0,0,0.05:0,0,-0.5 or "
+    "face:z+:0,0,-2:distribute); several forces of one load case separated by ';'"
+)
+
+
+def _vector(text: str, what: str) -> list[float]:
+    parts = text.split(",")
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise ValueError(f"{what} must be three numbers x,y,z (got {text!r})")
+    return values
+
+
+def _selector(parts: list[str], text: str) -> tuple[dict[str, Any], list[str]]:
+    """The selector at the start of ``parts`` and the parts left over."""
+    kind = parts[0].strip().lower()
+    if kind == "face":
+        if len(parts) < 2 or parts[1].strip() not in ("x-", "x+", "y-", "y+", "z-", "z+"):
+            raise ValueError(f"{text!r}: a face is one of x-, x+, y-, y+, z-, z+ (e.g. face:z-)")
+        return {"face": parts[1].strip()}, parts[2:]
+    if kind == "node":
+        try:
+            node = int(parts[1])
+        except (IndexError, ValueError):
+            raise ValueError(f"{text!r}: give a node index, e.g. node:12") from None
+        return {"node": node}, parts[2:]
+    if kind in ("at", "nearest"):
+        if len(parts) < 2:
+            raise ValueError(f"{text!r}: give a point, e.g. {kind}:0.05,0.05,0.1")
+        return {kind: _vector(parts[1], f"{text!r}: the point")}, parts[2:]
+    if kind == "box":
+        if len(parts) < 3:
+            raise ValueError(f"{text!r}: give two corners, e.g. box:0,0,0:0.1,0.1,0.01")
+        lo = _vector(parts[1], f"{text!r}: the low corner")
+        hi = _vector(parts[2], f"{text!r}: the high corner")
+        return {"box": [lo, hi]}, parts[3:]
+    raise ValueError(f"{text!r}: a selector is {SELECTOR_HELP}")
+
+
+def parse_selector(text: str) -> dict[str, Any]:
+    """A spec selector from its short form: ``face:z-``, ``node:12``, ``at:x,y,z``,
+    ``nearest:x,y,z`` or ``box:x0,y0,z0:x1,y1,z1``."""
+    selector, rest = _selector(text.split(":"), text)
+    if rest:
+        raise ValueError(f"{text!r}: unexpected {':'.join(rest)!r} after the selector")
+    return selector
+
+
+def parse_force(text: str) -> list[dict[str, Any]]:
+    """The forces of one load case from their short form, ``SELECTOR:FX,FY,FZ[:distribute]``,
+    several separated by ``;``."""
+    forces = []
+    for one in text.split(";"):
+        one = one.strip()
+        if not one:
+            continue
+        selector, rest = _selector(one.split(":"), one)
+        if not rest:
+            raise ValueError(f"{one!r}: give the force after the selector, e.g. {one}:0,0,-1")
+        force = {**selector, "vector": _vector(rest[0], f"{one!r}: the force")}
+        flags = [r.strip().lower() for r in rest[1:]]
+        if flags and flags != ["distribute"]:
+            raise ValueError(f"{one!r}: after the force only ':distribute' may follow")
+        if flags:
+            force["distribute"] = True
+        forces.append(force)
+    if not forces:
+        raise ValueError(f"{text!r}: no force given ({FORCE_HELP})")
+    return forces
+
+
+DT_RULE_K = 3 * 0.35
+"""``dt="auto"``: half the stability estimate at k = this * E h (3x the k ~ 0.35 E h fitted on
+voxelised solids; bench/bench_calibration.py's rule), at most 1 ms."""
+
+
+def spec_from_mesh(
+    mesh: Any,
+    *,
+    fix: list[str],
+    forces: list[str],
+    youngs_modulus: float,
+    poisson_ratio: float,
+    density: float = 1000.0,
+    spacing: float | None = None,
+    connectivity: str = "full",
+    scale: float = 1.0,
+    voxelise: bool = False,
+    name: str | None = None,
+    dt: float | str = "auto",
+) -> tuple[dict[str, Any], list[str]]:
+    """A problem spec for a mesh file (or a ``meshio.Mesh``), and notes for the user.
+
+    Args:
+        mesh: a path meshio reads, or a ``meshio.Mesh``.
+        fix: fixed nodes, each a short selector (:func:`parse_selector`), e.g. ``"face:z-"``.
+        forces: one string per load case (:func:`parse_force`), e.g.
+            ``"nearest:0,0,0.05:0,0,-0.5"``.
+        youngs_modulus, poisson_ratio, density: the material (Pa, -, kg/m^3).
+        spacing, connectivity, scale, voxelise: as :func:`geometry_from_mesh`.
+        name: the spec's name (default: the file's name).
+        dt: the FPM time step, s, or ``"auto"`` (:data:`DT_RULE_K`).
+
+    Raises:
+        MeshError: the mesh cannot become a solid. ValueError: a bad selector or force.
+        pydantic.ValidationError: the spec does not fit its solid (e.g. a box with no node).
+    """
+    from .problem import load_problem
+
+    if isinstance(mesh, str | Path):
+        name = name or Path(mesh).name
+        mesh = read_mesh(mesh)
+    made = geometry_from_mesh(
+        mesh, spacing=spacing, connectivity=connectivity, scale=scale, voxelise=voxelise
+    )
+    if not fix:
+        raise ValueError(f"give the fixed nodes (--fix {SELECTOR_HELP})")
+    if not forces:
+        raise ValueError(f"give at least one load case (--force {FORCE_HELP})")
+    spec: dict[str, Any] = {
+        "name": name or "mesh",
+        "material": {
+            "youngs_modulus": youngs_modulus,
+            "poisson_ratio": poisson_ratio,
+            "density": density,
+        },
+        "geometry": made.geometry,
+        "fixed": [parse_selector(s) for s in fix],
+        "load_cases": [{"name": text.strip(), "forces": parse_force(text)} for text in forces],
+    }
+    problem = load_problem(spec)  # selectors checked against the nodes
+    notes = made.notes + [f"{problem.n_nodes} nodes, h = {problem.h:.4g} m"] + problem.notes
+    if dt == "auto":
+        from .diagnosis import stable_time_step
+
+        k = DT_RULE_K * youngs_modulus * problem.h
+        step = min(1e-3, 0.5 * stable_time_step(problem, k))
+        spec["fpm"] = {"dt": float(f"{step:.2g}")}
+        notes.append(
+            f"fpm.dt = {spec['fpm']['dt']:.2g} s: half the lattice's stability estimate at "
+            f"k = {DT_RULE_K:g} E h (at most 1 ms)"
+        )
+    else:
+        spec["fpm"] = {"dt": float(dt)}
+    return spec, notes

@@ -1,0 +1,313 @@
+"""Mesh import (fpm/meshes.py): hexahedral meshes as they are, tetrahedra and closed surfaces
+voxelised with exact inside tests, open surfaces refused, and `fpmcal spec from-mesh`."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import meshio
+import numpy as np
+import pytest
+from scipy.spatial import ConvexHull, Delaunay
+
+import fpm
+from client import spec_from_mesh as sdk_spec_from_mesh
+from fpm.cli import main
+from fpm.geometry import voxel_mesh
+from fpm.meshes import (
+    MeshError,
+    geometry_from_mesh,
+    lattice,
+    parse_force,
+    parse_selector,
+    read_mesh,
+    spec_from_mesh,
+    voxelise_surface,
+    voxelise_tetrahedra,
+)
+from fpm.spec import VoxelGeometry
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL: dict[str, Any] = json.loads((ROOT / "examples" / "small-box.json").read_text())
+MATERIAL = {"youngs_modulus": 1e4, "poisson_ratio": 0.45, "density": 1040.0}
+
+
+def small_box_mesh() -> meshio.Mesh:
+    """examples/small-box.json's hexahedra as a meshio mesh (VTK node order)."""
+    problem = fpm.load_problem(SMALL)
+    return meshio.Mesh(problem.nodes, [("hexahedron", problem.solid.elements())])
+
+
+def kuhn_box(lo: Any, hi: Any, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points, tetrahedra (6 per cell, Kuhn) and boundary triangles of a box of n^3 cells."""
+    axes = [np.linspace(lo[a], hi[a], n + 1) for a in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    index = np.arange(len(grid)).reshape(n + 1, n + 1, n + 1)
+
+    def corner(i: int, j: int, k: int) -> np.ndarray:
+        return index[i : n + i, j : n + j, k : n + k].ravel()
+
+    c = [corner(*o) for o in [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0),
+                              (0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)]]  # fmt: skip
+    kuhn = [(0, 1, 2, 6), (0, 2, 3, 6), (0, 3, 7, 6), (0, 7, 4, 6), (0, 4, 5, 6), (0, 5, 1, 6)]
+    tets = np.concatenate([np.stack([c[a], c[b], c[e], c[f]], axis=1) for a, b, e, f in kuhn])
+    faces = np.sort(tets[:, [[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]]].reshape(-1, 3), axis=1)
+    unique, count = np.unique(faces, axis=0, return_counts=True)
+    return grid, tets, unique[count == 1]
+
+
+def ball(r: float, surface: int, interior: int, seed: int = 0) -> np.ndarray:
+    """Points on a sphere of radius r and inside it (a Delaunay mesh of them fills their
+    convex hull: a polyhedron inscribed in the sphere)."""
+    rng = np.random.default_rng(seed)
+    u = rng.normal(size=(surface, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    inner = rng.uniform(-1, 1, size=(interior, 3))
+    inner = inner[np.linalg.norm(inner, axis=1) < 0.97]
+    return np.vstack([u, inner]) * r
+
+
+def centres(points: np.ndarray, h: float) -> np.ndarray:
+    """(cx, cy, cz, 3) cell centres of the lattice the voxelisers build for ``points``."""
+    origin, cells = lattice(points.min(axis=0), points.max(axis=0), h)
+    axes = [origin[a] + h * (np.arange(cells[a]) + 0.5) for a in range(3)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+
+
+# ------------------------------------------------------------------ hexahedral meshes
+
+
+@pytest.mark.parametrize("suffix", [".vtu", ".msh", ".inp", ".vtk"])
+def test_a_hexahedral_mesh_round_trips_to_the_same_lattice_and_fem(tmp_path: Path, suffix: str):
+    path = tmp_path / f"box{suffix}"
+    meshio.write(path, small_box_mesh())
+    spec, _ = spec_from_mesh(
+        path, fix=["face:z-"], forces=["at:0.01,0.01,0.03:0,0,0.05"], **MATERIAL, dt=1e-3
+    )
+    assert spec["geometry"]["type"] == "mesh"
+    built = fpm.load_problem(SMALL)
+    read = fpm.load_problem(spec)
+    np.testing.assert_allclose(read.nodes, built.nodes, atol=1e-12)
+    np.testing.assert_array_equal(read.solid.elements(), built.solid.elements())
+    np.testing.assert_array_equal(read.solid.springs, np.unique(built.solid.springs, axis=0))
+    np.testing.assert_allclose(read.solid.masses, built.solid.masses, rtol=1e-12)
+    np.testing.assert_array_equal(read.fixed, built.fixed)
+    fem_read = fpm.solve_fem(read).displacements
+    fem_built = fpm.solve_fem(built).displacements[:1]
+    np.testing.assert_allclose(fem_read, fem_built, rtol=1e-9, atol=1e-15)
+
+
+def test_an_inside_out_hexahedron_is_renumbered_and_unused_nodes_dropped():
+    mesh = small_box_mesh()
+    hexes = mesh.cells[0].data.copy()
+    hexes[0] = hexes[0][[4, 5, 6, 7, 0, 1, 2, 3]]  # upside down: negative volume
+    points = np.vstack([mesh.points, [[9.0, 9.0, 9.0]]])  # a node in no hexahedron
+    made = geometry_from_mesh(meshio.Mesh(points, [("hexahedron", hexes)]))
+    assert len(made.geometry["nodes"]) == len(mesh.points)
+    assert any("renumbered" in n for n in made.notes) and any("dropped" in n for n in made.notes)
+    from fpm.geometry import hexahedron_volumes
+
+    volumes = hexahedron_volumes(
+        np.asarray(made.geometry["nodes"]), np.asarray(made.geometry["hexahedra"])
+    )
+    assert (volumes > 0).all()
+
+
+# ------------------------------------------------------------------ voxelising
+
+
+@pytest.mark.parametrize("rotated", [False, True], ids=["aligned", "rotated"])
+@pytest.mark.parametrize(
+    ("hi", "n", "h"),
+    [((0.95, 0.95, 0.95), 18, 0.1), ((1.0, 0.7, 0.45), 7, 0.1), ((0.9, 0.5, 0.3), 5, 0.07)],
+    ids=["vertices-on-rays", "odd-box", "coarse"],
+)
+def test_a_tetrahedralised_box_voxelises_to_the_analytic_cells(rotated: bool, hi, n, h):
+    """Tetrahedra and the boundary triangles of the same box give exactly the cells whose centre
+    the box holds, also when rays run through the triangulation's vertices and edges (the
+    first case: a vertex every h/2, cell centres on them)."""
+    lo = np.array([0.05, 0.05, 0.05])
+    points, tets, triangles = kuhn_box(lo, np.asarray(hi), n)
+    rotation = np.eye(3)
+    if rotated:
+        rotation = np.linalg.qr(np.random.default_rng(1).normal(size=(3, 3)))[0]
+    moved = points @ rotation.T
+    in_box = centres(moved, h) @ rotation  # back in the box's frame
+    analytic = np.all((in_box > lo) & (in_box < np.asarray(hi)), axis=-1)
+    from_tets, _ = voxelise_tetrahedra(moved, tets, h)
+    from_surface, _ = voxelise_surface(moved, triangles, h)
+    assert analytic.any()
+    np.testing.assert_array_equal(from_tets, analytic)
+    np.testing.assert_array_equal(from_surface, analytic)
+
+
+def test_a_sphere_from_tetrahedra_and_from_its_surface():
+    """h = r/10: the same cells from the tetrahedra and from their boundary (both exact tests of
+    one polyhedron), the analytic sphere's cells wherever the polyhedron and the sphere agree,
+    and a volume within 3% of 4/3 pi r^3."""
+    r = 0.05
+    h = r / 10
+    points = ball(r, 1500, 4000)
+    tets = Delaunay(points).simplices
+    hull = ConvexHull(points).simplices
+    from_tets, _ = voxelise_tetrahedra(points, tets, h)
+    from_surface, _ = voxelise_surface(points, hull, h)
+    np.testing.assert_array_equal(from_tets, from_surface)
+
+    distance = np.linalg.norm(centres(points, h), axis=-1)
+    analytic = distance < r
+    # The inscribed polyhedron lies between the sphere and a sphere a little inside it.
+    normals = np.cross(
+        points[hull[:, 1]] - points[hull[:, 0]], points[hull[:, 2]] - points[hull[:, 0]]
+    )
+    inradius = np.min(np.abs(np.einsum("ij,ij->i", normals, points[hull[:, 0]]))
+                      / np.linalg.norm(normals, axis=1))  # fmt: skip
+    sure = (distance < inradius) | (distance > r)
+    np.testing.assert_array_equal(from_tets[sure], analytic[sure])
+    assert (~sure).sum() < 0.1 * analytic.sum()
+
+    exact = 4 / 3 * np.pi * r**3
+    for occupancy in (from_tets, from_surface):
+        assert abs(occupancy.sum() * h**3 / exact - 1) < 0.03
+
+
+def test_an_open_surface_is_refused_with_a_clear_message(tmp_path: Path):
+    points = ball(0.05, 400, 0)
+    hull = ConvexHull(points).simplices
+    path = tmp_path / "cup.stl"
+    meshio.write(path, meshio.Mesh(points, [("triangle", hull[1:])]), binary=True)  # one missing
+    with pytest.raises(MeshError, match=r"the surface is not closed: 3 of its edges belong to"):
+        spec_from_mesh(path, spacing=0.005, fix=["face:z-"], forces=["face:z+:0,0,-1"], **MATERIAL)
+    assert main(["spec", "from-mesh", str(path), "--spacing", "0.005", "--fix", "face:z-",
+                 "--force", "face:z+:0,0,-1", "--E", "5000", "--nu", "0.45"]) == 2  # fmt: skip
+
+
+def test_a_closed_stl_surface_voxelises(tmp_path: Path):
+    """An STL repeats every vertex per triangle: the points are merged before the parity test."""
+    r = 0.04
+    points = ball(r, 600, 0, seed=2)
+    hull = ConvexHull(points).simplices
+    path = tmp_path / "ball.stl"
+    soup = [("triangle", np.arange(3 * len(hull)).reshape(-1, 3))]
+    meshio.write(path, meshio.Mesh(points[hull].reshape(-1, 3), soup), binary=True)
+    made = geometry_from_mesh(read_mesh(path), spacing=r / 8)
+    assert made.kind == "surface"
+    cells = np.asarray(made.geometry["occupancy"]).sum()
+    assert abs(cells * (r / 8) ** 3 / (4 / 3 * np.pi * r**3) - 1) < 0.06
+
+
+def test_fifty_thousand_tetrahedra_to_twenty_thousand_nodes_under_ten_seconds():
+    r = 0.05
+    points = ball(r, 3000, 14000)
+    tets = Delaunay(points).simplices
+    assert len(tets) >= 50_000
+    t0 = time.perf_counter()
+    made = geometry_from_mesh(meshio.Mesh(points, [("tetra", tets)]), spacing=r / 17)
+    seconds = time.perf_counter() - t0
+    nodes, _ = voxel_mesh(VoxelGeometry(**made.geometry))
+    assert 17_000 < len(nodes) < 24_000
+    assert seconds < 10, seconds
+
+
+def test_mesh_errors_say_what_to_do(tmp_path: Path):
+    tets = meshio.Mesh(ball(0.05, 100, 100), [("tetra", Delaunay(ball(0.05, 100, 100)).simplices)])
+    with pytest.raises(MeshError, match="give its spacing h > 0 in m"):
+        geometry_from_mesh(tets)
+    sliver = meshio.Mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 0.01]]),
+                         [("tetra", np.array([[0, 1, 2, 3]]))])  # fmt: skip
+    with pytest.raises(MeshError, match="no cell centre lies inside the solid"):
+        geometry_from_mesh(sliver, spacing=10.0)
+    lines = meshio.Mesh(np.eye(3), [("line", np.array([[0, 1], [1, 2]]))])
+    with pytest.raises(MeshError, match="no volume cells and no surface triangles"):
+        geometry_from_mesh(lines, spacing=0.1)
+    (tmp_path / "broken.vtu").write_text("<VTKFile>")
+    with pytest.raises(MeshError, match="cannot read it as a mesh"):
+        read_mesh(tmp_path / "broken.vtu")
+    (tmp_path / "notes.txt").write_text("hello")
+    with pytest.raises(MeshError, match="not a mesh format"):
+        read_mesh(tmp_path / "notes.txt")
+
+
+# ------------------------------------------------------------------ selectors and the command
+
+
+def test_selectors_and_forces_in_short_form():
+    assert parse_selector("face:z-") == {"face": "z-"}
+    assert parse_selector("node:12") == {"node": 12}
+    assert parse_selector("nearest:0,0,0.05") == {"nearest": [0.0, 0.0, 0.05]}
+    assert parse_selector("box:0,0,0:1,1,0.01") == {"box": [[0, 0, 0], [1, 1, 0.01]]}
+    assert parse_force("face:z+:0,0,-2:distribute") == [
+        {"face": "z+", "vector": [0, 0, -2], "distribute": True}
+    ]
+    assert parse_force("at:0,0,1e-2:1,0,0; node:3:0,0,-1") == [
+        {"at": [0, 0, 0.01], "vector": [1, 0, 0]},
+        {"node": 3, "vector": [0, 0, -1]},
+    ]
+    for bad, reason in [
+        ("face:z", "a face is one of"),
+        ("sphere:0,0,0", "a selector is"),
+        ("nearest:0,0", "three numbers"),
+        ("box:0,0,0", "two corners"),
+    ]:
+        with pytest.raises(ValueError, match=reason):
+            parse_selector(bad)
+    with pytest.raises(ValueError, match="give the force after the selector"):
+        parse_force("face:z+")
+    with pytest.raises(ValueError, match="only ':distribute' may follow"):
+        parse_force("face:z+:0,0,1:spread")
+
+
+def test_spec_from_mesh_command_line_and_sdk_agree(tmp_path: Path, capsys):
+    points = ball(0.03, 300, 600)
+    path = tmp_path / "lobe.vtu"
+    meshio.write(path, meshio.Mesh(points, [("tetra", Delaunay(points).simplices)]))
+    out = tmp_path / "lobe.json"
+    argv = ["spec", "from-mesh", str(path), "--spacing", "0.006", "--fix", "box:-1,-1,-1:1,1,-0.02",
+            "--force", "nearest:0,0,0.03:0,0,-0.01", "--force", "face:z+:0.01,0,0:distribute",
+            "--E", "5000", "--nu", "0.45", "--density", "1040", "-o", str(out)]  # fmt: skip
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert "voxelised" in err and "fpm.dt =" in err and "nearest: node" in err
+    spec = json.loads(out.read_text())
+    problem = fpm.load_problem(spec)
+    assert spec["geometry"]["type"] == "voxels" and problem.fixed.any()
+    assert [c.name for c in problem.load_cases] == [
+        "nearest:0,0,0.03:0,0,-0.01",
+        "face:z+:0.01,0,0:distribute",
+    ]
+    np.testing.assert_allclose(problem.load_cases[1].forces.sum(axis=0), [0.01, 0, 0])
+    assert 0 < spec["fpm"]["dt"] <= 1e-3
+    sdk = sdk_spec_from_mesh(
+        path,
+        spacing=0.006,
+        fix=["box:-1,-1,-1:1,1,-0.02"],
+        forces=["nearest:0,0,0.03:0,0,-0.01", "face:z+:0.01,0,0:distribute"],
+        youngs_modulus=5000,
+        poisson_ratio=0.45,
+        density=1040,
+    )
+    assert sdk == spec
+
+
+def test_a_mesh_given_as_spec_points_at_from_mesh(tmp_path: Path, capsys):
+    meshio.write(tmp_path / "lobe.vtu", small_box_mesh())
+    assert main(["calibrate", str(tmp_path / "lobe.vtu")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1
+    assert err.startswith(
+        f"SPEC must be a JSON problem spec (got {tmp_path / 'lobe.vtu'}, not JSON"
+    )
+    assert "looks like a mesh: make a spec of it first with fpmcal spec from-mesh" in err
+
+
+def test_a_bad_selector_is_one_line(tmp_path: Path, capsys):
+    meshio.write(tmp_path / "box.vtu", small_box_mesh())
+    argv = ["spec", "from-mesh", str(tmp_path / "box.vtu"), "--fix", "face:q",
+            "--force", "face:z+:0,0,1", "--E", "1e4", "--nu", "0.3"]  # fmt: skip
+    assert main(argv) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        "error: 'face:q': a face is one of x-, x+, y-, y+, z-, z+ (e.g. face:z-)"
+    ]
