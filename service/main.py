@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from fastapi import Depends, FastAPI
 
-from . import errors
+from . import errors, web
 from .deps import require_api_key
 from .limits import BodySizeLimit
 from .routers import calibrations, fem_references, health, parameter_sets
@@ -31,6 +31,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     documented = errors.problem_responses(401, 404, 413, 422, 503)
     for module in (calibrations, fem_references, parameter_sets, health):
         app.include_router(module.router, dependencies=protected, responses=documented)
+    web.install(app, documented)  # the web view at /, its assets, the profile plot's JSON
     errors.install(app)
     app.add_middleware(BodySizeLimit, max_bytes=(settings or get_settings()).max_body_bytes)
     return app
