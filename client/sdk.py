@@ -208,6 +208,25 @@ class Client:
         """One stored parameter set."""
         return self._call("GET", f"/v1/parameter-sets/{parameter_set_id}")
 
+    def export(
+        self, parameter_set_id: str, format: str = "json", path: str | Path | None = None
+    ) -> Any:
+        """A stored parameter set with its lattice, for other engines.
+
+        ``format``: ``json`` (returned as a dict: nodes, springs ``[i, j, rest length,
+        stiffness]``, masses, fixed nodes, d, dt, depth, perturbed layers per load case, units),
+        ``vtu`` (ParaView: FPM and FEM displacements and their error per load case) or
+        ``sofa`` (a SOFA scene), both returned as text. With ``path`` the answer is written
+        there and the path returned.
+        """
+        response = self._request(
+            "GET", f"/v1/parameter-sets/{parameter_set_id}/export", params={"format": format}
+        )
+        if path is not None:
+            Path(path).write_bytes(response.content)
+            return Path(path)
+        return response.json() if format == "json" else response.text
+
     def fem_reference(
         self, spec: SpecLike, *, poll: float = 0.5, timeout: float | None = None
     ) -> dict:

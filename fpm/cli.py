@@ -1,5 +1,5 @@
 """`fpmcal`: the numerical core from the command line (simulate, fem, calibrate, spec from-mesh,
-up).
+export, up).
 
 Errors are one line each on stderr, never a traceback (see :func:`main` for exit statuses);
 notes on the spec (e.g. which node a ``nearest`` selector took) and warnings (e.g. a reference
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -22,6 +23,10 @@ MAX_FIELD_ERRORS = 20
 
 class SpecFileError(Exception):
     """The SPEC argument is not a readable JSON file (exit status 2)."""
+
+
+class ServiceError(RuntimeError):
+    """The service did not answer what was asked (exit status 1)."""
 
 
 def _read_spec(path: str) -> Any:
@@ -232,6 +237,58 @@ def _positive(text: str, flag: str) -> float:
     return value
 
 
+def cmd_export(args: argparse.Namespace) -> None:
+    if args.parameter_set:
+        if args.spec or args.params:
+            raise ValueError("give SPEC and PARAMS, or --parameter-set ID, not both")
+        import httpx
+
+        from client.sdk import ApiError, Client
+
+        try:
+            with Client(args.url, api_key=args.api_key) as client:
+                body = client._request(
+                    "GET",
+                    f"/v1/parameter-sets/{args.parameter_set}/export",
+                    params={"format": args.format},
+                ).content
+        except (ApiError, httpx.HTTPError) as e:
+            raise ServiceError(f"the service at {args.url}: {_one_line(e)}") from None
+    else:
+        if not (args.spec and args.params):
+            raise ValueError(
+                "give the spec and the parameters fitted on it (SPEC PARAMS: a result of "
+                "fpmcal calibrate --json, or a parameter set), or --parameter-set ID"
+            )
+        from .export import export
+
+        if args.output and any(
+            Path(args.output).resolve() == Path(f).resolve() for f in (args.spec, args.params)
+        ):
+            raise ValueError(f"-o {args.output} would overwrite an input: write elsewhere")
+        problem = _load(args.spec)
+        params = _read_json(args.params, "PARAMS")
+        if isinstance(params.get("result"), dict):  # a calibration as the service shows it
+            params = params["result"]
+        body = export(problem, params, args.format)
+    if args.output:
+        Path(args.output).write_bytes(body)
+        print(f"wrote {args.output}", file=sys.stderr)
+    else:
+        sys.stdout.write(body.decode())
+        sys.stdout.flush()
+
+
+def _read_json(path: str, what: str) -> Any:
+    try:
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise SpecFileError(f"{what} {path}: not a readable JSON file ({_one_line(e)})") from None
+    if not isinstance(data, dict):
+        raise SpecFileError(f"{what} {path}: expected a JSON object")
+    return data
+
+
 def result_table(problem: Any, result: Any) -> str:
     """The calibration result as a readable table (the relative discrepancy beside % of h)."""
     stiffness = getattr(result, "stiffness", None)
@@ -349,6 +406,25 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     p.add_argument("-o", "--output", default=None, help="write the spec here instead of stdout")
     p.set_defaults(func=cmd_spec_from_mesh)
+
+    p = sub.add_parser(
+        "export",
+        help="a fitted parameter set with its lattice: json, vtu (ParaView) or sofa (.scn)",
+        description="From SPEC and PARAMS (the result of fpmcal calibrate --json on SPEC, or a "
+        "parameter set of the service), or from the service's stored parameter set "
+        "(--parameter-set ID).",
+    )
+    p.add_argument("spec", nargs="?", help="problem spec JSON file the parameters were fitted on")
+    p.add_argument("params", nargs="?", help="calibration result or parameter set (JSON)")
+    p.add_argument("--format", choices=["json", "vtu", "sofa"], default="json")
+    p.add_argument("--parameter-set", default=None, metavar="ID", help="a stored parameter set")
+    p.add_argument(
+        "--url", default=os.environ.get("FPM_URL", "http://127.0.0.1:8000"),
+        help="the service (with --parameter-set; default $FPM_URL or http://127.0.0.1:8000)",
+    )  # fmt: skip
+    p.add_argument("--api-key", default=os.environ.get("FPM_API_KEY"), help="X-API-Key")
+    p.add_argument("-o", "--output", default=None, help="write here instead of stdout")
+    p.set_defaults(func=cmd_export)
 
     # `up` hands its arguments to service.stack (see main); listed here for --help.
     sub.add_parser("up", help="run the local stack: Redis, API, workers (Ctrl-C stops)")

@@ -10,7 +10,7 @@ from fastapi import Depends, FastAPI
 from . import errors, web
 from .deps import require_api_key
 from .limits import BodySizeLimit
-from .routers import calibrations, fem_references, health, parameter_sets
+from .routers import calibrations, exports, fem_references, health, parameter_sets
 from .settings import Settings, get_settings
 
 
@@ -29,7 +29,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.dependency_overrides[get_settings] = lambda: settings
     protected = [Depends(require_api_key)]
     documented = errors.problem_responses(401, 404, 413, 422, 503)
-    for module in (calibrations, fem_references, parameter_sets, health):
+    for module in (calibrations, fem_references, parameter_sets, exports, health):
         app.include_router(module.router, dependencies=protected, responses=documented)
     web.install(app, documented)  # the web view at /, its assets, the profile plot's JSON
     errors.install(app)

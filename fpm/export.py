@@ -1,0 +1,403 @@
+"""A fitted parameter set with its lattice, for other engines: JSON, VTU (ParaView), SOFA scene.
+
+The parameters (stiffness per family, d, depth, the dt they were fitted at) come from a
+calibration result (``fpmcal calibrate --json``) or a stored parameter set (the service); the
+lattice is rebuilt from the spec they were fitted on. Formats:
+
+- ``json``: every number an engine needs, with units: nodes, springs ``[i, j, rest length,
+  stiffness]``, lumped masses, fixed nodes, d, dt, depth, and per load case the nodal forces
+  and the perturbed list's layers (the paper's lookup table);
+- ``vtu``: the hexahedra and the springs (VTK_LINE cells) with, per load case, the FPM's and
+  the FEM's displacements, the error between them and the perturbed list's layer as point
+  data (written by meshio; ParaView reads it);
+- ``sofa``: a SOFA scene (``.scn``) with the positions (``MechanicalObject``), the lumped masses
+  (``DiagonalMass vertexMass``), every spring with its stiffness (``SpringForceField spring="i j
+  ks kd L"``, kd = 0), the nodal damping d (``UniformVelocityDampingForceField``), the fixed
+  nodes (``FixedProjectiveConstraint``) and the load cases (``ConstantForceField``; the first
+  one active). docs/physics.md, *Engines*, says why each component and where SOFA defines it.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+from .hexahedron import FAMILIES
+from .problem import Problem
+from .stiffness import family_names, spring_stiffness
+
+FORMATS = ("json", "vtu", "sofa")
+MEDIA_TYPES = {"json": "application/json", "vtu": "application/xml", "sofa": "application/xml"}
+SUFFIXES = {"json": ".json", "vtu": ".vtu", "sofa": ".scn"}
+UNITS = {
+    "length": "m",
+    "mass": "kg",
+    "time": "s",
+    "force": "N",
+    "stiffness": "N/m",
+    "damping": "N s/m",
+}
+
+STEP = (
+    "node by node in perturbed-list order (layer 0 = the loaded nodes, then layer by layer; "
+    "nodes outside the list do not move): F_s = sum_j k_ij (|r_ij| - L_ij) r_ij / |r_ij| "
+    "with r_ij = x_j - x_i; v_i <- (v_i + dt (F_i + F_s) / m_i) / (1 + dt d / m_i); "
+    "x_i <- x_i + dt v_i (each node sees the new positions of the nodes before it)"
+)
+
+
+class ExportError(ValueError):
+    """Parameters that do not fit the spec's lattice, or an unknown format."""
+
+
+@dataclass
+class Parameters:
+    """What a fit hands over: k per spring family present (N/m), d (N s/m), the depth
+    (layers) and the time step d was fitted at (s)."""
+
+    stiffness: dict[str, float]
+    d: float
+    depth: int
+    dt: float
+
+    @classmethod
+    def from_record(cls, problem: Problem, record: dict[str, Any]) -> Parameters:
+        """From a calibration result or a parameter set (both carry ``stiffness``, ``d`` (or
+        ``damping``) and ``depth``; a parameter set also ``dt``, else the spec's); checked
+        against the lattice the spec builds."""
+        try:
+            stiffness = record.get("stiffness") or {"axis": float(record["k"])}
+            d = float(record["d"] if "d" in record else record["damping"])
+            depth = int(record["depth"])
+        except (KeyError, TypeError, ValueError):
+            raise ExportError(
+                "the parameters need stiffness (or k), d (or damping) and depth: give a "
+                "calibration result (fpmcal calibrate --json) or a parameter set"
+            ) from None
+        geometry = record.get("geometry") or {}
+        nodes = geometry.get("nodes") if isinstance(geometry.get("nodes"), int) else None
+        h = record.get("h", geometry.get("h"))
+        if (nodes is not None and nodes != problem.n_nodes) or (
+            h is not None and not math.isclose(float(h), problem.h, rel_tol=1e-6)
+        ):
+            raise ExportError(
+                f"these parameters were fitted on another lattice ({nodes or '?'} nodes, h = "
+                f"{float(h or 'nan'):.4g} m); the spec builds {problem.n_nodes} nodes, h = "
+                f"{problem.h:.4g} m: export with the spec they were fitted on"
+            )
+        mode = record.get("stiffness_mode", problem.spec.fpm.stiffness)
+        if mode != problem.spec.fpm.stiffness:
+            raise ExportError(
+                f"the parameters were fitted with fpm.stiffness {mode!r}, the spec says "
+                f"{problem.spec.fpm.stiffness!r}: export with the spec they were fitted on"
+            )
+        dt = float(record.get("dt") or problem.spec.fpm.dt)
+        return cls({k: float(v) for k, v in stiffness.items()}, d, depth, dt)
+
+    def theta(self, problem: Problem) -> list[float]:
+        """The stiffness parameters as the solvers take them (one k, or one per family)."""
+        names = family_names(problem)
+        if names == ("k",):
+            values = set(self.stiffness.values())
+            if len(values) > 1:
+                raise ExportError(
+                    "the parameters hold one k per family but the spec fits one k "
+                    "(fpm.stiffness 'single'): export with the spec they were fitted on"
+                )
+            return [values.pop()]
+        missing = [n for n in names if n not in self.stiffness]
+        if missing:
+            raise ExportError(f"the parameters lack the stiffness of {', '.join(missing)}")
+        return [self.stiffness[n] for n in names]
+
+
+@dataclass
+class Lattice:
+    """The lattice with every spring's stiffness: what all three formats write.
+
+    Attributes:
+        problem: the problem (nodes, masses, fixed nodes, load cases).
+        params: the parameters.
+        stiffness: (S,) per-spring stiffness, N/m (family k times the spec's stiffness_scale).
+        layers: per load case, the perturbed list's layers at ``params.depth`` (node arrays).
+    """
+
+    problem: Problem
+    params: Parameters
+    stiffness: np.ndarray
+    layers: list[list[np.ndarray]]
+
+    @property
+    def hexahedra(self) -> np.ndarray:
+        elements = self.problem.solid.elements()
+        if elements is None:
+            raise ExportError("a network geometry has no hexahedra and no calibration to export")
+        return elements
+
+
+def build_lattice(problem: Problem, params: Parameters) -> Lattice:
+    """The lattice of ``problem`` carrying ``params``."""
+    from .simulation import fpm_model
+
+    stiffness = spring_stiffness(problem, params.theta(problem))
+    model = fpm_model(problem)
+    layers = []
+    for j in range(len(problem.load_cases)):
+        plist = model.perturbed_list(j, params.depth)
+        layers.append([plist.layer(i) for i in range(len(plist.layer_start) - 1)])
+    return Lattice(problem, params, stiffness, layers)
+
+
+def fpm_displacements(lattice: Lattice) -> tuple[np.ndarray, list[int], list[bool]]:
+    """(L, N, 3) displacements of the FPM run from rest to settling at the parameters, per load
+    case, with the steps taken and whether each settled (the result's last dynamic run)."""
+    from .simulation import simulate
+
+    p, runs = lattice.params, []
+    theta = p.theta(lattice.problem)
+    for j in range(len(lattice.problem.load_cases)):
+        runs.append(simulate(lattice.problem, k=theta, d=p.d, depth=p.depth, load_case=j, dt=p.dt))
+    return (
+        np.stack([r.displacements for r in runs]),
+        [r.steps for r in runs],
+        [r.settled for r in runs],
+    )
+
+
+def to_json(lattice: Lattice, fit: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The ``json`` export (see the module docstring); ``fit``: figures to carry along (e.g. the
+    relative discrepancy per load case)."""
+    problem, p = lattice.problem, lattice.params
+    spec, solid = problem.spec, problem.solid
+    springs = [
+        [int(i), int(j), float(length), float(k)]
+        for (i, j), length, k in zip(
+            solid.springs, problem.rest_lengths, lattice.stiffness, strict=True
+        )
+    ]
+    return {
+        "format": "fpm-lattice",
+        "version": 1,
+        "name": spec.name,
+        "units": UNITS,
+        "material": spec.material.model_dump(),
+        "parameters": {
+            "stiffness": p.stiffness,
+            "stiffness_mode": spec.fpm.stiffness,
+            "stiffness_scale": list(spec.fpm.stiffness_scale),
+            "d": p.d,
+            "dt": p.dt,
+            "depth": p.depth,
+            "settle_tolerance": spec.fpm.settle_tolerance,
+            "max_steps": spec.fpm.max_steps,
+            "gravity": list(spec.fpm.gravity),
+        },
+        "step": STEP,
+        "h": problem.h,
+        "nodes": solid.nodes.tolist(),
+        "masses": solid.masses.tolist(),
+        "fixed": np.flatnonzero(problem.fixed).tolist(),
+        "springs": springs,
+        "spring_columns": ["i", "j", "rest_length", "stiffness"],
+        "spring_family": solid.families.tolist(),
+        "families": list(FAMILIES),
+        "hexahedra": lattice.hexahedra.tolist(),
+        "load_cases": [
+            {
+                "name": case.name,
+                "nodes": case.nodes.tolist(),
+                "forces": case.forces.tolist(),
+                "perturbed_layers": [layer.tolist() for layer in layers],
+            }
+            for case, layers in zip(problem.load_cases, lattice.layers, strict=True)
+        ],
+        **({"fit": fit} if fit else {}),
+    }
+
+
+def vtu_bytes(lattice: Lattice, fem: np.ndarray, fpm: np.ndarray) -> bytes:
+    """The ``vtu`` export: hexahedra and springs with point data per load case (1-based
+    suffixes in load case order): ``fpm_displacement_J``, ``fem_displacement_J``, ``error_J``
+    (|FPM - FEM|, m) and ``layer_J`` (perturbed-list layer, -1 outside); ``mass`` and
+    ``fixed`` per node; ``stiffness``, ``rest_length`` and ``family`` per cell (-1 / 0 on the
+    hexahedra)."""
+    import meshio
+
+    problem = lattice.problem
+    n, hexes, springs = problem.n_nodes, lattice.hexahedra, problem.solid.springs
+    point_data: dict[str, np.ndarray] = {
+        "mass": problem.solid.masses,
+        "fixed": problem.fixed.astype(np.int32),
+    }
+    for j, layers in enumerate(lattice.layers):
+        layer = np.full(n, -1, dtype=np.int32)
+        for i, nodes in enumerate(layers):
+            layer[nodes] = i
+        point_data[f"fpm_displacement_{j + 1}"] = fpm[j]
+        point_data[f"fem_displacement_{j + 1}"] = fem[j]
+        point_data[f"error_{j + 1}"] = np.linalg.norm(fpm[j] - fem[j], axis=1)
+        point_data[f"layer_{j + 1}"] = layer
+    cell_data = {
+        "stiffness": [np.zeros(len(hexes)), lattice.stiffness],
+        "rest_length": [np.zeros(len(hexes)), problem.rest_lengths],
+        "family": [
+            np.full(len(hexes), -1, dtype=np.int32),
+            problem.solid.families.astype(np.int32),
+        ],
+    }
+    mesh = meshio.Mesh(
+        problem.nodes,
+        [("hexahedron", hexes), ("line", springs.astype(np.int64))],
+        point_data=point_data,
+        cell_data=cell_data,
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "lattice.vtu"
+        meshio.write(path, mesh, file_format="vtu")
+        return path.read_bytes()
+
+
+SOFA_PLUGINS = {
+    "Sofa.Component.StateContainer": "MechanicalObject",
+    "Sofa.Component.Topology.Container.Constant": "MeshTopology",
+    "Sofa.Component.Mass": "DiagonalMass",
+    "Sofa.Component.SolidMechanics.Spring": "SpringForceField",
+    "Sofa.Component.MechanicalLoad": "UniformVelocityDampingForceField ConstantForceField",
+    "Sofa.Component.Constraint.Projective": "FixedProjectiveConstraint",
+    "Sofa.Component.ODESolver.Backward": "EulerImplicitSolver",
+    "Sofa.Component.LinearSolver.Iterative": "CGLinearSolver",
+}
+"""The SOFA modules the scene loads, with the components it takes from each."""
+
+
+def _numbers(values: Any) -> str:
+    return " ".join(repr(float(v)) for v in np.asarray(values, dtype=float).ravel())
+
+
+def _indices(values: Any) -> str:
+    return " ".join(str(int(v)) for v in np.asarray(values).ravel())
+
+
+def sofa_scene(lattice: Lattice) -> str:
+    """The ``sofa`` export: a scene SOFA (v24.06 or later) loads (module docstring)."""
+    problem, p = lattice.problem, lattice.params
+    springs = np.column_stack(
+        [
+            problem.solid.springs.astype(float),
+            lattice.stiffness,
+            np.zeros(len(lattice.stiffness)),
+            problem.rest_lengths,
+        ]
+    )
+    spring_text = " ".join(
+        f"{int(i)} {int(j)} {ks!r} 0 {length!r}" for i, j, ks, _, length in springs.tolist()
+    )
+    g = " ".join(repr(float(v)) for v in problem.spec.fpm.gravity)
+    lines = [
+        '<?xml version="1.0"?>',
+        _comment(
+            f"FPM lattice {problem.spec.name}: SI units (m, kg, s, N). {problem.n_nodes} nodes, "
+            f"{len(springs)} springs (spring = i j ks kd L: ks in N/m, kd = 0, L the rest "
+            f"length in m); stiffness {_fmt_stiffness(p.stiffness)} N/m; nodal damping "
+            f"d = {p.d!r} N s/m fitted at dt = {p.dt!r} s for the FPM's node-by-node step "
+            "(choose d again for this integrator and time step); the FPM's perturbed list has "
+            "no SOFA counterpart: SOFA moves every node (full depth)."
+        ),
+        f'<Node name="root" dt={quoteattr(repr(p.dt))} gravity="{g}">',
+    ]
+    lines += [
+        f'    <RequiredPlugin name="{plugin}"/> <!-- {what} -->'
+        for plugin, what in SOFA_PLUGINS.items()
+    ]
+    lines += [
+        "    <DefaultAnimationLoop/>",
+        f'    <Node name="{_identifier(problem.spec.name)}">',
+        '        <EulerImplicitSolver name="odesolver" rayleighStiffness="0" rayleighMass="0"/>',
+        '        <CGLinearSolver name="linearsolver" iterations="1000" tolerance="1e-12" '
+        'threshold="1e-20"/>',
+        '        <MechanicalObject name="dofs" template="Vec3d" '
+        f'position="{_numbers(problem.nodes)}"/>',
+        '        <MeshTopology name="topology" position="@dofs.position" '
+        f'hexahedra="{_indices(lattice.hexahedra)}"/>',
+        f'        <DiagonalMass name="mass" vertexMass="{_numbers(problem.solid.masses)}"/>',
+        f'        <SpringForceField name="springs" spring="{spring_text}"/>',
+        '        <UniformVelocityDampingForceField name="damping" '
+        f'dampingCoefficient="{p.d!r}" implicit="true"/>',
+    ]
+    fixed = np.flatnonzero(problem.fixed)
+    if len(fixed):
+        lines.append(
+            f'        <FixedProjectiveConstraint name="fixed" indices="{_indices(fixed)}"/>'
+        )
+    for j, case in enumerate(problem.load_cases):
+        element = (
+            f"<ConstantForceField name={quoteattr(f'load case {j + 1}')} "
+            f'indices="{_indices(case.nodes)}" forces="{_numbers(case.forces)}"/>'
+        )
+        if j == 0:
+            lines.append("        " + _comment(f"load case 1: {case.name}"))
+            lines.append(f"        {element}")
+        else:
+            lines.append(
+                "        "
+                + _comment(f"load case {j + 1}: {case.name} (uncomment to apply) {element}")
+            )
+    lines += ["    </Node>", "</Node>", ""]
+    return "\n".join(lines)
+
+
+def _identifier(text: str) -> str:
+    """``text`` as a SOFA node name (letters, digits, underscores), "fpm" if nothing is left."""
+    return re.sub(r"[^0-9A-Za-z_]+", "_", text).strip("_") or "fpm"
+
+
+def _comment(text: str) -> str:
+    """An XML comment of ``text`` (which may not hold "--")."""
+    while "--" in text:
+        text = text.replace("--", "- -")
+    return f"<!-- {text.rstrip('-')} -->"
+
+
+def _fmt_stiffness(stiffness: dict[str, float]) -> str:
+    return ", ".join(f"{name} {value:.6g}" for name, value in stiffness.items())
+
+
+def export(
+    problem: Problem,
+    record: dict[str, Any],
+    fmt: str,
+    *,
+    fem: np.ndarray | None = None,
+) -> bytes:
+    """The export of ``record``'s parameters on ``problem``'s lattice in format ``fmt``.
+
+    Args:
+        problem: the problem of the spec the parameters were fitted on.
+        record: a calibration result or a parameter set (:meth:`Parameters.from_record`).
+        fmt: ``json``, ``vtu`` or ``sofa``.
+        fem: (L, N, 3) FEM displacements for ``vtu`` (None: solved now).
+    """
+    import json
+
+    if fmt not in FORMATS:
+        raise ExportError(f"unknown format {fmt!r}: one of {', '.join(FORMATS)}")
+    lattice = build_lattice(problem, Parameters.from_record(problem, record))
+    if fmt == "json":
+        keys = ("relative_discrepancy", "loaded_discrepancy", "discrepancy_h")
+        fit = {k: record[k] for k in keys if k in record}
+        return json.dumps(to_json(lattice, fit)).encode()
+    if fmt == "sofa":
+        return sofa_scene(lattice).encode()
+    if fem is None:
+        from .fem import solve_fem
+
+        fem = solve_fem(problem).displacements
+    fpm, _, _ = fpm_displacements(lattice)
+    return vtu_bytes(lattice, np.asarray(fem, dtype=float), fpm)

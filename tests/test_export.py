@@ -1,0 +1,297 @@
+"""Export of a fitted parameter set with its lattice (fpm/export.py): json consistent with the
+lattice and re-simulated by a plain loop, vtu read back by meshio, the SOFA scene checked
+against SOFA's documented component and attribute names, `fpmcal export`, and
+GET /v1/parameter-sets/{id}/export on the in-process app and the live stack."""
+
+from __future__ import annotations
+
+import copy
+import json
+import xml.etree.ElementTree as ET
+from pathlib import Path
+from typing import Any
+
+import httpx
+import meshio
+import numpy as np
+import pytest
+
+import fpm
+from client import Client
+from fpm.cli import main
+from fpm.export import ExportError, Parameters, build_lattice, export, fpm_displacements
+from fpm.perturbed_list import perturbed_list
+from fpm.simulation import fpm_model
+from worker import keys
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL: dict[str, Any] = json.loads((ROOT / "examples" / "small-box.json").read_text())
+
+# One k per family and a per-axis scale, so that every spring's stiffness is its own.
+FAMILIES_SPEC = copy.deepcopy(SMALL)
+FAMILIES_SPEC["fpm"].update(stiffness="families", stiffness_scale=[1.0, 1.0, 1.5], max_steps=2000)
+RECORD = {"stiffness": {"axis": 40.0, "face": 20.0, "body": 25.0}, "d": 0.15, "depth": 3}
+
+# What SOFA's sources define for each component the scene uses (names checked in
+# sofa-framework/sofa: SpringForceField.inl and LinearSpring.h (spring = m1 m2 ks kd initpos),
+# DiagonalMass.inl (vertexMass), UniformVelocityDampingForceField.inl (dampingCoefficient,
+# implicit), ConstantForceField.inl (indices, forces), FixedProjectiveConstraint (indices),
+# MeshTopology (position, hexahedra), EulerImplicitSolver, CGLinearSolver, MechanicalObject).
+SOFA_ATTRIBUTES = {
+    "Node": {"name", "dt", "gravity"},
+    "RequiredPlugin": {"name"},
+    "DefaultAnimationLoop": set(),
+    "EulerImplicitSolver": {"name", "rayleighStiffness", "rayleighMass"},
+    "CGLinearSolver": {"name", "iterations", "tolerance", "threshold"},
+    "MechanicalObject": {"name", "template", "position"},
+    "MeshTopology": {"name", "position", "hexahedra"},
+    "DiagonalMass": {"name", "vertexMass"},
+    "SpringForceField": {"name", "spring"},
+    "UniformVelocityDampingForceField": {"name", "dampingCoefficient", "implicit"},
+    "FixedProjectiveConstraint": {"name", "indices"},
+    "ConstantForceField": {"name", "indices", "forces"},
+}
+
+
+@pytest.fixture(scope="module")
+def problem() -> Any:
+    return fpm.load_problem(FAMILIES_SPEC)
+
+
+def numbers(text: str) -> np.ndarray:
+    return np.array([float(v) for v in text.split()])
+
+
+def plain_fpm(data: dict[str, Any], case: int) -> tuple[np.ndarray, int]:
+    """The FPM step written from the json export alone (README, *Using the parameters in your
+    engine*): node by node in perturbed-list order, semi-implicit Euler, implicit nodal
+    damping; stops once the largest unbalanced force is below the settle tolerance times the
+    largest applied force. Returns the displacements and the steps taken."""
+    x0 = np.asarray(data["nodes"])
+    m = np.asarray(data["masses"])
+    p = data["parameters"]
+    dt, d = p["dt"], p["d"]
+    springs = np.asarray(data["springs"])
+    i, j = springs[:, 0].astype(int), springs[:, 1].astype(int)
+    ends = np.concatenate([i, j])
+    order_by_node = np.argsort(ends, kind="stable")
+    other = np.concatenate([j, i])[order_by_node]
+    rest = np.concatenate([springs[:, 2], springs[:, 2]])[order_by_node]
+    k = np.concatenate([springs[:, 3], springs[:, 3]])[order_by_node]
+    start = np.searchsorted(ends[order_by_node], np.arange(len(x0) + 1))
+    load = data["load_cases"][case]
+    force = np.zeros_like(x0)
+    force[load["nodes"]] = load["forces"]
+    order = np.concatenate(load["perturbed_layers"]).astype(int)
+    settle = p["settle_tolerance"] * np.linalg.norm(force[order], axis=1).max()
+    x, v = x0.copy(), np.zeros_like(x0)
+    for step in range(1, p["max_steps"] + 1):
+        worst = 0.0
+        for n in order:
+            s = slice(start[n], start[n + 1])
+            r = x[other[s]] - x[n]
+            length = np.linalg.norm(r, axis=1)
+            f = force[n] + ((k[s] * (length - rest[s]) / length)[:, None] * r).sum(axis=0)
+            worst = max(worst, float(np.linalg.norm(f)))
+            a = dt / m[n]
+            v[n] = (v[n] + a * f) / (1 + a * d)
+            x[n] = x[n] + dt * v[n]
+        if worst < settle:
+            return x - x0, step
+    return x - x0, p["max_steps"]
+
+
+# ------------------------------------------------------------------ json
+
+
+def test_json_export_is_the_lattice(problem):
+    data = json.loads(export(problem, RECORD, "json"))
+    assert data["units"]["stiffness"] == "N/m" and data["units"]["damping"] == "N s/m"
+    nodes, springs = np.asarray(data["nodes"]), np.asarray(data["springs"])
+    assert len(springs) == len(problem.solid.springs) == 468
+    i, j = springs[:, 0].astype(int), springs[:, 1].astype(int)
+    e = nodes[j] - nodes[i]
+    np.testing.assert_allclose(springs[:, 2], np.linalg.norm(e, axis=1), rtol=1e-12)
+    family_k = np.array([40.0, 20.0, 25.0])[data["spring_family"]]
+    scale = (e / springs[:, 2:3]) ** 2 @ np.array([1.0, 1.0, 1.5])
+    np.testing.assert_allclose(springs[:, 3], family_k * scale, rtol=1e-12)
+    rho_v = 1040.0 * 0.03**3
+    assert sum(data["masses"]) == pytest.approx(rho_v, rel=1e-12)
+    assert data["fixed"] == np.flatnonzero(nodes[:, 2] == 0).tolist()
+    p = data["parameters"]
+    assert (p["d"], p["dt"], p["depth"]) == (0.15, 0.001, 3)
+    assert len(data["hexahedra"]) == 27
+    model = fpm_model(problem)
+    for c, case in enumerate(data["load_cases"]):
+        plist = perturbed_list(model.adjacency, problem.load_cases[c].nodes, problem.fixed, 3)
+        layers = [plist.layer(n).tolist() for n in range(len(plist.layer_start) - 1)]
+        assert case["perturbed_layers"] == layers and sum(map(len, layers)) == 48
+        assert case["nodes"] == problem.load_cases[c].nodes.tolist()
+
+
+def test_a_plain_loop_on_the_json_export_reproduces_the_fpm(problem):
+    data = json.loads(export(problem, RECORD, "json"))
+    lattice = build_lattice(problem, Parameters.from_record(problem, RECORD))
+    fpm_u, steps, settled = fpm_displacements(lattice)
+    assert all(settled)
+    for case in range(len(problem.load_cases)):
+        u, taken = plain_fpm(data, case)
+        assert abs(taken - steps[case]) <= 1
+        scale = np.abs(fpm_u[case]).max()
+        np.testing.assert_allclose(u, fpm_u[case], atol=1e-6 * scale, rtol=0)
+
+
+# ------------------------------------------------------------------ vtu
+
+
+def test_vtu_export_reads_back_with_the_point_data(problem, tmp_path: Path):
+    path = tmp_path / "lattice.vtu"
+    path.write_bytes(export(problem, RECORD, "vtu"))
+    mesh = meshio.read(path)
+    np.testing.assert_allclose(mesh.points, problem.nodes)
+    cells = {block.type: block.data for block in mesh.cells}
+    np.testing.assert_array_equal(cells["hexahedron"], problem.solid.elements())
+    np.testing.assert_array_equal(cells["line"], problem.solid.springs)
+    fem_u = fpm.solve_fem(problem).displacements
+    lattice = build_lattice(problem, Parameters.from_record(problem, RECORD))
+    fpm_u, _, _ = fpm_displacements(lattice)
+    for c in range(len(problem.load_cases)):
+        np.testing.assert_allclose(mesh.point_data[f"fem_displacement_{c + 1}"], fem_u[c])
+        np.testing.assert_allclose(mesh.point_data[f"fpm_displacement_{c + 1}"], fpm_u[c])
+        np.testing.assert_allclose(
+            mesh.point_data[f"error_{c + 1}"], np.linalg.norm(fpm_u[c] - fem_u[c], axis=1)
+        )
+        layer = mesh.point_data[f"layer_{c + 1}"]
+        assert layer.max() == len(lattice.layers[c]) - 1 and (layer[problem.fixed] == -1).all()
+    np.testing.assert_allclose(mesh.point_data["mass"], problem.solid.masses)
+    np.testing.assert_allclose(mesh.cell_data["stiffness"][1], lattice.stiffness)
+
+
+# ------------------------------------------------------------------ sofa
+
+
+def test_sofa_scene_parses_with_the_right_counts_and_numbers(problem):
+    root = ET.fromstring(export(problem, RECORD, "sofa"))
+    for element in root.iter():
+        assert element.tag in SOFA_ATTRIBUTES, element.tag
+        assert set(element.attrib) <= SOFA_ATTRIBUTES[element.tag], element.tag
+    assert root.get("dt") == "0.001" and numbers(root.get("gravity")).tolist() == [0, 0, 0]
+    plugins = {e.get("name") for e in root.iter("RequiredPlugin")}
+    assert {"Sofa.Component.SolidMechanics.Spring", "Sofa.Component.Mass"} <= plugins
+
+    def one(tag: str) -> ET.Element:
+        (element,) = root.iter(tag)
+        return element
+
+    n, lattice = problem.n_nodes, build_lattice(problem, Parameters.from_record(problem, RECORD))
+    np.testing.assert_array_equal(numbers(one("MechanicalObject").get("position")).reshape(n, 3),
+                                  problem.nodes)  # fmt: skip
+    masses = numbers(one("DiagonalMass").get("vertexMass"))
+    np.testing.assert_array_equal(masses, problem.solid.masses)
+    assert masses.sum() == pytest.approx(1040.0 * 0.03**3)
+    springs = numbers(one("SpringForceField").get("spring")).reshape(-1, 5)
+    assert len(springs) == 468
+    np.testing.assert_array_equal(springs[:, :2], problem.solid.springs)
+    np.testing.assert_array_equal(springs[:, 2], lattice.stiffness)  # ks, N/m
+    assert (springs[:, 3] == 0).all()  # kd: the damping is nodal
+    np.testing.assert_array_equal(springs[:, 4], problem.rest_lengths)
+    damping = one("UniformVelocityDampingForceField")
+    assert float(damping.get("dampingCoefficient")) == 0.15 and damping.get("implicit") == "true"
+    fixed = numbers(one("FixedProjectiveConstraint").get("indices")).astype(int)
+    np.testing.assert_array_equal(fixed, np.flatnonzero(problem.fixed))
+    topology = one("MeshTopology")
+    assert numbers(topology.get("hexahedra")).size == 8 * 27
+    assert topology.get("position") == "@dofs.position"
+    load = one("ConstantForceField")  # load case 1 active, load case 2 in a comment
+    assert load.get("indices") == str(problem.load_cases[0].nodes[0])
+    np.testing.assert_array_equal(numbers(load.get("forces")), problem.load_cases[0].forces[0])
+
+
+# ------------------------------------------------------------------ parameters and the command
+
+
+def test_parameters_that_do_not_fit_the_spec_are_refused(problem):
+    other_h = {**RECORD, "h": 0.02}
+    with pytest.raises(ExportError, match="fitted on another lattice"):
+        export(problem, other_h, "json")
+    single = fpm.load_problem(SMALL)
+    with pytest.raises(ExportError, match="one k per family but the spec fits one k"):
+        export(single, RECORD, "json")
+    with pytest.raises(ExportError, match="unknown format"):
+        export(problem, RECORD, "obj")
+    with pytest.raises(ExportError, match="need stiffness"):
+        export(problem, {"d": 1.0}, "json")
+
+
+def test_fpmcal_export_from_spec_and_result(tmp_path: Path, capsys):
+    spec = tmp_path / "spec.json"
+    spec.write_text(json.dumps(SMALL))
+    result = tmp_path / "result.json"
+    problem = fpm.load_problem(SMALL)
+    result.write_text(json.dumps({**RECORD, "stiffness": {"axis": 30.0}, "h": problem.h}))
+    out = tmp_path / "box.scn"
+    assert main(["export", str(spec), str(result), "--format", "sofa", "-o", str(out)]) == 0
+    assert ET.parse(out).getroot().tag == "Node"
+    assert main(["export", str(spec), str(result)]) == 0
+    assert json.loads(capsys.readouterr().out)["parameters"]["stiffness"] == {"axis": 30.0}
+    assert main(["export", str(spec)]) == 2
+    assert "give the spec and the parameters fitted on it" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ the service
+
+
+def assert_problem(response: httpx.Response, status: int) -> dict[str, Any]:
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"].startswith("application/problem+json")
+    return response.json()
+
+
+def test_export_endpoint_in_process(api, redis, run_workers, small_spec):
+    calibration = api.post("/v1/calibrations", json=small_spec).json()
+    run_workers()
+    done = api.get(f"/v1/calibrations/{calibration['id']}").json()
+    ps = done["parameter_set_id"]
+    answer = api.get(f"/v1/parameter-sets/{ps}/export")
+    assert answer.status_code == 200 and answer.headers["content-type"] == "application/json"
+    data = answer.json()
+    assert data["parameters"]["d"] == done["result"]["d"]
+    assert data["parameters"]["stiffness"] == done["result"]["stiffness"]
+    assert data["fit"]["relative_discrepancy"] == done["result"]["relative_discrepancy"]
+    bad = assert_problem(api.get(f"/v1/parameter-sets/{ps}/export?format=obj"), 422)
+    assert bad["errors"][0]["field"].endswith("format")
+    assert_problem(api.get("/v1/parameter-sets/ps-0123456789abcdef/export"), 404)
+    redis.delete(keys.calibration(calibration["id"]))  # the record that holds the spec
+    gone = assert_problem(api.get(f"/v1/parameter-sets/{ps}/export?format=sofa"), 410)
+    assert "calibrate its spec again" in gone["detail"]
+
+
+def test_export_endpoint_on_the_live_stack(live_api, small_spec, tmp_path: Path, capsys):
+    small_spec["name"] = "export over http"
+    with Client(live_api) as client:
+        done = client.calibrate(small_spec, wait=True, progress=False)
+        assert done["status"] == "succeeded", done["error"]
+        ps = done["parameter_set_id"]
+        data = client.export(ps, "json")
+        assert data["format"] == "fpm-lattice" and len(data["nodes"]) == 64
+        assert data["parameters"]["d"] == done["result"]["d"]
+        scene = client.export(ps, "sofa")
+        assert len(list(ET.fromstring(scene).iter("SpringForceField"))) == 1
+        vtu = client.export(ps, "vtu", path=tmp_path / "lattice.vtu")
+    mesh = meshio.read(vtu)
+    assert mesh.points.shape == (64, 3)
+    for c in (1, 2):
+        assert {f"fpm_displacement_{c}", f"fem_displacement_{c}", f"error_{c}"} <= set(
+            mesh.point_data
+        )
+    fem = httpx.get(f"{live_api}/v1/fem-references/{done['fem_reference_id']}").json()
+    np.testing.assert_allclose(mesh.point_data["fem_displacement_2"], fem["displacements"][1])
+    answer = httpx.get(f"{live_api}/v1/parameter-sets/{ps}/export", params={"format": "sofa"})
+    assert answer.headers["content-type"].startswith("application/xml")
+    assert f'filename="{ps}.scn"' in answer.headers["content-disposition"]
+    out = tmp_path / "from-service.json"
+    argv = ["export", "--parameter-set", ps, "--url", live_api, "-o", str(out)]
+    assert main(argv) == 0
+    assert json.loads(out.read_text()) == data
+    assert main(["export", "--parameter-set", "ps-0123456789abcdef", "--url", live_api]) == 1
+    assert "404 Not found" in capsys.readouterr().err
