@@ -239,6 +239,8 @@ class Health(BaseModel):
     heartbeat_window: int = Field(
         description="seconds without a heartbeat after which a worker counts as dead"
     )
-    queued_jobs: int
-    running_jobs: int
-    failed_jobs: int
+    queued_jobs: int = Field(description="jobs waiting for a worker (both queues)")
+    running_jobs: int = Field(description="jobs a worker is running")
+    failed_jobs: int = Field(
+        description="jobs that failed, kept for 7 days (jobs stopped by a cancel are not failures)"
+    )

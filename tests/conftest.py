@@ -85,7 +85,7 @@ def run_workers(redis: Redis):
     """Run every queued job now, in this process (an RQ SimpleWorker in burst mode)."""
 
     def run() -> None:
-        SimpleWorker([keys.QUEUE], connection=redis, serializer=JSONSerializer).work(
+        SimpleWorker(list(keys.QUEUES), connection=redis, serializer=JSONSerializer).work(
             burst=True, logging_level="WARNING"
         )
 

@@ -54,7 +54,7 @@ def test_workers_run_the_real_entry_point(compose):
     command = worker["command"]
     assert command[:3] == ["python", "-m", "worker"]
     args = parse_args(command[3:])
-    assert args.queues == [keys.QUEUE]
+    assert args.queues == list(keys.QUEUES)  # the priority queue first
     assert args.url == compose["services"]["api"]["environment"]["REDIS_URL"]
     assert args.url.split("//")[1].split(":")[0] in compose["services"]
     assert worker["deploy"]["replicas"] == 2

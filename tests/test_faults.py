@@ -60,10 +60,10 @@ def wait_until_done(api: TestClient, calibration_id: str, timeout: float = 30.0)
 
 def assert_no_work_left(redis: Redis, worker_count: int = 1) -> None:
     """Nothing running, queued or waiting: no orphaned job survives the fault."""
-    q = graph.queue(redis)
-    wait_for(lambda: q.started_job_registry.count == 0, 20, "the started registry to empty")
-    assert q.count == 0, q.get_job_ids()
-    assert q.deferred_job_registry.count == 0, q.deferred_job_registry.get_job_ids()
+    for q in graph.queues(redis):
+        wait_for(lambda q=q: q.started_job_registry.count == 0, 20, "the started registry to empty")
+        assert q.count == 0, q.get_job_ids()
+        assert q.deferred_job_registry.count == 0, q.deferred_job_registry.get_job_ids()
 
 
 # --- Redis stopped and restarted (append-only file on) ------------------------------------------
@@ -170,11 +170,10 @@ def test_all_candidates_diverge_fails_with_a_reason(
     assert "Traceback" not in error
     assert done["parameter_set_id"] is None and redis.zcard(keys.parameter_sets()) == 0
     # Not retried: the same spec fails the same way, so the failing job ran once.
-    q = graph.queue(redis)
     for job_id in failing:
         job = Job.fetch(job_id, connection=redis, serializer=JSONSerializer)
         assert job.get_status() == JobStatus.FINISHED and job.retries_left == 2
-    assert q.failed_job_registry.count == 0
+    assert all(q.failed_job_registry.count == 0 for q in graph.queues(redis))
     assert_no_work_left(redis)
 
 
@@ -258,6 +257,8 @@ def test_cancel_in_each_phase_leaves_no_job_running(
         canceled = api.delete(f"/v1/calibrations/{calibration_id}")
         assert canceled.status_code == 200 and canceled.json()["status"] == "canceled"
         assert_no_work_left(redis)  # the FEM job (shared) finishes; nothing else runs
+        # A job the cancel stopped is no failure (RQ files it as failed, status stopped).
+        assert api.get("/v1/health").json()["failed_jobs"] == 0
         view = status_of(api, calibration_id)
         assert view["status"] == "canceled" and view["result"] is None
         assert redis.zcard(keys.parameter_sets()) == 0
@@ -292,7 +293,9 @@ def test_cancel_in_each_phase_leaves_no_job_running(
         if phase != "damping":
             for c in range(2):
                 assert not redis.exists(keys.chain_result(calibration_id, c))
-        registry = CanceledJobRegistry(keys.QUEUE, connection=redis, serializer=JSONSerializer)
+        registry = CanceledJobRegistry(
+            keys.PRIORITY_QUEUE, connection=redis, serializer=JSONSerializer
+        )
         assert finalize_id in registry.get_job_ids()
 
 
@@ -317,7 +320,9 @@ def test_worker_killed_in_the_damping_stage_is_retried(
         first.wait()
         wait_for(lambda: not alive(horse), 5, "the work horse to die")
         damping_id = keys.damping_job_id(calibration_id)
-        registry = StartedJobRegistry(keys.QUEUE, connection=redis, serializer=JSONSerializer)
+        registry = StartedJobRegistry(
+            keys.PRIORITY_QUEUE, connection=redis, serializer=JSONSerializer
+        )
         assert damping_id in registry.get_job_ids(cleanup=False)
         # What RQ's maintenance does once the dead worker's heartbeat has expired:
         registry.cleanup(timestamp=time.time() + 3600)

@@ -203,8 +203,8 @@ def test_any_spec_calibrates_or_is_refused(api, redis, run_workers, spec):
     reason = next((r for r in FAILURE_REASONS if (done["error"] or "").startswith(r)), "")
     event(f"accepted, {done['status']}" + (f" ({reason})" if reason else ""))
     assert done["status"] in ("succeeded", "failed"), done
-    q = graph.queue(redis)
-    assert q.count == 0 and q.deferred_job_registry.count == 0  # nothing stuck
+    for q in graph.queues(redis):
+        assert q.count == 0 and q.deferred_job_registry.count == 0  # nothing stuck
     if done["status"] == "succeeded":
         assert done["result"]["k"] > 0 and done["parameter_set_id"]
     else:
@@ -260,8 +260,8 @@ def test_api_fuzzed_from_its_openapi(settings, redis, label, mode):
 
 
 def nothing_queued(redis) -> None:
-    q = graph.queue(redis)
-    assert q.count == 0 and q.deferred_job_registry.count == 0
+    for q in graph.queues(redis):
+        assert q.count == 0 and q.deferred_job_registry.count == 0
     assert redis.dbsize() == 0
 
 

@@ -1,9 +1,11 @@
 """Worker entry point: ``python -m worker [--url URL] [--burst] [QUEUE ...]``.
 
-Run as many as you like, on as many machines as you like, against one Redis. Each worker
-forks a work horse per job (so a stop request or a crash kills the horse, not the worker)
-and runs RQ's maintenance every MAINTENANCE_INTERVAL seconds: a job whose worker died is
-then re-queued (it has retries) and resumes from its last checkpoint.
+Run as many as you like, on as many machines as you like, against one Redis. A worker listens
+to :data:`worker.keys.QUEUES` unless told otherwise, taking the jobs that finish a calibration
+(priority queue) before FEM jobs and chains. Each worker forks a work horse per job (so a stop
+request or a crash kills the horse, not the worker) and runs RQ's maintenance every
+MAINTENANCE_INTERVAL seconds: a job whose worker died is then re-queued (it has retries) and
+resumes from its last checkpoint.
 """
 
 from __future__ import annotations
@@ -16,12 +18,13 @@ import signal
 import sys
 
 from redis import Redis
+from redis.exceptions import RedisError
 from rq import Queue, SimpleWorker, Worker
 from rq.job import Job
 from rq.serializers import JSONSerializer
 
 # jobs is imported before forking, so every work horse inherits fpm, NumPy and SciPy loaded.
-from . import jobs, keys  # noqa: F401
+from . import graph, jobs, keys  # noqa: F401
 from .liveness import WORKER_TTL
 
 MAINTENANCE_INTERVAL = 60
@@ -44,8 +47,31 @@ def die_with_parent(parent: int) -> None:
         os._exit(1)
 
 
-class FpmWorker(Worker):
-    """RQ's forking worker whose work horses die with it."""
+log = logging.getLogger("worker")
+
+
+class SweepsReadyJobs:
+    """After each job, move onto their queues the jobs RQ left ready but unqueued
+    (:func:`worker.graph.enqueue_ready`), so that no job waits for a worker's maintenance."""
+
+    connection: Redis
+
+    def execute_job(self, job: Job, queue: Queue) -> None:
+        try:
+            super().execute_job(job, queue)  # type: ignore[misc]
+        finally:
+            try:
+                graph.enqueue_ready(self.connection)
+            except RedisError as e:  # the next job's sweep, or maintenance, does it
+                log.warning("could not sweep the ready registries: %s", type(e).__name__)
+
+
+class FpmSimpleWorker(SweepsReadyJobs, SimpleWorker):
+    """RQ's in-process worker (``--simple``), sweeping after each job."""
+
+
+class FpmWorker(SweepsReadyJobs, Worker):
+    """RQ's forking worker whose work horses die with it, sweeping after each job."""
 
     _parent_pid = 0
 
@@ -72,7 +98,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--simple", action="store_true", help="run jobs in this process (no fork; for debugging)"
     )
     parser.add_argument("--name", default=None, help="worker name (default: RQ's)")
-    parser.add_argument("queues", nargs="*", default=[keys.QUEUE], help="queues to listen on")
+    parser.add_argument(
+        "queues",
+        nargs="*",
+        default=list(keys.QUEUES),
+        help=f"queues to listen on, the first drained first (default: {' '.join(keys.QUEUES)})",
+    )
     return parser.parse_args(argv)
 
 
@@ -80,7 +111,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     redis = Redis.from_url(args.url, health_check_interval=30)
-    worker_class = SimpleWorker if args.simple else FpmWorker
+    worker_class = FpmSimpleWorker if args.simple else FpmWorker
     worker = worker_class(
         args.queues,
         connection=redis,

@@ -4,7 +4,9 @@ A calibration is::
 
     fem job (skipped if the reference is stored) --> chain 0 .. chain n-1 --> damping --> finalize
 
-(the damping job only for the two-stage method: polish, depth, fastest-settling d).
+(the damping job only for the two-stage method: polish, depth, fastest-settling d). The FEM
+job and the chains go to the queue of long jobs, the damping job and finalize to the priority
+queue that workers drain first (:data:`worker.keys.QUEUES`).
 
 Jobs are enqueued by dotted path with RQ's JSON serializer and carry only ids; the spec, the
 FEM reference and the chain results live under our own keys (:mod:`worker.keys`). Chains
@@ -58,8 +60,43 @@ class JobOptions:
 
 
 def queue(redis: Redis) -> Queue:
-    """The project's queue with the JSON serializer."""
+    """The project's queue of long jobs (FEM, chains) with the JSON serializer."""
     return Queue(keys.QUEUE, connection=redis, serializer=JSONSerializer)
+
+
+def priority_queue(redis: Redis) -> Queue:
+    """The queue of the jobs that finish a calibration (damping stage, finalize), which
+    workers drain first (:data:`worker.keys.PRIORITY_QUEUE`)."""
+    return Queue(keys.PRIORITY_QUEUE, connection=redis, serializer=JSONSerializer)
+
+
+def queues(redis: Redis) -> list[Queue]:
+    """Every queue, in the order workers take jobs from them (:data:`worker.keys.QUEUES`)."""
+    return [Queue(name, connection=redis, serializer=JSONSerializer) for name in keys.QUEUES]
+
+
+READY_SWEEPS = 5
+"""Attempts per queue of :func:`enqueue_ready` (each gives up a job another worker touched)."""
+
+
+def enqueue_ready(redis: Redis) -> int:
+    """Move onto their queues the jobs whose dependencies have finished but which RQ left in its
+    ready registry; returns how many.
+
+    RQ 3 marks such a job ready, then moves it onto its queue in a WATCH transaction that
+    watches the whole ready registry: when another worker touches the registry meanwhile, the
+    job stays there "for now", until a worker's maintenance, which an idle worker runs only
+    when its blocking dequeue times out (405 s). Two workers finishing jobs at once did this:
+    a damping job waited 7 minutes with both workers idle. Workers call this after every job.
+    """
+    moved = 0
+    for q in queues(redis):
+        registry = q.ready_job_registry
+        for _ in range(READY_SWEEPS):
+            if not registry.get_job_count(cleanup=False):
+                break
+            moved += len(registry.cleanup())
+    return moved
 
 
 def submit_calibration(
@@ -106,7 +143,11 @@ def submit_calibration(
 
 
 def _enqueue(redis: Redis, record: store.CalibrationRecord, options: JobOptions) -> None:
+    """Enqueue the jobs: chains on the queue of long jobs, the damping stage and finalize on
+    the priority queue (RQ puts a job whose dependencies finished on its own queue, so they
+    jump the chains of calibrations submitted later)."""
     q = queue(redis)
+    finish = priority_queue(redis)
     common = _common(options)
     fem_job = None if record.fem_cached else submit_fem(redis, record.spec, options)
     chains = [
@@ -124,7 +165,7 @@ def _enqueue(redis: Redis, record: store.CalibrationRecord, options: JobOptions)
     before_finalize = chains
     if record.spec["annealing"]["method"] == "two-stage":
         before_finalize = [
-            q.enqueue_call(
+            finish.enqueue_call(
                 "worker.jobs.fit_damping_stage",
                 args=(record.id,),
                 job_id=keys.damping_job_id(record.id),
@@ -134,7 +175,7 @@ def _enqueue(redis: Redis, record: store.CalibrationRecord, options: JobOptions)
                 **common,
             )
         ]
-    q.enqueue_call(
+    finish.enqueue_call(
         "worker.jobs.finalize_calibration",
         args=(record.id,),
         job_id=keys.finalize_job_id(record.id),

@@ -13,7 +13,15 @@ import secrets
 
 PREFIX = "fpm"
 QUEUE = "fpm"
-"""The RQ queue every job goes to (a worker may listen on more)."""
+"""The RQ queue of the long jobs: FEM references and annealing chains."""
+
+PRIORITY_QUEUE = "fpm-priority"
+"""The RQ queue of the jobs that finish a calibration (the damping stage, finalize): workers
+take from it first, so a calibration whose chains are done never waits behind the chains of
+calibrations submitted after it."""
+
+QUEUES = (PRIORITY_QUEUE, QUEUE)
+"""Every queue of the project, in the order a worker takes jobs from them."""
 
 
 CALIBRATION_ID = re.compile(r"[0-9a-f]{16}")

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from rq import Queue, Worker
 from rq.utils import now
+from rq.worker import BaseWorker
 
 WORKER_TTL = 420
 """Seconds a worker may go without a heartbeat (RQ's default; every worker is started with it,
@@ -20,11 +21,11 @@ and :func:`workers` judges them by it, so the two cannot disagree)."""
 def workers(queue: Queue, window: float = WORKER_TTL) -> tuple[int, int]:
     """(alive, silent): the workers registered on ``queue`` whose last heartbeat is at most
     ``window`` seconds old, and those whose is older (or missing)."""
-    alive = silent = 0
-    for worker in Worker.all(queue=queue):  # drops those whose key RQ already let expire
-        beat = worker.last_heartbeat  # UTC-aware
-        if beat is not None and (now() - beat).total_seconds() <= window:
-            alive += 1
-        else:
-            silent += 1
-    return alive, silent
+    found = [alive(w, window) for w in Worker.all(queue=queue)]  # RQ drops expired keys
+    return sum(found), len(found) - sum(found)
+
+
+def alive(worker: BaseWorker, window: float = WORKER_TTL) -> bool:
+    """True if ``worker``'s last heartbeat is at most ``window`` seconds old."""
+    beat = worker.last_heartbeat  # UTC-aware
+    return beat is not None and (now() - beat).total_seconds() <= window

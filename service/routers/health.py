@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from worker import graph, liveness
+from worker import graph, liveness, queue_stats
 
 from ..deps import RedisDep
 from ..schemas import Health
@@ -18,17 +18,19 @@ def health(redis: RedisDep) -> Health:
 
     Workers count as alive only with a heartbeat in the last ``heartbeat_window`` seconds:
     RQ's registry alone keeps a killed worker listed (for ever, once none is left to clean it).
+    Job counts cover both queues; jobs stopped by a cancel are not counted as failed.
     """
     redis.ping()
     q = graph.queue(redis)
     alive, silent = liveness.workers(q)
+    jobs = queue_stats.all_job_counts(redis).values()
     return Health(
         status="ok" if alive else "degraded",
         redis=True,
         workers=alive,
         silent_workers=silent,
         heartbeat_window=liveness.WORKER_TTL,
-        queued_jobs=q.count,
-        running_jobs=q.started_job_registry.count,
-        failed_jobs=q.failed_job_registry.count,
+        queued_jobs=sum(j.queued for j in jobs),
+        running_jobs=sum(j.running for j in jobs),
+        failed_jobs=sum(j.failed for j in jobs),
     )
