@@ -15,7 +15,7 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import ValidationError
+from pydantic import BaseModel, Field, ValidationError
 from redis.exceptions import ConnectionError as RedisConnectionError
 from redis.exceptions import TimeoutError as RedisTimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -26,27 +26,28 @@ MEDIA_TYPE = "application/problem+json"
 log = logging.getLogger("service")
 
 
-PROBLEM_SCHEMA: dict[str, Any] = {
-    "title": "Problem",
-    "type": "object",
-    "required": ["type", "title", "status", "detail"],
-    "properties": {
-        "type": {"type": "string"},
-        "title": {"type": "string"},
-        "status": {"type": "integer"},
-        "detail": {"type": "string"},
-        "errors": {
-            "type": "array",
-            "description": "422 only: each bad field (dotted location) and why",
-            "items": {
-                "type": "object",
-                "required": ["field", "message"],
-                "properties": {"field": {"type": "string"}, "message": {"type": "string"}},
-            },
-        },
-    },
-}
-"""RFC 9457 problem details, as the OpenAPI document shows them (inline: no component)."""
+class FieldError(BaseModel):
+    """One bad field of a 422: its dotted location and why."""
+
+    field: str = Field(description="dotted location, e.g. load_cases.0.forces.0.at")
+    message: str
+
+
+class Problem(BaseModel):
+    """RFC 9457 problem details: every error answer of the service (application/problem+json)."""
+
+    type: str = Field("about:blank", description="'about:blank': the status says it all")
+    title: str = Field(description="short summary of the status, e.g. 'Invalid input'")
+    status: int = Field(description="the HTTP status code")
+    detail: str = Field(description="what went wrong, for a person (a 422 lists every field)")
+    errors: list[FieldError] | None = Field(
+        None, description="422 only: each bad field (dotted location) and why"
+    )
+
+
+PROBLEM_REF = {"$ref": "#/components/schemas/Problem"}
+"""The one schema every error response refers to (:func:`service.openapi.install` puts
+:class:`Problem` into the document's components)."""
 
 PROBLEM_DESCRIPTIONS = {
     400: "the body cannot be read (e.g. not UTF-8)",
@@ -56,6 +57,7 @@ PROBLEM_DESCRIPTIONS = {
     410: "stored by an older version of the service in a form it no longer serves",
     413: "request body over the configured limit",
     422: "invalid input: names each bad field and the reason",
+    500: "an unexpected error (logged; no traceback in the answer)",
     503: "Redis (queue and store) unreachable; retry later",
 }
 
@@ -63,12 +65,14 @@ PROBLEM_DESCRIPTIONS = {
 def problem_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
     """OpenAPI ``responses`` documenting these error statuses as application/problem+json.
 
-    A documented 422 also replaces FastAPI's default (a JSON body of another shape).
+    Each refers to the one :class:`Problem` component (no inline copies: client generators
+    make one model of it). A documented 422 also replaces FastAPI's default (a JSON body of
+    another shape).
     """
     return {
         code: {
             "description": PROBLEM_DESCRIPTIONS[code],
-            "content": {MEDIA_TYPE: {"schema": PROBLEM_SCHEMA}},
+            "content": {MEDIA_TYPE: {"schema": PROBLEM_REF}},
         }
         for code in codes
     }

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from fastapi import Depends, FastAPI
 
-from . import errors, web
+from . import errors, openapi, web
 from .deps import require_api_key
 from .limits import BodySizeLimit
 from .routers import calibrations, exports, fem_references, health, parameter_sets
@@ -24,15 +24,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version="1.0",
         description="Calibrates a force propagation model (Choi et al. 2004) against a "
         "hexahedral FEM reference, on a pool of RQ workers.",
+        generate_unique_id_function=openapi.operation_id,
     )
     if settings is not None:
         app.dependency_overrides[get_settings] = lambda: settings
     protected = [Depends(require_api_key)]
-    documented = errors.problem_responses(401, 404, 413, 422, 503)
+    documented = errors.problem_responses(401, 500, 503)  # the rest route by route
     for module in (calibrations, fem_references, parameter_sets, exports, health):
         app.include_router(module.router, dependencies=protected, responses=documented)
     web.install(app, documented)  # the web view at /, its assets, the profile plot's JSON
     errors.install(app)
+    openapi.install(app)
     app.add_middleware(BodySizeLimit, max_bytes=(settings or get_settings()).max_body_bytes)
     return app
 

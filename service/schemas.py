@@ -2,11 +2,37 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from datetime import datetime, timezone
+from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, computed_field, model_validator
+from pydantic.json_schema import SkipJsonSchema
 
 from worker.status import CalibrationStatus, FemStatus, Phase
+
+
+def utc(t: float) -> datetime:
+    """A Unix time (s) as an aware UTC datetime (answered as ISO 8601, e.g.
+    ``2026-01-02T03:04:05.678000Z``)."""
+    return datetime.fromtimestamp(t, timezone.utc)
+
+
+def _old_name(data: Any, new: str, old: str) -> Any:
+    """Fill the field ``new`` from ``old`` (and back), for records and callers that know only
+    one of the two names."""
+    if isinstance(data, dict) and (new in data) != (old in data):
+        data = dict(data)
+        if new in data:
+            data[old] = data[new]
+        else:
+            data[new] = data[old]
+    return data
+
+
+OLD_D = (
+    "the same value under its old name; kept for existing clients and left out of this "
+    "document, since a property named 'd' breaks generated clients"
+)
 
 
 class ChainProgress(BaseModel):
@@ -28,12 +54,18 @@ class DampingProgress(BaseModel):
         "(depth 'auto' on static equilibria), 'damping' (the fastest-settling d)",
     )
     runs: int = Field(0, description="d values tried (each a dynamic run of every load case)")
-    d: float | None = Field(None, description="the last d tried, N s/m")
+    last_d: float | None = Field(None, description="the last d tried, N s/m")
+    d: SkipJsonSchema[float | None] = Field(None, description=f"last_d: {OLD_D}")
     total_steps: int | None = Field(
         None, description="its settle steps over all load cases (null: some did not settle)"
     )
     best_d: float | None = Field(None, description="the fastest-settling d so far, N s/m")
     best_total_steps: int | None = Field(None, description="its settle steps, all load cases")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _names(cls, data: Any) -> Any:
+        return _old_name(data, "last_d", "d")
 
 
 class Progress(BaseModel):
@@ -86,7 +118,10 @@ class CalibrationResult(BaseModel):
     )
     k: float = Field(description="stiffness of the axis family (the one k for 'single'), N/m")
     stiffness: dict[str, float] = Field(description="k per spring family present, N/m")
-    d: float = Field(description="nodal damping, N s/m: the fastest-settling at the spec's dt")
+    damping: float = Field(
+        description="nodal damping d, N s/m: the fastest-settling at the spec's dt"
+    )
+    d: SkipJsonSchema[float] = Field(description=f"damping: {OLD_D}")
     d_min: float | None = Field(description="smallest d that still settles (two-stage), N s/m")
     depth: int = Field(description="penetration depth, layers")
     full_depth: int = Field(description="the deepest perturbed list, layers")
@@ -103,15 +138,39 @@ class CalibrationResult(BaseModel):
     history: list[float] = Field([], description="normalised cost per move, winning chain")
     chains: list[ChainSummary] = []
 
+    @model_validator(mode="before")
+    @classmethod
+    def _names(cls, data: Any) -> Any:
+        return _old_name(data, "damping", "d")
+
 
 class Timings(BaseModel):
-    """Unix times (s) and durations (s) of a calibration."""
+    """When a calibration was created, started and finished (ISO 8601 UTC, and as Unix times
+    in s), and how long it queued and ran (s)."""
 
-    created: float
-    started: float | None = None
-    finished: float | None = None
+    created: float = Field(description="Unix time, s (created_at: the same in ISO 8601)")
+    started: float | None = Field(None, description="Unix time, s")
+    finished: float | None = Field(None, description="Unix time, s")
     queued_seconds: float | None = None
     running_seconds: float | None = None
+
+    @computed_field  # type: ignore[prop-decorator]
+    @property
+    def created_at(self) -> datetime:
+        """Submitted, ISO 8601 UTC."""
+        return utc(self.created)
+
+    @computed_field  # type: ignore[prop-decorator]
+    @property
+    def started_at(self) -> datetime | None:
+        """The first job started, ISO 8601 UTC."""
+        return utc(self.started) if self.started is not None else None
+
+    @computed_field  # type: ignore[prop-decorator]
+    @property
+    def finished_at(self) -> datetime | None:
+        """Succeeded, failed or canceled, ISO 8601 UTC."""
+        return utc(self.finished) if self.finished is not None else None
 
 
 class CalibrationSummary(BaseModel):
@@ -120,8 +179,14 @@ class CalibrationSummary(BaseModel):
     id: str
     name: str
     status: CalibrationStatus
-    created: float
+    created: float = Field(description="Unix time, s (created_at: the same in ISO 8601)")
     parameter_set_id: str | None = None
+
+    @computed_field  # type: ignore[prop-decorator]
+    @property
+    def created_at(self) -> datetime:
+        """Submitted, ISO 8601 UTC."""
+        return utc(self.created)
 
 
 class Calibration(BaseModel):
@@ -196,12 +261,13 @@ class ParameterSet(BaseModel):
 
     id: str
     name: str
-    created: float
+    created: float = Field(description="Unix time, s (created_at: the same in ISO 8601)")
     k: float = Field(description="stiffness of the axis family (the one k for 'single'), N/m")
     stiffness: dict[str, float] = Field(description="k per spring family present, N/m")
     stiffness_mode: Literal["single", "families"] = Field(description="the spec's fpm.stiffness")
     stiffness_scale: list[float] = Field(description="per-axis stiffness factors (sx, sy, sz)")
-    d: float = Field(description="nodal damping, N s/m (meaningful only with dt)")
+    damping: float = Field(description="nodal damping d, N s/m (meaningful only with dt)")
+    d: SkipJsonSchema[float] = Field(description=f"damping: {OLD_D}")
     d_min: float | None = Field(description="smallest d that still settles (two-stage), N s/m")
     depth: int
     dt: float = Field(description="the time step the set was fitted at, s")
@@ -218,6 +284,17 @@ class ParameterSet(BaseModel):
     node_mass: dict[str, float] = Field(description="lumped node masses: min, max, mean, total, kg")
     warnings: list[str] = []
     provenance: Provenance
+
+    @computed_field  # type: ignore[prop-decorator]
+    @property
+    def created_at(self) -> datetime:
+        """Stored, ISO 8601 UTC."""
+        return utc(self.created)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _names(cls, data: Any) -> Any:
+        return _old_name(data, "damping", "d")
 
 
 class ParameterSetPage(BaseModel):

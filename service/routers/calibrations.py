@@ -47,9 +47,10 @@ SpecBody = Annotated[ProblemSpec, Body(openapi_examples=openapi_examples())]
 @router.post(
     "",
     status_code=status.HTTP_202_ACCEPTED,
+    operation_id="submit_calibration",
     responses={
         200: {"model": Calibration, "description": "the identical spec's calibration"},
-        **problem_responses(400),
+        **problem_responses(400, 413, 422),
     },
 )
 def submit(
@@ -68,7 +69,7 @@ def submit(
     return read(record.id, redis)
 
 
-@router.get("")
+@router.get("", operation_id="list_calibrations", responses=problem_responses(422))
 def listing(
     redis: RedisDep,
     settings: SettingsDep,
@@ -99,7 +100,7 @@ def listing(
     return CalibrationPage(items=items, total=total, offset=offset, limit=limit)
 
 
-@router.get("/{calibration_id}")
+@router.get("/{calibration_id}", operation_id="get_calibration", responses=problem_responses(404))
 def read(calibration_id: CalibrationId, redis: RedisDep) -> Calibration:
     """Status, progress, and when done the result."""
     pipe = redis.pipeline(transaction=False)
@@ -117,7 +118,9 @@ def read(calibration_id: CalibrationId, redis: RedisDep) -> Calibration:
     return _view(record, progress, fem_running)
 
 
-@router.delete("/{calibration_id}", responses=problem_responses(409))
+@router.delete(
+    "/{calibration_id}", operation_id="cancel_calibration", responses=problem_responses(404, 409)
+)
 def cancel(calibration_id: CalibrationId, redis: RedisDep) -> Calibration:
     """Cancel: running chains are stopped, queued jobs dropped, the status becomes canceled.
 

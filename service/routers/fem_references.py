@@ -24,9 +24,10 @@ router = APIRouter(prefix="/v1/fem-references", tags=["fem-references"])
 @router.post(
     "",
     status_code=status.HTTP_202_ACCEPTED,
+    operation_id="submit_fem_reference",
     responses={
         200: {"model": FemReference, "description": "already computed or on its way"},
-        **problem_responses(400),
+        **problem_responses(400, 413, 422),
     },
 )
 def submit(
@@ -52,7 +53,7 @@ def submit(
     return read(digest, redis)
 
 
-@router.get("/{fem_id}")
+@router.get("/{fem_id}", operation_id="get_fem_reference", responses=problem_responses(404, 422))
 def read(
     fem_id: FemId,
     redis: RedisDep,

@@ -12,7 +12,7 @@ from ..schemas import Health
 router = APIRouter(prefix="/v1/health", tags=["health"])
 
 
-@router.get("")
+@router.get("", operation_id="get_health")
 def health(redis: RedisDep) -> Health:
     """200 with counts when Redis answers (503 problem+json when it does not).
 

@@ -25,7 +25,7 @@ def current(ps: dict[str, Any]) -> bool:
     return "relative_discrepancy" in ps and "stiffness" in ps
 
 
-@router.get("")
+@router.get("", operation_id="list_parameter_sets", responses=problem_responses(422))
 def listing(
     redis: RedisDep,
     youngs_modulus: Annotated[float | None, Query(gt=0, description="E, Pa")] = None,
@@ -55,7 +55,11 @@ def listing(
     return ParameterSetPage(items=items, total=len(items))
 
 
-@router.get("/{parameter_set_id}", responses=problem_responses(410))
+@router.get(
+    "/{parameter_set_id}",
+    operation_id="get_parameter_set",
+    responses=problem_responses(404, 410),
+)
 def read(parameter_set_id: ParameterSetId, redis: RedisDep) -> ParameterSet:
     """One stored parameter set (410 for one stored by an older version: recalibrate)."""
     ps = store.get_parameter_set(redis, parameter_set_id)
