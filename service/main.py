@@ -1,13 +1,14 @@
 """Builds the FastAPI app: ``uvicorn service.main:app``.
 
-See /docs for the OpenAPI page (with the paper's material A spec as the example body).
+See /docs (Swagger UI) or /redoc for the OpenAPI document (with the paper's material A spec as
+the example body), served with no CDN.
 """
 
 from __future__ import annotations
 
 from fastapi import Depends, FastAPI
 
-from . import errors, openapi, web
+from . import docs, errors, openapi, web
 from .deps import require_api_key
 from .limits import BodySizeLimit
 from .routers import calibrations, exports, fem_references, health, parameter_sets
@@ -24,6 +25,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version="1.0",
         description="Calibrates a force propagation model (Choi et al. 2004) against a "
         "hexahedral FEM reference, on a pool of RQ workers.",
+        docs_url=None,  # served by service.docs, without a CDN
+        redoc_url=None,
         generate_unique_id_function=openapi.operation_id,
     )
     if settings is not None:
@@ -35,6 +38,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     web.install(app, documented)  # the web view at /, its assets, the profile plot's JSON
     errors.install(app)
     openapi.install(app)
+    docs.install(app)
     app.add_middleware(BodySizeLimit, max_bytes=(settings or get_settings()).max_body_bytes)
     return app
 
