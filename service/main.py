@@ -1,22 +1,23 @@
 """Builds the FastAPI app: ``uvicorn service.main:app``.
 
 See /docs (Swagger UI) or /redoc for the OpenAPI document (with the paper's material A spec as
-the example body), served with no CDN.
+the example body), served with no CDN; Prometheus metrics at /metrics.
 """
 
 from __future__ import annotations
 
 from fastapi import Depends, FastAPI
 
-from . import docs, errors, openapi, web
-from .deps import require_api_key
+from . import docs, errors, metrics, openapi, web
+from .deps import redis_client, require_api_key
 from .limits import BodySizeLimit
 from .routers import calibrations, exports, fem_references, health, parameter_sets
 from .settings import Settings, get_settings
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
-    """The app: routers under /v1 (API-key protected when keys are set), problem+json errors.
+    """The app: routers under /v1 (API-key protected when keys are set), problem+json errors,
+    offline docs, metrics.
 
     ``settings`` (tests) replaces :func:`get_settings` for every route and the middleware.
     """
@@ -29,6 +30,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         redoc_url=None,
         generate_unique_id_function=openapi.operation_id,
     )
+    config = settings or get_settings()
     if settings is not None:
         app.dependency_overrides[get_settings] = lambda: settings
     protected = [Depends(require_api_key)]
@@ -39,7 +41,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     errors.install(app)
     openapi.install(app)
     docs.install(app)
-    app.add_middleware(BodySizeLimit, max_bytes=(settings or get_settings()).max_body_bytes)
+    app.add_middleware(BodySizeLimit, max_bytes=config.max_body_bytes)
+    metrics.install(app, lambda: redis_client(config.redis_url, config.redis_timeout))
     return app
 
 
