@@ -120,7 +120,7 @@ def show_calibration(c: dict[str, Any]) -> str:
         d_min = r.get("d_min")
         lines += [
             f"stiffness   {stiffness_text(r['stiffness'], unit=' N/m')}",
-            f"d           {r['d']:.5g} N s/m"
+            f"d           {r.get('damping', r.get('d')):.5g} N s/m"
             + (f" (smallest that settles: {d_min:.5g})" if d_min is not None else ""),
             f"depth       {r['depth']} layers (full depth {r['full_depth']})",
             f"h           {r['h']:.5g} m",
@@ -132,6 +132,18 @@ def show_calibration(c: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def geometry_text(geometry: dict[str, Any]) -> str:
+    """The solid a set was fitted on: 'box 0.1x0.1x0.1 m, 1000 nodes, full' (a k fitted on
+    one mesh is wrong on another, so sets of different meshes must not look alike)."""
+    kind = geometry["type"]
+    if geometry.get("size"):
+        kind += " " + "x".join(f"{s:.3g}" for s in geometry["size"]) + " m"
+    parts = [kind, f"{geometry['nodes']} nodes"]
+    if geometry.get("connectivity"):
+        parts.append(geometry["connectivity"])
+    return ", ".join(parts)
+
+
 def parameter_set_rows(sets: list[dict[str, Any]]) -> list[list[Any]]:
     """One row per parameter set for :data:`PARAMETER_SET_HEADERS`."""
     return [
@@ -140,10 +152,10 @@ def parameter_set_rows(sets: list[dict[str, Any]]) -> list[list[Any]]:
             p["name"],
             p["material"]["youngs_modulus"],
             p["material"]["poisson_ratio"],
-            f"{p['geometry']['type']} {p['geometry']['nodes']}",
+            geometry_text(p["geometry"]),
             p["geometry"]["h"],
             stiffness_text(p["stiffness"], p.get("stiffness_mode")),
-            p["d"],
+            p.get("damping", p.get("d")),
             p["depth"],
             mean(p["relative_discrepancy"]),
             mean(p["loaded_discrepancy"]),

@@ -9,7 +9,13 @@ import pytest
 
 import fpm
 from client import ApiError, Client
-from client.cli import discrepancy_rows, parameter_set_rows, show_calibration, stiffness_text
+from client.cli import (
+    discrepancy_rows,
+    geometry_text,
+    parameter_set_rows,
+    show_calibration,
+    stiffness_text,
+)
 from client.cli import main as cli
 from client.demo import report
 from client.progress import ProgressBar, render
@@ -167,7 +173,9 @@ def test_reports_lead_with_the_relative_discrepancy():
         **{k: RESULT[k] for k in ("relative_discrepancy", "loaded_discrepancy", "discrepancy_h")},
     }
     (row,) = parameter_set_rows([parameter_set])
-    assert row[4:7] == ["voxels 748", 0.01, "axis 30, face 12.5, body 4"]
+    assert row[4:7] == ["voxels, 748 nodes, full", 0.01, "axis 30, face 12.5, body 4"]
+    box = {"type": "box", "size": [0.1, 0.1, 0.05], "connectivity": "axis", "nodes": 600}
+    assert geometry_text(box) == "box 0.1x0.1x0.05 m, 600 nodes, axis"
     assert row[-3:] == [21.0, 11.0, 0.75]
 
 
@@ -205,7 +213,8 @@ def test_sdk_and_cli_over_http(live_api, small_spec, tmp_path, capsys):
     assert done["parameter_set_id"] in [p["id"] for p in sets]
     assert cli(["--url", live_api, "params", "--E", "10000", "--nu", "0.45"]) == 0
     out = capsys.readouterr().out
-    assert done["parameter_set_id"] in out and "box 64" in out and "(all springs)" in out
+    assert done["parameter_set_id"] in out and "(all springs)" in out
+    assert "box 0.03x0.03x0.03 m, 64 nodes, full" in out and "h m" in out
     assert cli(["--url", live_api, "list"]) == 0
     assert "over http" in capsys.readouterr().out
 
