@@ -3,9 +3,11 @@
 Run as many as you like, on as many machines as you like, against one Redis. A worker listens
 to :data:`worker.keys.QUEUES` unless told otherwise, taking the jobs that finish a calibration
 (priority queue) before FEM jobs and chains. Each worker forks a work horse per job (so a stop
-request or a crash kills the horse, not the worker) and runs RQ's maintenance every
-MAINTENANCE_INTERVAL seconds: a job whose worker died is then re-queued (it has retries) and
-resumes from its last checkpoint.
+request or a crash kills the horse, not the worker), beats and runs RQ's maintenance at the
+intervals of :mod:`worker.timing`: a job whose worker died is re-queued (it has retries) within
+:func:`worker.timing.requeue_bound` seconds (40 at the default TTL) and resumes from its last
+checkpoint. Its Redis client (:mod:`worker.connection`) waits out a Redis outage: a running
+job pauses and goes on once Redis is back, and no worker quits.
 """
 
 from __future__ import annotations
@@ -24,11 +26,8 @@ from rq.job import Job
 from rq.serializers import JSONSerializer
 
 # jobs is imported before forking, so every work horse inherits fpm, NumPy and SciPy loaded.
-from . import graph, jobs, keys  # noqa: F401
-from .liveness import WORKER_TTL
-
-MAINTENANCE_INTERVAL = 60
-"""Seconds between RQ maintenance runs (which retry the jobs of dead workers)."""
+from . import graph, jobs, keys, timing  # noqa: F401
+from .connection import connect, give_up, seconds_since_outage
 
 PR_SET_PDEATHSIG = 1
 
@@ -66,14 +65,47 @@ class SweepsReadyJobs:
                 log.warning("could not sweep the ready registries: %s", type(e).__name__)
 
 
-class FpmSimpleWorker(SweepsReadyJobs, SimpleWorker):
+class RidesOutOutages:
+    """The timing of :mod:`worker.timing`, and a worker's part in riding out a Redis outage.
+
+    After an outage no job is re-queued by this worker's maintenance until a busy worker that
+    rode the outage out has had time to beat again (its job's entry in the started registry
+    may have expired meanwhile). A stop request ends the waiting for Redis.
+    """
+
+    @property
+    def dequeue_timeout(self) -> int:
+        return timing.dequeue_timeout()
+
+    @property
+    def should_run_maintenance_tasks(self) -> bool:
+        since = seconds_since_outage()
+        settle = timing.job_monitoring_interval() + timing.execution_grace()
+        if since is not None and since < settle:
+            return False
+        return super().should_run_maintenance_tasks  # type: ignore[misc]
+
+    def request_stop(self, signum: int, frame: object) -> None:
+        give_up()
+        super().request_stop(signum, frame)  # type: ignore[misc]
+
+
+class FpmSimpleWorker(RidesOutOutages, SweepsReadyJobs, SimpleWorker):
     """RQ's in-process worker (``--simple``), sweeping after each job."""
 
 
-class FpmWorker(SweepsReadyJobs, Worker):
+class FpmWorker(RidesOutOutages, SweepsReadyJobs, Worker):
     """RQ's forking worker whose work horses die with it, sweeping after each job."""
 
     _parent_pid = 0
+
+    def get_heartbeat_ttl(self, job: Job, working_time: float = 0.0) -> int:
+        """Seconds a running job's entry in the started registry lives unless renewed: the next
+        beat plus :func:`worker.timing.execution_grace` (RQ's grace is 60 s)."""
+        interval = self.job_monitoring_interval
+        if job.timeout and job.timeout > 0:
+            interval = int(max(0, min(job.timeout - working_time, interval)))
+        return interval + timing.execution_grace()
 
     def fork_work_horse(self, job: Job, queue: Queue) -> None:
         self._parent_pid = os.getpid()
@@ -110,17 +142,21 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    redis = Redis.from_url(args.url, health_check_interval=30)
+    redis = connect(args.url)
     worker_class = FpmSimpleWorker if args.simple else FpmWorker
     worker = worker_class(
         args.queues,
         connection=redis,
         serializer=JSONSerializer,
         name=args.name,
-        maintenance_interval=MAINTENANCE_INTERVAL,
-        worker_ttl=WORKER_TTL,
+        maintenance_interval=timing.maintenance_interval(),
+        worker_ttl=timing.WORKER_TTL,
+        job_monitoring_interval=timing.job_monitoring_interval(),
     )
-    worker.work(burst=args.burst, with_scheduler=False)
+    try:
+        worker.work(burst=args.burst, with_scheduler=False)
+    except RedisError as e:  # stopped while Redis was away: its goodbye could not be written
+        log.warning("stopped without reaching Redis: %s", type(e).__name__)
 
 
 if __name__ == "__main__":

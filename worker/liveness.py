@@ -2,9 +2,10 @@
 
 RQ's worker registry keeps a worker that was killed (SIGKILL, lost machine) until a live
 worker's maintenance cleans it up, which never happens when no worker is left: counting the
-registry reports dead workers as alive. A live worker writes ``last_heartbeat`` at least every
-:data:`WORKER_TTL` seconds (a busy one every 30 s, an idle one each time its blocking dequeue
-times out, ``WORKER_TTL - 15`` s), so a worker silent for longer is dead (or hung).
+registry reports dead workers as alive. A live worker writes ``last_heartbeat`` well within
+:data:`WORKER_TTL` seconds (a busy one every third of it, an idle one each time its blocking
+dequeue times out, every half of it: :mod:`worker.timing`), so a worker silent for longer is
+dead (or hung).
 """
 
 from __future__ import annotations
@@ -13,9 +14,9 @@ from rq import Queue, Worker
 from rq.utils import now
 from rq.worker import BaseWorker
 
-WORKER_TTL = 420
-"""Seconds a worker may go without a heartbeat (RQ's default; every worker is started with it,
-and :func:`workers` judges them by it, so the two cannot disagree)."""
+from .timing import WORKER_TTL
+
+__all__ = ["WORKER_TTL", "alive", "workers"]
 
 
 def workers(queue: Queue, window: float = WORKER_TTL) -> tuple[int, int]:
