@@ -31,6 +31,8 @@ PAPER = {
 """Choi et al. 2004, Table 1."""
 PAPER_H = {"mean": "about 9", "smallest": "1.4"}
 """The paper's mean nodal discrepancy, % of h: over its forces, and at the smallest force."""
+STACK_URL = "http://127.0.0.1:8000"
+"""Where ``make run`` (``fpmcal up``) serves the API and the web view."""
 LOG_DIR = Path("data") / "logs"
 """Where the demo's API and workers log."""
 PAPER_NOTE = """\
@@ -112,6 +114,7 @@ def main() -> None:
     stack = nullcontext(url) if url else local_stack(workers=2, port=free_port(), log_dir=LOG_DIR)
     with stack as base_url:
         print(f"service: {base_url}" + ("" if url else f" (logs in {LOG_DIR}/)"), flush=True)
+        print(f"web view, live while the demo runs: {base_url}/", flush=True)
         with Client(base_url, api_key=os.environ.get("FPM_API_KEY")) as client:
             specs = {name: read_spec(EXAMPLES / f"{name}.json") for name in PAPER}
             submitted = {name: client.calibrate(spec) for name, spec in specs.items()}
@@ -122,6 +125,18 @@ def main() -> None:
                     raise SystemExit(f"{name}: {results[name]['status']} {results[name]['error']}")
     print()
     print(report(results, specs))
+    print()
+    print(web_view_hint(url))
+
+
+def web_view_hint(url: str | None) -> str:
+    """The demo's last line: where to look at the results in a browser."""
+    if url:
+        return f"web view: {url.rstrip('/')}/"
+    return (
+        f"web view: {STACK_URL}/ once the stack runs again (`make run`; the results are kept "
+        "in ./data)"
+    )
 
 
 if __name__ == "__main__":

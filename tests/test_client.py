@@ -17,7 +17,7 @@ from client.cli import (
     stiffness_text,
 )
 from client.cli import main as cli
-from client.demo import report
+from client.demo import report, web_view_hint
 from client.progress import ProgressBar, render
 from fpm.calibration import calibrate
 from service.redis_server import free_port
@@ -227,3 +227,8 @@ def test_sdk_and_cli_over_http(live_api, small_spec, tmp_path, capsys):
 def test_cli_cannot_reach(capsys):
     assert cli(["--url", f"http://127.0.0.1:{free_port()}", "health"]) == 2
     assert "cannot reach" in capsys.readouterr().err
+
+
+def test_demo_ends_with_the_web_view_url():
+    assert web_view_hint("http://host:9000/") == "web view: http://host:9000/"
+    assert web_view_hint(None).startswith("web view: http://127.0.0.1:8000/ once the stack")

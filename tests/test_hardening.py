@@ -156,10 +156,10 @@ def test_user_text_reaches_the_worker_log_escaped(redis, small_spec, caplog):
     spec = dump_spec(ProblemSpec(**small_spec))
     record, _ = graph.submit_calibration(redis, spec, JobOptions(retries=0))
     caplog.set_level(logging.INFO)
-    SimpleWorker([keys.QUEUE], connection=redis, serializer=JSONSerializer).work(
+    SimpleWorker(list(keys.QUEUES), connection=redis, serializer=JSONSerializer).work(
         burst=True, logging_level="INFO"
     )
-    assert graph.queue(redis).count == 0
+    assert graph.queue(redis).count == graph.priority_queue(redis).count == 0
     logged = [r.getMessage() for r in caplog.records]
     escaped = "x\\r\\n2026-01-01 00:00:00,000 rq.worker FORGED\\x00\\x07\\x1b[2J"
     assert any(escaped in m for m in logged)

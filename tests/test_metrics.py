@@ -60,13 +60,16 @@ def test_requests_per_route_and_queues_workers_calibrations(api, redis, run_work
     assert "/metrics" not in handlers
 
     assert value(samples, "fpm_redis_up") == 1
-    # Submitted, nothing run: the FEM job waits; chains, damping and finalize are deferred.
-    assert value(samples, "fpm_queue_depth", queue=keys.QUEUE) == 1
-    assert value(samples, "fpm_queue_depth", queue=keys.PRIORITY_QUEUE) == 0
+    # Submitted, nothing run: the FEM job (a small problem's: on the priority queue) waits;
+    # chains, damping and finalize are deferred.
+    assert value(samples, "fpm_queue_depth", queue=keys.QUEUE) == 0
+    assert value(samples, "fpm_queue_depth", queue=keys.PRIORITY_QUEUE) == 1
     assert value(samples, "fpm_jobs", queue=keys.QUEUE, state="deferred") == 2
     assert value(samples, "fpm_jobs", queue=keys.PRIORITY_QUEUE, state="deferred") == 2
     assert value(samples, "fpm_calibrations", status="queued") == 1
     assert value(samples, "fpm_calibrations", status="succeeded") == 0
+    assert value(samples, "fpm_calibration_duration_seconds_count") == 0
+    assert value(samples, "fpm_cost_evaluations_total") == 0
     assert {s: value(samples, "fpm_workers", state=s) for s in ("busy", "idle")} == {
         "busy": 0,
         "idle": 0,
@@ -85,6 +88,12 @@ def test_requests_per_route_and_queues_workers_calibrations(api, redis, run_work
     assert value(samples, "fpm_calibrations", status="succeeded") == 1
     assert value(samples, "fpm_calibrations", status="queued") == 0
     assert value(samples, "fpm_parameter_sets") == 1
+    done = api.get(f"/v1/calibrations/{calibration_id}").json()
+    took = done["timings"]["running_seconds"]
+    assert value(samples, "fpm_calibration_duration_seconds_count") == 1
+    assert value(samples, "fpm_calibration_duration_seconds_sum") == pytest.approx(took)
+    chains = sum(c["evaluations"] for c in done["result"]["chains"])
+    assert value(samples, "fpm_cost_evaluations_total") == chains > 0
     for queue in keys.QUEUES:
         assert value(samples, "fpm_queue_depth", queue=queue) == 0
         assert value(samples, "fpm_jobs", queue=queue, state="failed") == 0

@@ -4,9 +4,10 @@ A calibration is::
 
     fem job (skipped if the reference is stored) --> chain 0 .. chain n-1 --> damping --> finalize
 
-(the damping job only for the two-stage method: polish, depth, fastest-settling d). The FEM
-job and the chains go to the queue of long jobs, the damping job and finalize to the priority
-queue that workers drain first (:data:`worker.keys.QUEUES`).
+(the damping job only for the two-stage method: polish, depth, fastest-settling d). The chains
+and a large problem's FEM job go to the queue of long jobs; the damping job, finalize and the
+FEM job of a small problem (:data:`SMALL_FEM_NODES`) to the priority queue that workers drain
+first (:data:`worker.keys.QUEUES`).
 
 Jobs are enqueued by dotted path with RQ's JSON serializer and carry only ids; the spec, the
 FEM reference and the chain results live under our own keys (:mod:`worker.keys`). Chains
@@ -215,6 +216,8 @@ def submit_fem(redis: Redis, spec: dict[str, Any], options: JobOptions) -> Job |
         },
     )
     pipe.execute()
+    if fem_nodes(spec) <= SMALL_FEM_NODES:
+        q = priority_queue(redis)  # a short job: it must not wait behind another's chains
     return q.enqueue_call(
         "worker.jobs.fem_reference",
         args=(digest,),
@@ -223,6 +226,27 @@ def submit_fem(redis: Redis, spec: dict[str, Any], options: JobOptions) -> Job |
         description=f"FEM reference {digest[:12]}",
         **_common(options),
     )
+
+
+SMALL_FEM_NODES = 5_000
+"""A FEM reference of at most this many nodes (a direct solve of about a second) goes on the
+priority queue with the jobs that finish calibrations; larger ones on the queue of long jobs."""
+
+
+def fem_nodes(spec: dict[str, Any]) -> int:
+    """About how many nodes the FEM of ``spec`` has, from the validated spec alone (no
+    numerics loaded): a box's lattice, a mesh's nodes, a voxel grid's solid cells (a lower
+    bound on its nodes), a network's nodes; a large number when the geometry is unknown."""
+    geometry = spec.get("geometry", {})
+    kind = geometry.get("type")
+    if kind == "box":
+        nx, ny, nz = geometry["nodes"]
+        return int(nx * ny * nz)
+    if kind == "voxels":
+        return sum(bool(c) for plane in geometry["occupancy"] for row in plane for c in row)
+    if kind in ("mesh", "network"):
+        return len(geometry.get("nodes", ()))
+    return 1 << 62
 
 
 def _common(options: JobOptions) -> dict[str, Any]:

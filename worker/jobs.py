@@ -145,6 +145,7 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
     pipe = redis.pipeline()
     pipe.set(result_key, json.dumps(result.to_dict()), ex=store.SCRATCH_TTL)
     pipe.delete(checkpoint_key)
+    pipe.incrby(keys.evaluations_total(), result.evaluations)
     pipe.execute()
     return {"x": result.x, "cost": result.cost, "evaluations": result.evaluations}
 

@@ -104,6 +104,12 @@ def parameter_sets() -> str:
     return f"{PREFIX}:parameter-sets"
 
 
+def evaluations_total() -> str:
+    """Integer: annealing cost evaluations of every chain finished so far (the metrics'
+    counter; its rate is the evaluations per second)."""
+    return f"{PREFIX}:evaluations-total"
+
+
 def fem_job_id(fem_hash: str) -> str:
     """RQ job id of the FEM job for a reference (shared by every calibration that needs it)."""
     return f"fem-{fem_hash[:40]}"
