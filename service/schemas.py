@@ -221,6 +221,16 @@ class FemReference(BaseModel):
     status: FemStatus
     n_nodes: int | None = None
     load_cases: list[str] | None = None
+    model: str | None = Field(None, description="material model: linear or neo-hookean")
+    residuals: list[float] | None = Field(
+        None, description="(L,) final relative residual of each load case's solve"
+    )
+    load_steps: list[int] | None = Field(
+        None, description="(L,) load steps per load case (neo-hookean; empty for linear)"
+    )
+    newton_iterations: list[list[int]] | None = Field(
+        None, description="(L, steps) Newton iterations of each load step (neo-hookean)"
+    )
     error: str | None = None
     nodes: list[list[float]] | None = Field(None, description="(N, 3) rest positions, m")
     displacements: list[list[list[float]]] | None = Field(

@@ -253,6 +253,18 @@ def test_fem_reference_on_its_own(api, run_workers, small_spec):
     assert reference["status"] == "succeeded" and reference["n_nodes"] == 64
     assert len(reference["displacements"]) == 2 and len(reference["displacements"][0]) == 64
     assert len(reference["nodes"]) == 64
+    assert reference["model"] == "linear" and reference["load_steps"] == []
+    assert len(reference["residuals"]) == 2 and max(reference["residuals"]) < 1e-6
+    # The neo-Hookean reference of the same solid reports its load steps and Newton iterations.
+    hyper = {**small_spec, "material": {**small_spec["material"], "model": "neo-hookean"}}
+    other = api.post("/v1/fem-references", json=hyper)
+    assert other.status_code == 202 and other.headers["location"] != submitted.headers["location"]
+    run_workers()
+    nh = api.get(other.headers["location"], params={"arrays": False}).json()
+    assert nh["status"] == "succeeded" and nh["model"] == "neo-hookean"
+    assert len(nh["load_steps"]) == 2 and all(n >= 1 for n in nh["load_steps"])
+    assert [len(steps) for steps in nh["newton_iterations"]] == nh["load_steps"]
+    assert nh["displacements"] is None
     # A calibration of the same problem finds it stored.
     assert api.post("/v1/calibrations", json=small_spec).json()["fem_cached"] is True
     assert_problem(api.get("/v1/fem-references/abc"), 404)

@@ -82,6 +82,14 @@ def fem_reference(fem_hash: str) -> dict[str, Any]:
         "finished": time.time(),
         "n_nodes": len(result.nodes),
         "load_cases": json.dumps(result.load_cases),
+        "model": result.model,
+        "solver": json.dumps(
+            {
+                "residuals": [float(r) for r in result.residuals],
+                "load_steps": list(result.load_steps),
+                "newton_iterations": [list(n) for n in result.newton_iterations],
+            }
+        ),
     }
     pipe = redis.pipeline()
     pipe.set(keys.fem_reference(fem_hash), json.dumps(result.to_dict()))

@@ -68,6 +68,8 @@ def read(
         status=FemStatus(meta["status"]),
         n_nodes=int(meta["n_nodes"]) if meta.get("n_nodes") else None,
         load_cases=json.loads(meta["load_cases"]) if meta.get("load_cases") else None,
+        model=meta.get("model") or None,
+        **(json.loads(meta["solver"]) if meta.get("solver") else {}),
         error=meta.get("error") or None,
     )
     if arrays and out.status == FemStatus.SUCCEEDED:
