@@ -360,6 +360,31 @@ def _energy_change(
     return total
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _spring_tangent(
+    rest_vector: np.ndarray,
+    ends: np.ndarray,
+    rest_length: np.ndarray,
+    k: np.ndarray,
+    u: np.ndarray,
+    s: int,
+    modified: bool,
+) -> tuple[float, float, float, float, float]:
+    """Spring ``s`` at u: its unit direction n (3 floats) and the weights a = k (1 - c),
+    b = k c of its tangent block a n n^T + b I, c = 1 - L/|r| (clamped at 0 if ``modified``)."""
+    i, j = ends[s, 0], ends[s, 1]
+    r0, r1, r2 = rest_vector[s, 0], rest_vector[s, 1], rest_vector[s, 2]
+    if i >= 0:
+        r0, r1, r2 = r0 - u[i, 0], r1 - u[i, 1], r2 - u[i, 2]
+    if j >= 0:
+        r0, r1, r2 = r0 + u[j, 0], r1 + u[j, 1], r2 + u[j, 2]
+    length = max(np.sqrt(r0 * r0 + r1 * r1 + r2 * r2), 1e-300)
+    c = 1.0 - rest_length[s] / length
+    if modified and c < 0.0:
+        c = 0.0
+    return r0 / length, r1 / length, r2 / length, k[s] * (1.0 - c), k[s] * c
+
+
 @njit(cache=True, nogil=True)
 def _tangent_blocks(
     rest_vector: np.ndarray,
@@ -375,19 +400,7 @@ def _tangent_blocks(
     on its diagonal blocks (``position`` columns 0, 1), - on its off-diagonal ones (2, 3)."""
     block = np.empty((3, 3))
     for s in range(len(rest_length)):
-        i, j = ends[s, 0], ends[s, 1]
-        r0, r1, r2 = rest_vector[s, 0], rest_vector[s, 1], rest_vector[s, 2]
-        if i >= 0:
-            r0, r1, r2 = r0 - u[i, 0], r1 - u[i, 1], r2 - u[i, 2]
-        if j >= 0:
-            r0, r1, r2 = r0 + u[j, 0], r1 + u[j, 1], r2 + u[j, 2]
-        length = max(np.sqrt(r0 * r0 + r1 * r1 + r2 * r2), 1e-300)
-        c = 1.0 - rest_length[s] / length
-        if modified and c < 0.0:
-            c = 0.0
-        n0, n1, n2 = r0 / length, r1 / length, r2 / length
-        a = k[s] * (1.0 - c)
-        b = k[s] * c
+        n0, n1, n2, a, b = _spring_tangent(rest_vector, ends, rest_length, k, u, s, modified)
         block[0, 0] = a * n0 * n0 + b
         block[1, 1] = a * n1 * n1 + b
         block[2, 2] = a * n2 * n2 + b
@@ -423,18 +436,7 @@ def _reduced_tangent(
     dn = np.zeros(m)
     for s in range(len(rest_length)):
         i, j = ends[s, 0], ends[s, 1]
-        r0, r1, r2 = rest_vector[s, 0], rest_vector[s, 1], rest_vector[s, 2]
-        if i >= 0:
-            r0, r1, r2 = r0 - u[i, 0], r1 - u[i, 1], r2 - u[i, 2]
-        if j >= 0:
-            r0, r1, r2 = r0 + u[j, 0], r1 + u[j, 1], r2 + u[j, 2]
-        length = max(np.sqrt(r0 * r0 + r1 * r1 + r2 * r2), 1e-300)
-        c = 1.0 - rest_length[s] / length
-        if modified and c < 0.0:
-            c = 0.0
-        n0, n1, n2 = r0 / length, r1 / length, r2 / length
-        a = k[s] * (1.0 - c)
-        b = k[s] * c
+        n0, n1, n2, a, b = _spring_tangent(rest_vector, ends, rest_length, k, u, s, modified)
         for x in range(3):
             for p in range(m):
                 value = 0.0
