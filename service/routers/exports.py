@@ -17,7 +17,7 @@ from worker import store
 
 from ..deps import ParameterSetId, RedisDep
 from ..errors import ProblemError, problem_responses
-from .parameter_sets import current
+from .parameter_sets import stored_parameter_set
 
 router = APIRouter(prefix="/v1/parameter-sets", tags=["parameter-sets"])
 
@@ -52,16 +52,7 @@ def export(
     """A stored parameter set with its lattice: ``json`` (any engine), ``vtu`` (ParaView) or
     ``sofa`` (a SOFA scene). 410 for a set stored by an older version, or whose calibration
     record (which holds the spec) is gone."""
-    ps = store.get_parameter_set(redis, parameter_set_id)
-    if ps is None:
-        raise ProblemError(404, "Not found", f"no parameter set {parameter_set_id!r}")
-    if not current(ps):
-        raise ProblemError(
-            410,
-            "Gone",
-            f"parameter set {parameter_set_id} was stored by an older version of the service "
-            "(no relative discrepancy): calibrate its spec again",
-        )
+    ps = stored_parameter_set(redis, parameter_set_id)
     provenance = ps.get("provenance") or {}
     record = store.get_calibration(redis, str(provenance.get("calibration_id", "")))
     if record is None or record.spec_hash != provenance.get("spec_hash"):

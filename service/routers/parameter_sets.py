@@ -6,6 +6,7 @@ import math
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query
+from redis import Redis
 
 from worker import store
 
@@ -23,6 +24,21 @@ def current(ps: dict[str, Any]) -> bool:
     """False for a set stored by an older version (no relative discrepancy, no family
     stiffnesses): the listing leaves it out and reading it answers 410."""
     return "relative_discrepancy" in ps and "stiffness" in ps
+
+
+def stored_parameter_set(redis: Redis, parameter_set_id: str) -> dict[str, Any]:
+    """The stored parameter set; 404 if there is none, 410 if an older version stored it."""
+    ps = store.get_parameter_set(redis, parameter_set_id)
+    if ps is None:
+        raise ProblemError(404, "Not found", f"no parameter set {parameter_set_id!r}")
+    if not current(ps):
+        raise ProblemError(
+            410,
+            "Gone",
+            f"parameter set {parameter_set_id} was stored by an older version of the service "
+            "(no relative discrepancy): calibrate its spec again",
+        )
+    return ps
 
 
 @router.get("", operation_id="list_parameter_sets", responses=problem_responses(422))
@@ -62,14 +78,4 @@ def listing(
 )
 def read(parameter_set_id: ParameterSetId, redis: RedisDep) -> ParameterSet:
     """One stored parameter set (410 for one stored by an older version: recalibrate)."""
-    ps = store.get_parameter_set(redis, parameter_set_id)
-    if ps is None:
-        raise ProblemError(404, "Not found", f"no parameter set {parameter_set_id!r}")
-    if not current(ps):
-        raise ProblemError(
-            410,
-            "Gone",
-            f"parameter set {parameter_set_id} was stored by an older version of the service "
-            "(no relative discrepancy): calibrate its spec again",
-        )
-    return ParameterSet(**ps)
+    return ParameterSet(**stored_parameter_set(redis, parameter_set_id))
