@@ -51,19 +51,18 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import pyamg
 import scipy.sparse as sp
 from numba import njit
 
 from .linear_solver import (
     NegativeCurvature,
+    ReusedHierarchy,
     SingularStiffnessError,
     amg_hierarchy,
     conjugate_gradients,
     dot,
     factorize,
     rigid_body_modes,
-    v_cycle,
 )
 from .perturbed_list import Adjacency, PerturbedListCache
 from .problem import Problem
@@ -120,10 +119,6 @@ singular one: a mechanism)."""
 MAX_SYSTEMS = 6
 """Spring systems (distinct perturbed lists) a solver keeps, with their multigrid hierarchies
 and warm starts: at 20k nodes one full-depth system with its hierarchy takes ~150 MB."""
-
-REBUILD_SLOWDOWN = 2.0
-"""Rebuild the multigrid hierarchy when CG needs this many times the iterations per digit it
-needed on the tangent the hierarchy was built on (plus a few)."""
 
 
 class EquilibriumError(RuntimeError):
@@ -458,37 +453,6 @@ def _reduced_tangent(
 
 
 @dataclass
-class _Multigrid:
-    """A smoothed-aggregation hierarchy built on one tangent, reused while CG stays fast.
-
-    ``digit_cost`` is the CG iterations per decimal digit of residual reduction measured on
-    the first solve after the build; a later solve much slower than that marks it ``stale``.
-    """
-
-    hierarchy: pyamg.MultilevelSolver
-    digit_cost: float | None = None
-    stale: bool = False
-    uses: int = 0
-
-    def precondition(self, b: np.ndarray) -> np.ndarray:
-        return v_cycle(self.hierarchy, b)
-
-    def record(self, iterations: int, reduction: float, converged: bool) -> None:
-        """Note one CG solve: ``iterations`` taken to reduce the residual by ``reduction``;
-        ``converged``: it stopped before the iteration limit. (Short solves, which stop on the
-        nodal criterion after little reduction, are no evidence of a slowdown.)"""
-        digits = max(-math.log10(max(reduction, 1e-300)), 0.25)
-        cost = iterations / digits
-        self.uses += 1
-        if not converged:
-            self.stale = True
-        elif self.digit_cost is None:
-            self.digit_cost = cost
-        elif iterations >= 5 and cost > REBUILD_SLOWDOWN * self.digit_cost + 2.0:
-            self.stale = True
-
-
-@dataclass
 class _Snapshot:
     """A converged solution: free displacements u (M, 3), m, and its active springs'
     stiffness at the :data:`SAMPLE` of springs, N/m (the whole (A,) array would cost more
@@ -613,7 +577,7 @@ class StaticSolver:
         self._weight = solid.masses[:, None] * gravity[None, :] if np.any(gravity) else None
         self._lists: dict[tuple[int, int | None], tuple[bytes, np.ndarray, int]] = {}
         self._systems: dict[bytes, SpringSystem] = {}
-        self._multigrid: dict[bytes, _Multigrid] = {}
+        self._multigrid: dict[bytes, ReusedHierarchy] = {}
         self._predictors: dict[tuple[int, int | None], _Predictor] = {}
         self.hierarchies_built = 0
 
@@ -900,7 +864,7 @@ class StaticSolver:
         mg.record(cg.iterations, cg.residual, cg.converged)
         return cg.x, cg.iterations
 
-    def _hierarchy(self, system: SpringSystem, u: np.ndarray, k: np.ndarray) -> _Multigrid:
+    def _hierarchy(self, system: SpringSystem, u: np.ndarray, k: np.ndarray) -> ReusedHierarchy:
         """The list's multigrid hierarchy, built on the clamped tangent at u when missing or
         stale."""
         key = system.free.tobytes()
@@ -908,7 +872,7 @@ class StaticSolver:
         if mg is None or mg.stale:
             reference = system.tangent(u, k, modified=True, shift=SHIFT * 1e-3)
             nodes = self.problem.nodes[system.free]
-            mg = _Multigrid(amg_hierarchy(reference, rigid_body_modes(nodes)))
+            mg = ReusedHierarchy(amg_hierarchy(reference, rigid_body_modes(nodes)))
             self._multigrid[key] = mg
             self.hierarchies_built += 1
         return mg

@@ -29,7 +29,6 @@ Small loads reproduce the linear FEM (the tangent at rest is the linear stiffnes
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -41,12 +40,12 @@ from .fem import FemError
 from .linear_solver import (
     COMPILED_SMOOTHER_FROM,
     NegativeCurvature,
+    ReusedHierarchy,
     SingularStiffnessError,
     amg_hierarchy,
     conjugate_gradients,
     factorize,
     rigid_body_modes,
-    v_cycle,
 )
 from .neo_hookean import (
     ReferenceGradients,
@@ -85,10 +84,6 @@ MAX_CG_ITERATIONS = 500
 
 CHUNK = 1024
 """Hexahedra whose element matrices are formed at once (bounds the memory of an assembly)."""
-
-REBUILD_SLOWDOWN = 2.0
-"""Rebuild the multigrid hierarchy when CG needs this many times the iterations per digit of
-residual reduction it needed on the tangent it was built on (plus 2)."""
 
 
 class NewtonError(FemError):
@@ -153,7 +148,7 @@ class NeoHookeanSolid:
         self.size = float(np.linalg.norm(np.ptp(nodes, axis=0)))
         self.ref: ReferenceGradients = reference_gradients(nodes, hexahedra)
         self._pattern(hexahedra.astype(np.int64))
-        self._hierarchy: _Multigrid | None = None
+        self._hierarchy: ReusedHierarchy | None = None
 
     # --- assembly ---------------------------------------------------------------------------
 
@@ -241,7 +236,7 @@ class NeoHookeanSolid:
                 self._hierarchy = None  # free the old one first
                 modes = rigid_body_modes(self.nodes + u)[self.free]
                 compiled = k.shape[0] >= COMPILED_SMOOTHER_FROM  # as the linear FEM
-                self._hierarchy = _Multigrid(amg_hierarchy(k, modes, compiled=compiled))
+                self._hierarchy = ReusedHierarchy(amg_hierarchy(k, modes, compiled=compiled))
             mg = self._hierarchy
             try:
                 cg = conjugate_gradients(
@@ -258,28 +253,6 @@ class NeoHookeanSolid:
             mg.record(cg.iterations, cg.residual, cg.converged)
             return cg.x
         raise AssertionError("unreachable")
-
-
-@dataclass
-class _Multigrid:
-    """A smoothed-aggregation hierarchy built on one tangent, reused while CG stays fast
-    (``digit_cost``: CG iterations per decimal digit of reduction on its first solve)."""
-
-    hierarchy: object
-    digit_cost: float | None = None
-    stale: bool = False
-
-    def precondition(self, b: np.ndarray) -> np.ndarray:
-        return v_cycle(self.hierarchy, b)  # type: ignore[arg-type]
-
-    def record(self, iterations: int, reduction: float, converged: bool) -> None:
-        cost = iterations / max(-math.log10(max(reduction, 1e-300)), 0.25)
-        if not converged:
-            self.stale = True
-        elif self.digit_cost is None:
-            self.digit_cost = cost
-        elif iterations >= 5 and cost > REBUILD_SLOWDOWN * self.digit_cost + 2.0:
-            self.stale = True
 
 
 def newton(

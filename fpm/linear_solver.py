@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from functools import cache, partial
 from typing import NamedTuple
 
@@ -233,6 +234,44 @@ class CgResult(NamedTuple):
     """||b - a x|| / ||b|| (0 when b = 0)."""
     converged: bool
     """It stopped on a tolerance (relative or per node), not on the iteration limit."""
+
+
+REBUILD_SLOWDOWN = 2.0
+"""Rebuild a reused multigrid hierarchy when CG needs this many times the iterations per digit
+it needed on the matrix the hierarchy was built on (plus a few)."""
+
+
+@dataclass
+class ReusedHierarchy:
+    """A smoothed-aggregation hierarchy built on one matrix and reused for later ones (Newton's
+    tangents) while CG stays fast.
+
+    ``digit_cost`` is the CG iterations per decimal digit of residual reduction measured on
+    the first solve after the build; a later solve much slower than that marks it ``stale``
+    (its owner then builds a new one). Used by the static FPM equilibrium and the neo-Hookean
+    FEM.
+    """
+
+    hierarchy: pyamg.MultilevelSolver
+    digit_cost: float | None = None
+    stale: bool = False
+    uses: int = 0
+
+    def precondition(self, b: np.ndarray) -> np.ndarray:
+        return v_cycle(self.hierarchy, b)
+
+    def record(self, iterations: int, reduction: float, converged: bool) -> None:
+        """Note one CG solve: ``iterations`` taken to reduce the residual by ``reduction``;
+        ``converged``: it stopped before the iteration limit. (Short solves, which stop on a
+        nodal criterion after little reduction, are no evidence of a slowdown.)"""
+        cost = iterations / max(-math.log10(max(reduction, 1e-300)), 0.25)
+        self.uses += 1
+        if not converged:
+            self.stale = True
+        elif self.digit_cost is None:
+            self.digit_cost = cost
+        elif iterations >= 5 and cost > REBUILD_SLOWDOWN * self.digit_cost + 2.0:
+            self.stale = True
 
 
 def conjugate_gradients(

@@ -36,6 +36,7 @@ from fpm.equilibrium import (
     static_equilibrium,
     static_solver,
 )
+from fpm.linear_solver import ReusedHierarchy
 from fpm.stiffness import spring_stiffness
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -442,13 +443,13 @@ def test_one_multigrid_hierarchy_serves_steps_stiffnesses_and_load_cases(paper: 
 
 def test_a_hierarchy_that_slows_down_is_rebuilt():
     """CG iterations per digit of residual reduction, against the first solve's."""
-    multigrid = equilibrium._Multigrid(hierarchy=None)
+    multigrid = ReusedHierarchy(hierarchy=None)
     multigrid.record(10, 1e-2, True)  # 5 per digit
     multigrid.record(11, 1e-2, True)
     assert not multigrid.stale
     multigrid.record(13, 1e-1, True)  # 13 > 2 * 5 + 2
     assert multigrid.stale
-    fresh = equilibrium._Multigrid(hierarchy=None)
+    fresh = ReusedHierarchy(hierarchy=None)
     fresh.record(4, 1e-2, True)
     fresh.record(300, 0.5, False)  # hit the iteration limit
     assert fresh.stale
