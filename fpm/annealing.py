@@ -160,12 +160,12 @@ def anneal(
     return AnnealResult(best, history, evaluations, accepted, _near(visited, best))
 
 
-NEAR_BEST = 0.01
+KEEP_NEAR_BEST = 0.01
 """Visited states kept for the caller: those within this fraction of the chain's best cost."""
 
 
 def _near(visited: list[State], best: State) -> list[State]:
-    return [s for s in visited if s.cost <= best.cost * (1 + NEAR_BEST)]
+    return [s for s in visited if s.cost <= best.cost * (1 + KEEP_NEAR_BEST)]
 
 
 def _start(

@@ -49,7 +49,7 @@ from .problem import Problem
 from .simulation import fpm_model
 from .stiffness import family_names, spring_stiffness, stiffness_dict
 
-NEAR_BEST = 0.001
+EQUALLY_GOOD = 0.001
 """Paper method: states within this fraction of the best cost are equally good; the
 fastest-settling wins."""
 SAME_SPEED = 0.05
@@ -657,7 +657,7 @@ def pick_paper_state(chains: list[ChainResult]) -> tuple[list[float], float]:
     cheapest wins). Returns (stiffness parameters, d)."""
     best_cost = min(c.cost for c in chains)
     candidates = [
-        s for c in chains for s in c.near_best if s["cost"] <= best_cost * (1 + NEAR_BEST)
+        s for c in chains for s in c.near_best if s["cost"] <= best_cost * (1 + EQUALLY_GOOD)
     ]
     if any(s["settled"] for s in candidates):
         candidates = [s for s in candidates if s["settled"]]

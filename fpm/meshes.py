@@ -38,6 +38,8 @@ from typing import Any
 
 import numpy as np
 
+from .spec import FACES
+
 TOLERANCE = 1e-9
 """A cell centre within this (relative) barycentric margin of a tetrahedron counts as inside it:
 a centre on a face shared by two tetrahedra is never lost to rounding."""
@@ -455,7 +457,7 @@ def _selector(parts: list[str], text: str) -> tuple[dict[str, Any], list[str]]:
     """The selector at the start of ``parts`` and the parts left over."""
     kind = parts[0].strip().lower()
     if kind == "face":
-        if len(parts) < 2 or parts[1].strip() not in ("x-", "x+", "y-", "y+", "z-", "z+"):
+        if len(parts) < 2 or parts[1].strip() not in FACES:
             raise ValueError(f"{text!r}: a face is one of x-, x+, y-, y+, z-, z+ (e.g. face:z-)")
         return {"face": parts[1].strip()}, parts[2:]
     if kind == "node":

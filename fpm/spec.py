@@ -10,7 +10,7 @@ Validation here is what can be checked without building the solid; checks that n
 from __future__ import annotations
 
 import math
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -25,7 +25,9 @@ calibrations are never served a reference that older FEM numerics computed."""
 
 Vector3 = tuple[float, float, float]
 Connectivity = Literal["axis", "axis+face", "full"]
-FACES = ("x-", "x+", "y-", "y+", "z-", "z+")
+Face = Literal["x-", "x+", "y-", "y+", "z-", "z+"]
+FACES: tuple[str, ...] = get_args(Face)
+"""The box faces a selector can name (e.g. {"face": "z-"})."""
 
 
 class _Strict(BaseModel):
@@ -157,7 +159,7 @@ class Selector(_Strict):
     - ``box``: every node inside an axis-aligned box (a box that holds no node is an error).
     """
 
-    face: Literal["x-", "x+", "y-", "y+", "z-", "z+"] | None = Field(
+    face: Face | None = Field(
         None, description="all nodes on that side of the solid's bounding box"
     )
     node: int | None = Field(None, ge=0, description="a node index")

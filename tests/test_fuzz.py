@@ -17,14 +17,13 @@ from schemathesis import GenerationMode
 from schemathesis.specs.openapi.checks import negative_data_rejection, positive_data_acceptance
 from test_service import PROBLEM_JSON, assert_problem
 
+from fpm.spec import FACES
 from service.main import create_app
 from worker import graph
 
 pytestmark = pytest.mark.redis
 
 # --- Property: any spec is either calibrated (or fails with a reason) or refused with a 422 ------
-
-FACES = ["x-", "x+", "y-", "y+", "z-", "z+"]
 
 
 @st.composite

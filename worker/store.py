@@ -186,15 +186,6 @@ def _flat(value: Any) -> str:
     return str(value)
 
 
-def save_progress(redis: Redis, calibration_id: str, chain: int, info: dict[str, Any]) -> None:
-    """Store the latest progress report of one chain."""
-    key = keys.calibration_progress(calibration_id)
-    pipe = redis.pipeline()
-    pipe.hset(key, str(chain), json.dumps(info))
-    pipe.expire(key, SCRATCH_TTL)
-    pipe.execute()
-
-
 def save_checkpoint(redis: Redis, key: str, state: dict[str, Any]) -> None:
     """Store a chain's annealing state (JSON) so that a retried chain resumes from it."""
     redis.set(key, json.dumps(state), ex=SCRATCH_TTL)
