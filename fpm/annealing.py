@@ -21,6 +21,8 @@ from typing import Any
 
 import numpy as np
 
+from .spec import lundy_mees_moves
+
 STEP_INITIAL = 0.5
 STEP_FINAL = 0.002
 START_SAMPLES = 8
@@ -40,8 +42,8 @@ class Schedule:
 
     @property
     def moves(self) -> int:
-        """Number of moves: 1/T grows by beta per move, from 1/t_initial past 1/t_final."""
-        return math.floor((1 / self.t_final - 1 / self.t_initial) / self.beta) + 1
+        """Number of moves (:func:`fpm.spec.lundy_mees_moves`)."""
+        return lundy_mees_moves(self.t_initial, self.t_final, self.beta)
 
     def temperature(self, move: int) -> float:
         """Temperature at which move ``move`` (0-based) is judged."""

@@ -340,15 +340,22 @@ class AnnealingSettings(_Strict):
     def _cooling(self) -> AnnealingSettings:
         if self.t_final >= self.t_initial:
             raise ValueError("t_final must be below t_initial")
-        moves = (1 / self.t_final - 1 / self.t_initial) / self.beta
+        moves = lundy_mees_moves(self.t_initial, self.t_final, self.beta)
         if moves > 1e6:
             raise ValueError(f"this schedule makes {moves:.3g} moves per chain (limit 1e6)")
         return self
 
     @property
     def moves(self) -> int:
-        """Moves per chain implied by the cooling schedule (as :class:`fpm.annealing.Schedule`)."""
-        return math.floor((1 / self.t_final - 1 / self.t_initial) / self.beta) + 1
+        """Moves per chain implied by the cooling schedule (:func:`lundy_mees_moves`)."""
+        return lundy_mees_moves(self.t_initial, self.t_final, self.beta)
+
+
+def lundy_mees_moves(t_initial: float, t_final: float, beta: float) -> int:
+    """Moves of a Lundy-Mees chain, one per temperature: T_{n+1} = T_n / (1 + beta T_n) makes
+    1/T grow by beta per move, from 1/t_initial until T falls below t_final. (The one home of
+    this formula: the spec's limits and moves, and the annealer's schedule, use it.)"""
+    return math.floor((1 / t_final - 1 / t_initial) / beta) + 1
 
 
 class ProblemSpec(_Strict):

@@ -20,6 +20,7 @@ from fpm.calibration import (
 )
 from fpm.cost import CostFunction, Evaluation, StaticCost, discrepancies
 from fpm.equilibrium import static_equilibrium
+from fpm.spec import lundy_mees_moves
 
 K_TRUE = 50.0
 
@@ -350,12 +351,19 @@ def test_cli_fem_writes_the_reference(tmp_path):
     assert np.allclose(np.asarray(data["displacements"]), expected)
 
 
-def test_spec_and_schedule_agree_on_the_number_of_moves():
+def test_the_number_of_moves_is_that_of_the_cooling_it_counts():
+    """lundy_mees_moves against its definition: cool T <- T / (1 + beta T) from t_initial and
+    count the temperatures not below t_final (one move each); the spec and the schedule use it."""
     for t0, tf, beta in ((0.05, 2e-4, 33.0), (0.1, 1e-3, 7.0), (0.05, 1e-3, 15.0), (1.0, 0.5, 1.0)):
+        t, counted = t0, 0
+        while t >= tf * (1 - 1e-12):
+            counted += 1
+            t = t / (1 + beta * t)
+        assert lundy_mees_moves(t0, tf, beta) == counted
         spec = fpm.ProblemSpec.model_validate(
             small_spec(t_initial=t0, t_final=tf, beta=beta)
         ).annealing
-        assert spec.moves == Schedule(t0, tf, beta).moves
+        assert spec.moves == Schedule(t0, tf, beta).moves == counted
 
 
 def test_cli_equilibrium_prints_the_static_state(tmp_path):
