@@ -8,14 +8,18 @@ nodes in :mod:`fpm.hexahedron` order.
 
 from __future__ import annotations
 
-from itertools import product
-
 import numpy as np
 
-from .hexahedron import NATURAL
+from .hexahedron import (
+    GAUSS_POINTS,
+    NATURAL,
+    jacobians,
+    shape_function_gradients,
+    shape_functions,
+)
 
-GAUSS_POINTS = np.array(list(product((-1, 1), repeat=3)), dtype=float) / np.sqrt(3.0)
-"""(8, 3) natural coordinates of the 2x2x2 Gauss-Legendre points; every weight is 1."""
+__all__ = ["GAUSS_POINTS", "shape_functions", "shape_function_gradients", "jacobians"]
+
 
 SHEAR_PAIRS = ((0, 1), (1, 2), (2, 0))
 """Axes (a, c) of the Voigt shear rows 3, 4, 5: xy, yz, zx."""
@@ -29,26 +33,6 @@ def constitutive_matrix(youngs_modulus: float, poisson_ratio: float) -> np.ndarr
     c[np.arange(3), np.arange(3)] = 1 - nu
     c[np.arange(3, 6), np.arange(3, 6)] = (1 - 2 * nu) / 2
     return youngs_modulus / ((1 + nu) * (1 - 2 * nu)) * c
-
-
-def shape_functions(point: np.ndarray) -> np.ndarray:
-    """(8,) trilinear N_i = (1 + r r_i)(1 + s s_i)(1 + t t_i) / 8 at ``point`` (paper Eq. 3)."""
-    return np.prod(1 + NATURAL * np.asarray(point), axis=1) / 8
-
-
-def shape_function_gradients(point: np.ndarray) -> np.ndarray:
-    """(8, 3) dN_i / d(r, s, t) at natural ``point`` (3,)."""
-    factors = 1 + NATURAL * np.asarray(point)  # (8, 3): (1 + r r_i), (1 + s s_i), (1 + t t_i)
-    grad = np.empty((8, 3))
-    for a in range(3):
-        others = [b for b in range(3) if b != a]
-        grad[:, a] = NATURAL[:, a] * factors[:, others[0]] * factors[:, others[1]] / 8
-    return grad
-
-
-def jacobians(coords: np.ndarray, point: np.ndarray) -> np.ndarray:
-    """(H, 3, 3) J_ab = d x_b / d xi_a at natural ``point`` for ``coords`` (H, 8, 3), m."""
-    return np.einsum("na,hnb->hab", shape_function_gradients(point), coords)
 
 
 def strain_displacement(gradients: np.ndarray) -> np.ndarray:

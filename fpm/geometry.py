@@ -12,7 +12,7 @@ from itertools import product
 
 import numpy as np
 
-from .hexahedron import NATURAL, local_families, local_pairs
+from .hexahedron import GAUSS_POINTS, NATURAL, jacobians, local_families, local_pairs
 from .spec import BoxGeometry, MeshGeometry, NetworkGeometry, VoxelGeometry
 
 # A spring joins lattice offsets (dx, dy, dz) whose number of non-zero components is at most
@@ -148,23 +148,8 @@ def hexahedron_springs(hexahedra: np.ndarray, connectivity: str) -> tuple[np.nda
 
 def hexahedron_volumes(nodes: np.ndarray, hexahedra: np.ndarray) -> np.ndarray:
     """(H,) volumes, m^3, by 2x2x2 Gauss quadrature of det J (exact for trilinear maps)."""
-    g = 1 / np.sqrt(3.0)
-    vol = np.zeros(len(hexahedra))
     x = nodes[hexahedra]  # (H, 8, 3)
-    for r, s, t in product((-g, g), repeat=3):
-        dn = (
-            np.stack(
-                [
-                    NATURAL[:, 0] * (1 + s * NATURAL[:, 1]) * (1 + t * NATURAL[:, 2]),
-                    NATURAL[:, 1] * (1 + r * NATURAL[:, 0]) * (1 + t * NATURAL[:, 2]),
-                    NATURAL[:, 2] * (1 + r * NATURAL[:, 0]) * (1 + s * NATURAL[:, 1]),
-                ]
-            )
-            / 8
-        )  # (3, 8) dN/d(r,s,t)
-        jac = np.einsum("an,hnb->hab", dn, x)
-        vol += np.linalg.det(jac)
-    return vol
+    return np.sum([np.linalg.det(jacobians(x, p)) for p in GAUSS_POINTS], axis=0)
 
 
 def lumped_masses(nodes: np.ndarray, hexahedra: np.ndarray, density: float) -> np.ndarray:

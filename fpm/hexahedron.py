@@ -20,6 +20,8 @@ Nodes 0-3 form the bottom face (t = -1) counter-clockwise seen from above, 4-7 t
 
 from __future__ import annotations
 
+from itertools import product
+
 import numpy as np
 
 NATURAL = np.array(
@@ -77,6 +79,30 @@ SPRING_FAMILIES: dict[str, list[tuple[int, int]]] = {
 
 FAMILIES = ("axis", "face", "body")
 """Spring families: hexahedron edges, face diagonals, body diagonals (physics.md, Round 2)."""
+
+
+GAUSS_POINTS = np.array(list(product((-1, 1), repeat=3)), dtype=float) / np.sqrt(3.0)
+"""(8, 3) natural coordinates of the 2x2x2 Gauss-Legendre points; every weight is 1."""
+
+
+def shape_functions(point: np.ndarray) -> np.ndarray:
+    """(8,) trilinear N_i = (1 + r r_i)(1 + s s_i)(1 + t t_i) / 8 at ``point`` (paper Eq. 3)."""
+    return np.prod(1 + NATURAL * np.asarray(point), axis=1) / 8
+
+
+def shape_function_gradients(point: np.ndarray) -> np.ndarray:
+    """(8, 3) dN_i / d(r, s, t) at natural ``point`` (3,)."""
+    factors = 1 + NATURAL * np.asarray(point)  # (8, 3): (1 + r r_i), (1 + s s_i), (1 + t t_i)
+    grad = np.empty((8, 3))
+    for a in range(3):
+        others = [b for b in range(3) if b != a]
+        grad[:, a] = NATURAL[:, a] * factors[:, others[0]] * factors[:, others[1]] / 8
+    return grad
+
+
+def jacobians(coords: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """(H, 3, 3) J_ab = d x_b / d xi_a at natural ``point`` for ``coords`` (H, 8, 3), m."""
+    return np.einsum("na,hnb->hab", shape_function_gradients(point), coords)
 
 
 def connectivity_families(connectivity: str) -> tuple[str, ...]:
