@@ -1,4 +1,5 @@
-"""Linear elasticity on the 8-node hexahedron (paper Sec. 4.1): C, shape functions, element K.
+"""Linear elasticity on the 8-node hexahedron (paper Sec. 4.1): C, strains, element K
+(shape functions and Gauss points: :mod:`fpm.hexahedron`).
 
 Strains and stresses are Voigt vectors in the order (xx, yy, zz, xy, yz, zx) with engineering
 shear strains gamma_xy = du/dy + dv/dx, so that ``sigma = C @ epsilon`` with ``C`` exactly as the
@@ -10,16 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .hexahedron import (
-    GAUSS_POINTS,
-    NATURAL,
-    jacobians,
-    shape_function_gradients,
-    shape_functions,
-)
-
-__all__ = ["GAUSS_POINTS", "shape_functions", "shape_function_gradients", "jacobians"]
-
+from .hexahedron import GAUSS_POINTS, NATURAL, jacobians, shape_function_gradients
 
 SHEAR_PAIRS = ((0, 1), (1, 2), (2, 0))
 """Axes (a, c) of the Voigt shear rows 3, 4, 5: xy, yz, zx."""

@@ -25,7 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .assembly import identical_elements
-from .elasticity import GAUSS_POINTS, physical_gradients
+from .elasticity import physical_gradients
+from .hexahedron import GAUSS_POINTS
 
 
 def lame_constants(youngs_modulus: float, poisson_ratio: float) -> tuple[float, float]:

@@ -19,17 +19,14 @@ from pydantic import ValidationError
 import fpm
 from fpm.assembly import identical_elements, keep_nodes, stiffness_matrix
 from fpm.elasticity import (
-    GAUSS_POINTS,
     constitutive_matrix,
     element_stiffness,
     physical_gradients,
-    shape_function_gradients,
-    shape_functions,
     strain_displacement,
 )
 from fpm.fem import FemError, FemResult, solve_dirichlet
 from fpm.geometry import box_hexahedra
-from fpm.hexahedron import NATURAL
+from fpm.hexahedron import GAUSS_POINTS, NATURAL, shape_function_gradients, shape_functions
 from fpm.linear_solver import (
     NegativeCurvature,
     amg_hierarchy,
