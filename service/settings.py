@@ -35,10 +35,16 @@ class Settings(BaseSettings):
     max_chains: int = Field(16, ge=1, description="most annealing chains per calibration")
     max_body_bytes: int = Field(2_000_000, ge=1024, description="largest request body, bytes")
     page_size_limit: int = Field(200, ge=1, description="most items per page of a listing")
-    fem_timeout: int = Field(1800, ge=1, description="wall time of a FEM job, s")
-    chain_timeout: int = Field(6 * 3600, ge=1, description="wall time of one annealing chain, s")
-    finalize_timeout: int = Field(1800, ge=1, description="wall time of a finalize job, s")
-    job_retries: int = Field(2, ge=0, description="re-runs of a job whose worker died")
+    fem_timeout: int = Field(JobOptions.fem_timeout, ge=1, description="wall time of a FEM job, s")
+    chain_timeout: int = Field(
+        JobOptions.chain_timeout, ge=1, description="wall time of one annealing chain, s"
+    )
+    finalize_timeout: int = Field(
+        JobOptions.finalize_timeout, ge=1, description="wall time of a finalize job, s"
+    )
+    job_retries: int = Field(
+        JobOptions.retries, ge=0, description="re-runs of a job whose worker died"
+    )
 
     @field_validator("api_keys", mode="before")
     @classmethod
