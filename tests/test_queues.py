@@ -24,9 +24,7 @@ def add_failed_jobs(redis, stopped: int, failed: int) -> None:
     on request (a cancel), ``failed`` real failures."""
     q = graph.queue(redis)
     for status in [JobStatus.STOPPED] * stopped + [JobStatus.FAILED] * failed:
-        job = Job.create(
-            "worker.jobs.fem_reference", args=("x",), connection=redis, serializer=JSONSerializer
-        )
+        job = Job.create(keys.FEM_JOB, args=("x",), connection=redis, serializer=JSONSerializer)
         job.save()
         job.set_status(status)
         q.failed_job_registry.add(job, ttl=3600)

@@ -108,17 +108,17 @@ def test_job_graph_of_each_method(redis, run_workers, small_spec, method):
     fem = keys.fem_job_id(record.fem_hash)
     chains = [keys.chain_job_id(record.id, c) for c in range(2)]
     expected = {
-        fem: ("worker.jobs.fem_reference", []),
-        chains[0]: ("worker.jobs.anneal_chain", [fem]),
-        chains[1]: ("worker.jobs.anneal_chain", [fem]),
+        fem: (keys.FEM_JOB, []),
+        chains[0]: (keys.CHAIN_JOB, [fem]),
+        chains[1]: (keys.CHAIN_JOB, [fem]),
     }
     if method == "two-stage":  # fem -> chains -> damping -> finalize
         damping = keys.damping_job_id(record.id)
-        expected[damping] = ("worker.jobs.fit_damping_stage", sorted(chains))
-        expected[keys.finalize_job_id(record.id)] = ("worker.jobs.finalize_calibration", [damping])
+        expected[damping] = (keys.DAMPING_JOB, sorted(chains))
+        expected[keys.finalize_job_id(record.id)] = (keys.FINALIZE_JOB, [damping])
     else:  # fem -> chains -> finalize: no damping job
         expected[keys.finalize_job_id(record.id)] = (
-            "worker.jobs.finalize_calibration",
+            keys.FINALIZE_JOB,
             sorted(chains),
         )
     assert graph_of(redis, record) == expected
@@ -175,7 +175,7 @@ def test_finalize_twice_stores_one_parameter_set(redis, run_workers, small_spec)
     stored = redis.get(keys.parameter_set(ps_id))
     # A retried finalize (e.g. its worker died after writing) changes nothing.
     redis.hset(keys.calibration(record.id), "status", CalibrationStatus.RUNNING.value)
-    graph.queue(redis).enqueue_call("worker.jobs.finalize_calibration", args=(record.id,))
+    graph.queue(redis).enqueue_call(keys.FINALIZE_JOB, args=(record.id,))
     run_workers()
     assert redis.zcard(keys.parameter_sets()) == 1
     assert redis.get(keys.parameter_set(ps_id)) == stored
@@ -315,3 +315,12 @@ def test_newer_fem_numerics_make_a_new_reference(small_spec, monkeypatch):
     before = fem_hash(plain)
     monkeypatch.setattr(worker.hashing, "FEM_VERSION", "newer")
     assert fem_hash(plain) != before
+
+
+def test_every_job_name_is_a_function_rq_can_import():
+    import importlib
+
+    names = (keys.FEM_JOB, keys.CHAIN_JOB, keys.DAMPING_JOB, keys.FINALIZE_JOB)
+    for name in (*names, keys.FAILURE_CALLBACK, keys.PROFILE_JOB):
+        module, function = name.rsplit(".", 1)
+        assert callable(getattr(importlib.import_module(module), function)), name

@@ -35,7 +35,6 @@ from .hashing import fem_hash, fem_spec, spec_hash
 from .status import CalibrationStatus, FemStatus
 from .text import escape
 
-FAILURE_CALLBACK = "worker.jobs.on_failure"
 PENDING = (JobStatus.QUEUED, JobStatus.DEFERRED, JobStatus.SCHEDULED, JobStatus.STARTED)
 
 
@@ -153,7 +152,7 @@ def _enqueue(redis: Redis, record: store.CalibrationRecord, options: JobOptions)
     fem_job = None if record.fem_cached else submit_fem(redis, record.spec, options)
     chains = [
         q.enqueue_call(
-            "worker.jobs.anneal_chain",
+            keys.CHAIN_JOB,
             args=(record.id, chain),
             job_id=keys.chain_job_id(record.id, chain),
             timeout=options.chain_timeout,
@@ -167,7 +166,7 @@ def _enqueue(redis: Redis, record: store.CalibrationRecord, options: JobOptions)
     if record.spec["annealing"]["method"] == "two-stage":
         before_finalize = [
             finish.enqueue_call(
-                "worker.jobs.fit_damping_stage",
+                keys.DAMPING_JOB,
                 args=(record.id,),
                 job_id=keys.damping_job_id(record.id),
                 timeout=options.chain_timeout,
@@ -177,7 +176,7 @@ def _enqueue(redis: Redis, record: store.CalibrationRecord, options: JobOptions)
             )
         ]
     finish.enqueue_call(
-        "worker.jobs.finalize_calibration",
+        keys.FINALIZE_JOB,
         args=(record.id,),
         job_id=keys.finalize_job_id(record.id),
         timeout=options.finalize_timeout,
@@ -219,7 +218,7 @@ def submit_fem(redis: Redis, spec: dict[str, Any], options: JobOptions) -> Job |
     if fem_nodes(spec) <= SMALL_FEM_NODES:
         q = priority_queue(redis)  # a short job: it must not wait behind another's chains
     return q.enqueue_call(
-        "worker.jobs.fem_reference",
+        keys.FEM_JOB,
         args=(digest,),
         job_id=job_id,
         timeout=options.fem_timeout,
@@ -258,7 +257,7 @@ def _common(options: JobOptions) -> dict[str, Any]:
         "retry": Retry(max=options.retries) if options.retries else None,
         "result_ttl": options.result_ttl,
         "failure_ttl": options.failure_ttl,
-        "on_failure": Callback(FAILURE_CALLBACK),
+        "on_failure": Callback(keys.FAILURE_CALLBACK),
     }
 
 

@@ -401,7 +401,7 @@ def on_failure(job: Job, connection: Redis, exc_type: type, value: BaseException
     if job.retries_left:
         return
     error = f"{exc_type.__name__}: {value}" if str(value) else exc_type.__name__
-    if job.func_name == "worker.jobs.fem_reference":
+    if job.func_name == keys.FEM_JOB:
         fields: store.Mapping = {
             "status": FemStatus.FAILED.value,
             "error": error,

@@ -23,6 +23,15 @@ calibrations submitted after it."""
 QUEUES = (PRIORITY_QUEUE, QUEUE)
 """Every queue of the project, in the order a worker takes jobs from them."""
 
+# The jobs, by the dotted path RQ imports (the graph enqueues them, tests and the failure
+# callback recognise them): one name each.
+FEM_JOB = "worker.jobs.fem_reference"
+CHAIN_JOB = "worker.jobs.anneal_chain"
+DAMPING_JOB = "worker.jobs.fit_damping_stage"
+FINALIZE_JOB = "worker.jobs.finalize_calibration"
+FAILURE_CALLBACK = "worker.jobs.on_failure"
+PROFILE_JOB = "worker.profile.calibration_profile"
+
 
 CALIBRATION_ID = re.compile(r"[0-9a-f]{16}")
 """Every calibration id: 16 lowercase hex digits (:func:`new_calibration_id`)."""

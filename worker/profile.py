@@ -28,7 +28,7 @@ PROFILE_TTL = store.SCRATCH_TTL
 FAILED_TTL = 600
 """Seconds a failed profile is remembered, so that polling does not re-run it at once."""
 
-JOB = "worker.profile.calibration_profile"
+JOB = keys.PROFILE_JOB
 """The job's dotted path."""
 
 
