@@ -351,11 +351,16 @@ class AnnealingSettings(_Strict):
         return lundy_mees_moves(self.t_initial, self.t_final, self.beta)
 
 
+MOVES_CAP = 1 << 62
+""":func:`lundy_mees_moves` saturates here (a schedule this long is refused anyway)."""
+
+
 def lundy_mees_moves(t_initial: float, t_final: float, beta: float) -> int:
     """Moves of a Lundy-Mees chain, one per temperature: T_{n+1} = T_n / (1 + beta T_n) makes
     1/T grow by beta per move, from 1/t_initial until T falls below t_final. (The one home of
     this formula: the spec's limits and moves, and the annealer's schedule, use it.)"""
-    return math.floor((1 / t_final - 1 / t_initial) / beta) + 1
+    moves = (1 / t_final - 1 / t_initial) / beta
+    return math.floor(moves) + 1 if moves < MOVES_CAP else MOVES_CAP  # beta 5e-324: inf
 
 
 class ProblemSpec(_Strict):

@@ -378,3 +378,15 @@ def test_a_fixed_box_with_no_node_names_the_field():
     loc, message = only_error(broken(BOX, ("fixed", 0), {"box": [[1, 1, 1], [2, 2, 2]]}))
     assert loc == ("fixed", 0, "box")
     assert "selects no node" in message and "move or widen the box" in message
+
+
+def test_a_schedule_of_infinitely_many_moves_is_refused_not_crashed():
+    """beta = 5e-324 (found by the API fuzzer) makes (1/t_final - 1/t_initial) / beta inf."""
+    from fpm.spec import MOVES_CAP, lundy_mees_moves
+
+    assert lundy_mees_moves(0.05, 2e-3, 5e-324) == MOVES_CAP
+    with pytest.raises(ValueError, match="moves per chain"):
+        fpm.ProblemSpec.model_validate(
+            {**json.loads((ROOT / "examples" / "small-box.json").read_text()),
+             "annealing": {"beta": 5e-324}}
+        )  # fmt: skip
