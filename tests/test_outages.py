@@ -13,6 +13,7 @@ import pytest
 from conftest import WorkerProcesses
 from fastapi.testclient import TestClient
 from redis import Redis
+from redis.exceptions import RedisError
 from rq import Worker
 from rq.job import Job, JobStatus
 from rq.serializers import JSONSerializer
@@ -156,6 +157,13 @@ def test_busy_workers_ride_out_a_redis_outage(durable_redis, small_spec):
 # --- 5. the local stack restarts what dies ------------------------------------------------------
 
 
+def answers(redis: Redis) -> bool:
+    try:
+        return bool(redis.ping())
+    except RedisError:
+        return False
+
+
 def test_local_stack_restarts_a_dead_worker_and_redis(tmp_path):
     with LocalStack(
         workers=1, port=free_port(), data_dir=tmp_path / "data", log_dir=tmp_path / "logs"
@@ -176,6 +184,7 @@ def test_local_stack_restarts_a_dead_worker_and_redis(tmp_path):
         server.kill()
         wait_for(lambda: stack.redis.process not in (None, server), 5, "Redis to be restarted")
         assert stack.redis.port == port
+        wait_for(lambda: answers(redis), 10, "the restarted Redis to answer")  # loaded machines
         assert redis.get("fpm:outage-test") == b"kept"  # same data directory
         health = httpx.get(f"{stack.url}/v1/health", timeout=5).json()
         assert health["redis"] is True
