@@ -61,15 +61,18 @@ class State:
 
 @dataclass
 class AnnealResult:
-    """Outcome of one chain (like scipy's OptimizeResult: x, fun, nit, nfev)."""
+    """Outcome of one chain (the role of scipy's OptimizeResult: ``best.x`` and ``best.cost``
+    are its x and fun, ``evaluations`` its nfev, ``len(history)`` its nit)."""
 
     best: State
     history: list[float]
     """Current cost after each move."""
     evaluations: int
+    """Objective calls, the start search's included."""
     accepted: int
-    visited: list[State]
-    """Every finite-cost state evaluated, for the caller's choice among near-best states."""
+    near_best: list[State]
+    """The states evaluated within :data:`KEEP_NEAR_BEST` of the best cost (the best among
+    them), for the caller's choice among nearly-as-good states."""
 
 
 def metropolis(delta: float, temperature: float, u: float) -> bool:

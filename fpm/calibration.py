@@ -74,6 +74,24 @@ Progress = Callable[[dict[str, Any]], None]
 
 
 @dataclass
+class NearBest:
+    """A state a chain visited within 1% of its best cost (the paper method picks among them).
+
+    Attributes:
+        x: the parameters; stiffness in N/m, d in N s/m.
+        cost: their normalised cost.
+        steps: time steps to settle per load case (paper method; None for the two-stage
+            method's static evaluations).
+        settled: every load case settled.
+    """
+
+    x: list[float]
+    cost: float
+    steps: list[int] | None = None
+    settled: bool = True
+
+
+@dataclass
 class ChainResult:
     """One annealing chain's outcome (JSON-able through :meth:`to_dict`).
 
@@ -85,7 +103,7 @@ class ChainResult:
         evaluations: cost evaluations (one per move, plus the start search's).
         accepted: accepted moves.
         history: normalised current cost after each move.
-        near_best: states within 1% of this chain's best: dicts x, cost, steps, settled.
+        near_best: states within 1% of this chain's best (:class:`NearBest`).
         seconds: wall time.
     """
 
@@ -96,7 +114,7 @@ class ChainResult:
     evaluations: int
     accepted: int
     history: list[float]
-    near_best: list[dict[str, Any]]
+    near_best: list[NearBest]
     seconds: float
 
     def to_dict(self) -> dict[str, Any]:
@@ -104,7 +122,7 @@ class ChainResult:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ChainResult:
-        return cls(**data)
+        return cls(**{**data, "near_best": [NearBest(**s) for s in data["near_best"]]})
 
 
 @dataclass
@@ -374,13 +392,8 @@ def run_chain(
     except AnnealingError as e:
         raise AnnealingError(_explain(problem, e), e.rejected, e.tries) from None
     near = [
-        {
-            "x": s.x,
-            "cost": s.cost,
-            "steps": s.info.get("steps"),
-            "settled": s.info.get("settled", True),
-        }
-        for s in result.visited
+        NearBest(s.x, s.cost, s.info.get("steps"), s.info.get("settled", True))
+        for s in result.near_best
     ]
     return ChainResult(
         chain=chain,
@@ -657,14 +670,14 @@ def pick_paper_state(chains: list[ChainResult]) -> tuple[list[float], float]:
     cheapest wins). Returns (stiffness parameters, d)."""
     best_cost = min(c.cost for c in chains)
     candidates = [
-        s for c in chains for s in c.near_best if s["cost"] <= best_cost * (1 + EQUALLY_GOOD)
+        s for c in chains for s in c.near_best if s.cost <= best_cost * (1 + EQUALLY_GOOD)
     ]
-    if any(s["settled"] for s in candidates):
-        candidates = [s for s in candidates if s["settled"]]
-    fewest = min(sum(s["steps"]) for s in candidates)
-    fast = [s for s in candidates if sum(s["steps"]) <= fewest * (1 + SAME_SPEED)]
-    pick = min(fast, key=lambda s: (s["cost"], sum(s["steps"])))
-    return list(pick["x"][:-1]), float(pick["x"][-1])
+    if any(s.settled for s in candidates):
+        candidates = [s for s in candidates if s.settled]
+    fewest = min(sum(s.steps or ()) for s in candidates)
+    fast = [s for s in candidates if sum(s.steps or ()) <= fewest * (1 + SAME_SPEED)]
+    pick = min(fast, key=lambda s: (s.cost, sum(s.steps or ())))
+    return list(pick.x[:-1]), float(pick.x[-1])
 
 
 def finalize(

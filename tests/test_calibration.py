@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -10,6 +11,7 @@ import pytest
 import fpm
 from fpm.annealing import AnnealingError, Schedule, State, anneal, metropolis
 from fpm.calibration import (
+    ChainResult,
     calibrate,
     constrained_cost,
     damping_bounds,
@@ -240,16 +242,17 @@ def test_paper_method_prefers_the_fastest_settling_state_within_a_tenth_of_a_per
     problem = fpm.load_problem(small_spec(method="paper"))
     _, ref = small
     chain = run_chain(problem, ref, 0)
-    best = min(chain.near_best, key=lambda s: s["cost"])
-    fast = dict(best, cost=best["cost"] * 1.0009, steps=[1, 1])
-    fast["x"] = [best["x"][0] * 1.001, best["x"][1] * 0.9]
-    slow_but_cheapest = dict(best, steps=[10_000, 10_000])
-    too_far = dict(best, cost=best["cost"] * 1.002, steps=[0, 0])
+    best = min(chain.near_best, key=lambda s: s.cost)
+    x = [best.x[0] * 1.001, best.x[1] * 0.9]
+    fast = replace(best, x=x, cost=best.cost * 1.0009, steps=[1, 1])
+    slow_but_cheapest = replace(best, steps=[10_000, 10_000])
+    too_far = replace(best, cost=best.cost * 1.002, steps=[0, 0])
     chain.near_best = [slow_but_cheapest, fast, too_far]
-    chain.cost = best["cost"]
-    assert pick_paper_state([chain]) == ([fast["x"][0]], fast["x"][1])
+    chain.cost = best.cost
+    assert pick_paper_state([chain]) == ([fast.x[0]], fast.x[1])
     result = finalize(problem, ref, [chain])
-    assert (result.k, result.d) == (fast["x"][0], fast["x"][1])
+    assert (result.k, result.d) == (fast.x[0], fast.x[1])
+    assert ChainResult.from_dict(chain.to_dict()) == chain  # how a worker stores it
     assert result.method == "paper" and result.d_min is None
 
 
