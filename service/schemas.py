@@ -8,6 +8,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, computed_field, model_validator
 from pydantic.json_schema import SkipJsonSchema
 
+from fpm.spec import Material
 from worker.status import CalibrationStatus, FemStatus, Phase
 
 
@@ -281,7 +282,7 @@ class ParameterSet(BaseModel):
     d_min: float | None = Field(description="smallest d that still settles (two-stage), N s/m")
     depth: int
     dt: float = Field(description="the time step the set was fitted at, s")
-    material: dict[str, float]
+    material: Material = Field(description="the spec's material (its model only if not linear)")
     geometry: GeometrySummary
     relative_discrepancy: list[float] = Field(
         description="per load case, % (scale-free; the headline figure)"

@@ -146,6 +146,20 @@ def test_records_of_an_older_version_are_served_without_a_500(api, redis, run_wo
     assert "older version" in assert_problem(api.get(f"/v1/parameter-sets/{ps_id}"), 410)["detail"]
 
 
+def test_a_neo_hookean_parameter_set_is_served(api, run_workers, small_spec):
+    """A neo-Hookean set's material names its model (a string beside the constants): reading
+    or listing it answered 500 while the schema wanted every material value a float."""
+    small_spec["material"]["model"] = "neo-hookean"
+    calibration_id = api.post("/v1/calibrations", json=small_spec).json()["id"]
+    run_workers()
+    done = api.get(f"/v1/calibrations/{calibration_id}").json()
+    assert done["status"] == "succeeded", done["error"]
+    read = api.get(f"/v1/parameter-sets/{done['parameter_set_id']}")
+    assert read.status_code == 200 and read.json()["material"]["model"] == "neo-hookean"
+    listed = api.get("/v1/parameter-sets")
+    assert listed.status_code == 200 and listed.json()["items"] == [read.json()]
+
+
 def test_listing_is_newest_first_and_paginated(api, small_spec):
     ids = []
     for seed in range(3):
