@@ -8,8 +8,8 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, computed_field, model_validator
 from pydantic.json_schema import SkipJsonSchema
 
-from fpm.spec import Material
 from worker.status import CalibrationStatus, FemStatus, Phase
+from worker.store import ParameterSetRecord
 
 
 def utc(t: float) -> datetime:
@@ -239,62 +239,16 @@ class FemReference(BaseModel):
     )
 
 
-class GeometrySummary(BaseModel):
-    """The solid a parameter set was fitted on."""
+class ParameterSet(ParameterSetRecord):
+    """A stored (stiffness, d, depth) with its material, geometry summary, fit and provenance.
 
-    model_config = ConfigDict(extra="allow")
+    The stored record's fields (:class:`worker.store.ParameterSetRecord`, which the finalize
+    job builds) under the REST names: ``damping`` (``d`` is still sent, outside the document)
+    and ``created_at``.
+    """
 
-    type: str = Field(description="box, voxels or mesh")
-    connectivity: str | None = Field(description="axis, axis+face or full")
-    size: list[float] | None = Field(None, description="box size, m (boxes only)")
-    nodes: int = Field(description="node count")
-    h: float = Field(description="shortest spring rest length, m")
-
-
-class Provenance(BaseModel):
-    """Where a parameter set comes from."""
-
-    model_config = ConfigDict(extra="allow")
-
-    calibration_id: str
-    spec_hash: str
-    fem_hash: str
-    method: str = Field(description="'two-stage' or 'paper'")
-    seed: int
-    chains: int
-    evaluations: int
-
-
-class ParameterSet(BaseModel):
-    """A stored (stiffness, d, depth) with its material, geometry summary, fit and provenance."""
-
-    model_config = ConfigDict(extra="allow")
-
-    id: str
-    name: str
-    created: float = Field(description="Unix time, s (created_at: the same in ISO 8601)")
-    k: float = Field(description="stiffness of the axis family (the one k for 'single'), N/m")
-    stiffness: dict[str, float] = Field(description="k per spring family present, N/m")
-    stiffness_mode: Literal["single", "families"] = Field(description="the spec's fpm.stiffness")
-    stiffness_scale: list[float] = Field(description="per-axis stiffness factors (sx, sy, sz)")
     damping: float = Field(description="nodal damping d, N s/m (meaningful only with dt)")
     d: SkipJsonSchema[float] = Field(description=f"damping: {OLD_D}")
-    d_min: float | None = Field(description="smallest d that still settles (two-stage), N s/m")
-    depth: int
-    dt: float = Field(description="the time step the set was fitted at, s")
-    material: Material = Field(description="the spec's material (its model only if not linear)")
-    geometry: GeometrySummary
-    relative_discrepancy: list[float] = Field(
-        description="per load case, % (scale-free; the headline figure)"
-    )
-    loaded_discrepancy: list[float] = Field(description="per load case, loaded nodes only, %")
-    discrepancy_h: list[float] = Field(
-        description="per load case, % of h (the paper's unit; read it beside the relative figure)"
-    )
-    cost: float = Field(description="Eq. (2) of the last dynamic run, m")
-    node_mass: dict[str, float] = Field(description="lumped node masses: min, max, mean, total, kg")
-    warnings: list[str] = []
-    provenance: Provenance
 
     @computed_field  # type: ignore[prop-decorator]
     @property

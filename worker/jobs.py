@@ -330,56 +330,58 @@ def finalize_calibration(calibration_id: str) -> dict[str, Any]:
             "phase": Phase.DONE,
             "finished": time.time(),
             "result": result,
-            "parameter_set_id": parameter_set["id"],
+            "parameter_set_id": parameter_set.id,
         },
         extra=store_once,
     )
-    return {"parameter_set_id": parameter_set["id"]}
+    return {"parameter_set_id": parameter_set.id}
 
 
-def _parameter_set(record: store.CalibrationRecord, result: dict[str, Any], n_nodes: int) -> dict:
+def _parameter_set(
+    record: store.CalibrationRecord, result: dict[str, Any], n_nodes: int
+) -> store.ParameterSetRecord:
     """The stored (k, d, depth) with the material, a geometry summary and the provenance.
 
     Its id comes from the spec hash, so one spec stores at most one parameter set.
     """
     spec = record.spec
     geometry = spec["geometry"]
-    return {
-        "id": keys.parameter_set_id(record.spec_hash),
-        "created": time.time(),
-        "name": record.name,
-        "k": result["k"],
-        "stiffness": result["stiffness"],
-        "stiffness_mode": spec["fpm"]["stiffness"],
-        "d": result["d"],
-        "d_min": result["d_min"],
-        "depth": result["depth"],
-        "dt": spec["fpm"]["dt"],
-        "stiffness_scale": spec["fpm"]["stiffness_scale"],
-        "material": spec["material"],
-        "geometry": {
-            "type": geometry["type"],
-            "connectivity": geometry.get("connectivity"),
-            "size": geometry.get("size"),
-            "nodes": n_nodes,
-            "h": result["h"],
-        },
-        "relative_discrepancy": result["relative_discrepancy"],
-        "loaded_discrepancy": result["loaded_discrepancy"],
-        "discrepancy_h": result["discrepancy_h"],
-        "node_mass": result["node_mass"],
-        "warnings": result["warnings"],
-        "cost": result["cost"],
-        "provenance": {
-            "calibration_id": record.id,
-            "spec_hash": record.spec_hash,
-            "fem_hash": record.fem_hash,
-            "method": result["method"],
-            "seed": spec["annealing"]["seed"],
-            "chains": record.chains,
-            "evaluations": result["evaluations"],
-        },
-    }
+    return store.ParameterSetRecord(
+        id=keys.parameter_set_id(record.spec_hash),
+        created=time.time(),
+        name=record.name,
+        k=result["k"],
+        stiffness=result["stiffness"],
+        stiffness_mode=spec["fpm"]["stiffness"],
+        d=result["d"],
+        d_min=result["d_min"],
+        depth=result["depth"],
+        dt=spec["fpm"]["dt"],
+        stiffness_scale=spec["fpm"]["stiffness_scale"],
+        material=spec["material"],
+        geometry=store.GeometrySummary(
+            type=geometry["type"],
+            connectivity=geometry.get("connectivity"),
+            size=geometry.get("size"),
+            nodes=n_nodes,
+            h=result["h"],
+        ),
+        relative_discrepancy=result["relative_discrepancy"],
+        loaded_discrepancy=result["loaded_discrepancy"],
+        discrepancy_h=result["discrepancy_h"],
+        node_mass=result["node_mass"],
+        warnings=result["warnings"],
+        cost=result["cost"],
+        provenance=store.Provenance(
+            calibration_id=record.id,
+            spec_hash=record.spec_hash,
+            fem_hash=record.fem_hash,
+            method=result["method"],
+            seed=spec["annealing"]["seed"],
+            chains=record.chains,
+            evaluations=result["evaluations"],
+        ),
+    )
 
 
 def _fail(redis: Redis, calibration_id: str, error: str) -> None:

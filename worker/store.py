@@ -11,10 +11,13 @@ import json
 import time
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import Any, Literal
 
+from pydantic import BaseModel, ConfigDict, Field
 from redis import Redis
 from redis.client import Pipeline
+
+from fpm.spec import Material
 
 from . import keys
 from .status import TERMINAL, CalibrationStatus, FemStatus, Phase
@@ -202,8 +205,72 @@ def get_fem_reference(redis: Redis, fem_hash: str) -> dict[str, Any] | None:
     return json.loads(raw) if raw else None
 
 
+class GeometrySummary(BaseModel):
+    """The solid a parameter set was fitted on."""
+
+    model_config = ConfigDict(extra="allow")
+
+    type: str = Field(description="box, voxels or mesh")
+    connectivity: str | None = Field(description="axis, axis+face or full")
+    size: list[float] | None = Field(None, description="box size, m (boxes only)")
+    nodes: int = Field(description="node count")
+    h: float = Field(description="shortest spring rest length, m")
+
+
+class Provenance(BaseModel):
+    """Where a parameter set comes from."""
+
+    model_config = ConfigDict(extra="allow")
+
+    calibration_id: str
+    spec_hash: str
+    fem_hash: str
+    method: str = Field(description="'two-stage' or 'paper'")
+    seed: int
+    chains: int
+    evaluations: int
+
+
+class ParameterSetRecord(BaseModel):
+    """A stored parameter set (string ``keys.parameter_set(id)``, JSON): the fitted
+    (stiffness, d, depth) with its material, geometry summary, fit and provenance.
+
+    The one definition: the finalize job builds it, and the service's answer
+    (``service.schemas.ParameterSet``) derives from it, adding only the REST names (``damping``
+    beside ``d``, ``created_at``). Reads return the stored dict, since a set stored by an
+    older version may lack fields (the service answers 410 for it).
+    """
+
+    model_config = ConfigDict(extra="allow")
+
+    id: str
+    created: float = Field(description="Unix time, s (created_at: the same in ISO 8601)")
+    name: str
+    k: float = Field(description="stiffness of the axis family (the one k for 'single'), N/m")
+    stiffness: dict[str, float] = Field(description="k per spring family present, N/m")
+    stiffness_mode: Literal["single", "families"] = Field(description="the spec's fpm.stiffness")
+    d: float = Field(description="nodal damping, N s/m (meaningful only with dt)")
+    d_min: float | None = Field(description="smallest d that still settles (two-stage), N s/m")
+    depth: int
+    dt: float = Field(description="the time step the set was fitted at, s")
+    stiffness_scale: list[float] = Field(description="per-axis stiffness factors (sx, sy, sz)")
+    material: Material = Field(description="the spec's material (its model only if not linear)")
+    geometry: GeometrySummary
+    relative_discrepancy: list[float] = Field(
+        description="per load case, % (scale-free; the headline figure)"
+    )
+    loaded_discrepancy: list[float] = Field(description="per load case, loaded nodes only, %")
+    discrepancy_h: list[float] = Field(
+        description="per load case, % of h (the paper's unit; read it beside the relative figure)"
+    )
+    node_mass: dict[str, float] = Field(description="lumped node masses: min, max, mean, total, kg")
+    warnings: list[str] = []
+    cost: float = Field(description="Eq. (2) of the last dynamic run, m")
+    provenance: Provenance
+
+
 def get_parameter_set(redis: Redis, parameter_set_id: str) -> dict[str, Any] | None:
-    """A stored parameter set, or None."""
+    """A stored parameter set (:class:`ParameterSetRecord`'s fields), or None."""
     raw = redis.get(keys.parameter_set(parameter_set_id))
     return json.loads(raw) if raw else None
 
@@ -217,7 +284,8 @@ def list_parameter_sets(redis: Redis) -> list[dict[str, Any]]:
     return [json.loads(raw) for raw in raws if raw]
 
 
-def write_parameter_set(pipe: Pipeline, parameter_set: dict[str, Any]) -> None:
+def write_parameter_set(pipe: Pipeline, parameter_set: ParameterSetRecord) -> None:
     """Queue storing a parameter set once: a retry with the same id changes nothing."""
-    pipe.set(keys.parameter_set(parameter_set["id"]), json.dumps(parameter_set), nx=True)
-    pipe.zadd(keys.parameter_sets(), {parameter_set["id"]: parameter_set["created"]}, nx=True)
+    raw = json.dumps(parameter_set.model_dump())
+    pipe.set(keys.parameter_set(parameter_set.id), raw, nx=True)
+    pipe.zadd(keys.parameter_sets(), {parameter_set.id: parameter_set.created}, nx=True)
