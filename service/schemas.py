@@ -101,7 +101,12 @@ class ChainSummary(BaseModel):
 
 
 class CalibrationResult(BaseModel):
-    """The fitted parameters and how well they fit (keys of fpm's CalibrationResult)."""
+    """The fitted parameters and how well they fit.
+
+    The REST contract of :class:`fpm.calibration.CalibrationResult` (the stored result is its
+    ``to_dict``): the same fields, with descriptions, and ``damping`` beside ``d``
+    (tests/test_openapi.py checks that the fields agree).
+    """
 
     model_config = ConfigDict(extra="allow")
 

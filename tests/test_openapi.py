@@ -3,6 +3,7 @@ answers (issue 14)."""
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import os
 import re
@@ -118,6 +119,17 @@ def test_no_property_collides_with_generated_code(api):
     # The request's annealing.bounds.d stays (the spec's field): there it is the last
     # property and nothing reads the working dict after it, which generated code survives.
     assert list(schemas["Bounds"]["properties"])[-1] == "d"
+
+
+def test_the_answers_result_has_the_fields_of_fpms_result():
+    """service.schemas.CalibrationResult is the REST contract of fpm's dataclass (with field
+    descriptions and the REST name of d): their fields agree, so a field added to one cannot
+    be left out of the other."""
+    from fpm.calibration import CalibrationResult
+    from service import schemas
+
+    fields = {f.name for f in dataclasses.fields(CalibrationResult)}
+    assert set(schemas.CalibrationResult.model_fields) == fields | {"damping"}
 
 
 def test_answers_carry_the_new_names_the_old_ones_and_iso_timestamps(api, run_workers, small_spec):

@@ -17,6 +17,7 @@ import fpm
 from fpm.calibration import calibrate
 from fpm.cost import StaticCost
 from service.limits import dump_spec
+from service.schemas import ChainSummary
 from worker import graph, keys, store
 from worker import jobs as worker_jobs
 from worker.hashing import fem_hash, spec_hash
@@ -77,6 +78,8 @@ def test_result_equals_in_process_calibration(redis, run_workers, small_spec):
     assert not redis.exists(keys.damping_result(record.id))
     assert redis.ttl(keys.chain_result(record.id, 0)) > 0
     assert redis.ttl(keys.calibration_progress(record.id)) > 0
+    # Each chain's summary has the fields the answer's schema documents.
+    assert set(done.result["chains"][0]) == set(ChainSummary.model_fields)
     # The parameter set carries what the worker promises (service/schemas.py ParameterSet).
     ps = store.get_parameter_set(redis, done.parameter_set_id)
     for name in ("k", "stiffness", "d", "d_min", "depth", "relative_discrepancy", "node_mass"):
