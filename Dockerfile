@@ -9,8 +9,11 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
 WORKDIR /app
 COPY pyproject.toml README.md ./
 COPY fpm fpm
+COPY fpmcal fpmcal
+COPY store store
 COPY worker worker
 COPY service service
+COPY stack stack
 COPY client client
 COPY examples examples
 RUN pip install -e . && useradd --create-home --uid 1000 fpm

@@ -17,9 +17,9 @@ test: $(STAMP)
 	$(PY) -m pytest -q
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check fpm worker service client tests bench
-	$(VENV)/bin/ruff format --check fpm worker service client tests bench
-	$(VENV)/bin/mypy fpm worker service client
+	$(VENV)/bin/ruff check fpm fpmcal store worker service stack client tests bench
+	$(VENV)/bin/ruff format --check fpm fpmcal store worker service stack client tests bench
+	$(VENV)/bin/mypy fpm fpmcal store worker service stack client
 
 bench: $(STAMP)
 	$(PY) -m bench

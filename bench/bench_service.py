@@ -23,8 +23,8 @@ import httpx
 
 from client import Client
 from client.table import table
-from service.redis_server import RedisServer, free_port
-from service.stack import local_stack
+from stack.local import local_stack
+from stack.redis_server import RedisServer, free_port
 
 CALIBRATIONS = 20
 WORKERS = 2

@@ -1,6 +1,6 @@
 """``make demo``: calibrate the paper's materials A and B through the SDK.
 
-Starts the local stack (Redis, API, 2 workers; see :mod:`service.stack`) unless $FPM_URL
+Starts the local stack (Redis, API, 2 workers; see :mod:`stack.local`) unless $FPM_URL
 names a running service, submits examples/paper-material-a.json and -b.json (with the spec's
 default method, two-stage: a stiffness search on static equilibria, then the fastest-settling
 d), shows their progress, and prints the fitted parameters beside the paper's Table 1, then the
@@ -16,8 +16,8 @@ from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
 
-from service.redis_server import free_port
-from service.stack import local_stack
+from stack.local import local_stack
+from stack.redis_server import free_port
 
 from .cli import DISCREPANCY_HEADERS, discrepancy_rows, mean, stiffness_text
 from .sdk import Client, read_spec

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
@@ -61,8 +61,8 @@ class State:
 
 @dataclass
 class AnnealResult:
-    """Outcome of one chain (the role of scipy's OptimizeResult: ``best.x`` and ``best.cost``
-    are its x and fun, ``evaluations`` its nfev, ``len(history)`` its nit)."""
+    """Outcome of one chain, shaped like scipy's ``OptimizeResult``: :attr:`x`, :attr:`fun`,
+    :attr:`nfev`, :attr:`nit`, :attr:`message`, with the chain's own records beside them."""
 
     best: State
     history: list[float]
@@ -73,6 +73,58 @@ class AnnealResult:
     near_best: list[State]
     """The states evaluated within :data:`KEEP_NEAR_BEST` of the best cost (the best among
     them), for the caller's choice among nearly-as-good states."""
+
+    @property
+    def x(self) -> list[float]:
+        """The best parameters found."""
+        return self.best.x
+
+    @property
+    def fun(self) -> float:
+        """Their cost."""
+        return self.best.cost
+
+    @property
+    def nfev(self) -> int:
+        """Objective calls (:attr:`evaluations`)."""
+        return self.evaluations
+
+    @property
+    def nit(self) -> int:
+        """Moves made (one per temperature)."""
+        return len(self.history)
+
+    @property
+    def message(self) -> str:
+        return f"cooled in {self.nit} moves, {self.accepted} accepted"
+
+
+@dataclass
+class Checkpoint:
+    """Where a chain stands after ``move`` moves: passed back to :func:`anneal` as ``resume``, it
+    continues the chain exactly (same result, bit for bit, as an uninterrupted chain).
+
+    ``rng`` is the generator's ``bit_generator.state``; ``visited`` holds only the states the
+    result can still keep (within :data:`KEEP_NEAR_BEST` of ``best``). :meth:`to_dict` is JSON.
+    """
+
+    move: int
+    rng: dict[str, Any]
+    current: State
+    best: State
+    history: list[float]
+    evaluations: int
+    accepted: int
+    visited: list[State]
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> Checkpoint:
+        states = {k: State(**data[k]) for k in ("current", "best")}
+        visited = [State(**s) for s in data["visited"]]
+        return cls(**{**data, **states, "visited": visited})
 
 
 def metropolis(delta: float, temperature: float, u: float) -> bool:
@@ -89,9 +141,9 @@ def anneal(
     *,
     c_max: float,
     progress: Callable[[dict[str, Any]], None] | None = None,
-    checkpoint: Callable[[dict[str, Any]], None] | None = None,
+    checkpoint: Callable[[Checkpoint], None] | None = None,
     checkpoint_every: int = 10,
-    resume: dict[str, Any] | None = None,
+    resume: Checkpoint | None = None,
     initial: list[float] | None = None,
 ) -> AnnealResult:
     """Minimise ``objective`` over the box [lower, upper] (positive bounds, log-space moves).
@@ -99,8 +151,9 @@ def anneal(
     ``objective(x)`` returns a :class:`State` whose cost is inf for a diverged candidate.
     ``initial``: where the chain starts when that point is acceptable (else, and when None, the
     best of a few random points of the box).
-    ``checkpoint(state)`` receives a JSON-able dict every ``checkpoint_every`` moves; passing it
-    back as ``resume`` continues the chain exactly where it stood (same result as uninterrupted).
+    ``checkpoint(state)`` receives a :class:`Checkpoint` every ``checkpoint_every`` moves;
+    passing it back as ``resume`` continues the chain exactly where it stood (same result as
+    uninterrupted).
     """
     lo, hi = np.log(np.asarray(lower, float)), np.log(np.asarray(upper, float))
     if not np.all(lo < hi):
@@ -126,15 +179,10 @@ def anneal(
         visited = [current]
         accepted = 0
     else:
-        start = resume["move"]
-        rng.bit_generator.state = resume["rng"]
-        current, best = State(**resume["current"]), State(**resume["best"])
-        history, evaluations, accepted = (
-            resume["history"],
-            resume["evaluations"],
-            resume["accepted"],
-        )
-        visited = [State(**s) for s in resume["visited"]]
+        start = resume.move
+        rng.bit_generator.state = resume.rng
+        current, best, visited = resume.current, resume.best, list(resume.visited)
+        history, evaluations, accepted = list(resume.history), resume.evaluations, resume.accepted
     for move in range(start, moves):
         if checkpoint is not None and move > start and move % checkpoint_every == 0:
             checkpoint(_snapshot(move, rng, current, best, history, evaluations, accepted, visited))
@@ -229,17 +277,17 @@ def _reflect(y: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return lo + np.where(z > span, 2 * span - z, z)
 
 
-def _snapshot(move, rng, current, best, history, evaluations, accepted, visited) -> dict[str, Any]:
-    def state(s: State) -> dict[str, Any]:
-        return {"x": list(s.x), "cost": s.cost, "info": s.info}
+def _snapshot(move, rng, current, best, history, evaluations, accepted, visited) -> Checkpoint:
+    def state(s: State) -> State:
+        return State(list(s.x), s.cost, s.info)
 
-    return {
-        "move": move,
-        "rng": rng.bit_generator.state,
-        "current": state(current),
-        "best": state(best),
-        "history": list(history),
-        "evaluations": evaluations,
-        "accepted": accepted,
-        "visited": [state(s) for s in _near(visited, best)],
-    }
+    return Checkpoint(
+        move=move,
+        rng=rng.bit_generator.state,
+        current=state(current),
+        best=state(best),
+        history=list(history),
+        evaluations=evaluations,
+        accepted=accepted,
+        visited=[state(s) for s in _near(visited, best)],
+    )

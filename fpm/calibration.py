@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize, minimize_scalar
 
-from .annealing import AnnealingError, Schedule, State, anneal
+from .annealing import AnnealingError, Checkpoint, Schedule, State, anneal
 from .cost import CostFunction, Evaluation, StaticCost, discrepancies
 from .damping import critical_damping, fastest_damping
 from .equilibrium import StaticSolver
@@ -322,15 +322,16 @@ def run_chain(
     chain: int,
     *,
     progress: Progress | None = None,
-    checkpoint: Progress | None = None,
-    resume: dict[str, Any] | None = None,
+    checkpoint: Callable[[Checkpoint], None] | None = None,
+    resume: Checkpoint | None = None,
 ) -> ChainResult:
     """One annealing chain, seeded by (spec seed, ``chain``): exactly repeatable.
 
     Two-stage: over the stiffness parameters, each evaluation a static solve. Paper: over
     (stiffness, d), each evaluation dynamic runs to rest.
     ``progress`` gets {chain, move, moves, temperature, best_cost, current_cost} after each move;
-    ``checkpoint`` gets a JSON-able state every few moves, which ``resume`` continues from.
+    ``checkpoint`` gets a :class:`fpm.annealing.Checkpoint` every few moves, which ``resume``
+    continues from.
 
     Raises:
         AnnealingError: no acceptable start, with the counts of rejected candidates and what

@@ -13,7 +13,7 @@ from redis import Redis
 from redis.backoff import NoBackoff
 from redis.retry import Retry
 
-from worker import keys
+from store import keys
 
 from .errors import ProblemError
 from .settings import Settings, get_settings
@@ -81,19 +81,19 @@ def _known_form(value: str, pattern: re.Pattern[str], what: str) -> str:
 def calibration_id(
     calibration_id: Annotated[str, Path(description="16 lowercase hex digits")],
 ) -> str:
-    """The path's calibration id, checked against :data:`worker.keys.CALIBRATION_ID`."""
+    """The path's calibration id, checked against :data:`store.keys.CALIBRATION_ID`."""
     return _known_form(calibration_id, keys.CALIBRATION_ID, "calibration")
 
 
 def fem_id(fem_id: Annotated[str, Path(description="64 lowercase hex digits (sha256)")]) -> str:
-    """The path's FEM reference id, checked against :data:`worker.keys.FEM_ID`."""
+    """The path's FEM reference id, checked against :data:`store.keys.FEM_ID`."""
     return _known_form(fem_id, keys.FEM_ID, "FEM reference")
 
 
 def parameter_set_id(
     parameter_set_id: Annotated[str, Path(description="'ps-' and 16 lowercase hex digits")],
 ) -> str:
-    """The path's parameter set id, checked against :data:`worker.keys.PARAMETER_SET_ID`."""
+    """The path's parameter set id, checked against :data:`store.keys.PARAMETER_SET_ID`."""
     return _known_form(parameter_set_id, keys.PARAMETER_SET_ID, "parameter set")
 
 

@@ -20,7 +20,7 @@ from redis.exceptions import ConnectionError as RedisConnectionError
 from redis.exceptions import TimeoutError as RedisTimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from worker.text import escape
+from store.text import escape
 
 MEDIA_TYPE = "application/problem+json"
 log = logging.getLogger("service")

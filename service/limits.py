@@ -16,7 +16,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from fpm import Problem, ProblemSpec, load_problem
 from fpm.spec import BoxGeometry, MeshGeometry, NetworkGeometry, VoxelGeometry
 from fpm.support import unheld_reason
-from worker.text import refusal
+from store.text import refusal
 
 from .errors import MEDIA_TYPE, ProblemError
 from .settings import Settings
@@ -108,7 +108,7 @@ def _rejected(field: str, message: str) -> ProblemError:
 
 def text_refusals(data: Any) -> list[dict[str, str]]:
     """[{field, message}] for every string in ``data`` (a dumped spec) that free text may not
-    hold (:func:`worker.text.refusal`: control characters, lone surrogates, line separators).
+    hold (:func:`store.text.refusal`: control characters, lone surrogates, line separators).
 
     Every string is checked, so a free-text field added to the spec later is covered too
     (fixed choices such as ``face`` hold no such character anyway). Numbers are skipped

@@ -8,8 +8,8 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, computed_field, model_validator
 from pydantic.json_schema import SkipJsonSchema
 
-from worker.status import CalibrationStatus, FemStatus, Phase
-from worker.store import ParameterSetRecord
+from store.records import ParameterSetRecord
+from store.status import CalibrationStatus, FemStatus, Phase
 
 
 def utc(t: float) -> datetime:
@@ -247,7 +247,7 @@ class FemReference(BaseModel):
 class ParameterSet(ParameterSetRecord):
     """A stored (stiffness, d, depth) with its material, geometry summary, fit and provenance.
 
-    The stored record's fields (:class:`worker.store.ParameterSetRecord`, which the finalize
+    The stored record's fields (:class:`store.records.ParameterSetRecord`, which the finalize
     job builds) under the REST names: ``damping`` (``d`` is still sent, outside the document)
     and ``created_at``.
     """

@@ -7,13 +7,12 @@ for when the service answers 401) and draws its charts as inline SVG, and the CS
 its assets carry no data, so they need no key; every figure comes from /v1.
 
 The profile needs an FPM run at the fitted parameters, which only a worker may make (the service
-never loads the kernels): the first request enqueues :func:`worker.profile.calibration_profile`
-and answers 202 ``pending``, later ones the stored data.
+never loads the kernels): the first request enqueues the profile job
+(:func:`store.graph.request_profile`) and answers 202 ``pending``, later ones the stored data.
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any, Literal
 
@@ -21,12 +20,9 @@ from fastapi import APIRouter, Depends, FastAPI, Response, status
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, Field
-from rq.exceptions import NoSuchJobError
-from rq.job import Job, JobStatus
-from rq.serializers import JSONSerializer
 
-from worker import graph, profile, store
-from worker.status import CalibrationStatus
+from store import graph, records, scratch
+from store.status import CalibrationStatus
 
 from . import errors
 from .deps import CalibrationId, RedisDep, SettingsDep, require_api_key
@@ -98,10 +94,10 @@ def calibration_profile(
     displacement magnitudes, with the result's relative discrepancy (the headline) and % of h.
     The first request starts a worker job and answers 202 (``pending``); ask again.
     """
-    raw = redis.get(profile.profile_key(calibration_id))
-    if raw is not None:
-        return CalibrationProfile(calibration_id=calibration_id, **json.loads(raw))
-    record = store.get_calibration(redis, calibration_id)
+    stored = scratch.get_profile(redis, calibration_id)
+    if stored is not None:
+        return CalibrationProfile(calibration_id=calibration_id, **stored)
+    record = records.get_calibration(redis, calibration_id)
     if record is None:
         raise errors.ProblemError(404, "Not found", f"no calibration {calibration_id!r}")
     if (
@@ -115,25 +111,9 @@ def calibration_profile(
             f"calibration {calibration_id} is {record.status.value} with no current result: "
             "profiles are drawn from a succeeded calibration's result",
         )
-    job_id = profile.profile_job_id(calibration_id)
-    try:
-        job: Job | None = Job.fetch(job_id, connection=redis, serializer=JSONSerializer)
-    except NoSuchJobError:
-        job = None
-    job_status = job.get_status() if job is not None else None
-    if job_status == JobStatus.FAILED:
+    if not graph.request_profile(redis, calibration_id, settings.finalize_timeout):
         return CalibrationProfile(
             calibration_id=calibration_id, status="failed", error=PROFILE_FAILED_HINT
-        )
-    if job_status not in graph.PENDING:
-        graph.queue(redis).enqueue_call(
-            profile.JOB,
-            args=(calibration_id,),
-            job_id=job_id,
-            timeout=settings.finalize_timeout,
-            result_ttl=60,
-            failure_ttl=profile.FAILED_TTL,
-            description=f"profile of calibration {calibration_id}",
         )
     response.status_code = status.HTTP_202_ACCEPTED
     return CalibrationProfile(calibration_id=calibration_id, status="pending")

@@ -27,9 +27,9 @@ from rq.serializers import JSONSerializer
 
 from client import Client
 from service.main import create_app
-from service.redis_server import RedisServer, free_port
 from service.settings import Settings
-from worker import keys
+from stack.redis_server import RedisServer, free_port
+from store import keys
 
 SMALL_SPEC: dict[str, Any] = json.loads(
     (Path(__file__).resolve().parents[1] / "examples" / "small-box.json").read_text()

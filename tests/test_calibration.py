@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import replace
 
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 
 import fpm
-from fpm.annealing import AnnealingError, Schedule, State, anneal, metropolis
+from fpm.annealing import AnnealingError, Checkpoint, Schedule, State, anneal, metropolis
 from fpm.calibration import (
     ChainResult,
     calibrate,
@@ -126,11 +127,15 @@ def test_checkpoint_resume_gives_the_uninterrupted_chain():
     args = (np.array([0.1, 0.01]), np.array([100, 10]), sched)
     full = anneal(quadratic([]), *args, np.random.default_rng(9), c_max=100,
                   checkpoint=saved.append, checkpoint_every=7)  # fmt: skip
-    snap = saved[2]
+    snap = Checkpoint.from_dict(json.loads(json.dumps(saved[2].to_dict())))  # as a worker keeps it
+    assert snap == saved[2]
     calls: list = []
     resumed = anneal(quadratic(calls), *args, np.random.default_rng(123), c_max=100, resume=snap)
     assert resumed.best.x == full.best.x and resumed.history == full.history
-    assert len(calls) == sched.moves - snap["move"]  # only the remaining moves were evaluated
+    assert len(calls) == sched.moves - snap.move  # only the remaining moves were evaluated
+    # Shaped like scipy's OptimizeResult.
+    assert (resumed.x, resumed.fun) == (resumed.best.x, resumed.best.cost)
+    assert resumed.nit == sched.moves and resumed.nfev == full.nfev == full.evaluations
 
 
 def test_cost_is_eq2_and_zero_at_the_reference(small):
@@ -327,7 +332,7 @@ def test_cli_calibrate_prints_a_table_and_draws_the_plot(tmp_path):
     spec.write_text(json.dumps(small_spec(t_final=5e-3)))
     png = tmp_path / "fit.png"
     run = subprocess.run(
-        [sys.executable, "-m", "fpm.cli", "calibrate", str(spec), "--plot", str(png)],
+        [sys.executable, "-m", "fpmcal.cli", "calibrate", str(spec), "--plot", str(png)],
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert run.returncode == 0, run.stderr
@@ -345,7 +350,7 @@ def test_cli_fem_writes_the_reference(tmp_path):
     spec.write_text(json.dumps(small_spec()))
     out = tmp_path / "fem.json"
     run = subprocess.run(
-        [sys.executable, "-m", "fpm.cli", "fem", str(spec), "-o", str(out)],
+        [sys.executable, "-m", "fpmcal.cli", "fem", str(spec), "-o", str(out)],
         capture_output=True, text=True, timeout=120,
     )  # fmt: skip
     assert run.returncode == 0, run.stderr
@@ -376,7 +381,7 @@ def test_cli_equilibrium_prints_the_static_state(tmp_path):
 
     out = tmp_path / "eq.json"
     run = subprocess.run(
-        [sys.executable, "-m", "fpm.cli", "equilibrium", "examples/small-box.json", "--k", "40",
+        [sys.executable, "-m", "fpmcal.cli", "equilibrium", "examples/small-box.json", "--k", "40",
          "--load-case", "0", "-o", str(out)],
         capture_output=True, text=True, timeout=120,
     )  # fmt: skip

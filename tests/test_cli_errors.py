@@ -12,16 +12,16 @@ from typing import Any
 
 import pytest
 
-from fpm.cli import error_report, main
+from fpmcal.cli import error_report, main
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL: dict[str, Any] = json.loads((ROOT / "examples" / "small-box.json").read_text())
 
 
 def fpmcal(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    """The installed script if there is one, else ``python -m fpm.cli``."""
+    """The installed script if there is one, else ``python -m fpmcal.cli``."""
     script = Path(sys.executable).with_name("fpmcal")
-    command = [str(script)] if script.exists() else [sys.executable, "-m", "fpm.cli"]
+    command = [str(script)] if script.exists() else [sys.executable, "-m", "fpmcal.cli"]
     return subprocess.run([*command, *args], capture_output=True, text=True, cwd=cwd, timeout=120)
 
 

@@ -20,7 +20,7 @@ from client.cli import main as cli
 from client.demo import report, web_view_hint
 from client.progress import ProgressBar, render
 from fpm.calibration import calibrate
-from service.redis_server import free_port
+from stack.redis_server import free_port
 
 
 @pytest.mark.redis

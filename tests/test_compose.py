@@ -8,10 +8,11 @@ import shlex
 from pathlib import Path
 
 import pytest
+import tomllib
 import yaml
 
 from service.settings import Settings
-from worker import keys
+from store import keys
 from worker.__main__ import parse_args
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -64,7 +65,13 @@ def test_workers_run_the_real_entry_point(compose):
 
 def test_dockerfile_ships_every_package_and_runs_the_api():
     dockerfile = (ROOT / "Dockerfile").read_text()
-    for package in ("fpm", "worker", "service", "client", "examples"):
+    pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    packages = [
+        p.rstrip("*") for p in pyproject["tool"]["setuptools"]["packages"]["find"]["include"]
+    ]
+    shipped = {p.parent.name for p in ROOT.glob("*/__init__.py")} - {"bench"}  # bench: dev only
+    assert sorted(packages) == sorted(shipped)
+    for package in (*packages, "examples"):
         assert re.search(rf"^COPY {package} {package}$", dockerfile, re.M), package
     cmd = re.search(r"^CMD (.+)$", dockerfile, re.M).group(1)
     compose_api = yaml.safe_load((ROOT / "docker-compose.yml").read_text())["services"]["api"]

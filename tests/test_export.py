@@ -18,11 +18,11 @@ import pytest
 
 import fpm
 from client import Client
-from fpm.cli import main
 from fpm.export import ExportError, Parameters, build_lattice, export, fpm_displacements
 from fpm.perturbed_list import perturbed_list
 from fpm.simulation import fpm_model
-from worker import keys
+from fpmcal.cli import main
+from store import keys
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL: dict[str, Any] = json.loads((ROOT / "examples" / "small-box.json").read_text())

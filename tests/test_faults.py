@@ -26,9 +26,9 @@ from test_worker import alive, child_pids
 import fpm
 from fpm.calibration import calibrate
 from service.main import create_app
-from service.redis_server import RedisServer
 from service.settings import Settings
-from worker import graph, keys
+from stack.redis_server import RedisServer
+from store import graph, keys
 
 pytestmark = pytest.mark.redis
 

@@ -279,7 +279,7 @@ def test_simulate_refuses_overrides_the_schema_would_refuse(override):
 
 def test_cli_simulate_prints_the_result_as_json():
     script = Path(sys.executable).with_name("fpmcal")
-    command = [str(script)] if script.exists() else [sys.executable, "-m", "fpm.cli"]
+    command = [str(script)] if script.exists() else [sys.executable, "-m", "fpmcal.cli"]
     spec = ROOT / "examples" / "paper-material-a.json"
     run = subprocess.run(
         [*command, "simulate", str(spec), "--k", "38.6", "--d", "0.3"],

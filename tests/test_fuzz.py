@@ -19,7 +19,7 @@ from test_service import PROBLEM_JSON, assert_problem
 
 from fpm.spec import FACES
 from service.main import create_app
-from worker import graph
+from store import graph
 
 pytestmark = pytest.mark.redis
 

@@ -20,9 +20,9 @@ from test_service import assert_problem
 from fpm import ProblemSpec
 from service.limits import dump_spec
 from service.main import create_app
-from worker import graph, keys, liveness
-from worker.graph import JobOptions
-from worker.hashing import spec_hash
+from store import graph, keys, liveness
+from store.graph import JobOptions
+from store.hashing import spec_hash
 
 pytestmark = pytest.mark.redis
 

@@ -29,7 +29,7 @@ from fpm.neo_hookean import (
     reference_gradients,
     strain_energy,
 )
-from worker.hashing import fem_hash, spec_hash
+from store.hashing import fem_hash, spec_hash
 
 PAPER_A = Path(__file__).resolve().parents[1] / "examples" / "paper-material-a.json"
 E, NU = 1e4, 0.45

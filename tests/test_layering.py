@@ -1,8 +1,17 @@
-"""The architecture's one rule that code can break silently: the service validates specs with
-fpm.spec / fpm.problem but never loads the numerical kernels (docs/service.md)."""
+"""The architecture's rules that code can break silently (docs/service.md, "Layers"): the import
+graph (fpm imports no other package of ours; the service neither the job runner nor the local
+stack; the store none above it), Redis keys built only in the store, and a service that
+validates specs with fpm.spec / fpm.problem but never loads the numerical kernels."""
 
+import ast
+import inspect
 import subprocess
 import sys
+from pathlib import Path
+
+import pytest
+
+from store import keys
 
 KERNELS = ("numba", "fpm.voigt", "fpm.simulation", "fpm.fem", "fpm.calibration", "pyamg")
 
@@ -18,3 +27,79 @@ def test_fpm_public_names_load_on_first_use():
 
     assert set(fpm.__all__) >= {"load_problem", "simulate", "solve_fem", "calibrate"}
     assert callable(fpm.calibrate) and fpm.ProblemSpec.__name__ == "ProblemSpec"
+
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("fpm", "fpmcal", "store", "worker", "service", "stack", "client")
+
+
+def imports_of(package: str) -> dict[str, set[str]]:
+    """Module path -> the project modules it imports (lazy imports in functions included)."""
+    found: dict[str, set[str]] = {}
+    for path in sorted((ROOT / package).rglob("*.py")):
+        module = ".".join(path.relative_to(ROOT).with_suffix("").parts)
+        names: set[str] = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                names.update(a.name for a in node.names)
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:  # relative: resolve against this module's package
+                    parent = module.split(".")[: -node.level]
+                    base = ".".join([*parent, base] if base else parent)
+                names.update(f"{base}.{a.name}" for a in node.names)
+                names.add(base)
+        found[module] = {n for n in names if n.split(".")[0] in PACKAGES}
+    return found
+
+
+def arrows(source: str, target: str) -> list[str]:
+    return sorted(
+        f"{module} -> {name}"
+        for module, names in imports_of(source).items()
+        for name in names
+        if name.split(".")[0] == target
+    )
+
+
+@pytest.mark.parametrize("target", [p for p in PACKAGES if p != "fpm"])
+def test_the_numerical_core_imports_no_other_package(target):
+    assert arrows("fpm", target) == []
+
+
+@pytest.mark.parametrize("target", ["worker", "stack", "fpmcal", "client"])
+def test_the_service_imports_neither_the_job_runner_nor_the_local_stack(target):
+    assert arrows("service", target) == []
+
+
+@pytest.mark.parametrize("target", ["worker", "service", "stack", "fpmcal", "client"])
+def test_the_store_sits_below_the_service_and_the_workers(target):
+    assert arrows("store", target) == []
+
+
+KEY_BUILDERS = {
+    name
+    for name, value in vars(keys).items()
+    if inspect.isfunction(value)
+    and value.__module__ == keys.__name__
+    and not name.endswith("_id")  # ids (of jobs, parameter sets) are not Redis keys
+}
+
+
+def test_redis_keys_are_built_only_in_the_store():
+    """Outside ``store`` no code names a key of ours: every read and write goes through it."""
+    assert KEY_BUILDERS >= {"calibration", "fem_reference", "chain_checkpoint", "parameter_set"}
+    uses = []
+    for package in PACKAGES:
+        if package == "store":
+            continue
+        for path in sorted((ROOT / package).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if (
+                    isinstance(node, ast.Attribute)
+                    and isinstance(node.value, ast.Name)
+                    and node.value.id == "keys"
+                    and node.attr in KEY_BUILDERS
+                ):
+                    uses.append(f"{path.relative_to(ROOT)}:{node.lineno} keys.{node.attr}")
+    assert uses == []

@@ -15,7 +15,6 @@ from scipy.spatial import ConvexHull, Delaunay
 
 import fpm
 from client import spec_from_mesh as sdk_spec_from_mesh
-from fpm.cli import main
 from fpm.geometry import voxel_mesh
 from fpm.meshes import (
     MeshError,
@@ -29,6 +28,7 @@ from fpm.meshes import (
     voxelise_tetrahedra,
 )
 from fpm.spec import VoxelGeometry
+from fpmcal.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL: dict[str, Any] = json.loads((ROOT / "examples" / "small-box.json").read_text())

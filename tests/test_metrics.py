@@ -9,8 +9,8 @@ from rq import Worker
 from test_queues import add_failed_jobs
 
 from service.main import create_app
-from service.redis_server import free_port
-from worker import keys
+from stack.redis_server import free_port
+from store import keys
 
 pytestmark = pytest.mark.redis
 

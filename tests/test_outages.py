@@ -21,11 +21,11 @@ from test_faults import assert_no_work_left, status_of, wait_for, wait_until_don
 from test_worker import alive, child_pids, slow_spec, submit
 
 from service.main import create_app
-from service.redis_server import RedisServer, free_port
 from service.settings import Settings
-from service.stack import LocalStack
-from worker import keys, store, timing
-from worker.status import CalibrationStatus
+from stack.local import LocalStack
+from stack.redis_server import RedisServer, free_port
+from store import keys, records, timing
+from store.status import CalibrationStatus
 
 pytestmark = pytest.mark.redis
 
@@ -67,7 +67,7 @@ def test_job_of_a_killed_worker_is_picked_up_within_a_minute(
     wait_for(lambda: all(registered(redis, p) for p in pair), 60, "both workers to listen")
     record, _ = submit(redis, slow_spec(small_spec, beta=0.1))  # one chain of ~4800 moves
     chain = Job.fetch(keys.chain_job_id(record.id, 0), connection=redis, serializer=JSONSerializer)
-    wait_for(lambda: store.get_progress(redis, record.id).get(0, {}).get("move", 0) > 5, 30)
+    wait_for(lambda: records.get_progress(redis, record.id).get(0, {}).get("move", 0) > 5, 30)
     chain.refresh()
     busy, idle = sorted(pair, key=lambda p: registered(redis, p).name != chain.worker_name)
     idle_name = registered(redis, idle).name
@@ -86,8 +86,10 @@ def test_job_of_a_killed_worker_is_picked_up_within_a_minute(
     print(f"re-queued and picked up {after:.1f} s after the kill (TTL {SHORT_TTL} s)")
     assert after < timing.requeue_bound(SHORT_TTL) + 1 < 60
     assert chain.retries_left == 0  # the retry (submit gives one) was spent on it
-    wait_for(lambda: store.get_calibration(redis, record.id).status.terminal, 60, "the calibration")
-    done = store.get_calibration(redis, record.id)
+    wait_for(
+        lambda: records.get_calibration(redis, record.id).status.terminal, 60, "the calibration"
+    )
+    done = records.get_calibration(redis, record.id)
     assert done.status == CalibrationStatus.SUCCEEDED, done.error
     assert idle.poll() is None
 

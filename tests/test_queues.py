@@ -11,10 +11,10 @@ from rq.serializers import JSONSerializer
 
 from fpm import ProblemSpec
 from service.limits import dump_spec
-from worker import graph, keys, store
+from store import graph, keys, records
+from store.graph import JobOptions
+from store.status import CalibrationStatus
 from worker.__main__ import FpmSimpleWorker
-from worker.graph import JobOptions
-from worker.status import CalibrationStatus
 
 pytestmark = pytest.mark.redis
 
@@ -57,7 +57,7 @@ def test_a_finished_calibration_does_not_wait_behind_another_ones_chains(redis, 
             ran.append(job.id)
             return super().perform_job(job, *args, **kwargs)
 
-    while store.get_calibration(redis, first.id).status != CalibrationStatus.SUCCEEDED:
+    while records.get_calibration(redis, first.id).status != CalibrationStatus.SUCCEEDED:
         assert len(ran) < 20, ran
         worker = Recording(list(keys.QUEUES), connection=redis, serializer=JSONSerializer)
         assert worker.work(burst=True, max_jobs=1, logging_level="WARNING")
@@ -66,11 +66,11 @@ def test_a_finished_calibration_does_not_wait_behind_another_ones_chains(redis, 
     assert ran[-2:] == [keys.damping_job_id(first.id), keys.finalize_job_id(first.id)]
     waiting = sorted(graph.queue(redis).get_job_ids())  # (RQ wakes dependents in set order)
     assert waiting == [keys.chain_job_id(second.id, c) for c in range(4)]
-    assert not store.get_calibration(redis, second.id).status.terminal
+    assert not records.get_calibration(redis, second.id).status.terminal
     SimpleWorker(list(keys.QUEUES), connection=redis, serializer=JSONSerializer).work(
         burst=True, logging_level="WARNING"
     )
-    assert store.get_calibration(redis, second.id).status == CalibrationStatus.SUCCEEDED
+    assert records.get_calibration(redis, second.id).status == CalibrationStatus.SUCCEEDED
 
 
 def test_a_job_rq_left_ready_is_queued_after_the_next_job(redis, small_spec):

@@ -10,9 +10,9 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.main import create_app
-from service.redis_server import free_port
 from service.settings import Settings
-from worker import keys, liveness
+from stack.redis_server import free_port
+from store import keys, liveness
 
 pytestmark = pytest.mark.redis
 

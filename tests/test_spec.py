@@ -240,7 +240,7 @@ def test_cli_bad_spec_exits_2_and_names_the_field(tmp_path: Path):
     path = tmp_path / "bad.json"
     path.write_text(json.dumps(broken(BOX, ("material", "poisson_ratio"), 0.5)))
     run = subprocess.run(
-        [sys.executable, "-m", "fpm.cli", "simulate", str(path), "--k", "1", "--d", "1"],
+        [sys.executable, "-m", "fpmcal.cli", "simulate", str(path), "--k", "1", "--d", "1"],
         capture_output=True,
         text=True,
         cwd=ROOT,

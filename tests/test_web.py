@@ -30,8 +30,8 @@ from pydantic import SecretStr
 from test_service import assert_problem
 
 from service.main import create_app
-from service.redis_server import free_port
-from worker import graph, keys
+from stack.redis_server import free_port
+from store import graph, keys
 
 pytestmark = pytest.mark.redis
 

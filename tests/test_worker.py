@@ -18,10 +18,10 @@ from fpm.calibration import calibrate
 from fpm.cost import StaticCost
 from service.limits import dump_spec
 from service.schemas import ChainSummary
-from worker import graph, keys, store
+from store import graph, keys, records
+from store.hashing import fem_hash, spec_hash
+from store.status import CalibrationStatus
 from worker import jobs as worker_jobs
-from worker.hashing import fem_hash, spec_hash
-from worker.status import CalibrationStatus
 
 pytestmark = pytest.mark.redis
 
@@ -43,7 +43,7 @@ def test_result_equals_in_process_calibration(redis, run_workers, small_spec):
     record, created = submit(redis, small_spec)
     assert created and record.status == CalibrationStatus.QUEUED
     run_workers()
-    done = store.get_calibration(redis, record.id)
+    done = records.get_calibration(redis, record.id)
     assert done.status == CalibrationStatus.SUCCEEDED, done.error
     expected = calibrate(fpm.load_problem(small_spec))
     assert done.result["method"] == expected.method == "two-stage"
@@ -81,7 +81,7 @@ def test_result_equals_in_process_calibration(redis, run_workers, small_spec):
     # Each chain's summary has the fields the answer's schema documents.
     assert set(done.result["chains"][0]) == set(ChainSummary.model_fields)
     # The parameter set carries what the worker promises (service/schemas.py ParameterSet).
-    ps = store.get_parameter_set(redis, done.parameter_set_id)
+    ps = records.get_parameter_set(redis, done.parameter_set_id)
     for name in ("k", "stiffness", "d", "d_min", "depth", "relative_discrepancy", "node_mass"):
         assert ps[name] == done.result[name], name
     assert ps["stiffness_mode"] == "single" and ps["dt"] == small_spec["fpm"].get("dt", 1e-3)
@@ -126,7 +126,7 @@ def test_job_graph_of_each_method(redis, run_workers, small_spec, method):
         )
     assert graph_of(redis, record) == expected
     run_workers()
-    done = store.get_calibration(redis, record.id)
+    done = records.get_calibration(redis, record.id)
     assert done.status == CalibrationStatus.SUCCEEDED, done.error
     assert done.result["method"] == method
     expected_result = calibrate(fpm.load_problem(small_spec))
@@ -136,7 +136,7 @@ def test_job_graph_of_each_method(redis, run_workers, small_spec, method):
     chain_results = [json.loads(redis.get(keys.chain_result(record.id, c))) for c in range(2)]
     n = 1 if method == "two-stage" else 2  # stiffness parameters, plus d for paper
     assert [len(c["x"]) for c in chain_results] == [n, n]
-    damping = store.get_damping_progress(redis, record.id)
+    damping = records.get_damping_progress(redis, record.id)
     if method == "two-stage":
         assert done.result["d_min"] is not None and done.result["damping_runs"] > 0
         assert damping["step"] == "damping" and damping["runs"] > 0
@@ -167,14 +167,14 @@ def test_second_calibration_reuses_the_stored_fem_reference(redis, run_workers, 
     )
     assert not any(job_id.startswith("fem-") for job_id in queued)
     run_workers()
-    assert store.get_calibration(redis, second.id).status == CalibrationStatus.SUCCEEDED
+    assert records.get_calibration(redis, second.id).status == CalibrationStatus.SUCCEEDED
     assert redis.zcard(keys.parameter_sets()) == 2
 
 
 def test_finalize_twice_stores_one_parameter_set(redis, run_workers, small_spec):
     record, _ = submit(redis, small_spec)
     run_workers()
-    ps_id = store.get_calibration(redis, record.id).parameter_set_id
+    ps_id = records.get_calibration(redis, record.id).parameter_set_id
     stored = redis.get(keys.parameter_set(ps_id))
     # A retried finalize (e.g. its worker died after writing) changes nothing.
     redis.hset(keys.calibration(record.id), "status", CalibrationStatus.RUNNING.value)
@@ -188,10 +188,10 @@ def test_fem_failure_fails_the_calibration(redis, run_workers, small_spec):
     small_spec["fixed"] = [{"node": 0}]  # one node cannot hold the solid: the FEM refuses
     record, _ = submit(redis, small_spec)
     run_workers()
-    done = store.get_calibration(redis, record.id)
+    done = records.get_calibration(redis, record.id)
     assert done.status == CalibrationStatus.FAILED
     assert "FEM" in done.error
-    assert store.get_fem_meta(redis, record.fem_hash)["status"] == "failed"
+    assert records.get_fem_meta(redis, record.fem_hash)["status"] == "failed"
 
 
 def test_cancel_queued_calibration(redis, run_workers, small_spec):
@@ -199,7 +199,7 @@ def test_cancel_queued_calibration(redis, run_workers, small_spec):
     assert graph.cancel_calibration(redis, record.id)
     assert not graph.cancel_calibration(redis, record.id)  # already canceled
     run_workers()
-    done = store.get_calibration(redis, record.id)
+    done = records.get_calibration(redis, record.id)
     assert done.status == CalibrationStatus.CANCELED and done.result is None
     assert redis.zcard(keys.parameter_sets()) == 0
     for job_id in (keys.damping_job_id(record.id), keys.finalize_job_id(record.id)):
@@ -216,13 +216,13 @@ def slow_spec(spec, beta=1.5):
 def test_cancel_stops_a_running_chain(redis, worker_processes, small_spec):
     record, _ = submit(redis, slow_spec(small_spec, beta=0.2))
     worker_processes.start()
-    wait_for(lambda: store.get_progress(redis, record.id).get(0, {}).get("move", 0) > 5)
+    wait_for(lambda: records.get_progress(redis, record.id).get(0, {}).get("move", 0) > 5)
     assert graph.cancel_calibration(redis, record.id)
     chain = Job.fetch(keys.chain_job_id(record.id, 0), connection=redis, serializer=JSONSerializer)
     wait_for(lambda: chain.get_status() in (JobStatus.STOPPED, JobStatus.FINISHED), 10)
-    progress = store.get_progress(redis, record.id)[0]
+    progress = records.get_progress(redis, record.id)[0]
     assert progress["move"] < progress["moves"]
-    assert store.get_calibration(redis, record.id).status == CalibrationStatus.CANCELED
+    assert records.get_calibration(redis, record.id).status == CalibrationStatus.CANCELED
     assert not redis.exists(keys.chain_result(record.id, 0))
 
 
@@ -281,7 +281,7 @@ def test_chain_of_a_dead_worker_is_retried_and_resumes(
 
     monkeypatch.setattr(worker_jobs, "run_chain", counting_run_chain)
     run_workers()
-    done = store.get_calibration(redis, record.id)
+    done = records.get_calibration(redis, record.id)
     assert done.status == CalibrationStatus.SUCCEEDED, done.error
     expected = calibrate(fpm.load_problem(spec))
     # The resumed chain makes the same moves (same draws, same evaluation count), but its
@@ -312,11 +312,11 @@ def test_hashes_ignore_spelt_out_defaults(small_spec):
 def test_newer_fem_numerics_make_a_new_reference(small_spec, monkeypatch):
     """A stored reference is kept without expiry: after a change to the FEM numerics (a new
     FEM_VERSION) the same spec must name a different reference."""
-    import worker.hashing
+    import store.hashing
 
     plain = dump_spec(fpm.load_problem(small_spec).spec)
     before = fem_hash(plain)
-    monkeypatch.setattr(worker.hashing, "FEM_VERSION", "newer")
+    monkeypatch.setattr(store.hashing, "FEM_VERSION", "newer")
     assert fem_hash(plain) != before
 
 

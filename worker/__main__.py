@@ -1,12 +1,12 @@
 """Worker entry point: ``python -m worker [--url URL] [--burst] [QUEUE ...]``.
 
 Run as many as you like, on as many machines as you like, against one Redis. A worker listens
-to :data:`worker.keys.QUEUES` unless told otherwise, taking the jobs that finish a calibration
+to :data:`store.keys.QUEUES` unless told otherwise, taking the jobs that finish a calibration
 (priority queue) before FEM jobs and chains. Each worker forks a work horse per job (so a stop
 request or a crash kills the horse, not the worker), beats and runs RQ's maintenance at the
-intervals of :mod:`worker.timing`: a job whose worker died is re-queued (it has retries) within
-:func:`worker.timing.requeue_bound` seconds (40 at the default TTL) and resumes from its last
-checkpoint. Its Redis client (:mod:`worker.connection`) waits out a Redis outage: a running
+intervals of :mod:`store.timing`: a job whose worker died is re-queued (it has retries) within
+:func:`store.timing.requeue_bound` seconds (40 at the default TTL) and resumes from its last
+checkpoint. Its Redis client (:mod:`store.connection`) waits out a Redis outage: a running
 job pauses and goes on once Redis is back, and no worker quits.
 """
 
@@ -26,8 +26,10 @@ from rq.job import Job
 from rq.serializers import JSONSerializer
 
 # jobs is imported before forking, so every work horse inherits fpm, NumPy and SciPy loaded.
-from . import graph, jobs, keys, timing  # noqa: F401
-from .connection import connect, give_up, seconds_since_outage
+from store import graph, keys, timing  # noqa: F401
+from store.connection import connect, give_up, seconds_since_outage
+
+from . import jobs  # noqa: F401
 
 PR_SET_PDEATHSIG = 1
 
@@ -51,7 +53,7 @@ log = logging.getLogger("worker")
 
 class SweepsReadyJobs:
     """After each job, move onto their queues the jobs RQ left ready but unqueued
-    (:func:`worker.graph.enqueue_ready`), so that no job waits for a worker's maintenance."""
+    (:func:`store.graph.enqueue_ready`), so that no job waits for a worker's maintenance."""
 
     connection: Redis
 
@@ -66,7 +68,7 @@ class SweepsReadyJobs:
 
 
 class RidesOutOutages:
-    """The timing of :mod:`worker.timing`, and a worker's part in riding out a Redis outage.
+    """The timing of :mod:`store.timing`, and a worker's part in riding out a Redis outage.
 
     After an outage no job is re-queued by this worker's maintenance until a busy worker that
     rode the outage out has had time to beat again (its job's entry in the started registry
@@ -101,7 +103,7 @@ class FpmWorker(RidesOutOutages, SweepsReadyJobs, Worker):
 
     def get_heartbeat_ttl(self, job: Job, working_time: float = 0.0) -> int:
         """Seconds a running job's entry in the started registry lives unless renewed: the next
-        beat plus :func:`worker.timing.execution_grace` (RQ's grace is 60 s)."""
+        beat plus :func:`store.timing.execution_grace` (RQ's grace is 60 s)."""
         interval = self.job_monitoring_interval
         if job.timeout and job.timeout > 0:
             interval = int(max(0, min(job.timeout - working_time, interval)))

@@ -7,8 +7,8 @@ a finished chain is not re-run, a stopped chain resumes from its checkpoint, a f
 damping stage is not re-run (an interrupted one starts again: it is deterministic), and the
 parameter set is written with SET NX.
 
-Progress goes to the calibration's progress hash (:func:`worker.keys.calibration_progress`):
-one field per chain, and the field :data:`worker.keys.DAMPING_PROGRESS` for the damping stage.
+Progress goes to the calibration's progress hash (:func:`store.keys.calibration_progress`):
+one field per chain, and the field :data:`store.keys.DAMPING_PROGRESS` for the damping stage.
 Each progress write also reads the calibration's status, and a job whose calibration has been
 canceled (or failed elsewhere) stops there.
 """
@@ -24,7 +24,7 @@ from rq import get_current_job
 from rq.job import Job
 
 from fpm import load_problem
-from fpm.annealing import AnnealingError
+from fpm.annealing import AnnealingError, Checkpoint
 from fpm.calibration import (
     ChainResult,
     DampingStage,
@@ -35,9 +35,8 @@ from fpm.calibration import (
 )
 from fpm.damping import DampingError
 from fpm.fem import FemError, FemResult, solve_fem
-
-from . import keys, store
-from .status import CalibrationStatus, FemStatus, Phase
+from store import keys, records, scratch
+from store.status import CalibrationStatus, FemStatus, Phase
 
 PROGRESS_INTERVAL = 0.5
 """Seconds between progress writes of a job (each also checks for a cancel)."""
@@ -60,25 +59,20 @@ def _job() -> Job:
 def fem_reference(fem_hash: str) -> dict[str, Any]:
     """Solve and store the FEM reference ``fem_hash`` (no expiry). Returns a summary."""
     redis = _job().connection
-    meta_key = keys.fem_meta(fem_hash)
-    if redis.exists(keys.fem_reference(fem_hash)):
+    if records.has_fem_reference(redis, fem_hash):
         return {"id": fem_hash, "cached": True}
-    meta = store.get_fem_meta(redis, fem_hash)
-    redis.hset(meta_key, mapping={"status": FemStatus.RUNNING.value, "started": time.time()})
+    meta = records.get_fem_meta(redis, fem_hash)
+    records.update_fem_meta(redis, fem_hash, {"status": FemStatus.RUNNING, "started": time.time()})
     try:
         result = solve_fem(load_problem(json.loads(meta["spec"])))
     except FemError as e:
         # The problem cannot be solved (e.g. the solid is not held): a retry would fail the
         # same way, so the reference fails now and the chains waiting on it say why.
-        failed: store.Mapping = {
-            "status": FemStatus.FAILED.value,
-            "error": str(e),
-            "finished": time.time(),
-        }
-        redis.hset(meta_key, mapping=failed)
+        failed = {"status": FemStatus.FAILED, "error": str(e), "finished": time.time()}
+        records.update_fem_meta(redis, fem_hash, failed)
         return {"id": fem_hash, "failed": True}
-    fields: store.Mapping = {
-        "status": FemStatus.SUCCEEDED.value,
+    fields = {
+        "status": FemStatus.SUCCEEDED,
         "finished": time.time(),
         "n_nodes": len(result.nodes),
         "load_cases": json.dumps(result.load_cases),
@@ -91,10 +85,7 @@ def fem_reference(fem_hash: str) -> dict[str, Any]:
             }
         ),
     }
-    pipe = redis.pipeline()
-    pipe.set(keys.fem_reference(fem_hash), json.dumps(result.to_dict()))
-    pipe.hset(meta_key, mapping=fields)
-    pipe.execute()
+    records.save_fem_reference(redis, fem_hash, result.to_dict(), fields)
     return {"id": fem_hash, "cached": False, "n_nodes": len(result.nodes)}
 
 
@@ -102,18 +93,17 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
     """Run one annealing chain of a calibration and store its ChainResult."""
     job = _job()
     redis = job.connection
-    record = store.get_calibration(redis, calibration_id)
+    record = records.get_calibration(redis, calibration_id)
     if record is None or record.status.terminal:
         return {"skipped": True}
-    result_key = keys.chain_result(calibration_id, chain)
-    if redis.exists(result_key):
+    if scratch.has_chain_result(redis, calibration_id, chain):
         return {"skipped": True}
-    reference = store.get_fem_reference(redis, record.fem_hash)
+    reference = records.get_fem_reference(redis, record.fem_hash)
     if reference is None:
-        error = store.get_fem_meta(redis, record.fem_hash).get("error") or "not computed"
+        error = records.get_fem_meta(redis, record.fem_hash).get("error") or "not computed"
         _fail(redis, calibration_id, f"FEM reference failed: {error}")
         return {"failed": True}
-    store.update_calibration(
+    records.update_calibration(
         redis,
         calibration_id,
         {
@@ -129,8 +119,7 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
     except ValueError as e:  # a units mistake: no annealing can fix it
         _fail(redis, calibration_id, f"units check failed: {e}")
         return {"failed": True}
-    checkpoint_key = keys.chain_checkpoint(calibration_id, chain)
-    saved = redis.get(checkpoint_key)
+    saved = scratch.get_checkpoint(redis, calibration_id, chain)
     reporter = _ChainProgress(job, calibration_id, chain)
     try:
         result = run_chain(
@@ -138,8 +127,10 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
             fem,
             chain,
             progress=reporter,
-            checkpoint=lambda state: store.save_checkpoint(redis, checkpoint_key, state),
-            resume=json.loads(saved) if saved else None,
+            checkpoint=lambda state: scratch.save_checkpoint(
+                redis, calibration_id, chain, state.to_dict()
+            ),
+            resume=Checkpoint.from_dict(saved) if saved else None,
         )
     except Canceled:
         return {"canceled": True}
@@ -147,14 +138,10 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
         # The spec cannot be fitted (e.g. every candidate diverges): a retry would fail the
         # same way, so the calibration fails now, with the annealer's reason.
         _fail(redis, calibration_id, f"annealing chain {chain} failed: {e}")
-        redis.delete(checkpoint_key)
+        scratch.drop_checkpoint(redis, calibration_id, chain)
         return {"failed": True}
     reporter.flush()
-    pipe = redis.pipeline()
-    pipe.set(result_key, json.dumps(result.to_dict()), ex=store.SCRATCH_TTL)
-    pipe.delete(checkpoint_key)
-    pipe.incrby(keys.evaluations_total(), result.evaluations)
-    pipe.execute()
+    scratch.save_chain_result(redis, calibration_id, chain, result.to_dict(), result.evaluations)
     return {"x": result.x, "cost": result.cost, "evaluations": result.evaluations}
 
 
@@ -182,16 +169,12 @@ class _Reporter:
     def flush(self) -> None:
         """Write the latest report now."""
         self.last = time.monotonic()
-        redis = self.job.connection
-        key = keys.calibration_progress(self.calibration_id)
-        pipe = redis.pipeline()
-        pipe.hset(key, self.field, json.dumps(self.info))
-        pipe.expire(key, store.SCRATCH_TTL)
-        pipe.hget(keys.calibration(self.calibration_id), "status")
-        status = pipe.execute()[-1]
+        going_on = scratch.report_progress(
+            self.job.connection, self.calibration_id, self.field, self.info
+        )
         self.job.meta["progress"] = self.info
         self.job.save_meta()
-        if status is None or CalibrationStatus(status.decode()).terminal:
+        if not going_on:
             raise Canceled(self.calibration_id)
 
 
@@ -240,19 +223,19 @@ class _DampingProgress(_Reporter):
 
 
 def _chains_and_reference(
-    redis: Redis, record: store.CalibrationRecord
+    redis: Redis, record: records.CalibrationRecord
 ) -> tuple[list[ChainResult], FemResult] | None:
     """The finished chains' results and the FEM reference, or None (calibration failed)."""
-    raws = redis.mget([keys.chain_result(record.id, c) for c in range(record.chains)])
+    raws = scratch.get_chain_results(redis, record.id, record.chains)
     missing = [c for c, raw in enumerate(raws) if raw is None]
     if missing:
         _fail(redis, record.id, f"chain(s) {missing} did not finish")
         return None
-    reference = store.get_fem_reference(redis, record.fem_hash)
+    reference = records.get_fem_reference(redis, record.fem_hash)
     if reference is None:
         _fail(redis, record.id, "the FEM reference is gone")
         return None
-    chains = [ChainResult.from_dict(json.loads(raw)) for raw in raws if raw is not None]
+    chains = [ChainResult.from_dict(raw) for raw in raws]
     return chains, FemResult.from_dict(reference)
 
 
@@ -265,13 +248,12 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
     """
     job = _job()
     redis = job.connection
-    record = store.get_calibration(redis, calibration_id)
+    record = records.get_calibration(redis, calibration_id)
     if record is None or record.status.terminal:
         return {"skipped": True}
-    result_key = keys.damping_result(calibration_id)
-    if redis.exists(result_key):
+    if scratch.has_damping_result(redis, calibration_id):
         return {"skipped": True}
-    if not store.update_calibration(redis, calibration_id, {"phase": Phase.DAMPING}):
+    if not records.update_calibration(redis, calibration_id, {"phase": Phase.DAMPING}):
         return {"skipped": True}  # canceled (or failed) meanwhile
     found = _chains_and_reference(redis, record)
     if found is None:
@@ -290,39 +272,38 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
         hint = f": {DAMPING_HINT}" if isinstance(e, DampingError) else ""
         _fail(redis, calibration_id, f"damping stage failed: {e}{hint}")
         return {"failed": True}
-    redis.set(result_key, json.dumps(stage.to_dict()), ex=store.SCRATCH_TTL)
+    scratch.save_damping_result(redis, calibration_id, stage.to_dict())
     return {"d": stage.d, "depth": stage.depth, "runs": stage.damping_runs}
 
 
 def finalize_calibration(calibration_id: str) -> dict[str, Any]:
     """The last dynamic run and the figures; store the parameter set and the result."""
     redis = _job().connection
-    record = store.get_calibration(redis, calibration_id)
+    record = records.get_calibration(redis, calibration_id)
     if record is None or record.status.terminal:
         return {"skipped": True}
-    store.update_calibration(redis, calibration_id, {"phase": Phase.FINALIZE})
+    records.update_calibration(redis, calibration_id, {"phase": Phase.FINALIZE})
     found = _chains_and_reference(redis, record)
     if found is None:
         return {"failed": True}
     chains, reference = found
     damping = None
     if record.spec["annealing"]["method"] == "two-stage":
-        raw = redis.get(keys.damping_result(calibration_id))
-        if raw is None:
+        saved = scratch.get_damping_result(redis, calibration_id)
+        if saved is None:
             _fail(redis, calibration_id, "the damping stage did not finish")
             return {"failed": True}
-        damping = DampingStage.from_dict(json.loads(raw))
+        damping = DampingStage.from_dict(saved)
     problem = load_problem(record.spec)
     warnings = check_reference(problem, reference)
     result = finalize(problem, reference, chains, damping, warnings=warnings).to_dict()
     parameter_set = _parameter_set(record, result, problem.n_nodes)
 
     def store_once(pipe: Any) -> None:
-        store.write_parameter_set(pipe, parameter_set)
-        pipe.delete(*[keys.chain_checkpoint(calibration_id, c) for c in range(record.chains)])
-        pipe.delete(keys.damping_result(calibration_id))
+        records.write_parameter_set(pipe, parameter_set)
+        scratch.delete_stage_data(pipe, calibration_id, record.chains)
 
-    store.update_calibration(
+    records.update_calibration(
         redis,
         calibration_id,
         {
@@ -338,15 +319,15 @@ def finalize_calibration(calibration_id: str) -> dict[str, Any]:
 
 
 def _parameter_set(
-    record: store.CalibrationRecord, result: dict[str, Any], n_nodes: int
-) -> store.ParameterSetRecord:
+    record: records.CalibrationRecord, result: dict[str, Any], n_nodes: int
+) -> records.ParameterSetRecord:
     """The stored (k, d, depth) with the material, a geometry summary and the provenance.
 
     Its id comes from the spec hash, so one spec stores at most one parameter set.
     """
     spec = record.spec
     geometry = spec["geometry"]
-    return store.ParameterSetRecord(
+    return records.ParameterSetRecord(
         id=keys.parameter_set_id(record.spec_hash),
         created=time.time(),
         name=record.name,
@@ -359,7 +340,7 @@ def _parameter_set(
         dt=spec["fpm"]["dt"],
         stiffness_scale=spec["fpm"]["stiffness_scale"],
         material=spec["material"],
-        geometry=store.GeometrySummary(
+        geometry=records.GeometrySummary(
             type=geometry["type"],
             connectivity=geometry.get("connectivity"),
             size=geometry.get("size"),
@@ -372,7 +353,7 @@ def _parameter_set(
         node_mass=result["node_mass"],
         warnings=result["warnings"],
         cost=result["cost"],
-        provenance=store.Provenance(
+        provenance=records.Provenance(
             calibration_id=record.id,
             spec_hash=record.spec_hash,
             fem_hash=record.fem_hash,
@@ -385,7 +366,7 @@ def _parameter_set(
 
 
 def _fail(redis: Redis, calibration_id: str, error: str) -> None:
-    store.update_calibration(
+    records.update_calibration(
         redis,
         calibration_id,
         {"status": CalibrationStatus.FAILED, "error": error, "finished": time.time()},
@@ -404,11 +385,7 @@ def on_failure(job: Job, connection: Redis, exc_type: type, value: BaseException
         return
     error = f"{exc_type.__name__}: {value}" if str(value) else exc_type.__name__
     if job.func_name == keys.FEM_JOB:
-        fields: store.Mapping = {
-            "status": FemStatus.FAILED.value,
-            "error": error,
-            "finished": time.time(),
-        }
-        connection.hset(keys.fem_meta(job.args[0]), mapping=fields)
+        failed = {"status": FemStatus.FAILED, "error": error, "finished": time.time()}
+        records.update_fem_meta(connection, job.args[0], failed)
     else:
         _fail(connection, job.args[0], f"{job.description}: {error}")

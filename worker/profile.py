@@ -5,41 +5,21 @@ axis-parallel line through its first loaded node that holds the most nodes
 (:func:`fpm.plot.profile_line`), with the displacement magnitude of the FEM reference and of an
 FPM run at the fitted stiffness, d and depth at those nodes. The FPM run needs the numerical
 kernels, which the service never loads (docs/service.md), so a worker computes it: the service
-enqueues :func:`calibration_profile` once (job id :func:`profile_job_id`) and answers from the
-stored JSON (:func:`profile_key`) once it is there.
-
-The fpm imports are inside the job: importing this module (as the service does, for the key and
-job id) loads no numerics.
+enqueues :func:`calibration_profile` once (:func:`store.graph.request_profile`) and answers from
+the stored data (:func:`store.scratch.get_profile`) once it is there.
 """
 
 from __future__ import annotations
 
-import json
 from typing import Any
 
+import numpy as np
 from rq import get_current_job
 
-from . import keys, store
-from .status import CalibrationStatus
-
-PROFILE_TTL = store.SCRATCH_TTL
-"""Seconds a computed profile is kept (it is recomputed on demand after that)."""
-
-FAILED_TTL = 600
-"""Seconds a failed profile is remembered, so that polling does not re-run it at once."""
-
-JOB = keys.PROFILE_JOB
-"""The job's dotted path."""
-
-
-def profile_key(calibration_id: str) -> str:
-    """String: JSON profile data of a succeeded calibration (scratch: ``PROFILE_TTL``)."""
-    return f"{keys.calibration(calibration_id)}:profile"
-
-
-def profile_job_id(calibration_id: str) -> str:
-    """RQ job id of the profile job of a calibration."""
-    return f"{calibration_id}-profile"
+from fpm import load_problem, simulate
+from fpm.plot import profile_line
+from store import records, scratch
+from store.status import CalibrationStatus
 
 
 def profile_data(problem: Any, reference: Any, result: dict[str, Any]) -> list[dict[str, Any]]:
@@ -56,11 +36,6 @@ def profile_data(problem: Any, reference: Any, result: dict[str, Any]) -> list[d
         m), the fit figures of the result (relative_discrepancy, loaded_discrepancy,
         discrepancy_h, %) and the run's steps and settled flag.
     """
-    import numpy as np
-
-    from fpm import simulate
-    from fpm.plot import profile_line
-
     reference = np.asarray(reference, dtype=float)
     stiffness = result.get("stiffness")
     theta: float | list[float] = float(result["k"])
@@ -94,18 +69,18 @@ def calibration_profile(calibration_id: str) -> dict[str, Any]:
     """RQ job: compute and store the profile data of a succeeded calibration.
 
     Stores ``{"status": "ready", "h", "load_cases"}``, or ``{"status": "failed", "error"}`` for
-    ``FAILED_TTL`` seconds when it cannot be computed (no result, reference gone, a run that
-    raises), so the service answers with the reason instead of enqueueing again at every poll.
+    :data:`store.scratch.PROFILE_FAILED_TTL` seconds when it cannot be computed (no result,
+    reference gone, a run that raises), so the service answers with the reason instead of
+    enqueueing again at every poll.
     """
     job = get_current_job()
     if job is None:
         raise RuntimeError("not running inside an RQ job")
     redis = job.connection
-    key = profile_key(calibration_id)
-    if redis.exists(key):
+    if scratch.has_profile(redis, calibration_id):
         return {"skipped": True}
-    record = store.get_calibration(redis, calibration_id)
-    reference = store.get_fem_reference(redis, record.fem_hash) if record else None
+    record = records.get_calibration(redis, calibration_id)
+    reference = records.get_fem_reference(redis, record.fem_hash) if record else None
     error = None
     if record is None or record.status != CalibrationStatus.SUCCEEDED or not record.result:
         error = "the calibration has no result"
@@ -113,8 +88,6 @@ def calibration_profile(calibration_id: str) -> dict[str, Any]:
         error = "its FEM reference is no longer stored"
     if error is None:
         assert record is not None and record.result is not None and reference is not None
-        from fpm import load_problem
-
         try:
             problem = load_problem(record.spec)
             cases = profile_data(problem, reference["displacements"], record.result)
@@ -122,7 +95,7 @@ def calibration_profile(calibration_id: str) -> dict[str, Any]:
             error = f"{type(e).__name__}: {e}"
         else:
             data = {"status": "ready", "h": problem.h, "load_cases": cases}
-            redis.set(key, json.dumps(data), ex=PROFILE_TTL)
+            scratch.save_profile(redis, calibration_id, data)
             return {"load_cases": len(cases)}
-    redis.set(key, json.dumps({"status": "failed", "error": error}), ex=FAILED_TTL)
+    scratch.save_profile(redis, calibration_id, {"status": "failed", "error": error})
     return {"failed": error}

@@ -8,8 +8,8 @@ from fastapi import APIRouter, Body, Query, Response, status
 
 from fpm import ProblemSpec
 from fpm.spec import AnnealingSettings
-from worker import graph, keys, store
-from worker.status import CalibrationStatus, FemStatus, Phase
+from store import graph, records
+from store.status import CalibrationStatus, FemStatus, Phase
 
 from ..deps import CalibrationId, RedisDep, SettingsDep
 from ..errors import ProblemError, problem_responses
@@ -79,14 +79,7 @@ def listing(
 ) -> CalibrationPage:
     """Calibrations, newest first; ``status`` filters."""
     limit = min(limit, settings.page_size_limit)
-    if status_filter is None:
-        total = redis.zcard(keys.calibrations())
-        ids = store.id_list(redis.zrevrange(keys.calibrations(), offset, offset + limit - 1))
-        records = store.get_calibrations(redis, ids)
-    else:
-        all_ids = store.id_list(redis.zrevrange(keys.calibrations(), 0, -1))
-        matching = [r for r in store.get_calibrations(redis, all_ids) if r.status == status_filter]
-        total, records = len(matching), matching[offset : offset + limit]
+    total, page = records.calibration_page(redis, offset, limit, status_filter)
     items = [
         CalibrationSummary(
             id=r.id,
@@ -95,7 +88,7 @@ def listing(
             created=r.created,
             parameter_set_id=r.parameter_set_id or None,
         )
-        for r in records
+        for r in page
     ]
     return CalibrationPage(items=items, total=total, offset=offset, limit=limit)
 
@@ -103,19 +96,16 @@ def listing(
 @router.get("/{calibration_id}", operation_id="get_calibration", responses=problem_responses(404))
 def read(calibration_id: CalibrationId, redis: RedisDep) -> Calibration:
     """Status, progress, and when done the result."""
-    pipe = redis.pipeline(transaction=False)
-    pipe.hgetall(keys.calibration(calibration_id))
-    pipe.hgetall(keys.calibration_progress(calibration_id))
-    raw, raw_progress = pipe.execute()
-    if not raw:
+    view = records.get_calibration_view(redis, calibration_id)
+    if view is None:
         raise ProblemError(404, "Not found", f"no calibration {calibration_id!r}")
-    record = store.CalibrationRecord.from_hash(store.decode_hash(raw))
-    progress = store.split_progress(store.decode_hash(raw_progress))
-    fem_running = False
-    if record.status == CalibrationStatus.QUEUED and not record.fem_cached:
-        fem_status = redis.hget(keys.fem_meta(record.fem_hash), "status")
-        fem_running = fem_status == FemStatus.RUNNING.value.encode()
-    return _view(record, progress, fem_running)
+    record, chains, damping = view
+    fem_running = (
+        record.status == CalibrationStatus.QUEUED
+        and not record.fem_cached
+        and records.fem_status(redis, record.fem_hash) == FemStatus.RUNNING
+    )
+    return _view(record, (chains, damping), fem_running)
 
 
 @router.delete(
@@ -126,7 +116,7 @@ def cancel(calibration_id: CalibrationId, redis: RedisDep) -> Calibration:
 
     Canceling a canceled calibration is a no-op; a succeeded or failed one answers 409.
     """
-    record = store.get_calibration(redis, calibration_id)
+    record = records.get_calibration(redis, calibration_id)
     if record is None:
         raise ProblemError(404, "Not found", f"no calibration {calibration_id!r}")
     if not graph.cancel_calibration(redis, calibration_id) and record.status in (
@@ -157,7 +147,7 @@ def _stage(method: str, phase: Phase, damping: DampingProgress | None) -> str:
 
 
 def _view(
-    record: store.CalibrationRecord,
+    record: records.CalibrationRecord,
     progress: tuple[dict[int, dict[str, Any]], dict[str, Any] | None],
     fem_running: bool,
 ) -> Calibration:

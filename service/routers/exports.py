@@ -13,7 +13,7 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
-from worker import store
+from store import records
 
 from ..deps import ParameterSetId, RedisDep
 from ..errors import ProblemError, problem_responses
@@ -54,7 +54,7 @@ def export(
     record (which holds the spec) is gone."""
     ps = stored_parameter_set(redis, parameter_set_id)
     provenance = ps.get("provenance") or {}
-    record = store.get_calibration(redis, str(provenance.get("calibration_id", "")))
+    record = records.get_calibration(redis, str(provenance.get("calibration_id", "")))
     if record is None or record.spec_hash != provenance.get("spec_hash"):
         raise ProblemError(
             410,
@@ -64,7 +64,7 @@ def export(
         )
     fem = None
     if fmt == "vtu":
-        stored = store.get_fem_reference(redis, str(provenance.get("fem_hash", "")))
+        stored = records.get_fem_reference(redis, str(provenance.get("fem_hash", "")))
         fem = None if stored is None else stored["displacements"]
     from fpm.export import MEDIA_TYPES, SUFFIXES, export
     from fpm.problem import load_problem

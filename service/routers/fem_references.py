@@ -8,9 +8,9 @@ from typing import Annotated
 from fastapi import APIRouter, Body, Query, Response, status
 
 from fpm import ProblemSpec
-from worker import graph, store
-from worker.hashing import fem_hash
-from worker.status import FemStatus
+from store import graph, records
+from store.hashing import fem_hash
+from store.status import FemStatus
 
 from ..deps import FemId, RedisDep, SettingsDep
 from ..errors import ProblemError, problem_responses
@@ -44,7 +44,7 @@ def submit(
     check_calibration_spec(spec, settings)
     dumped = dump_spec(spec)
     digest = fem_hash(dumped)
-    meta = store.get_fem_meta(redis, digest)
+    meta = records.get_fem_meta(redis, digest)
     pending = meta.get("status") in (FemStatus.QUEUED.value, FemStatus.RUNNING.value)
     started = graph.submit_fem(redis, dumped, settings.job_options) if not pending else None
     response.headers["Location"] = f"{router.prefix}/{digest}"
@@ -60,7 +60,7 @@ def read(
     arrays: Annotated[bool, Query(description="include nodes and displacements")] = True,
 ) -> FemReference:
     """Status, and once computed the nodal coordinates and displacements per load case."""
-    meta = store.get_fem_meta(redis, fem_id)
+    meta = records.get_fem_meta(redis, fem_id)
     if not meta:
         raise ProblemError(404, "Not found", f"no FEM reference {fem_id!r}")
     out = FemReference(
@@ -73,7 +73,7 @@ def read(
         error=meta.get("error") or None,
     )
     if arrays and out.status == FemStatus.SUCCEEDED:
-        data = store.get_fem_reference(redis, fem_id)
+        data = records.get_fem_reference(redis, fem_id)
         if data is not None:
             out.nodes, out.displacements = data["nodes"], data["displacements"]
     return out

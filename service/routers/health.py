@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from worker import graph, liveness, queue_stats
+from store import graph, liveness, queue_stats
 
 from ..deps import RedisDep
 from ..schemas import Health

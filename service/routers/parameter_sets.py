@@ -8,7 +8,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query
 from redis import Redis
 
-from worker import store
+from store import records
 
 from ..deps import ParameterSetId, RedisDep
 from ..errors import ProblemError, problem_responses
@@ -28,7 +28,7 @@ def current(ps: dict[str, Any]) -> bool:
 
 def stored_parameter_set(redis: Redis, parameter_set_id: str) -> dict[str, Any]:
     """The stored parameter set; 404 if there is none, 410 if an older version stored it."""
-    ps = store.get_parameter_set(redis, parameter_set_id)
+    ps = records.get_parameter_set(redis, parameter_set_id)
     if ps is None:
         raise ProblemError(404, "Not found", f"no parameter set {parameter_set_id!r}")
     if not current(ps):
@@ -66,7 +66,7 @@ def listing(
             return False
         return name is None or name.lower() in ps["name"].lower()
 
-    stored = store.list_parameter_sets(redis)
+    stored = records.list_parameter_sets(redis)
     items = [ParameterSet(**ps) for ps in stored if current(ps) and matches(ps)]
     return ParameterSetPage(items=items, total=len(items))
 

@@ -29,7 +29,7 @@ BACKOFF_CAP = 1.0
 LOG_EVERY = 30
 """Failed attempts of one command between two log lines (about half a minute)."""
 
-log = logging.getLogger("worker.connection")
+log = logging.getLogger("store.connection")
 T = TypeVar("T")
 
 _giving_up = False

@@ -14,7 +14,7 @@ from . import graph, liveness
 
 WORKER_STATES = ("busy", "idle", "suspended", "silent")
 """What :func:`worker_states` counts: 'silent' is a registered worker with no recent heartbeat
-(dead or hung, :mod:`worker.liveness`)."""
+(dead or hung, :mod:`store.liveness`)."""
 
 
 @dataclass(frozen=True)

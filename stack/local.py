@@ -1,7 +1,7 @@
 """The local stack: Redis, the API (uvicorn) and N workers, as child processes.
 
 Redis is ``$REDIS_URL``'s server if that is set; otherwise an embedded redis-server
-(:mod:`service.redis_server`) with its data in ``./data/redis`` (append-only file on), so
+(:mod:`stack.redis_server`) with its data in ``./data/redis`` (append-only file on), so
 stored parameter sets and FEM references survive a restart. The stack supervises its
 children (:class:`LocalStack`): a worker, the API or the embedded Redis that dies is started
 again within a second (Redis on the same port and data directory; one that keeps dying, with a
@@ -257,7 +257,7 @@ def run_stack(workers: int = 2, host: str = "127.0.0.1", port: int = 8000) -> No
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``fpmcal up`` / ``python -m service.stack``: [--workers N] [--port P] [--host H]."""
+    """``fpmcal up`` / ``python -m stack.local``: [--workers N] [--port P] [--host H]."""
     parser = argparse.ArgumentParser(prog="fpmcal up", description="run the local stack")
     parser.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")
     parser.add_argument("--port", type=int, default=8000, help="API port (default 8000)")

@@ -37,7 +37,7 @@ CALIBRATION_ID = re.compile(r"[0-9a-f]{16}")
 """Every calibration id: 16 lowercase hex digits (:func:`new_calibration_id`)."""
 
 FEM_ID = re.compile(r"[0-9a-f]{64}")
-"""Every FEM reference id: the sha256 hex digest of :func:`worker.hashing.fem_hash`."""
+"""Every FEM reference id: the sha256 hex digest of :func:`store.hashing.fem_hash`."""
 
 PARAMETER_SET_ID = re.compile(r"ps-[0-9a-f]{16}")
 """Every parameter set id (:func:`parameter_set_id`)."""
@@ -137,3 +137,8 @@ def damping_job_id(calibration_id: str) -> str:
 def finalize_job_id(calibration_id: str) -> str:
     """RQ job id of the finalize job."""
     return f"{calibration_id}-finalize"
+
+
+def profile_job_id(calibration_id: str) -> str:
+    """RQ job id of the profile job of a calibration (the web view's plot data)."""
+    return f"{calibration_id}-profile"

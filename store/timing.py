@@ -9,7 +9,7 @@ default 30 s; RQ's default is 420 s):
 - a busy worker beats every :func:`job_monitoring_interval` (TTL / 3), each beat pushing its
   job's expiry in the started registry to the next beat plus :func:`execution_grace` (TTL / 2;
   RQ's own grace is a fixed 60 s, too long for a minute's re-queue);
-- the health check (:mod:`worker.liveness`) counts a worker alive if it beat within the TTL:
+- the health check (:mod:`store.liveness`) counts a worker alive if it beat within the TTL:
   twice an idle worker's period, three times a busy one's.
 
 So a job whose worker died is re-queued at most :func:`requeue_bound` seconds later (40 s at

@@ -7,10 +7,10 @@ A calibration is::
 (the damping job only for the two-stage method: polish, depth, fastest-settling d). The chains
 and a large problem's FEM job go to the queue of long jobs; the damping job, finalize and the
 FEM job of a small problem (:data:`SMALL_FEM_NODES`) to the priority queue that workers drain
-first (:data:`worker.keys.QUEUES`).
+first (:data:`store.keys.QUEUES`).
 
 Jobs are enqueued by dotted path with RQ's JSON serializer and carry only ids; the spec, the
-FEM reference and the chain results live under our own keys (:mod:`worker.keys`). Chains
+FEM reference and the chain results live under our own keys (:mod:`store.keys`). Chains
 depend on the FEM job and finalize on the chains with ``allow_failure``: a failed dependency
 still wakes the next job, which then records the calibration as failed (no job is left
 waiting for ever).
@@ -30,7 +30,7 @@ from rq.exceptions import InvalidJobOperation, NoSuchJobError
 from rq.job import Dependency, Job, JobStatus
 from rq.serializers import JSONSerializer
 
-from . import keys, store
+from . import keys, records, scratch
 from .hashing import fem_hash, fem_spec, spec_hash
 from .status import CalibrationStatus, FemStatus
 from .text import escape
@@ -66,12 +66,12 @@ def queue(redis: Redis) -> Queue:
 
 def priority_queue(redis: Redis) -> Queue:
     """The queue of the jobs that finish a calibration (damping stage, finalize), which
-    workers drain first (:data:`worker.keys.PRIORITY_QUEUE`)."""
+    workers drain first (:data:`store.keys.PRIORITY_QUEUE`)."""
     return Queue(keys.PRIORITY_QUEUE, connection=redis, serializer=JSONSerializer)
 
 
 def queues(redis: Redis) -> list[Queue]:
-    """Every queue, in the order workers take jobs from them (:data:`worker.keys.QUEUES`)."""
+    """Every queue, in the order workers take jobs from them (:data:`store.keys.QUEUES`)."""
     return [Queue(name, connection=redis, serializer=JSONSerializer) for name in keys.QUEUES]
 
 
@@ -101,7 +101,7 @@ def enqueue_ready(redis: Redis) -> int:
 
 def submit_calibration(
     redis: Redis, spec: dict[str, Any], options: JobOptions
-) -> tuple[store.CalibrationRecord, bool]:
+) -> tuple[records.CalibrationRecord, bool]:
     """Start a calibration of the validated ``spec`` (a dumped ProblemSpec).
 
     Returns (record, created): an identical spec already queued, running or succeeded gives
@@ -109,7 +109,7 @@ def submit_calibration(
     """
     digest = spec_hash(spec)
     by_spec = keys.calibration_by_spec(digest)
-    record = store.CalibrationRecord(
+    record = records.CalibrationRecord(
         id=keys.new_calibration_id(),
         spec=spec,
         spec_hash=digest,
@@ -119,10 +119,10 @@ def submit_calibration(
         fem_cached=bool(redis.exists(keys.fem_reference(fem_hash(spec)))),
     )
 
-    def claim(pipe: Any) -> store.CalibrationRecord | None:
+    def claim(pipe: Any) -> records.CalibrationRecord | None:
         existing_id = pipe.get(by_spec)
         if existing_id is not None:
-            existing = store.get_calibration(pipe, existing_id.decode())
+            existing = records.get_calibration(pipe, existing_id.decode())
             if existing is not None and existing.status in (
                 CalibrationStatus.QUEUED,
                 CalibrationStatus.RUNNING,
@@ -131,18 +131,20 @@ def submit_calibration(
                 pipe.unwatch()
                 return existing
         pipe.multi()
-        store.write_calibration(pipe, record)
+        records.write_calibration(pipe, record)
         return None
 
     transaction: Any = redis.transaction  # its stub wants a callable returning None
-    existing: store.CalibrationRecord | None = transaction(claim, by_spec, value_from_callable=True)
+    existing: records.CalibrationRecord | None = transaction(
+        claim, by_spec, value_from_callable=True
+    )
     if existing is not None:
         return existing, False
     _enqueue(redis, record, options)
     return record, True
 
 
-def _enqueue(redis: Redis, record: store.CalibrationRecord, options: JobOptions) -> None:
+def _enqueue(redis: Redis, record: records.CalibrationRecord, options: JobOptions) -> None:
     """Enqueue the jobs: chains on the queue of long jobs, the damping stage and finalize on
     the priority queue (RQ puts a job whose dependencies finished on its own queue, so they
     jump the chains of calibrations submitted later)."""
@@ -261,6 +263,32 @@ def _common(options: JobOptions) -> dict[str, Any]:
     }
 
 
+def request_profile(redis: Redis, calibration_id: str, timeout: int) -> bool:
+    """Enqueue the profile job of a succeeded calibration unless it is pending; False when its
+    last run failed (the failure is stored: :func:`store.scratch.get_profile`, and RQ keeps the
+    failed job for :data:`store.scratch.PROFILE_FAILED_TTL` seconds, so it is not re-run at
+    every poll)."""
+    job_id = keys.profile_job_id(calibration_id)
+    try:
+        job: Job | None = Job.fetch(job_id, connection=redis, serializer=JSONSerializer)
+    except NoSuchJobError:
+        job = None
+    job_status = job.get_status() if job is not None else None
+    if job_status == JobStatus.FAILED:
+        return False
+    if job_status not in PENDING:
+        queue(redis).enqueue_call(
+            keys.PROFILE_JOB,
+            args=(calibration_id,),
+            job_id=job_id,
+            timeout=timeout,
+            result_ttl=60,
+            failure_ttl=scratch.PROFILE_FAILED_TTL,
+            description=f"profile of calibration {calibration_id}",
+        )
+    return True
+
+
 def cancel_calibration(redis: Redis, calibration_id: str) -> bool:
     """Mark a calibration canceled, stop its running jobs (chains, damping stage, finalize) and
     drop its queued ones.
@@ -268,14 +296,14 @@ def cancel_calibration(redis: Redis, calibration_id: str) -> bool:
     Returns False if it had already finished (nothing changed). The shared FEM job is left
     alone: another calibration may need the same reference.
     """
-    changed = store.update_calibration(
+    changed = records.update_calibration(
         redis,
         calibration_id,
         {"status": CalibrationStatus.CANCELED, "finished": time.time()},
     )
     if not changed:
         return False
-    record = store.get_calibration(redis, calibration_id)
+    record = records.get_calibration(redis, calibration_id)
     assert record is not None
     job_ids = [keys.chain_job_id(calibration_id, c) for c in range(record.chains)]
     job_ids += [keys.damping_job_id(calibration_id), keys.finalize_job_id(calibration_id)]

@@ -4,7 +4,7 @@ RQ's worker registry keeps a worker that was killed (SIGKILL, lost machine) unti
 worker's maintenance cleans it up, which never happens when no worker is left: counting the
 registry reports dead workers as alive. A live worker writes ``last_heartbeat`` well within
 :data:`WORKER_TTL` seconds (a busy one every third of it, an idle one each time its blocking
-dequeue times out, every half of it: :mod:`worker.timing`), so a worker silent for longer is
+dequeue times out, every half of it: :mod:`store.timing`), so a worker silent for longer is
 dead (or hung).
 """
 

@@ -1,0 +1,122 @@
+"""A calibration's scratch data in Redis: what its jobs hand on to each other, kept
+:data:`SCRATCH_TTL` seconds (no numerical code here).
+
+- chain checkpoints (:class:`fpm.annealing.Checkpoint` as JSON), so that a retried chain resumes;
+- chain results (:class:`fpm.calibration.ChainResult` as JSON), read by the damping stage and
+  finalize;
+- the damping stage's result (:class:`fpm.calibration.DampingStage` as JSON);
+- progress reports, one field per chain and one for the damping stage;
+- the FPM-vs-FEM profile data of a succeeded calibration (the web view's plot).
+
+Values are the records' ``to_dict()`` as JSON; the job runner turns them back into records.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from redis import Redis
+
+from . import keys
+from .status import CalibrationStatus
+
+SCRATCH_TTL = 7 * 24 * 3600
+"""Seconds that chain checkpoints, chain results, progress and profiles are kept (s)."""
+
+PROFILE_FAILED_TTL = 600
+"""Seconds a failed profile is remembered, so that polling does not re-run it at once (s)."""
+
+
+def _json(raw: bytes | str | None) -> Any:
+    return json.loads(raw) if raw else None
+
+
+def get_checkpoint(redis: Redis, calibration_id: str, chain: int) -> dict[str, Any] | None:
+    """A chain's last checkpoint (a dict), or None."""
+    return _json(redis.get(keys.chain_checkpoint(calibration_id, chain)))
+
+
+def save_checkpoint(redis: Redis, calibration_id: str, chain: int, state: dict[str, Any]) -> None:
+    """Store a chain's annealing state so that a retried chain resumes from it."""
+    redis.set(keys.chain_checkpoint(calibration_id, chain), json.dumps(state), ex=SCRATCH_TTL)
+
+
+def drop_checkpoint(redis: Redis, calibration_id: str, chain: int) -> None:
+    """Forget a chain's checkpoint (the chain failed for good)."""
+    redis.delete(keys.chain_checkpoint(calibration_id, chain))
+
+
+def has_chain_result(redis: Redis, calibration_id: str, chain: int) -> bool:
+    return bool(redis.exists(keys.chain_result(calibration_id, chain)))
+
+
+def save_chain_result(
+    redis: Redis, calibration_id: str, chain: int, result: dict[str, Any], evaluations: int
+) -> None:
+    """Store a finished chain's result, drop its checkpoint and count its cost evaluations
+    (the metrics' counter), in one MULTI/EXEC."""
+    pipe = redis.pipeline()
+    pipe.set(keys.chain_result(calibration_id, chain), json.dumps(result), ex=SCRATCH_TTL)
+    pipe.delete(keys.chain_checkpoint(calibration_id, chain))
+    pipe.incrby(keys.evaluations_total(), evaluations)
+    pipe.execute()
+
+
+def get_chain_results(redis: Redis, calibration_id: str, chains: int) -> list[Any]:
+    """Each chain's result dict, None for a chain that has not finished: list of ``chains``."""
+    raws = redis.mget([keys.chain_result(calibration_id, c) for c in range(chains)])
+    return [_json(raw) for raw in raws]
+
+
+def has_damping_result(redis: Redis, calibration_id: str) -> bool:
+    return bool(redis.exists(keys.damping_result(calibration_id)))
+
+
+def save_damping_result(redis: Redis, calibration_id: str, stage: dict[str, Any]) -> None:
+    redis.set(keys.damping_result(calibration_id), json.dumps(stage), ex=SCRATCH_TTL)
+
+
+def get_damping_result(redis: Redis, calibration_id: str) -> dict[str, Any] | None:
+    return _json(redis.get(keys.damping_result(calibration_id)))
+
+
+def delete_stage_data(pipe: Any, calibration_id: str, chains: int) -> None:
+    """Queue dropping the checkpoints and the damping result once the calibration is done
+    (``pipe``: a pipeline, so that it happens with the write of the parameter set)."""
+    pipe.delete(*[keys.chain_checkpoint(calibration_id, c) for c in range(chains)])
+    pipe.delete(keys.damping_result(calibration_id))
+
+
+def report_progress(redis: Redis, calibration_id: str, field: str, info: dict[str, Any]) -> bool:
+    """Write one progress report (``field``: a chain index or ``keys.DAMPING_PROGRESS``) and
+    say whether the calibration goes on: False once it is finished (canceled, failed) or gone."""
+    key = keys.calibration_progress(calibration_id)
+    pipe = redis.pipeline()
+    pipe.hset(key, field, json.dumps(info))
+    pipe.expire(key, SCRATCH_TTL)
+    pipe.hget(keys.calibration(calibration_id), "status")
+    status = pipe.execute()[-1]
+    return status is not None and not CalibrationStatus(status.decode()).terminal
+
+
+def profile_key(calibration_id: str) -> str:
+    """String: JSON profile data of a succeeded calibration."""
+    return f"{keys.calibration(calibration_id)}:profile"
+
+
+def has_profile(redis: Redis, calibration_id: str) -> bool:
+    return bool(redis.exists(profile_key(calibration_id)))
+
+
+def get_profile(redis: Redis, calibration_id: str) -> dict[str, Any] | None:
+    """``{"status": "ready", "h", "load_cases"}`` or ``{"status": "failed", "error"}``, or None
+    (not computed, or expired)."""
+    return _json(redis.get(profile_key(calibration_id)))
+
+
+def save_profile(redis: Redis, calibration_id: str, data: dict[str, Any]) -> None:
+    """Store profile data; a failed one (``data["status"] == "failed"``) only for
+    :data:`PROFILE_FAILED_TTL` seconds."""
+    ttl = PROFILE_FAILED_TTL if data.get("status") == "failed" else SCRATCH_TTL
+    redis.set(profile_key(calibration_id), json.dumps(data), ex=ttl)
