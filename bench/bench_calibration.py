@@ -5,11 +5,11 @@ average is printed beside each part):
 
 1. Material A (paper Table 1, ``examples/paper-material-a.json``): ``annealing.method`` "paper"
    (joint (k, d) annealing on dynamic runs) and "two-stage" (the default), both in-process via
-   :func:`fpm.calibration.calibrate`, with the FEM reference solved once outside the timing and
-   the compiled kernels loaded before it. Goals: paper / two-stage wall time >= 10x; two-stage k
+   :func:`fpm.calibrate`, with the FEM reference solved once outside the timing and the
+   compiled kernels loaded before it. Goals: paper / two-stage wall time >= 10x; two-stage k
    within 0.5% of paper's; mean relative discrepancy no worse than paper's + 0.05 points.
 2. d: the two-stage fit's total settle steps over the load cases against the fewest found on a
-   30-point log grid of d across :func:`fpm.calibration.damping_bounds` (same k, depth, dt).
+   30-point log grid of d across :func:`fpm.fitting.calibration.damping_bounds` (same k, depth, dt).
    Goal: ratio <= 1.05.
 3. The organ (``bench/organ.py``) at h = 5 mm (goal <= 30 s wall) and h = 3 mm (goal <= 180 s
    wall and <= 2 GB peak RSS), depth "auto", each in a fresh subprocess (peak RSS = that
@@ -85,8 +85,8 @@ def organ_settings(h: float, stiffness: str = "single") -> tuple[dict[str, Any],
     """The organ spec at h with the bench's dt rule; returns (spec, unrounded dt)."""
     import fpm
     from bench.organ import ellipsoid_spec
-    from fpm.diagnosis import stable_time_step
-    from fpm.stiffness import spring_stiffness
+    from fpm.fitting.diagnosis import stable_time_step
+    from fpm.model.stiffness import spring_stiffness
 
     problem = fpm.load_problem(ellipsoid_spec(h))
     k = DT_RULE_K * problem.spec.material.youngs_modulus * h
@@ -103,7 +103,7 @@ def organ_settings(h: float, stiffness: str = "single") -> tuple[dict[str, Any],
 def organ_child(h: float, stiffness: str, out: Path, progress_file: Path | None) -> None:
     """One organ calibration (its timings and figures written to ``out`` as JSON)."""
     import fpm
-    from fpm.calibration import calibrate
+    from fpm.fitting.calibration import calibrate
 
     t_start = time.perf_counter()
     spec, dt_raw = organ_settings(h, stiffness)
@@ -232,7 +232,7 @@ def _where(lines: list[str]) -> str:
 def warm_up(problem: Any, reference: Any) -> None:
     """Load (or compile) the dynamic and static kernels, outside every timing."""
     import fpm
-    from fpm.cost import StaticCost
+    from fpm.fitting.cost import StaticCost
 
     fpm.simulate(problem, k=38.6, d=0.3)
     StaticCost(problem, reference.displacements, None)([38.6])
@@ -240,7 +240,7 @@ def warm_up(problem: Any, reference: Any) -> None:
 
 def material_a() -> dict[str, Any]:
     import fpm
-    from fpm.calibration import calibrate
+    from fpm.fitting.calibration import calibrate
 
     spec = json.loads(SPEC_A.read_text())
     base = fpm.load_problem(spec)
@@ -271,7 +271,7 @@ def material_a() -> dict[str, Any]:
     )
     print(
         f"   FEM reference solved once ({t_fem:.2f} s), outside the timing; kernels loaded "
-        "before it; both in-process via fpm.calibration.calibrate (2 chains, threads)"
+        "before it; both in-process via fpm.fitting.calibration.calibrate (2 chains, threads)"
     )
     print(
         f"   {'method':<11}{'wall s':>8}{'paper/this':>11}{'k N/m':>10}{'k vs paper':>11}"
@@ -323,8 +323,8 @@ def material_a() -> dict[str, Any]:
 
 def damping_grid(a: dict[str, Any]) -> list[tuple[str, bool, str]]:
     import fpm
-    from fpm.calibration import damping_bounds
-    from fpm.cost import CostFunction
+    from fpm.fitting.calibration import damping_bounds
+    from fpm.fitting.cost import CostFunction
 
     r = a["results"]["two-stage"]
     problem = fpm.load_problem(a["spec"])

@@ -1,4 +1,5 @@
-"""Static equilibrium speed (:mod:`fpm.equilibrium`) on the voxelised organ (bench/organ.py).
+"""Static equilibrium speed (:mod:`fpm.dynamics.equilibrium`) on the voxelised organ
+(bench/organ.py).
 
 The use it is built for: a simulated-annealing calibration calls the static solve ~300 times
 per load case with nearby stiffnesses (one k, or one k per spring family), so what matters is
@@ -10,8 +11,8 @@ the warm solve. Per mesh spacing h, with k0 = 0.35 E h and full depth:
   then solves at k0 * factor (single k) or at family stiffnesses changed by (+5, -5, +5)%;
 - annealing-like: a seeded random walk (log-normal 5% moves, half accepted) over the three
   load cases, as the annealer calls it; the solver remembers its last solutions
-  (:class:`fpm.equilibrium._Predictor`). Mean and median per solve after the first 10 moves,
-  and the projected time of 300 moves x 3 load cases; with families also at a relative
+  (:class:`fpm.dynamics.equilibrium._Predictor`). Mean and median per solve after the first 10
+  moves, and the projected time of 300 moves x 3 load cases; with families also at a relative
   tolerance of 1e-4 instead of the default 1e-6 (settle_tolerance / 10).
 
 Run: python -m bench equilibrium (or python -m bench.bench_equilibrium [h ...]).
@@ -27,8 +28,8 @@ import numpy as np
 
 import fpm
 from bench.organ import ellipsoid_spec
-from fpm.equilibrium import StaticSolver
-from fpm.stiffness import spring_stiffness
+from fpm.dynamics.equilibrium import StaticSolver
+from fpm.model.stiffness import spring_stiffness
 
 SPACINGS = (0.005, 0.003)
 """Mesh spacings h, m: 4,612 and 19,692 nodes."""

@@ -11,7 +11,7 @@ solve); total = the whole call. Goals on a 2-core machine: 30^3 nodes in 5 s, 50
 The sparse LU runs only up to :data:`DIRECT_UP_TO` nodes a side: its fill-in grows fast on 3-D
 meshes (measured once at 30^3: 67 s and 2.5 GB, against 3 s and 0.4 GB for AMG).
 
-Then the neo-Hookean reference (``material.model: "neo-hookean"``, :mod:`fpm.hyperelastic`)
+Then the neo-Hookean reference (``material.model: "neo-hookean"``, :mod:`fpm.fem.hyperelastic`)
 against the linear one on the same :data:`MODEL_SIDE`^3 cube and load, each model in its own
 process, :data:`MODEL_REPEATS` times (the fastest run counts): goals at most
 :data:`MODEL_GOALS` times the linear solve's time and peak memory. ``python -m bench.bench_fem
@@ -54,8 +54,8 @@ def cube_spec(n: int) -> dict:
 def run_case(n: int, method: str) -> dict:
     """Time one case in this process; returns the table row."""
     import fpm
-    from fpm.elasticity import constitutive_matrix
-    from fpm.fem import stiffness_matrix
+    from fpm.fem.elasticity import constitutive_matrix
+    from fpm.fem.reference import stiffness_matrix
 
     problem = fpm.load_problem(cube_spec(n))
     hexahedra = problem.solid.elements()
@@ -81,7 +81,7 @@ def run_case(n: int, method: str) -> dict:
 def run_model(n: int, model: str) -> dict:
     """Time one ``solve_fem`` of the n^3 cube with material ``model`` in this process."""
     import fpm
-    import fpm.fem  # imported before the clock starts, as in run_case
+    import fpm.fem.reference  # imported before the clock starts, as in run_case
 
     spec = cube_spec(n)
     spec["material"]["model"] = model
@@ -147,7 +147,7 @@ def compare_models() -> list[str]:
 
 
 def main() -> None:
-    from fpm.linear_solver import choose_method
+    from fpm.fem.linear_solver import choose_method
 
     print(
         f"{'nodes':>7} {'unknowns':>9} {'method':>8} {'assembly s':>11} {'solve s':>8} "

@@ -49,7 +49,7 @@ YARDSTICK_C = r"""
 #include <math.h>
 #include <stdint.h>
 
-/* fpm.voigt.run_steps, line for line: returns steps taken; *state = 0 running, 1 settled,
+/* fpm.dynamics.voigt.run_steps, line for line: returns steps taken; *state = 0 running, 1 settled,
    2 diverged; *worst = largest |F_i + F_s| of the last sweep. Arrays are C-contiguous. */
 int64_t run_steps(const int32_t *order, int64_t m, const int64_t *ptr, const int32_t *neighbour,
                   const double *rest_length, const double *factor, int64_t scaled,
@@ -158,7 +158,7 @@ class Kernel:
         self.v[:] = 0.0
 
     def numba(self, k: float, d: float, dt: float, steps: int) -> tuple[int, int, float]:
-        from fpm.voigt import run_steps
+        from fpm.dynamics.voigt import run_steps
 
         return run_steps(
             self.order, self.ptr, self.neighbour, self.rest_length, self.factor, self.rest,
@@ -208,8 +208,8 @@ def build_yardstick(workdir: Path):
 def fig7(failures: list[str]):
     """Part 1; returns (model, kernel at depth 15) for parts 2 and 3."""
     import fpm
-    from fpm.perturbed_list import perturbed_list
-    from fpm.simulation import FpmModel
+    from fpm.dynamics.simulation import FpmModel
+    from fpm.model.perturbed_list import perturbed_list
 
     problem = fpm.load_problem(fig7_spec())
     model = problem.cache["fpm_model"] = FpmModel(problem)  # the one fpm.simulate uses
@@ -333,7 +333,7 @@ def yardstick(kernel: Kernel, failures: list[str]) -> None:
 
 def lookup(model, failures: list[str]) -> None:
     """Part 3: the perturbed-list lookup table."""
-    from fpm.perturbed_list import PerturbedListCache
+    from fpm.model.perturbed_list import PerturbedListCache
 
     problem = model.problem
     stimulated = problem.load_cases[0].nodes
@@ -379,7 +379,7 @@ def scale_spec(n: int) -> dict:
 def run_scale(n: int, steps: int) -> dict:
     """Part 4 in this process: build, list, steps; returns the row (peak RSS of this process)."""
     import fpm
-    from fpm.simulation import FpmModel
+    from fpm.dynamics.simulation import FpmModel
 
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     t0 = time.perf_counter()

@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from fpm.geometry import voxel_mesh
-from fpm.spec import VoxelGeometry
+from fpm.model.geometry import voxel_mesh
+from fpm.model.spec import VoxelGeometry
 
 SEMI_AXES = (0.07, 0.045, 0.035)
 

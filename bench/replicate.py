@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import fpm
-from fpm.calibration import CalibrationResult, calibrate
+from fpm.fitting.calibration import CalibrationResult, calibrate
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = {

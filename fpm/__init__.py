@@ -1,7 +1,7 @@
 """Force propagation model (Choi et al. 2004) calibrated against a hexahedral FEM reference.
 
-The public names are loaded on first use (PEP 562), so that ``import fpm.spec`` or
-``import fpm.problem`` (what the REST service needs to validate a spec) does not pull in the
+The public names are loaded on first use (PEP 562), so that ``import fpm.model.spec`` or
+``import fpm.model.problem`` (what the REST service needs to validate a spec) does not pull in the
 compiled kernels, SciPy's solvers or numba.
 """
 
@@ -9,16 +9,16 @@ from importlib import import_module
 from typing import TYPE_CHECKING, Any
 
 _WHERE = {
-    "CalibrationResult": "calibration",
-    "calibrate": "calibration",
-    "FemResult": "fem",
-    "solve_fem": "fem",
-    "LoadCase": "problem",
-    "Problem": "problem",
-    "load_problem": "problem",
-    "SimulationResult": "simulation",
-    "simulate": "simulation",
-    "ProblemSpec": "spec",
+    "CalibrationResult": "fitting.calibration",
+    "calibrate": "fitting.calibration",
+    "FemResult": "fem.reference",
+    "solve_fem": "fem.reference",
+    "LoadCase": "model.problem",
+    "Problem": "model.problem",
+    "load_problem": "model.problem",
+    "SimulationResult": "dynamics.simulation",
+    "simulate": "dynamics.simulation",
+    "ProblemSpec": "model.spec",
 }
 
 __all__ = [
@@ -35,11 +35,11 @@ __all__ = [
 ]
 
 if TYPE_CHECKING:
-    from .calibration import CalibrationResult, calibrate
-    from .fem import FemResult, solve_fem
-    from .problem import LoadCase, Problem, load_problem
-    from .simulation import SimulationResult, simulate
-    from .spec import ProblemSpec
+    from .dynamics.simulation import SimulationResult, simulate
+    from .fem.reference import FemResult, solve_fem
+    from .fitting.calibration import CalibrationResult, calibrate
+    from .model.problem import LoadCase, Problem, load_problem
+    from .model.spec import ProblemSpec
 
 
 def __getattr__(name: str) -> Any:

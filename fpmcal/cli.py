@@ -53,7 +53,7 @@ def _read_spec(path: str) -> Any:
 
 def _mesh_hint(path: str) -> str:
     """For a mesh file given as SPEC: how to make a spec of it."""
-    from fpm.meshes import mesh_suffix
+    from fpm.io.meshes import mesh_suffix
 
     if mesh_suffix(path) is None:
         return ""
@@ -65,7 +65,7 @@ def _mesh_hint(path: str) -> str:
 
 def _load(path: str) -> Any:
     """The problem of the spec file ``path``; its notes go to stderr."""
-    from fpm.problem import load_problem
+    from fpm.model.problem import load_problem
 
     problem = load_problem(_read_spec(path))
     for note in problem.notes:
@@ -92,8 +92,8 @@ def _emit(data: dict[str, Any], out: str | None) -> None:
 
 
 def cmd_simulate(args: argparse.Namespace) -> None:
-    from fpm.diagnosis import stable_time_step
-    from fpm.simulation import simulate
+    from fpm.dynamics.simulation import simulate
+    from fpm.fitting.diagnosis import stable_time_step
 
     problem = _load(args.spec)
     dt = args.dt if args.dt is not None else problem.spec.fpm.dt
@@ -123,7 +123,7 @@ def cmd_simulate(args: argparse.Namespace) -> None:
 def cmd_equilibrium(args: argparse.Namespace) -> None:
     from dataclasses import asdict
 
-    from fpm.equilibrium import static_equilibrium
+    from fpm.dynamics.equilibrium import static_equilibrium
 
     k = args.k[0] if len(args.k) == 1 else args.k
     result = static_equilibrium(
@@ -135,8 +135,8 @@ def cmd_equilibrium(args: argparse.Namespace) -> None:
 
 
 def cmd_fem(args: argparse.Namespace) -> None:
-    from fpm.diagnosis import UnitsError, check_reference
-    from fpm.fem import solve_fem
+    from fpm.fem.reference import solve_fem
+    from fpm.fitting.diagnosis import UnitsError, check_reference
 
     problem = _load(args.spec)
     result = solve_fem(problem)
@@ -179,9 +179,9 @@ class _Bar:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> None:
-    from fpm.calibration import calibrate
-    from fpm.diagnosis import check_reference
-    from fpm.fem import solve_fem
+    from fpm.fem.reference import solve_fem
+    from fpm.fitting.calibration import calibrate
+    from fpm.fitting.diagnosis import check_reference
 
     problem = _load(args.spec)
     a = problem.spec.annealing
@@ -198,14 +198,14 @@ def cmd_calibrate(args: argparse.Namespace) -> None:
     else:
         print(result_table(problem, result))
     if args.plot:
-        from fpm.plot import plot_calibration
+        from fpm.io.plot import plot_calibration
 
         plot_calibration(problem, reference.displacements, result, args.plot)
         print(f"wrote {args.plot}", file=sys.stderr)
 
 
 def cmd_spec_from_mesh(args: argparse.Namespace) -> None:
-    from fpm.meshes import spec_from_mesh
+    from fpm.io.meshes import spec_from_mesh
 
     dt: float | str = args.dt if args.dt == "auto" else _positive(args.dt, "--dt")
     spec, notes = spec_from_mesh(
@@ -260,7 +260,7 @@ def cmd_export(args: argparse.Namespace) -> None:
                 "give the spec and the parameters fitted on it (SPEC PARAMS: a result of "
                 "fpmcal calibrate --json, or a parameter set), or --parameter-set ID"
             )
-        from fpm.export import export
+        from fpm.io.export import export
 
         if args.output and any(
             Path(args.output).resolve() == Path(f).resolve() for f in (args.spec, args.params)
@@ -371,7 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_calibrate)
 
-    from fpm.meshes import FORCE_HELP, SELECTOR_HELP
+    from fpm.io.meshes import FORCE_HELP, SELECTOR_HELP
 
     p = sub.add_parser("spec", help="make a problem spec (spec from-mesh FILE ...)")
     spec_sub = p.add_subparsers(dest="spec_command", required=True)
@@ -461,8 +461,8 @@ def main(argv: list[str] | None = None) -> int:
 def error_report(error: Exception, spec: str) -> tuple[list[str], int]:
     """What ``fpmcal`` prints for ``error`` (one line, or one per field error) and its exit
     status."""
-    from fpm.annealing import AnnealingError
-    from fpm.diagnosis import UnitsError
+    from fpm.fitting.annealing import AnnealingError
+    from fpm.fitting.diagnosis import UnitsError
 
     if isinstance(error, SpecFileError):
         return [str(error)], 2

@@ -14,8 +14,8 @@ import numpy as np
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from fpm import Problem, ProblemSpec, load_problem
-from fpm.spec import BoxGeometry, MeshGeometry, NetworkGeometry, VoxelGeometry
-from fpm.support import unheld_reason
+from fpm.model.spec import BoxGeometry, MeshGeometry, NetworkGeometry, VoxelGeometry
+from fpm.model.support import unheld_reason
 from store.text import refusal
 
 from .errors import MEDIA_TYPE, ProblemError

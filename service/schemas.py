@@ -1,4 +1,4 @@
-"""Response schemas (requests are :class:`fpm.spec.ProblemSpec`)."""
+"""Response schemas (requests are :class:`fpm.model.spec.ProblemSpec`)."""
 
 from __future__ import annotations
 
@@ -103,8 +103,8 @@ class ChainSummary(BaseModel):
 class CalibrationResult(BaseModel):
     """The fitted parameters and how well they fit.
 
-    The REST contract of :class:`fpm.calibration.CalibrationResult` (the stored result is its
-    ``to_dict``): the same fields, with descriptions, and ``damping`` beside ``d``
+    The REST contract of :class:`fpm.fitting.calibration.CalibrationResult` (the stored result is
+    its ``to_dict``): the same fields, with descriptions, and ``damping`` beside ``d``
     (tests/test_openapi.py checks that the fields agree).
     """
 

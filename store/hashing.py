@@ -8,7 +8,7 @@ import hashlib
 import json
 from typing import Any
 
-from fpm.spec import FEM_VERSION, MODEL_VERSION
+from fpm.model.spec import FEM_VERSION, MODEL_VERSION
 
 FEM_FIELDS = ("geometry", "material", "fixed", "load_cases")
 """The spec fields the FEM reference depends on."""
@@ -25,8 +25,8 @@ def canonical(data: Any) -> bytes:
 
 
 def spec_hash(spec: dict[str, Any]) -> str:
-    """sha256 of the whole validated spec (a dumped :class:`fpm.spec.ProblemSpec`), of
-    :data:`fpm.spec.MODEL_VERSION` and of :data:`RECORD_VERSION`, so results of older numerics
+    """sha256 of the whole validated spec (a dumped :class:`fpm.model.spec.ProblemSpec`), of
+    :data:`fpm.model.spec.MODEL_VERSION` and of :data:`RECORD_VERSION`, so results of older numerics
     or in an older layout are not handed out again."""
     identity = {"model": MODEL_VERSION, "record": RECORD_VERSION, "spec": spec}
     return hashlib.sha256(canonical(identity)).hexdigest()
@@ -39,6 +39,6 @@ def fem_spec(spec: dict[str, Any]) -> dict[str, Any]:
 
 def fem_hash(spec: dict[str, Any]) -> str:
     """sha256 of geometry + material + fixed + load cases and of
-    :data:`fpm.spec.FEM_VERSION`: the FEM reference's identity."""
+    :data:`fpm.model.spec.FEM_VERSION`: the FEM reference's identity."""
     identity = {"fem": FEM_VERSION, "spec": fem_spec(spec)}
     return hashlib.sha256(canonical(identity)).hexdigest()

@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from redis import Redis
 from redis.client import Pipeline
 
-from fpm.spec import Material
+from fpm.model.spec import Material
 
 from . import keys
 from .status import TERMINAL, CalibrationStatus, FemStatus, Phase

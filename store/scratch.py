@@ -1,10 +1,11 @@
 """A calibration's scratch data in Redis: what its jobs hand on to each other, kept
 :data:`SCRATCH_TTL` seconds (no numerical code here).
 
-- chain checkpoints (:class:`fpm.annealing.Checkpoint` as JSON), so that a retried chain resumes;
-- chain results (:class:`fpm.calibration.ChainResult` as JSON), read by the damping stage and
-  finalize;
-- the damping stage's result (:class:`fpm.calibration.DampingStage` as JSON);
+- chain checkpoints (:class:`fpm.fitting.annealing.Checkpoint` as JSON), so that a retried
+  chain resumes;
+- chain results (:class:`fpm.fitting.calibration.ChainResult` as JSON), read by the damping
+  stage and finalize;
+- the damping stage's result (:class:`fpm.fitting.calibration.DampingStage` as JSON);
 - progress reports, one field per chain and one for the damping stage;
 - the FPM-vs-FEM profile data of a succeeded calibration (the web view's plot).
 

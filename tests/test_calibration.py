@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 import fpm
-from fpm.annealing import AnnealingError, Checkpoint, Schedule, State, anneal, metropolis
-from fpm.calibration import (
+from fpm.dynamics.equilibrium import static_equilibrium
+from fpm.fitting.annealing import AnnealingError, Checkpoint, Schedule, State, anneal, metropolis
+from fpm.fitting.calibration import (
     ChainResult,
     calibrate,
     constrained_cost,
@@ -21,9 +22,8 @@ from fpm.calibration import (
     resolve_depth,
     run_chain,
 )
-from fpm.cost import CostFunction, Evaluation, StaticCost, discrepancies
-from fpm.equilibrium import static_equilibrium
-from fpm.spec import lundy_mees_moves
+from fpm.fitting.cost import CostFunction, Evaluation, StaticCost, discrepancies
+from fpm.model.spec import lundy_mees_moves
 
 K_TRUE = 50.0
 

@@ -19,7 +19,7 @@ from client.cli import (
 from client.cli import main as cli
 from client.demo import report, web_view_hint
 from client.progress import ProgressBar, render
-from fpm.calibration import calibrate
+from fpm.fitting.calibration import calibrate
 from stack.redis_server import free_port
 
 

@@ -1,4 +1,4 @@
-"""Stage 2 of the calibration (:mod:`fpm.damping`): runs in pieces, the critical-damping
+"""Stage 2 of the calibration (:mod:`fpm.fitting.damping`): runs in pieces, the critical-damping
 estimates against an exact mode, the linear response against the small-load limit of the static
 equilibrium, early stopping, and the fastest d against a grid of d."""
 
@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 import fpm
-from fpm.damping import CHUNK, _Runs, critical_damping, fastest_damping
-from fpm.equilibrium import StaticSolver, static_equilibrium
-from fpm.simulation import FpmModel
-from fpm.stiffness import spring_stiffness
+from fpm.dynamics.equilibrium import StaticSolver, static_equilibrium
+from fpm.dynamics.simulation import FpmModel
+from fpm.fitting.damping import CHUNK, _Runs, critical_damping, fastest_damping
+from fpm.model.stiffness import spring_stiffness
 
 K = 50.0
 """N/m."""

@@ -14,10 +14,10 @@ import pytest
 from helpers_fpm import box_spec
 
 import fpm
-from fpm.diagnosis import UnitsError, check_reference, explain_rejections, stable_time_step
-from fpm.fem import solve_fem
-from fpm.plot import calibration_figure, profile_line
-from fpm.stiffness import spring_stiffness
+from fpm.fem.reference import solve_fem
+from fpm.fitting.diagnosis import UnitsError, check_reference, explain_rejections, stable_time_step
+from fpm.io.plot import calibration_figure, profile_line
+from fpm.model.stiffness import spring_stiffness
 
 ROOT = Path(__file__).resolve().parents[1]
 

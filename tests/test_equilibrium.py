@@ -1,5 +1,5 @@
-"""The static equilibrium of the FPM (:mod:`fpm.equilibrium`) against mathematics and against
-the dynamic settle.
+"""The static equilibrium of the FPM (:mod:`fpm.dynamics.equilibrium`) against mathematics and
+against the dynamic settle.
 
 Mathematics: analytic answers of springs and chains (also after a 90 degree rotation), exact
 scaling u(k, F) = u(2k, 2F), the residual recomputed independently from the springs,
@@ -28,16 +28,16 @@ import pytest
 from helpers_fpm import box_spec, chain_spec, network_spec, spring_forces
 
 import fpm
-import fpm.equilibrium as equilibrium
-from fpm.equilibrium import (
+import fpm.dynamics.equilibrium as equilibrium
+from fpm.dynamics.equilibrium import (
     Equilibrium,
     EquilibriumError,
     StaticSolver,
     static_equilibrium,
     static_solver,
 )
-from fpm.linear_solver import ReusedHierarchy
-from fpm.stiffness import spring_stiffness
+from fpm.fem.linear_solver import ReusedHierarchy
+from fpm.model.stiffness import spring_stiffness
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_A: dict[str, Any] = json.loads((ROOT / "examples" / "paper-material-a.json").read_text())

@@ -1,4 +1,4 @@
-"""Export of a fitted parameter set with its lattice (fpm/export.py): json consistent with the
+"""Export of a fitted parameter set with its lattice (fpm/io/export.py): json consistent with the
 lattice and re-simulated by a plain loop, vtu read back by meshio, the SOFA scene checked
 against SOFA's documented component and attribute names, `fpmcal export`, and
 GET /v1/parameter-sets/{id}/export on the in-process app and the live stack."""
@@ -18,9 +18,9 @@ import pytest
 
 import fpm
 from client import Client
-from fpm.export import ExportError, Parameters, build_lattice, export, fpm_displacements
-from fpm.perturbed_list import perturbed_list
-from fpm.simulation import fpm_model
+from fpm.dynamics.simulation import fpm_model
+from fpm.io.export import ExportError, Parameters, build_lattice, export, fpm_displacements
+from fpm.model.perturbed_list import perturbed_list
 from fpmcal.cli import main
 from store import keys
 

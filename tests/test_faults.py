@@ -24,7 +24,7 @@ from test_service import assert_problem
 from test_worker import alive, child_pids
 
 import fpm
-from fpm.calibration import calibrate
+from fpm.fitting.calibration import calibrate
 from service.main import create_app
 from service.settings import Settings
 from stack.redis_server import RedisServer

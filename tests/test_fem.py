@@ -17,29 +17,29 @@ from pyamg.util.utils import get_block_diag
 from pydantic import ValidationError
 
 import fpm
-from fpm.assembly import identical_elements, keep_nodes, stiffness_matrix
-from fpm.elasticity import (
+from fpm.fem.assembly import identical_elements, keep_nodes, stiffness_matrix
+from fpm.fem.elasticity import (
     constitutive_matrix,
     element_stiffness,
     physical_gradients,
     strain_displacement,
 )
-from fpm.fem import FemError, FemResult, solve_dirichlet
-from fpm.geometry import box_hexahedra
-from fpm.hexahedron import GAUSS_POINTS, NATURAL, shape_function_gradients, shape_functions
-from fpm.linear_solver import (
+from fpm.fem.linear_solver import (
     NegativeCurvature,
     amg_hierarchy,
     conjugate_gradients,
     rigid_body_modes,
     v_cycle,
 )
+from fpm.fem.reference import FemError, FemResult, solve_dirichlet
+from fpm.model.geometry import box_hexahedra
+from fpm.model.hexahedron import GAUSS_POINTS, NATURAL, shape_function_gradients, shape_functions
 
 E, NU = 2.0e5, 0.3
 
 
 def lattice(shape: tuple[int, int, int], size: tuple[float, float, float]) -> np.ndarray:
-    """(N, 3) nodes of a box lattice, x fastest (the order of fpm.geometry)."""
+    """(N, 3) nodes of a box lattice, x fastest (the order of fpm.model.geometry)."""
     axes = [np.linspace(0, s, n) for s, n in zip(size, shape, strict=True)]
     z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
     return np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
@@ -381,7 +381,7 @@ def test_a_node_outside_every_hexahedron_is_refused():
         fpm.load_problem(spec)
 
 
-# --- the shared linear solver (fpm.linear_solver, also used by fpm.equilibrium) ---------------
+# --- the shared linear solver (fpm.fem.linear_solver, also used by fpm.dynamics.equilibrium) ---
 
 
 def spd(n: int) -> sp.csr_matrix:

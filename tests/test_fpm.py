@@ -19,7 +19,7 @@ import pytest
 from helpers_fpm import box_spec, chain_spec, spring_forces
 
 import fpm
-from fpm.simulation import fpm_model
+from fpm.dynamics.simulation import fpm_model
 
 ROOT = Path(__file__).resolve().parents[1]
 TIGHT = {"dt": 1e-3, "settle_tolerance": 1e-10, "max_steps": 100_000}

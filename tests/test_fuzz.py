@@ -17,7 +17,7 @@ from schemathesis import GenerationMode
 from schemathesis.specs.openapi.checks import negative_data_rejection, positive_data_acceptance
 from test_service import PROBLEM_JSON, assert_problem
 
-from fpm.spec import FACES
+from fpm.model.spec import FACES
 from service.main import create_app
 from store import graph
 

@@ -12,13 +12,13 @@ import pytest
 from helpers_fpm import MATERIAL, box_spec, network_spec
 
 import fpm
-from fpm.geometry import hexahedron_volumes
+from fpm.model.geometry import hexahedron_volumes
 
 RHO = MATERIAL["density"]
 
 CORNERS = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)]
 """Offsets of the 8 corners of a lattice cell in hexahedron order (written out here, not taken
-from fpm.hexahedron, so that the mesh below is built independently of the code under test)."""
+from fpm.model.hexahedron, so that the mesh below is built independently of the code under test)."""
 
 
 def cells_mesh(

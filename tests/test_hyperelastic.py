@@ -15,13 +15,11 @@ from pydantic import ValidationError
 from scipy.optimize import brentq
 
 import fpm
-from fpm import hyperelastic
-from fpm.assembly import stiffness_matrix
-from fpm.elasticity import constitutive_matrix
-from fpm.fem import FemError, FemResult, solve_fem
-from fpm.geometry import box_hexahedra
-from fpm.hyperelastic import NeoHookeanSolid, NewtonError, solve_hyperelastic
-from fpm.neo_hookean import (
+from fpm.fem import hyperelastic
+from fpm.fem.assembly import stiffness_matrix
+from fpm.fem.elasticity import constitutive_matrix
+from fpm.fem.hyperelastic import NeoHookeanSolid, NewtonError, solve_hyperelastic
+from fpm.fem.neo_hookean import (
     first_piola,
     internal_forces,
     kinematics,
@@ -29,6 +27,8 @@ from fpm.neo_hookean import (
     reference_gradients,
     strain_energy,
 )
+from fpm.fem.reference import FemError, FemResult, solve_fem
+from fpm.model.geometry import box_hexahedra
 from store.hashing import fem_hash, spec_hash
 
 PAPER_A = Path(__file__).resolve().parents[1] / "examples" / "paper-material-a.json"
@@ -47,7 +47,7 @@ def paper_spec(model: str = "neo-hookean", scale: float = 1.0) -> dict[str, Any]
 
 
 def lattice(shape: tuple[int, int, int], size: tuple[float, float, float]) -> np.ndarray:
-    """(N, 3) nodes of a box lattice, x fastest (the order of fpm.geometry)."""
+    """(N, 3) nodes of a box lattice, x fastest (the order of fpm.model.geometry)."""
     axes = [np.linspace(0, s, n) for s, n in zip(size, shape, strict=True)]
     z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
     return np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
@@ -339,7 +339,7 @@ def test_a_units_slip_fails_fast_instead_of_following_the_solid_away():
 def test_check_reference_drops_the_small_strain_warning_but_keeps_the_units_error(
     paper_reference: FemResult,
 ):
-    from fpm.diagnosis import UnitsError, check_reference
+    from fpm.fitting.diagnosis import UnitsError, check_reference
 
     nh, linear = fpm.load_problem(paper_spec()), fpm.load_problem(paper_spec("linear"))
     assert check_reference(nh, paper_reference) == []  # pulled nodes 1.7 h: no warning

@@ -1,7 +1,7 @@
 """The architecture's rules that code can break silently (docs/service.md, "Layers"): the import
 graph (fpm imports no other package of ours; the service neither the job runner nor the local
 stack; the store none above it), Redis keys built only in the store, and a service that
-validates specs with fpm.spec / fpm.problem but never loads the numerical kernels."""
+validates specs with fpm.model.spec / fpm.model.problem but never loads the numerical kernels."""
 
 import ast
 import inspect
@@ -13,7 +13,14 @@ import pytest
 
 from store import keys
 
-KERNELS = ("numba", "fpm.voigt", "fpm.simulation", "fpm.fem", "fpm.calibration", "pyamg")
+KERNELS = (
+    "numba",
+    "fpm.dynamics.voigt",
+    "fpm.dynamics.simulation",
+    "fpm.fem.reference",
+    "fpm.fitting.calibration",
+    "pyamg",
+)
 
 
 def test_the_service_does_not_import_the_numerical_kernels():
@@ -103,3 +110,8 @@ def test_redis_keys_are_built_only_in_the_store():
                 ):
                     uses.append(f"{path.relative_to(ROOT)}:{node.lineno} keys.{node.attr}")
     assert uses == []
+
+
+def test_the_store_takes_only_the_spec_from_the_numerical_core():
+    names = [a.split(" -> ")[1] for a in arrows("store", "fpm")]
+    assert names and all(n.startswith("fpm.model.spec") for n in names), names

@@ -1,4 +1,4 @@
-"""Mesh import (fpm/meshes.py): hexahedral meshes as they are, tetrahedra and closed surfaces
+"""Mesh import (fpm/io/meshes.py): hexahedral meshes as they are, tetrahedra and closed surfaces
 voxelised with exact inside tests, open surfaces refused, and `fpmcal spec from-mesh`."""
 
 from __future__ import annotations
@@ -15,8 +15,7 @@ from scipy.spatial import ConvexHull, Delaunay
 
 import fpm
 from client import spec_from_mesh as sdk_spec_from_mesh
-from fpm.geometry import voxel_mesh
-from fpm.meshes import (
+from fpm.io.meshes import (
     MeshError,
     geometry_from_mesh,
     lattice,
@@ -27,7 +26,8 @@ from fpm.meshes import (
     voxelise_surface,
     voxelise_tetrahedra,
 )
-from fpm.spec import VoxelGeometry
+from fpm.model.geometry import voxel_mesh
+from fpm.model.spec import VoxelGeometry
 from fpmcal.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -108,7 +108,7 @@ def test_an_inside_out_hexahedron_is_renumbered_and_unused_nodes_dropped():
     made = geometry_from_mesh(meshio.Mesh(points, [("hexahedron", hexes)]))
     assert len(made.geometry["nodes"]) == len(mesh.points)
     assert any("renumbered" in n for n in made.notes) and any("dropped" in n for n in made.notes)
-    from fpm.geometry import hexahedron_volumes
+    from fpm.model.geometry import hexahedron_volumes
 
     volumes = hexahedron_volumes(
         np.asarray(made.geometry["nodes"]), np.asarray(made.geometry["hexahedra"])

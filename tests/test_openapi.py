@@ -125,7 +125,7 @@ def test_the_answers_result_has_the_fields_of_fpms_result():
     """service.schemas.CalibrationResult is the REST contract of fpm's dataclass (with field
     descriptions and the REST name of d): their fields agree, so a field added to one cannot
     be left out of the other."""
-    from fpm.calibration import CalibrationResult
+    from fpm.fitting.calibration import CalibrationResult
     from service import schemas
 
     fields = {f.name for f in dataclasses.fields(CalibrationResult)}

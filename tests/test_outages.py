@@ -191,4 +191,7 @@ def test_local_stack_restarts_a_dead_worker_and_redis(tmp_path):
         health = httpx.get(f"{stack.url}/v1/health", timeout=5).json()
         assert health["redis"] is True
         assert worker.process.poll() is None
+        # The supervisor counts the restart once its start returns, which polls Redis too: the
+        # test's own ping may win that race by a poll interval.
+        wait_for(lambda: "redis" in stack.restarts, 5, "the restart to be counted")
         assert stack.restarts == {"worker-0": 1, "redis": 1}

@@ -10,8 +10,8 @@ from helpers_fpm import box_spec, chain_spec, lattice_index
 from scipy.sparse.csgraph import shortest_path
 
 import fpm
-from fpm.perturbed_list import PerturbedList, PerturbedListCache, perturbed_list
-from fpm.simulation import fpm_model
+from fpm.dynamics.simulation import fpm_model
+from fpm.model.perturbed_list import PerturbedList, PerturbedListCache, perturbed_list
 
 FIG7 = (31, 15, 31)  # paper Fig. 7: 31 x 15 x 31 nodes, y is the height
 TOP_CENTRE = (15, 14, 15)

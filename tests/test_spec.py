@@ -21,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = sorted((ROOT / "examples").glob("paper-material-*.json"))
 
 UNIT_CUBE = [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]]
-"""The 8 corners of the unit cube in fpm.hexahedron order (0-3 bottom, 4-7 top)."""
+"""The 8 corners of the unit cube in fpm.model.hexahedron order (0-3 bottom, 4-7 top)."""
 
 
 def mesh_spec(hexahedron: list[int]) -> dict[str, Any]:
@@ -382,7 +382,7 @@ def test_a_fixed_box_with_no_node_names_the_field():
 
 def test_a_schedule_of_infinitely_many_moves_is_refused_not_crashed():
     """beta = 5e-324 (found by the API fuzzer) makes (1/t_final - 1/t_initial) / beta inf."""
-    from fpm.spec import MOVES_CAP, lundy_mees_moves
+    from fpm.model.spec import MOVES_CAP, lundy_mees_moves
 
     assert lundy_mees_moves(0.05, 2e-3, 5e-324) == MOVES_CAP
     with pytest.raises(ValueError, match="moves per chain"):

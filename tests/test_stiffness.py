@@ -1,4 +1,4 @@
-"""Spring families and per-spring stiffness (fpm.stiffness)."""
+"""Spring families and per-spring stiffness (fpm.model.stiffness)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fpm import load_problem, simulate
-from fpm.stiffness import family_names, spring_stiffness, stiffness_dict
+from fpm.model.stiffness import family_names, spring_stiffness, stiffness_dict
 
 
 def _box(connectivity: str, **fpm: object) -> dict:

@@ -14,8 +14,8 @@ from rq.registry import StartedJobRegistry
 from rq.serializers import JSONSerializer
 
 import fpm
-from fpm.calibration import calibrate
-from fpm.cost import StaticCost
+from fpm.fitting.calibration import calibrate
+from fpm.fitting.cost import StaticCost
 from service.limits import dump_spec
 from service.schemas import ChainSummary
 from store import graph, keys, records

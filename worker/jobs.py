@@ -24,8 +24,9 @@ from rq import get_current_job
 from rq.job import Job
 
 from fpm import load_problem
-from fpm.annealing import AnnealingError, Checkpoint
-from fpm.calibration import (
+from fpm.fem.reference import FemError, FemResult, solve_fem
+from fpm.fitting.annealing import AnnealingError, Checkpoint
+from fpm.fitting.calibration import (
     ChainResult,
     DampingStage,
     check_reference,
@@ -33,8 +34,7 @@ from fpm.calibration import (
     fit_damping,
     run_chain,
 )
-from fpm.damping import DampingError
-from fpm.fem import FemError, FemResult, solve_fem
+from fpm.fitting.damping import DampingError
 from store import keys, records, scratch
 from store.status import CalibrationStatus, FemStatus, Phase
 
@@ -192,10 +192,10 @@ class _ChainProgress(_Reporter):
 class _DampingProgress(_Reporter):
     """The damping stage's progress: {step, runs, d, total_steps, best_d, best_total_steps}.
 
-    ``step`` is "polish", "depth" or "damping" (fpm.calibration.fit_damping's phases), written
-    at once when it changes; ``runs`` counts the d values tried, ``d`` and ``total_steps`` are
-    the last one's (total_steps None: some load case did not settle) and ``best_*`` the fastest
-    so far.
+    ``step`` is "polish", "depth" or "damping" (fpm.fitting.calibration.fit_damping's phases),
+    written at once when it changes; ``runs`` counts the d values tried, ``d`` and
+    ``total_steps`` are the last one's (total_steps None: some load case did not settle) and
+    ``best_*`` the fastest so far.
     """
 
     def __init__(self, job: Job, calibration_id: str):

@@ -1,8 +1,8 @@
 """The FPM-vs-FEM displacement profiles of a succeeded calibration, as data (the web view's plot).
 
-The same profiles ``fpmcal calibrate --plot`` draws (:mod:`fpm.plot`): per load case the
+The same profiles ``fpmcal calibrate --plot`` draws (:mod:`fpm.io.plot`): per load case the
 axis-parallel line through its first loaded node that holds the most nodes
-(:func:`fpm.plot.profile_line`), with the displacement magnitude of the FEM reference and of an
+(:func:`fpm.io.plot.profile_line`), with the displacement magnitude of the FEM reference and of an
 FPM run at the fitted stiffness, d and depth at those nodes. The FPM run needs the numerical
 kernels, which the service never loads (docs/service.md), so a worker computes it: the service
 enqueues :func:`calibration_profile` once (:func:`store.graph.request_profile`) and answers from
@@ -17,7 +17,7 @@ import numpy as np
 from rq import get_current_job
 
 from fpm import load_problem, simulate
-from fpm.plot import profile_line
+from fpm.io.plot import profile_line
 from store import records, scratch
 from store.status import CalibrationStatus
 

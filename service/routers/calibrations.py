@@ -7,7 +7,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Body, Query, Response, status
 
 from fpm import ProblemSpec
-from fpm.spec import AnnealingSettings
+from fpm.model.spec import AnnealingSettings
 from store import graph, records
 from store.status import CalibrationStatus, FemStatus, Phase
 

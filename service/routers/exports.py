@@ -3,7 +3,7 @@
 A parameter set holds the fitted numbers, not the lattice; its provenance names the calibration,
 whose record keeps the validated spec (no expiry), and the FEM reference (no expiry). The
 lattice is rebuilt from that spec, the FPM displacements (``vtu``) come from a run at the
-parameters, the FEM's from the stored reference. Formats: :mod:`fpm.export`.
+parameters, the FEM's from the stored reference. Formats: :mod:`fpm.io.export`.
 """
 
 from __future__ import annotations
@@ -66,8 +66,8 @@ def export(
     if fmt == "vtu":
         stored = records.get_fem_reference(redis, str(provenance.get("fem_hash", "")))
         fem = None if stored is None else stored["displacements"]
-    from fpm.export import MEDIA_TYPES, SUFFIXES, export
-    from fpm.problem import load_problem
+    from fpm.io.export import MEDIA_TYPES, SUFFIXES, export
+    from fpm.model.problem import load_problem
 
     body = export(load_problem(record.spec), ps, fmt, fem=fem)  # a sync route: off the loop
 

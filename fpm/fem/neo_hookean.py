@@ -11,8 +11,8 @@ Piola-Kirchhoff stress and the derivative of that stress (the material tangent),
     dP_iJ/dF_kL = mu d_ik d_JL + (mu - lambda ln J) Finv_Li Finv_Jk + lambda Finv_Ji Finv_Lk
 
 At F = I the tangent is the isotropic elasticity tensor of
-:func:`fpm.elasticity.constitutive_matrix`, so small loads reproduce the linear FEM. The
-elements are the linear FEM's: 8-node trilinear hexahedra (:mod:`fpm.hexahedron` order), 2x2x2
+:func:`fpm.fem.elasticity.constitutive_matrix`, so small loads reproduce the linear FEM. The
+elements are the linear FEM's: 8-node trilinear hexahedra (:mod:`fpm.model.hexahedron` order), 2x2x2
 Gauss points, quantities of the reference (undeformed) configuration fixed once
 (:func:`reference_gradients`). Everything is vectorised over elements and Gauss points: H
 hexahedra, G = 8 Gauss points, 8 local nodes a, b; indices i, k spatial, J, L material axes.
@@ -24,9 +24,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..model.hexahedron import GAUSS_POINTS
 from .assembly import identical_elements
 from .elasticity import physical_gradients
-from .hexahedron import GAUSS_POINTS
 
 
 def lame_constants(youngs_modulus: float, poisson_ratio: float) -> tuple[float, float]:
@@ -69,7 +69,7 @@ def reference_gradients(nodes: np.ndarray, hexahedra: np.ndarray) -> ReferenceGr
     """:class:`ReferenceGradients` of ``hexahedra`` (H, 8) on ``nodes`` (N, 3), m.
 
     Computed once per distinct element shape (a box has one), then copied to every element.
-    The caller checks det J > 0 (:func:`fpm.elasticity.min_jacobian_determinants`).
+    The caller checks det J > 0 (:func:`fpm.fem.elasticity.min_jacobian_determinants`).
     """
     shapes, which = identical_elements(nodes[hexahedra])
     grads, dets = zip(*(physical_gradients(shapes, p) for p in GAUSS_POINTS), strict=True)

@@ -26,11 +26,11 @@ class Solid:
 
     Attributes:
         nodes: (N, 3) rest positions, m.
-        hexahedra: (H, 8) node indices in :mod:`fpm.hexahedron` order; None for a network and
+        hexahedra: (H, 8) node indices in :mod:`fpm.model.hexahedron` order; None for a network and
             for a box until :meth:`elements` is asked (a 1M-node lattice need not hold them).
         springs: (S, 2) int32 node pairs, i < j, each pair once.
         masses: (N,) lumped node masses, kg.
-        families: (S,) int8 spring family (:data:`fpm.hexahedron.FAMILIES`): 0 hexahedron
+        families: (S,) int8 spring family (:data:`fpm.model.hexahedron.FAMILIES`): 0 hexahedron
             edge (axis), 1 face diagonal, 2 body diagonal; all 0 for a network.
         shape: (nx, ny, nz) for a box lattice (node n = i + nx*(j + ny*k)), else None.
     """
@@ -74,7 +74,7 @@ def box_nodes(g: BoxGeometry) -> np.ndarray:
 
 
 def box_hexahedra(shape: tuple[int, int, int]) -> np.ndarray:
-    """(H, 8) hexahedra of a box lattice of ``shape`` nodes, in :mod:`fpm.hexahedron` order."""
+    """(H, 8) hexahedra of a box lattice of ``shape`` nodes, in :mod:`.hexahedron` order."""
     nx, ny, nz = shape
     k, j, i = np.meshgrid(np.arange(nz - 1), np.arange(ny - 1), np.arange(nx - 1), indexing="ij")
     base = (i + nx * (j + ny * k)).ravel()

@@ -11,7 +11,7 @@ nodal forces plus the node weight m_i g when the spec's gravity is non-zero. The
 geometrically nonlinear (they rotate and stretch), so E is minimised by Newton's method:
 
 - gradient: dE/dx_j = k (|r| - L) n = -dE/dx_i (n = r / |r|); the unbalanced nodal force
-  F_i + F_s of the dynamic run (:mod:`fpm.voigt`) is minus the gradient;
+  F_i + F_s of the dynamic run (:mod:`fpm.dynamics.voigt`) is minus the gradient;
 - tangent of one spring (3x3, [[K, -K], [-K, K]] on its two nodes):
   K = k [n n^T + (1 - L/|r|) (I - n n^T)], indefinite where the spring is compressed. Each
   Newton step tries the exact tangent first (quadratic convergence: a press compresses springs,
@@ -23,7 +23,7 @@ geometrically nonlinear (they rotate and stretch), so E is minimised by Newton's
   :meth:`SpringSystem.energy_change`). The loops over springs are compiled (numba);
 - linear solves: sparse LU below :data:`AMG_FROM_UNKNOWNS` unknowns; above, conjugate gradients
   preconditioned by a smoothed-aggregation multigrid hierarchy (the FEM's hierarchy, V-cycle
-  and CG, from :mod:`fpm.linear_solver`) built on one tangent and kept across Newton steps,
+  and CG, from :mod:`fpm.fem.linear_solver`) built on one tangent and kept across Newton steps,
   stiffness changes, load cases and calls for as long as CG converges at the rate it had when
   the hierarchy was new; inexact Newton: CG stops at a residual relative to the current one
   (Eisenstat-Walker, choice 2), or once every node's linear residual is below half the target;
@@ -54,7 +54,7 @@ import numpy as np
 import scipy.sparse as sp
 from numba import njit
 
-from .linear_solver import (
+from ..fem.linear_solver import (
     NegativeCurvature,
     ReusedHierarchy,
     SingularStiffnessError,
@@ -64,9 +64,9 @@ from .linear_solver import (
     factorize,
     rigid_body_modes,
 )
-from .perturbed_list import Adjacency, PerturbedListCache
-from .problem import Problem
-from .stiffness import spring_stiffness
+from ..model.perturbed_list import Adjacency, PerturbedListCache
+from ..model.problem import Problem
+from ..model.stiffness import spring_stiffness
 
 AMG_FROM_UNKNOWNS = 300
 """Free unknowns from which the Newton steps use multigrid-preconditioned CG instead of LU.
@@ -643,8 +643,8 @@ class StaticSolver:
 
         Args:
             load_case: index into the problem's load cases.
-            stiffness: (S,) stiffness of every spring, N/m (:func:`fpm.stiffness.spring_stiffness`,
-                the spec's stiffness_scale included).
+            stiffness: (S,) stiffness of every spring, N/m
+                (:func:`fpm.model.stiffness.spring_stiffness`, the spec's stiffness_scale included).
             depth: layers of the perturbed list; None = all reachable.
             tolerance: converged when the largest unbalanced nodal force is at most this times
                 the largest applied nodal force; None = :meth:`default_tolerance`.
@@ -965,7 +965,7 @@ def _galerkin(
 
 
 def _direct_solve(tangent: sp.bsr_matrix, rhs: np.ndarray) -> np.ndarray:
-    """Sparse LU solve (:func:`fpm.linear_solver.factorize`).
+    """Sparse LU solve (:func:`fpm.fem.linear_solver.factorize`).
 
     Raises:
         SingularStiffnessError: the tangent is singular, or the solve is not finite.
@@ -1012,7 +1012,7 @@ def static_equilibrium(
     Args:
         problem: from :func:`fpm.load_problem`.
         k: spring stiffness, N/m: one value for every spring, or one per spring family
-            (:func:`fpm.stiffness.spring_stiffness`; the spec's stiffness_scale applies).
+            (:func:`fpm.model.stiffness.spring_stiffness`; the spec's stiffness_scale applies).
         depth: penetration depth in layers; None = the spec's (its 'auto' means all layers).
         load_case: index into the spec's load cases.
         tolerance: relative force tolerance; None = a tenth of the spec's settle_tolerance.

@@ -1,6 +1,6 @@
 """A validated problem as arrays: the data every other module of :mod:`fpm` works on.
 
-Data flow: JSON -> :class:`fpm.spec.ProblemSpec` (schema checks) -> :func:`load_problem`
+Data flow: JSON -> :class:`fpm.model.spec.ProblemSpec` (schema checks) -> :func:`load_problem`
 (checks that need the nodes) -> :class:`Problem` (arrays).
 """
 
@@ -60,7 +60,7 @@ class Problem:
 
     Attributes:
         spec: the validated spec.
-        solid: nodes, hexahedra, springs, masses (:class:`fpm.geometry.Solid`).
+        solid: nodes, hexahedra, springs, masses (:class:`fpm.model.geometry.Solid`).
         fixed: (N,) bool, nodes that never move.
         load_cases: one :class:`LoadCase` per spec load case, in spec order.
         rest_lengths: (S,) spring rest lengths, m.

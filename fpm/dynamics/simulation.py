@@ -8,10 +8,10 @@ from typing import Any
 
 import numpy as np
 
-from .perturbed_list import Adjacency, PerturbedList, PerturbedListCache
-from .problem import Problem
-from .spec import FpmSettings
-from .stiffness import axis_factors, spring_stiffness
+from ..model.perturbed_list import Adjacency, PerturbedList, PerturbedListCache
+from ..model.problem import Problem
+from ..model.spec import FpmSettings
+from ..model.stiffness import axis_factors, spring_stiffness
 from .voigt import DIVERGED, RUNNING, SETTLED, run_steps
 
 
@@ -54,7 +54,7 @@ class FpmModel:
 
     Attributes:
         problem: the problem.
-        adjacency: spring neighbours (:class:`fpm.perturbed_list.Adjacency`).
+        adjacency: spring neighbours (:class:`fpm.model.perturbed_list.Adjacency`).
         lists: the perturbed-list lookup table.
     """
 
@@ -88,7 +88,7 @@ class FpmModel:
         """Simulate ``load_case`` from rest; see :func:`simulate`.
 
         ``k`` is one stiffness for every spring (scaled by the spec's stiffness_scale), N/m, or
-        the (S,) stiffness of every spring (:func:`fpm.stiffness.spring_stiffness`, scale
+        the (S,) stiffness of every spring (:func:`fpm.model.stiffness.spring_stiffness`, scale
         included).
         """
         run = self.start(load_case, k=k, d=d, depth=depth, dt=dt, settle_tolerance=settle_tolerance)
@@ -231,7 +231,7 @@ def simulate(
     Args:
         problem: from :func:`fpm.load_problem`.
         k: spring stiffness, N/m: one value for every spring, or one per spring family
-            (:mod:`fpm.stiffness`).
+            (:mod:`fpm.model.stiffness`).
         d: nodal damping, N s/m.
         depth: penetration depth in layers; None = the spec's (its 'auto' means all layers).
         load_case: index into the spec's load cases.

@@ -4,12 +4,12 @@ Two methods (``annealing.method``; docs/physics.md):
 
 - ``two-stage`` (the default). Stage 1: simulated annealing over the stiffness parameters only
   (k, or one k per spring family), each candidate's cost Eq. (2) taken at its static
-  equilibrium (:class:`fpm.cost.StaticCost`; the settled state does not depend on d); then a
+  equilibrium (:class:`fpm.fitting.cost.StaticCost`; the settled state does not depend on d); then a
   bounded local polish from the best state (:func:`polish`). Stage 2: d, the value that settles
-  every load case in the fewest total steps at the spec's dt (:mod:`fpm.damping`).
+  every load case in the fewest total steps at the spec's dt (:mod:`fpm.fitting.damping`).
 - ``paper``: simulated annealing over (stiffness, d) jointly, every candidate run dynamically
-  to rest (:class:`fpm.cost.CostFunction`); among the states within 0.1% of the best cost the
-  fastest-settling wins.
+  to rest (:class:`fpm.fitting.cost.CostFunction`); among the states within 0.1% of the best
+  cost the fastest-settling wins.
 
 Either way, depth 'auto' is resolved on static equilibria (:func:`resolve_depth`) and a last
 dynamic run at (stiffness, d, depth) gives the reported cost, discrepancies and settle steps.
@@ -40,14 +40,14 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize, minimize_scalar
 
+from ..dynamics.equilibrium import StaticSolver
+from ..dynamics.simulation import fpm_model
+from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
+from ..model.problem import Problem
+from ..model.stiffness import family_names, spring_stiffness, stiffness_dict
 from .annealing import AnnealingError, Checkpoint, Schedule, State, anneal
 from .cost import CostFunction, Evaluation, StaticCost, discrepancies
 from .damping import critical_damping, fastest_damping
-from .equilibrium import StaticSolver
-from .linear_solver import NegativeCurvature, SingularStiffnessError
-from .problem import Problem
-from .simulation import fpm_model
-from .stiffness import family_names, spring_stiffness, stiffness_dict
 
 EQUALLY_GOOD = 0.001
 """Paper method: states within this fraction of the best cost are equally good; the
@@ -132,7 +132,7 @@ class FinalRun:
     Attributes:
         cost: Eq. (2) of the dynamic run, m; static_cost: of the static equilibria, m.
         settle_steps: (L,) steps to settle; settled: every load case settled.
-        relative, loaded, h_percent: the discrepancies (:class:`fpm.cost.Discrepancies`).
+        relative, loaded, h_percent: the discrepancies (:class:`fpm.fitting.cost.Discrepancies`).
         notes: warnings (did not settle; dynamic and static costs disagree).
     """
 
@@ -330,8 +330,8 @@ def run_chain(
     Two-stage: over the stiffness parameters, each evaluation a static solve. Paper: over
     (stiffness, d), each evaluation dynamic runs to rest.
     ``progress`` gets {chain, move, moves, temperature, best_cost, current_cost} after each move;
-    ``checkpoint`` gets a :class:`fpm.annealing.Checkpoint` every few moves, which ``resume``
-    continues from.
+    ``checkpoint`` gets a :class:`~fpm.fitting.annealing.Checkpoint` every few moves, which
+    ``resume`` continues from.
 
     Raises:
         AnnealingError: no acceptable start, with the counts of rejected candidates and what
@@ -647,7 +647,7 @@ def damping_guesses(
     depth: int,
     static: np.ndarray,
 ) -> tuple[float, float]:
-    """Two critical-damping estimates, N s/m (:mod:`fpm.damping`): from the static shapes
+    """Two critical-damping estimates, N s/m (:mod:`fpm.fitting.damping`): from the static shapes
     ``static`` (L, N, 3), and from the shapes their inertia deflects the linear lattice into
     (one inverse iteration); the first twice when the lattice at rest is not held (an 'axis'
     lattice is a mechanism there)."""
@@ -765,8 +765,8 @@ def finalize(
 
 
 def check_reference(problem: Problem, reference: Any) -> list[str]:
-    """Units sanity of the FEM reference (:func:`fpm.diagnosis.check_reference`): raises on a
-    reference no small-strain solid gives, returns warnings."""
+    """Units sanity of the FEM reference (:func:`fpm.fitting.diagnosis.check_reference`): raises
+    on a reference no small-strain solid gives, returns warnings."""
     from .diagnosis import check_reference as check
 
     return check(problem, reference_displacements(reference))
@@ -791,7 +791,7 @@ def calibrate(
         threads: chains run at once (None = one per core).
 
     Raises:
-        fpm.diagnosis.UnitsError: the FEM reference moves more than the solid's smallest
+        fpm.fitting.diagnosis.UnitsError: the FEM reference moves more than the solid's smallest
             extent (almost always a units mistake), before any annealing.
         AnnealingError: the search cannot start (with what to change).
     """
@@ -799,7 +799,7 @@ def calibrate(
     if n < 1:
         raise ValueError("chains must be >= 1")
     if reference is None:
-        from .fem import solve_fem
+        from ..fem.reference import solve_fem
 
         if progress is not None:
             progress({"phase": "fem"})

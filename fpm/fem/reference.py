@@ -1,14 +1,14 @@
 """The finite element reference (paper Sec. 4.1): static nodal displacements from ``F = K X``.
 
-Small-strain linear elasticity on the problem's 8-node hexahedra (:mod:`fpm.elasticity`),
-assembled into a block-sparse K (:mod:`fpm.assembly`), fixed nodes as Dirichlet conditions
+Small-strain linear elasticity on the problem's 8-node hexahedra (:mod:`fpm.fem.elasticity`),
+assembled into a block-sparse K (:mod:`fpm.fem.assembly`), fixed nodes as Dirichlet conditions
 (their displacement is zero), the load cases' nodal forces as right-hand sides, one
-factorisation for all of them (:mod:`fpm.linear_solver`). Density plays no part. Nodes that
+factorisation for all of them (:mod:`fpm.fem.linear_solver`). Density plays no part. Nodes that
 belong to no hexahedron (possible in a ``mesh``) carry no stiffness; they stay at rest and may
 not be loaded.
 
 With ``material.model: "neo-hookean"`` the same hexahedra, supports and loads go to the
-large-deformation reference instead (:mod:`fpm.hyperelastic`); :func:`solve_fem` dispatches on
+large-deformation reference instead (:mod:`fpm.fem.hyperelastic`); :func:`solve_fem` dispatches on
 the model, and the result carries its load steps and Newton iterations.
 """
 
@@ -20,11 +20,11 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
+from ..model.problem import Problem
+from ..model.support import unheld_reason
 from .assembly import keep_nodes, stiffness_matrix
 from .elasticity import constitutive_matrix, min_jacobian_determinants
 from .linear_solver import SingularStiffnessError, choose_method, factorize, rigid_body_modes
-from .problem import Problem
-from .support import unheld_reason
 
 RESIDUAL_LIMIT = 1e-6
 """A relative residual above this after the solve means K was (nearly) singular."""
@@ -99,14 +99,14 @@ def solve_fem(problem: Problem, method: str = "auto", *, load_steps: int = 1) ->
 
     Args:
         problem: from :func:`fpm.load_problem`; needs a box, voxels or mesh geometry.
-        method: ``"auto"`` (by size), ``"direct"`` or ``"amg"`` (see :mod:`fpm.linear_solver`).
+        method: ``"auto"`` (by size), ``"direct"`` or ``"amg"`` (see :mod:`fpm.fem.linear_solver`).
         load_steps: neo-Hookean only: planned load steps per load case (halved where Newton
-            fails, :mod:`fpm.hyperelastic`).
+            fails, :mod:`fpm.fem.hyperelastic`).
 
     Raises:
         FemError: a network geometry, an inverted or degenerate hexahedron, a solid that is
             not held, or a force on a node that belongs to no hexahedron.
-        fpm.hyperelastic.NewtonError (a FemError): neo-Hookean, a load case whose equilibrium
+        fpm.fem.hyperelastic.NewtonError (a FemError): neo-Hookean, a load case whose equilibrium
             was not found (the message names it, the load step and why).
     """
     if method not in ("auto", "direct", "amg"):
@@ -127,7 +127,7 @@ def solve_fem(problem: Problem, method: str = "auto", *, load_steps: int = 1) ->
     if len(bad):
         raise FemError(
             f"{len(bad)} hexahedra are inverted or degenerate (e.g. hexahedron {int(bad[0])}): "
-            "check their node order (see fpm.hexahedron)"
+            "check their node order (see fpm.model.hexahedron)"
         )
     material = problem.spec.material
     forces = np.stack([case.dense(len(nodes)) for case in problem.load_cases])  # (L, N, 3)
@@ -170,7 +170,7 @@ def solve_dirichlet(
     """Solve K u = f with u = 0 on the unknowns that are not ``free``.
 
     Args:
-        k: (n, n) stiffness, N/m, n = 3N, in 3x3 blocks (:func:`fpm.assembly.stiffness_matrix`).
+        k: (n, n) stiffness, N/m, n = 3N, in 3x3 blocks (:func:`fpm.fem.assembly.stiffness_matrix`).
         forces: (L, n) nodal forces, N.
         free: (n,) bool, unknowns to solve for (the rest are held at zero).
         nodes: (N, 3) rest positions, m (for the rigid-body modes of AMG).

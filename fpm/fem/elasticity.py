@@ -1,17 +1,17 @@
 """Linear elasticity on the 8-node hexahedron (paper Sec. 4.1): C, strains, element K
-(shape functions and Gauss points: :mod:`fpm.hexahedron`).
+(shape functions and Gauss points: :mod:`fpm.model.hexahedron`).
 
 Strains and stresses are Voigt vectors in the order (xx, yy, zz, xy, yz, zx) with engineering
 shear strains gamma_xy = du/dy + dv/dx, so that ``sigma = C @ epsilon`` with ``C`` exactly as the
 paper prints it. An element's 24 unknowns are node-major: (u0, v0, w0, u1, v1, w1, ..., w7), local
-nodes in :mod:`fpm.hexahedron` order.
+nodes in :mod:`fpm.model.hexahedron` order.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .hexahedron import GAUSS_POINTS, NATURAL, jacobians, shape_function_gradients
+from ..model.hexahedron import GAUSS_POINTS, NATURAL, jacobians, shape_function_gradients
 
 SHEAR_PAIRS = ((0, 1), (1, 2), (2, 0))
 """Axes (a, c) of the Voigt shear rows 3, 4, 5: xy, yz, zx."""

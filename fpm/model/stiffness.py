@@ -3,7 +3,7 @@
 The stiffness parameters of a fit are a vector ``theta`` (N/m):
 
 - ``single``: ``theta = [k]``, every spring gets k (paper Sec. 4.2);
-- ``families``: one k per family the connectivity has, in :data:`fpm.hexahedron.FAMILIES`
+- ``families``: one k per family the connectivity has, in :data:`fpm.model.hexahedron.FAMILIES`
   order (axis = hexahedron edges, face diagonals, body diagonals): ``axis`` 1 value,
   ``axis+face`` 2, ``full`` 3.
 

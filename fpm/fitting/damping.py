@@ -3,7 +3,7 @@
 A settled FPM state does not depend on d; d only decides how fast, and whether, a run settles
 at the spec's dt. So once the stiffness is fitted, d is chosen for the real-time loop: the value
 in the search bounds that settles every load case in the fewest total time steps, found with the
-real dynamic kernel (:class:`fpm.simulation.FpmModel`).
+real dynamic kernel (:class:`fpm.dynamics.simulation.FpmModel`).
 
 First guesses (:func:`critical_damping`): critical damping of a mode with nodal damping d I and
 lumped masses M is d = 2 omega (u^T M u) / (u^T u), and Rayleigh's quotient of a shape u that
@@ -20,7 +20,7 @@ still settles every load case within MARGIN_CAP times its fastest steps, walking
 smallest settling d (the stability margin: the fastest d sits near that edge, and below it runs
 diverge or creep).
 
-Runs advance in pieces of CHUNK steps (:class:`fpm.simulation.DynamicRun`), all load cases
+Runs advance in pieces of CHUNK steps (:class:`fpm.dynamics.simulation.DynamicRun`), all load cases
 together, and a d is dropped as soon as its load cases have taken as many steps between them as
 the best d's total: it can no longer win, so a poor d costs at most the best total, not a
 full run of every case. The runs of the fastest d are kept: they are the calibration's final
@@ -38,9 +38,9 @@ from typing import Any
 
 import numpy as np
 
-from .problem import Problem
-from .simulation import DynamicRun, FpmModel
-from .voigt import SETTLED
+from ..dynamics.simulation import DynamicRun, FpmModel
+from ..dynamics.voigt import SETTLED
+from ..model.problem import Problem
 
 BRACKET_STEP = 1.25
 """Smallest first step of the bracket, as a factor on d (used when the two guesses are closer
@@ -184,7 +184,7 @@ def fastest_damping(
 
     Args:
         problem: the problem (dt, max_steps, settle_tolerance from its spec).
-        stiffness: (S,) per-spring stiffness, N/m (:func:`fpm.stiffness.spring_stiffness`).
+        stiffness: (S,) per-spring stiffness, N/m (:func:`fpm.model.stiffness.spring_stiffness`).
         depth: penetration depth (None = every layer).
         bounds: (low, high) for d, N s/m.
         guesses: two estimates of d to start from (e.g. :func:`critical_damping` of the
@@ -262,7 +262,8 @@ def _search(
             raise DampingError(
                 f"no d in [{bounds[0]:.3g}, {bounds[1]:.3g}] N s/m settles every load case "
                 f"within max_steps={max_steps}: raise max_steps, lower dt (see the lattice's "
-                "stability estimate, fpm.diagnosis.stable_time_step) or widen annealing.bounds.d"
+                "stability estimate, fpm.fitting.diagnosis.stable_time_step) or widen "
+                "annealing.bounds.d"
             )
     # Refine: golden-section steps between the best d and its tried neighbours.
     for _ in range(REFINE_STEPS):

@@ -1,6 +1,6 @@
 """The large-deformation FEM reference: compressible neo-Hookean hexahedra under dead loads.
 
-Total Lagrangian (:mod:`fpm.neo_hookean`: the strain energy, its stress and tangent, on the
+Total Lagrangian (:mod:`fpm.fem.neo_hookean`: the strain energy, its stress and tangent, on the
 linear FEM's hexahedra and 2x2x2 Gauss points). Equilibrium: the residual
 ``R(u) = f_int(u) - s f`` vanishes on the free unknowns, ``f`` the load case's nodal forces
 (dead loads: fixed in size and direction), ``s`` the load factor. Each load case is solved on
@@ -12,8 +12,8 @@ its own, from rest:
   size. Each step starts from the previous solution extrapolated linearly along the load factor
   (unless that inverts an element);
 - *Newton*: the tangent ``K = dR/du`` (assembled into the linear FEM's block pattern), the
-  step ``K du = -R`` solved by the project's solver stack (:mod:`fpm.linear_solver`: sparse LU
-  below :data:`fpm.linear_solver.AMG_FROM_UNKNOWNS` unknowns, else conjugate gradients with a
+  step ``K du = -R`` solved by the project's solver stack (:mod:`fpm.fem.linear_solver`: sparse LU
+  below :data:`fpm.fem.linear_solver.AMG_FROM_UNKNOWNS` unknowns, else conjugate gradients with a
   rigid-body-mode smoothed-aggregation multigrid, the hierarchy kept while CG stays fast;
   inexact: CG stops at a tolerance tied to the current residual), then a backtracking line
   search on the residual norm that also rejects any trial state with det F <= 0 at a Gauss
@@ -34,9 +34,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from ..fitting.diagnosis import UNITS_HINT
 from .assembly import keep_nodes, unique_inverse
-from .diagnosis import UNITS_HINT
-from .fem import FemError
 from .linear_solver import (
     COMPILED_SMOOTHER_FROM,
     NegativeCurvature,
@@ -55,6 +54,7 @@ from .neo_hookean import (
     kinematics,
     reference_gradients,
 )
+from .reference import FemError
 
 NEWTON_TOLERANCE = 1e-10
 """Converged at ||R|| <= this times ||f|| over the free unknowns (R the unbalanced force)."""
@@ -74,7 +74,7 @@ ARMIJO = 1e-4
 
 DIVERGED = 10.0
 """A Newton iterate that moves a node more than this times the solid's size (bounding-box
-diagonal) fails the load step (as in :mod:`fpm.equilibrium`): no equilibrium nearby."""
+diagonal) fails the load step (as in :mod:`fpm.dynamics.equilibrium`): no equilibrium nearby."""
 
 ETA_MAX = 1e-2
 """Loosest relative CG tolerance of an inexact Newton step (multigrid path)."""
@@ -124,7 +124,7 @@ class NeoHookeanSolid:
 
     Args:
         nodes: (N, 3) rest positions, m.
-        hexahedra: (H, 8) node indices, :mod:`fpm.hexahedron` order, det J > 0.
+        hexahedra: (H, 8) node indices, :mod:`fpm.model.hexahedron` order, det J > 0.
         mu, lam: Lame constants, Pa.
         free: (N, 3) or (3N,) bool, the unknowns that may move (the others stay at zero).
         method: ``"direct"`` (sparse LU) or ``"amg"`` (multigrid-preconditioned CG).
@@ -386,8 +386,8 @@ def solve_hyperelastic(
 
     Args:
         nodes: (N, 3) rest positions, m.
-        hexahedra: (H, 8) node indices, :mod:`fpm.hexahedron` order, det J > 0.
-        mu, lam: Lame constants, Pa (:func:`fpm.neo_hookean.lame_constants`).
+        hexahedra: (H, 8) node indices, :mod:`fpm.model.hexahedron` order, det J > 0.
+        mu, lam: Lame constants, Pa (:func:`fpm.fem.neo_hookean.lame_constants`).
         forces: (L, N, 3) nodal dead loads, N.
         free: (N, 3) or (3N,) bool, unknowns that may move (the rest stay at zero).
         method: ``"direct"`` or ``"amg"`` for the Newton steps' linear solves.

@@ -4,7 +4,8 @@ A spec names a material, a solid (geometry + spring connectivity), the fixed nod
 cases, and the FPM and annealing settings. All quantities are SI (m, N, Pa, kg/m^3, s).
 Validation here is what can be checked without building the solid; checks that need the nodes
 (a point with no node, a node index out of range, a box with no node) happen in
-:func:`fpm.problem.load_problem`, which raises the same kind of error with the field's location.
+:func:`fpm.model.problem.load_problem`, which raises the same kind of error with the field's
+location.
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ class Material(_Strict):
     """Isotropic elastic constants (paper Table 1) and the FEM reference's material model.
 
     ``model``: ``"linear"`` (small-strain linear elasticity, the paper's, default) or
-    ``"neo-hookean"`` (compressible neo-Hookean, large deformation: :mod:`fpm.hyperelastic`),
+    ``"neo-hookean"`` (compressible neo-Hookean, large deformation: :mod:`fpm.fem.hyperelastic`),
     both from the same E and nu. ``"linear"`` is left out of dumps, so the identity (content
     hash) of a linear spec is what it was before the field existed.
     """
@@ -115,7 +116,7 @@ class VoxelGeometry(_Strict):
 
 
 class MeshGeometry(_Strict):
-    """Explicit nodes and 8-node hexahedra (node order: see :mod:`fpm.hexahedron`)."""
+    """Explicit nodes and 8-node hexahedra (node order: see :mod:`fpm.model.hexahedron`)."""
 
     type: Literal["mesh"] = "mesh"
     nodes: list[Vector3] = Field(min_length=8, description="node coordinates, m")
@@ -154,7 +155,7 @@ class Selector(_Strict):
     - ``node``: one node by index;
     - ``at``: the node at a point (it must lie within 1e-3 h of a node; else an error);
     - ``nearest``: the node nearest a point, however far (the distance is reported in
-      :attr:`fpm.problem.Problem.notes`): for points read off a picture or another mesh;
+      :attr:`fpm.model.problem.Problem.notes`): for points read off a picture or another mesh;
     - ``face``: every node on that side of the solid's bounding box;
     - ``box``: every node inside an axis-aligned box (a box that holds no node is an error).
     """
@@ -210,7 +211,7 @@ class Force(Selector):
     ``vector`` times the number of nodes; with ``"distribute": true`` the vector is split
     evenly over them instead (a patch load: the total force is ``vector``). Fixed nodes among
     a face's or box's nodes take no share (they are reported in
-    :attr:`fpm.problem.Problem.notes`); a force on a single fixed node, or on a selection that
+    :attr:`fpm.model.problem.Problem.notes`); a force on a single fixed node, or on a selection that
     is all fixed, is an error.
     """
 
@@ -283,7 +284,7 @@ class FpmSettings(_Strict):
 
 
 class Bounds(_Strict):
-    """Search box for the annealer; None = derived (see :mod:`fpm.calibration`)."""
+    """Search box for the annealer; None = derived (see :mod:`fpm.fitting.calibration`)."""
 
     k: tuple[float, float] | None = Field(None, description="spring stiffness range, N/m")
     d: tuple[float, float] | None = Field(None, description="nodal damping range, N s/m")

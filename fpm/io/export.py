@@ -29,9 +29,9 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from .hexahedron import FAMILIES
-from .problem import Problem
-from .stiffness import family_names, spring_stiffness
+from ..model.hexahedron import FAMILIES
+from ..model.problem import Problem
+from ..model.stiffness import family_names, spring_stiffness
 
 FORMATS = ("json", "vtu", "sofa")
 MEDIA_TYPES = {"json": "application/json", "vtu": "application/xml", "sofa": "application/xml"}
@@ -144,7 +144,7 @@ class Lattice:
 
 def build_lattice(problem: Problem, params: Parameters) -> Lattice:
     """The lattice of ``problem`` carrying ``params``."""
-    from .simulation import fpm_model
+    from ..dynamics.simulation import fpm_model
 
     stiffness = spring_stiffness(problem, params.theta(problem))
     model = fpm_model(problem)
@@ -158,7 +158,7 @@ def build_lattice(problem: Problem, params: Parameters) -> Lattice:
 def fpm_displacements(lattice: Lattice) -> tuple[np.ndarray, list[int], list[bool]]:
     """(L, N, 3) displacements of the FPM run from rest to settling at the parameters, per load
     case, with the steps taken and whether each settled (the result's last dynamic run)."""
-    from .simulation import simulate
+    from ..dynamics.simulation import simulate
 
     p, runs = lattice.params, []
     theta = p.theta(lattice.problem)
@@ -396,7 +396,7 @@ def export(
     if fmt == "sofa":
         return sofa_scene(lattice).encode()
     if fem is None:
-        from .fem import solve_fem
+        from ..fem.reference import solve_fem
 
         fem = solve_fem(problem).displacements
     fpm, _, _ = fpm_displacements(lattice)

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from .spec import lundy_mees_moves
+from ..model.spec import lundy_mees_moves
 
 STEP_INITIAL = 0.5
 STEP_FINAL = 0.002
@@ -42,7 +42,7 @@ class Schedule:
 
     @property
     def moves(self) -> int:
-        """Number of moves (:func:`fpm.spec.lundy_mees_moves`)."""
+        """Number of moves (:func:`fpm.model.spec.lundy_mees_moves`)."""
         return lundy_mees_moves(self.t_initial, self.t_final, self.beta)
 
     def temperature(self, move: int) -> float:

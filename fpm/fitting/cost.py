@@ -5,7 +5,7 @@ position and q the FEM's (nodes the FPM did not move count with their full FEM d
 
 Two ways to get p: :class:`CostFunction` runs the FPM dynamically to rest at (stiffness, d)
 (the paper's); :class:`StaticCost` solves for the settled state directly
-(:mod:`fpm.equilibrium`), which does not depend on d. Figures of merit per load case
+(:mod:`fpm.dynamics.equilibrium`), which does not depend on d. Figures of merit per load case
 (:func:`discrepancies`): the relative discrepancy (the headline: scale-free), the error at the
 loaded nodes relative to their FEM displacement, and the mean nodal discrepancy in % of h (the
 paper's unit, which shrinks with soft materials and small loads, so never shown alone).
@@ -18,12 +18,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .problem import Problem
-from .simulation import FpmModel
-from .stiffness import spring_stiffness
+from ..dynamics.simulation import FpmModel
+from ..model.problem import Problem
+from ..model.stiffness import spring_stiffness
 
 Theta = float | Sequence[float] | np.ndarray
-"""Stiffness parameters: k, or one k per spring family (:mod:`fpm.stiffness`), N/m."""
+"""Stiffness parameters: k, or one k per spring family (:mod:`fpm.model.stiffness`), N/m."""
 
 
 @dataclass
@@ -148,13 +148,13 @@ class CostFunction(_Reference):
 
 
 class StaticCost(_Reference):
-    """Eq. (2) from static equilibria (:class:`fpm.equilibrium.StaticSolver`): no d, no dt.
+    """Eq. (2) from static equilibria (:class:`fpm.dynamics.equilibrium.StaticSolver`): no d, no dt.
 
     One instance per thread (the solver keeps warm starts and preconditioners).
     """
 
     def __init__(self, problem: Problem, reference: np.ndarray, depth: int | None):
-        from .equilibrium import StaticSolver
+        from ..dynamics.equilibrium import StaticSolver
 
         super().__init__(problem, reference, depth)
         self.solver = StaticSolver(problem)

@@ -1,11 +1,12 @@
 """Mesh files in, problem specs out: real geometry for the calibration.
 
 A mesh is read with meshio (Gmsh ``.msh``, VTK ``.vtu``/``.vtk``, Abaqus ``.inp``, STL, ...) and
-becomes a spec geometry (:mod:`fpm.spec`):
+becomes a spec geometry (:mod:`fpm.model.spec`):
 
 - **hexahedra** (8-node; the corners of 20- and 27-node ones) become a ``mesh`` geometry as they
-  are: meshio hands them over in VTK node order, which is :mod:`fpm.hexahedron`'s; a hexahedron
-  numbered inside out (negative volume) is renumbered, and nodes in no hexahedron are dropped;
+  are: meshio hands them over in VTK node order, which is :mod:`fpm.model.hexahedron`'s; a
+  hexahedron numbered inside out (negative volume) is renumbered, and nodes in no hexahedron are
+  dropped;
 - **tetrahedra** (and wedges and pyramids, split into tetrahedra) and **closed triangle
   surfaces** (quads split in two) are voxelised into a ``voxels`` lattice at a spacing ``h`` the
   user chooses: a cell is solid when its centre lies inside the solid. Both inside tests are
@@ -38,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from .spec import FACES
+from ..model.spec import FACES
 
 TOLERANCE = 1e-9
 """A cell centre within this (relative) barycentric margin of a tetrahedron counts as inside it:
@@ -193,7 +194,7 @@ def geometry_from_mesh(
 def _hexahedral(
     points: np.ndarray, hexes: np.ndarray, connectivity: str, spacing: float | None
 ) -> MeshGeometry:
-    from .geometry import hexahedron_volumes
+    from ..model.geometry import hexahedron_volumes
 
     notes = []
     if spacing is not None:
@@ -547,7 +548,7 @@ def spec_from_mesh(
         MeshError: the mesh cannot become a solid. ValueError: a bad selector or force.
         pydantic.ValidationError: the spec does not fit its solid (e.g. a box with no node).
     """
-    from .problem import load_problem
+    from ..model.problem import load_problem
 
     if isinstance(mesh, str | Path):
         name = name or Path(mesh).name
@@ -573,7 +574,7 @@ def spec_from_mesh(
     problem = load_problem(spec)  # selectors checked against the nodes
     notes = made.notes + [f"{problem.n_nodes} nodes, h = {problem.h:.4g} m"] + problem.notes
     if dt == "auto":
-        from .diagnosis import stable_time_step
+        from ..fitting.diagnosis import stable_time_step
 
         k = DT_RULE_K * youngs_modulus * problem.h
         step = min(1e-3, 0.5 * stable_time_step(problem, k))

@@ -16,7 +16,7 @@ from scipy.sparse.csgraph import connected_components
 FACES = np.array(
     [[0, 1, 2, 3], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]]
 )
-"""(6, 4) local nodes of the faces of a hexahedron (:mod:`fpm.hexahedron` order)."""
+"""(6, 4) local nodes of the faces of a hexahedron (:mod:`fpm.model.hexahedron` order)."""
 
 
 def face_blocks(hexahedra: np.ndarray) -> np.ndarray:

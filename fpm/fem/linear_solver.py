@@ -13,9 +13,9 @@ The FEM solves K X = F for many load cases with one factorisation (paper Sec. 4.
 
 The factorisation (or multigrid hierarchy) is built once and reused for every load case.
 
-The pieces of ``"amg"`` are used on their own by :mod:`fpm.equilibrium` (Newton steps on the
-springs' tangent): :func:`amg_hierarchy` (the one hierarchy setup, its finest level smoothed by
-a compiled 3x3 block Gauss-Seidel), :func:`v_cycle` (the preconditioner),
+The pieces of ``"amg"`` are used on their own by :mod:`fpm.dynamics.equilibrium` (Newton steps
+on the springs' tangent): :func:`amg_hierarchy` (the one hierarchy setup, its finest level
+smoothed by a compiled 3x3 block Gauss-Seidel), :func:`v_cycle` (the preconditioner),
 :func:`conjugate_gradients` (tolerance, iteration limit, per-node stop, negative-curvature
 detection) and :func:`dot`.
 """

@@ -1,7 +1,7 @@
 """Diagnoses for the user: a reference in the wrong units, a time step the lattice cannot take,
 and why an annealing start failed. Every message says what to change.
 
-The stability estimate (:func:`stable_time_step`), derived for the step of :mod:`fpm.voigt`
+The stability estimate (:func:`stable_time_step`), derived for the step of :mod:`fpm.dynamics.voigt`
 (semi-implicit Euler, node by node, damping taken implicitly)::
 
     v_i <- (v_i + dt F_i / m_i) / (1 + dt d / m_i),     x_i <- x_i + dt v_i
@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from .problem import Problem
+from ..model.problem import Problem
 
 UNITS_HINT = "E is in Pa (5 kPa = 5000), lengths in m, forces in N"
 SMALL_STRAIN = 0.1
@@ -67,7 +67,7 @@ def check_reference(problem: Problem, displacements: Any) -> list[str]:
 
     Args:
         problem: the problem.
-        displacements: (L, N, 3) FEM displacements, m (or a :class:`fpm.fem.FemResult`).
+        displacements: (L, N, 3) FEM displacements, m (or a :class:`fpm.fem.reference.FemResult`).
 
     Returns:
         For the linear model, one warning per load case whose largest nodal displacement is
@@ -128,7 +128,7 @@ def stable_time_step(problem: Problem, stiffness: float | Any) -> float:
     Args:
         problem: the problem.
         stiffness: (S,) stiffness of every spring, N/m (as
-            :func:`fpm.stiffness.spring_stiffness` gives, stiffness_scale included), or one k
+            :func:`fpm.model.stiffness.spring_stiffness` gives, stiffness_scale included), or one k
             for every spring (the spec's stiffness_scale is then applied).
 
     Returns:
@@ -137,7 +137,7 @@ def stable_time_step(problem: Problem, stiffness: float | Any) -> float:
     solid = problem.solid
     k = np.asarray(stiffness, dtype=float)
     if k.ndim == 0:
-        from .stiffness import spring_stiffness
+        from ..model.stiffness import spring_stiffness
 
         k = spring_stiffness(problem, float(k))
     if k.shape != (len(solid.springs),):

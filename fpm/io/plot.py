@@ -15,8 +15,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .problem import Problem
-from .simulation import simulate
+from ..dynamics.simulation import simulate
+from ..model.problem import Problem
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -61,7 +61,7 @@ def calibration_figure(problem: Problem, reference: np.ndarray, result: Any) -> 
 
     Args:
         reference: (L, N, 3) FEM displacements, m.
-        result: a :class:`fpm.calibration.CalibrationResult` (k or stiffness, d, depth,
+        result: a :class:`fpm.fitting.calibration.CalibrationResult` (k or stiffness, d, depth,
             history; relative_discrepancy and the % of h used when present, else computed).
     """
     import matplotlib

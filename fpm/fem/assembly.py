@@ -19,7 +19,7 @@ def stiffness_matrix(nodes: np.ndarray, hexahedra: np.ndarray, c: np.ndarray) ->
 
     Args:
         nodes: (N, 3) rest positions, m.
-        hexahedra: (H, 8) node indices, :mod:`fpm.hexahedron` order, det J > 0.
+        hexahedra: (H, 8) node indices, :mod:`fpm.model.hexahedron` order, det J > 0.
         c: (6, 6) elasticity matrix, Pa.
     """
     n = len(nodes)

@@ -1,0 +1,6 @@
+"""Fitting the FPM to the FEM (paper Sec. 4.2-4.4): the cost of Eq. (2) and the scale-free
+figures, simulated annealing, the damping search, the calibration methods (two-stage and the
+paper's), and the diagnoses a user reads when a fit cannot proceed.
+
+Modules: cost, annealing, damping, calibration, diagnosis.
+"""
