@@ -16,7 +16,8 @@ from pathlib import Path
 from typing import Any
 
 import fpm
-from fpm.fitting.calibration import CalibrationResult, calibrate
+from fpm.fitting.calibration import calibrate
+from fpm.fitting.result import CalibrationResult
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = {

@@ -9,7 +9,7 @@ from importlib import import_module
 from typing import TYPE_CHECKING, Any
 
 _WHERE = {
-    "CalibrationResult": "fitting.calibration",
+    "CalibrationResult": "fitting.result",
     "calibrate": "fitting.calibration",
     "FemResult": "fem.reference",
     "solve_fem": "fem.reference",
@@ -37,7 +37,8 @@ __all__ = [
 if TYPE_CHECKING:
     from .dynamics.simulation import SimulationResult, simulate
     from .fem.reference import FemResult, solve_fem
-    from .fitting.calibration import CalibrationResult, calibrate
+    from .fitting.calibration import calibrate
+    from .fitting.result import CalibrationResult
     from .model.problem import LoadCase, Problem, load_problem
     from .model.spec import ProblemSpec
 

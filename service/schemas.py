@@ -8,6 +8,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, computed_field, model_validator
 from pydantic.json_schema import SkipJsonSchema
 
+from fpm.fitting.result import CalibrationResult as FittedResult
 from store.records import ParameterSetRecord
 from store.status import CalibrationStatus, FemStatus, Phase
 
@@ -91,58 +92,20 @@ class Progress(BaseModel):
     )
 
 
-class ChainSummary(BaseModel):
-    """One annealing chain's outcome."""
-
-    chain: int
-    x: list[float] = Field(description="best state: stiffness parameters, N/m (paper: then d)")
-    cost: float = Field(description="its normalised cost")
-    evaluations: int
-
-
-class CalibrationResult(BaseModel):
+class CalibrationResult(FittedResult):
     """The fitted parameters and how well they fit.
 
-    The REST contract of :class:`fpm.fitting.calibration.CalibrationResult` (the stored result is
-    its ``to_dict``): the same fields, with descriptions, and ``damping`` beside ``d``
-    (tests/test_openapi.py checks that the fields agree).
+    :class:`fpm.fitting.result.CalibrationResult` (the stored result is its ``to_dict``), with
+    ``damping`` beside ``d`` (the name generated clients can use) and any field a record of an
+    older version holds.
     """
 
     model_config = ConfigDict(extra="allow")
 
-    method: str = Field(description="'two-stage' or 'paper'")
-    relative_discrepancy: list[float] = Field(
-        description="per load case: 100 sum_i |p_i - q_i| / sum_i |q_i|, % (scale-free; the "
-        "headline figure of the fit)"
-    )
-    loaded_discrepancy: list[float] = Field(
-        description="the same at the loaded nodes only, relative to their FEM displacement, %"
-    )
-    discrepancy_h: list[float] = Field(
-        description="mean nodal discrepancy per load case, % of h (the paper's unit; shrinks "
-        "with soft materials and small loads, so read it beside the relative figure)"
-    )
-    k: float = Field(description="stiffness of the axis family (the one k for 'single'), N/m")
-    stiffness: dict[str, float] = Field(description="k per spring family present, N/m")
+    d: SkipJsonSchema[float] = Field(description=f"damping: {OLD_D}")
     damping: float = Field(
         description="nodal damping d, N s/m: the fastest-settling at the spec's dt"
     )
-    d: SkipJsonSchema[float] = Field(description=f"damping: {OLD_D}")
-    d_min: float | None = Field(description="smallest d that still settles (two-stage), N s/m")
-    depth: int = Field(description="penetration depth, layers")
-    full_depth: int = Field(description="the deepest perturbed list, layers")
-    cost: float = Field(description="Eq. (2) of the last dynamic run, m")
-    static_cost: float = Field(description="Eq. (2) of the static equilibria, m")
-    settle_steps: list[int] = Field(description="time steps to settle, per load case")
-    settled: bool
-    evaluations: int = Field(description="cost evaluations of the stiffness search")
-    damping_runs: int = Field(description="dynamic runs of the d search")
-    seconds: dict[str, float] = Field(description="wall time per stage, s")
-    h: float = Field(description="shortest spring rest length, m")
-    node_mass: dict[str, float] = Field(description="lumped node masses: min, max, mean, total, kg")
-    warnings: list[str] = []
-    history: list[float] = Field([], description="normalised cost per move, winning chain")
-    chains: list[ChainSummary] = []
 
     @model_validator(mode="before")
     @classmethod

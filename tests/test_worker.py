@@ -16,8 +16,8 @@ from rq.serializers import JSONSerializer
 import fpm
 from fpm.fitting.calibration import calibrate
 from fpm.fitting.cost import StaticCost
+from fpm.fitting.result import ChainSummary
 from service.limits import dump_spec
-from service.schemas import ChainSummary
 from store import graph, keys, records
 from store.hashing import fem_hash, spec_hash
 from store.status import CalibrationStatus
@@ -293,7 +293,7 @@ def test_chain_of_a_dead_worker_is_retried_and_resumes(
     # that agree only to the solver's tolerance.)
     (chain,) = done.result["chains"]
     total = chain["evaluations"]
-    assert total == expected.chains[0]["evaluations"]
+    assert total == expected.chains[0].evaluations
     assert evaluations == [total - checkpoint["evaluations"]] and evaluations[0] < total
     # Exactly one parameter set, and no checkpoint left behind.
     assert redis.zcard(keys.parameter_sets()) == 1

@@ -34,7 +34,7 @@ import os
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -48,6 +48,7 @@ from ..model.stiffness import family_names, spring_stiffness, stiffness_dict
 from .annealing import AnnealingError, Checkpoint, Schedule, State, anneal
 from .cost import CostFunction, Evaluation, StaticCost, discrepancies
 from .damping import critical_damping, fastest_damping
+from .result import CalibrationResult, ChainSummary
 
 EQUALLY_GOOD = 0.001
 """Paper method: states within this fraction of the best cost are equally good; the
@@ -220,66 +221,6 @@ class DampingStage:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> DampingStage:
         return cls(**{**data, "final": FinalRun(**data["final"])})
-
-
-@dataclass
-class CalibrationResult:
-    """The fitted parameter set and how well it fits.
-
-    Attributes:
-        method: "two-stage" or "paper".
-        k: the stiffness of the axis family (the one k for ``single``), N/m.
-        stiffness: k per spring family present, N/m (all equal for ``single``).
-        d: nodal damping, N s/m.
-        d_min: smallest d that still settles every load case (two-stage), N s/m.
-        depth: penetration depth, layers; full_depth: the deepest list, layers.
-        cost: Eq. (2) of the last dynamic run at (stiffness, d, depth), m.
-        static_cost: Eq. (2) of the static equilibria at (stiffness, depth), m.
-        relative_discrepancy: per load case, 100 sum|p - q| / sum|q|, % (the headline).
-        loaded_discrepancy: the same at the loaded nodes only, %.
-        discrepancy_h: mean nodal discrepancy per load case, % of h (the paper's unit).
-        settle_steps: time steps to settle, per load case.
-        settled: every load case settled within max_steps.
-        evaluations: cost evaluations over all chains (and the polish).
-        damping_runs: dynamic runs of the d search.
-        seconds: wall time per stage: {"stiffness", "damping", "finalize"} (chains run in
-            parallel count once: the slowest).
-        history: normalised current cost per move of the winning chain.
-        h: shortest spring rest length, m.
-        node_mass: lumped node masses, kg: {"min", "max", "mean", "total"}.
-        warnings: what the user should know (outside small strain, static/dynamic mismatch).
-        chains: per chain: x, cost, evaluations.
-    """
-
-    method: str
-    k: float
-    stiffness: dict[str, float]
-    d: float
-    d_min: float | None
-    depth: int
-    full_depth: int
-    cost: float
-    static_cost: float
-    relative_discrepancy: list[float]
-    loaded_discrepancy: list[float]
-    discrepancy_h: list[float]
-    settle_steps: list[int]
-    settled: bool
-    evaluations: int
-    damping_runs: int
-    seconds: dict[str, float]
-    history: list[float]
-    h: float
-    node_mass: dict[str, float]
-    warnings: list[str] = field(default_factory=list)
-    chains: list[dict[str, Any]] = field(default_factory=list)
-
-    @property
-    def mean_relative_discrepancy(self) -> float:
-        return float(np.mean(self.relative_discrepancy))
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
 
 
 def stiffness_bounds(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
@@ -758,7 +699,7 @@ def finalize(
         },
         warnings=list(warnings or []) + final.notes,
         chains=[
-            {"chain": c.chain, "x": c.x, "cost": c.cost, "evaluations": c.evaluations}
+            ChainSummary(chain=c.chain, x=c.x, cost=c.cost, evaluations=c.evaluations)
             for c in chains
         ],
     )

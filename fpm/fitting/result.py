@@ -1,0 +1,75 @@
+"""What a calibration hands back: the fitted parameter set and how well it fits.
+
+The one definition of the result: :func:`fpm.calibrate` returns it, the worker stores its
+:meth:`CalibrationResult.to_dict` as JSON, and the REST answer (``service.schemas``) derives
+from it, adding only the REST names. It needs pydantic and nothing numerical, so the service
+can import it without loading the kernels.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, Field
+
+
+class ChainSummary(BaseModel):
+    """One annealing chain's outcome."""
+
+    chain: int
+    x: list[float] = Field(description="best state: stiffness parameters, N/m (paper: then d)")
+    cost: float = Field(description="its normalised cost")
+    evaluations: int
+
+
+class CalibrationResult(BaseModel):
+    """The fitted parameters and how well they fit (units in each field's description)."""
+
+    method: str = Field(description="'two-stage' or 'paper'")
+    k: float = Field(description="stiffness of the axis family (the one k for 'single'), N/m")
+    stiffness: dict[str, float] = Field(
+        description="k per spring family present, N/m (all equal for 'single')"
+    )
+    d: float = Field(description="nodal damping, N s/m: the fastest-settling at the spec's dt")
+    d_min: float | None = Field(
+        description="smallest d that still settles every load case (two-stage), N s/m"
+    )
+    depth: int = Field(description="penetration depth, layers")
+    full_depth: int = Field(description="the deepest perturbed list, layers")
+    cost: float = Field(description="Eq. (2) of the last dynamic run at (stiffness, d, depth), m")
+    static_cost: float = Field(description="Eq. (2) of the static equilibria, m")
+    relative_discrepancy: list[float] = Field(
+        description="per load case: 100 sum_i |p_i - q_i| / sum_i |q_i|, % (scale-free; the "
+        "headline figure of the fit)"
+    )
+    loaded_discrepancy: list[float] = Field(
+        description="the same at the loaded nodes only, relative to their FEM displacement, %"
+    )
+    discrepancy_h: list[float] = Field(
+        description="mean nodal discrepancy per load case, % of h (the paper's unit; shrinks "
+        "with soft materials and small loads, so read it beside the relative figure)"
+    )
+    settle_steps: list[int] = Field(description="time steps to settle, per load case")
+    settled: bool = Field(description="every load case settled within max_steps")
+    evaluations: int = Field(description="cost evaluations over all chains (and the polish)")
+    damping_runs: int = Field(description="dynamic runs of the d search")
+    seconds: dict[str, float] = Field(
+        description="wall time per stage, s: stiffness (parallel chains count once: the "
+        "slowest), damping, finalize"
+    )
+    history: list[float] = Field([], description="normalised cost per move, winning chain")
+    h: float = Field(description="shortest spring rest length, m")
+    node_mass: dict[str, float] = Field(description="lumped node masses: min, max, mean, total, kg")
+    warnings: list[str] = Field(
+        [], description="what the user should know (outside small strain, static/dynamic mismatch)"
+    )
+    chains: list[ChainSummary] = []
+
+    @property
+    def mean_relative_discrepancy(self) -> float:
+        """Mean over the load cases, %."""
+        return sum(self.relative_discrepancy) / len(self.relative_discrepancy)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The stored form (JSON-able)."""
+        return self.model_dump()
