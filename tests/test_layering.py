@@ -5,6 +5,7 @@ validates specs with fpm.model.spec / fpm.model.problem but never loads the nume
 
 import ast
 import inspect
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -115,3 +116,43 @@ def test_redis_keys_are_built_only_in_the_store():
 def test_the_store_takes_only_the_spec_from_the_numerical_core():
     names = [a.split(" -> ")[1] for a in arrows("store", "fpm")]
     assert names and all(n.startswith("fpm.model.spec") for n in names), names
+
+
+def layout_blocks() -> dict[str, str]:
+    """README's Layout section: package path ('fpm', 'fpm/model', ...) -> its text."""
+    readme = (ROOT / "README.md").read_text()
+    section = readme.split("\n## Layout\n", 1)[1].split("```")[1]
+    blocks: dict[str, str] = {}
+    parent, current = "", ""
+    for line in section.splitlines():
+        top = re.match(r"(\w+)/\s", line + " ")
+        sub = re.match(r"  (\w+)/\s", line + " ")
+        if top:
+            parent = current = top.group(1)
+        elif sub:
+            current = f"{parent}/{sub.group(1)}"
+        if current:
+            blocks[current] = blocks.get(current, "") + " " + line
+    return blocks
+
+
+def test_the_readme_layout_matches_the_tree():
+    """Every package and fpm subpackage has its entry, and each entry names its modules."""
+    blocks = layout_blocks()
+    packages = sorted(
+        str(init.parent.relative_to(ROOT))
+        for init in ROOT.glob("*/**/__init__.py")
+        if init.parent.parent == ROOT or init.parent.parent.name == "fpm"
+    )
+    assert sorted(b for b in blocks if b not in ("tests", "docs")) == packages
+    for package in packages:
+        modules = {
+            p.stem for p in (ROOT / package).glob("*.py") if p.stem not in ("__init__", "__main__")
+        }
+        modules |= {
+            p.name
+            for p in (ROOT / package).iterdir()
+            if (p / "__init__.py").exists() and f"{package}/{p.name}" not in blocks
+        }
+        missing = [m for m in sorted(modules) if not re.search(rf"\b{m}\b", blocks[package])]
+        assert missing == [], f"README layout, {package}/: {missing}"

@@ -2,5 +2,5 @@
 figures, simulated annealing, the damping search, the calibration methods (two-stage and the
 paper's), and the diagnoses a user reads when a fit cannot proceed.
 
-Modules: cost, annealing, damping, calibration, diagnosis.
+Modules: cost, annealing, damping, calibration, result (CalibrationResult), diagnosis.
 """
