@@ -61,7 +61,7 @@ def calibration_figure(problem: Problem, reference: np.ndarray, result: Any) -> 
 
     Args:
         reference: (L, N, 3) FEM displacements, m.
-        result: a :class:`fpm.fitting.calibration.CalibrationResult` (k or stiffness, d, depth,
+        result: a :class:`fpm.fitting.result.CalibrationResult` (k or stiffness, d, depth,
             history; relative_discrepancy and the % of h used when present, else computed).
     """
     import matplotlib
