@@ -219,13 +219,17 @@ class Client:
         ``sofa`` (a SOFA scene), both returned as text. With ``path`` the answer is written
         there and the path returned.
         """
-        response = self._request(
-            "GET", f"/v1/parameter-sets/{parameter_set_id}/export", params={"format": format}
-        )
+        body = self.export_bytes(parameter_set_id, format)
         if path is not None:
-            Path(path).write_bytes(response.content)
+            Path(path).write_bytes(body)
             return Path(path)
-        return response.json() if format == "json" else response.text
+        return json.loads(body) if format == "json" else body.decode()
+
+    def export_bytes(self, parameter_set_id: str, format: str = "json") -> bytes:
+        """The export of :meth:`export` as the service sends it (UTF-8 bytes)."""
+        return self._request(
+            "GET", f"/v1/parameter-sets/{parameter_set_id}/export", params={"format": format}
+        ).content
 
     def fem_reference(
         self, spec: SpecLike, *, poll: float = 0.5, timeout: float | None = None

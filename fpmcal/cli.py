@@ -247,11 +247,7 @@ def cmd_export(args: argparse.Namespace) -> None:
 
         try:
             with Client(args.url, api_key=args.api_key) as client:
-                body = client._request(
-                    "GET",
-                    f"/v1/parameter-sets/{args.parameter_set}/export",
-                    params={"format": args.format},
-                ).content
+                body = client.export_bytes(args.parameter_set, args.format)
         except (ApiError, httpx.HTTPError) as e:
             raise ServiceError(f"the service at {args.url}: {_one_line(e)}") from None
     else:
