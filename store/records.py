@@ -207,7 +207,7 @@ def update_calibration(
     (and writes nothing) when the record is missing or terminal.
     """
     key = keys.calibration(calibration_id)
-    mapping: Mapping = {k: _flat(v) for k, v in fields.items()}
+    mapping = _flat_fields(fields)
 
     def apply(pipe: Pipeline) -> bool:
         status = _text(pipe.hget(key, "status"))
@@ -222,6 +222,11 @@ def update_calibration(
 
     transaction: Any = redis.transaction  # its stub wants a callable returning None
     return bool(transaction(apply, key, value_from_callable=True))
+
+
+def _flat_fields(fields: Mapping) -> Mapping:
+    """Record fields as Redis hash strings: statuses by value, dicts, lists and None as JSON."""
+    return {k: _flat(v) for k, v in fields.items()}
 
 
 def _flat(value: Any) -> str:
@@ -249,7 +254,7 @@ def has_fem_reference(redis: Redis, fem_hash: str) -> bool:
 
 def update_fem_meta(redis: Redis, fem_hash: str, fields: Mapping) -> None:
     """Set fields of the FEM reference's meta hash (status, started, error, ...)."""
-    redis.hset(keys.fem_meta(fem_hash), mapping={k: _flat(v) for k, v in fields.items()})
+    redis.hset(keys.fem_meta(fem_hash), mapping=_flat_fields(fields))
 
 
 def save_fem_reference(
@@ -259,7 +264,7 @@ def save_fem_reference(
     one MULTI/EXEC."""
     pipe = redis.pipeline()
     pipe.set(keys.fem_reference(fem_hash), json.dumps(reference))
-    pipe.hset(keys.fem_meta(fem_hash), mapping={k: _flat(v) for k, v in meta.items()})
+    pipe.hset(keys.fem_meta(fem_hash), mapping=_flat_fields(meta))
     pipe.execute()
 
 

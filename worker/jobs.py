@@ -75,15 +75,13 @@ def fem_reference(fem_hash: str) -> dict[str, Any]:
         "status": FemStatus.SUCCEEDED,
         "finished": time.time(),
         "n_nodes": len(result.nodes),
-        "load_cases": json.dumps(result.load_cases),
+        "load_cases": result.load_cases,  # lists and dicts are stored as JSON
         "model": result.model,
-        "solver": json.dumps(
-            {
-                "residuals": [float(r) for r in result.residuals],
-                "load_steps": list(result.load_steps),
-                "newton_iterations": [list(n) for n in result.newton_iterations],
-            }
-        ),
+        "solver": {
+            "residuals": [float(r) for r in result.residuals],
+            "load_steps": list(result.load_steps),
+            "newton_iterations": [list(n) for n in result.newton_iterations],
+        },
     }
     records.save_fem_reference(redis, fem_hash, result.to_dict(), fields)
     return {"id": fem_hash, "cached": False, "n_nodes": len(result.nodes)}
