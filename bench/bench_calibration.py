@@ -85,7 +85,7 @@ def organ_settings(h: float, stiffness: str = "single") -> tuple[dict[str, Any],
     """The organ spec at h with the bench's dt rule; returns (spec, unrounded dt)."""
     import fpm
     from bench.organ import ellipsoid_spec
-    from fpm.fitting.diagnosis import stable_time_step
+    from fpm.dynamics.stability import stable_time_step
     from fpm.model.stiffness import spring_stiffness
 
     problem = fpm.load_problem(ellipsoid_spec(h))

@@ -26,10 +26,13 @@ def ellipsoid_spec(
     press: float = 0.02,
     lateral: float = 0.01,
     connectivity: str = "full",
+    validation: bool = False,
     **settings: Any,
 ) -> dict[str, Any]:
     """The organ's problem spec at spacing ``h`` (m); forces in N; ``settings`` go into
-    the spec's top level (e.g. ``fpm={...}``, ``annealing={...}``)."""
+    the spec's top level (e.g. ``fpm={...}``, ``annealing={...}``). ``validation`` adds three
+    validation cases the fit never sees: the lateral force along y (another direction), a
+    press at a top node off centre along y (another point), and the two presses at once."""
     a = np.asarray(SEMI_AXES)
     cells = np.ceil(2 * a / h).astype(int)
     origin = -cells * h / 2
@@ -52,6 +55,19 @@ def ellipsoid_spec(
         return column[np.argmax(column[:, 2])].tolist()
 
     top, off = top_node(0.0, 0.0), top_node(0.4 * a[0], 0.0)
+    side = top_node(0.0, 0.4 * a[1])
+    if validation:
+        settings["validation_cases"] = [
+            {"name": "lateral y top", "forces": [{"at": top, "vector": [0, lateral, 0]}]},
+            {"name": "press off centre y", "forces": [{"at": side, "vector": [0, 0, -press]}]},
+            {
+                "name": "press top and off centre",
+                "forces": [
+                    {"at": top, "vector": [0, 0, -press / 2]},
+                    {"at": off, "vector": [0, 0, -press / 2]},
+                ],
+            },
+        ]
     return {
         "name": f"soft ellipsoid h={h * 1e3:g} mm",
         "material": {"youngs_modulus": youngs_modulus, "poisson_ratio": 0.45, "density": 1040},

@@ -93,7 +93,7 @@ def _emit(data: dict[str, Any], out: str | None) -> None:
 
 def cmd_simulate(args: argparse.Namespace) -> None:
     from fpm.dynamics.simulation import simulate
-    from fpm.fitting.diagnosis import stable_time_step
+    from fpm.dynamics.stability import stable_time_step
 
     problem = _load(args.spec)
     dt = args.dt if args.dt is not None else problem.spec.fpm.dt

@@ -13,6 +13,7 @@ import fpm
 from fpm.dynamics.equilibrium import StaticSolver, static_equilibrium
 from fpm.dynamics.simulation import FpmModel
 from fpm.fitting.damping import CHUNK, _Runs, critical_damping, fastest_damping
+from fpm.model.forces import Stiffness
 from fpm.model.stiffness import spring_stiffness
 
 K = 50.0
@@ -37,7 +38,7 @@ def bar() -> fpm.Problem:
                 {"forces": [{"at": [0.01, 0.01, 0.04], "vector": [0, 0, 0.05]}]},
                 {"forces": [{"at": [0.01, 0.01, 0.04], "vector": [0.02, 0, 0.1]}]},
             ],
-            "fpm": {"max_steps": 2000},
+            "fpm": {"max_steps": 2000, "stiffness": "single", "dt": 1e-3},
         }  # fmt: skip
     )
 
@@ -64,7 +65,7 @@ def test_critical_damping_of_an_exact_mode(bar: fpm.Problem):
     mode's critical damping 2 w (phi^T M phi) / (phi^T phi) exactly."""
     solver = StaticSolver(bar)
     system, _ = solver.system(0, None)
-    k = spring_stiffness(bar, K)[system.springs]
+    k = system.parameters(Stiffness(spring_stiffness(bar, K)))
     stiff = system.tangent(np.zeros((system.n_free, 3)), k).toarray()
     m = np.repeat(bar.solid.masses[system.free], 3)
     scale = 1 / np.sqrt(m)
@@ -93,7 +94,7 @@ def test_linear_response_is_the_small_load_limit(bar: fpm.Problem):
 
 
 def test_a_d_that_cannot_win_stops_at_the_budget(bar: fpm.Problem):
-    runs = _Runs(bar, spring_stiffness(bar, K), None)
+    runs = _Runs(bar, spring_stiffness(bar, K), None, 1e-3)
     try:
         full = runs(0.4, [2000, 2000])
         assert all(r.settled for r in (run.result() for run in full))

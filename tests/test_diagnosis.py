@@ -14,8 +14,9 @@ import pytest
 from helpers_fpm import box_spec
 
 import fpm
+from fpm.dynamics.stability import stable_time_step
 from fpm.fem.reference import solve_fem
-from fpm.fitting.diagnosis import UnitsError, check_reference, explain_rejections, stable_time_step
+from fpm.fitting.diagnosis import UnitsError, check_reference, explain_rejections
 from fpm.io.plot import calibration_figure, profile_line
 from fpm.model.stiffness import spring_stiffness
 
@@ -133,7 +134,7 @@ def organ_problem() -> fpm.Problem:
     assert module_spec is not None and module_spec.loader is not None
     organ = importlib.util.module_from_spec(module_spec)
     module_spec.loader.exec_module(organ)
-    return fpm.load_problem(organ.ellipsoid_spec(0.01))
+    return fpm.load_problem(organ.ellipsoid_spec(0.01, fpm={"stiffness": "single"}))
 
 
 @pytest.fixture(scope="module")

@@ -37,7 +37,9 @@ from fpm.dynamics.equilibrium import (
     static_solver,
 )
 from fpm.fem.linear_solver import ReusedHierarchy
+from fpm.model.forces import Stiffness
 from fpm.model.stiffness import spring_stiffness
+from fpm.model.volume import cell_volumes
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_A: dict[str, Any] = json.loads((ROOT / "examples" / "paper-material-a.json").read_text())
@@ -239,18 +241,32 @@ def test_depth_zero_moves_only_the_stimulated_nodes(paper: fpm.Problem):
 # --- derivatives ----------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def strained_block() -> tuple[equilibrium.SpringSystem, np.ndarray, np.ndarray, np.ndarray]:
-    """A 3x3x4 `full` block's spring system at a random state with stretched and compressed
-    springs, random stiffnesses and forces."""
-    problem = fpm.load_problem(box_spec((3, 3, 4), 0.01))
+@pytest.fixture(scope="module", params=["single", "families+volume"])
+def strained_block(
+    request,
+) -> tuple[equilibrium.SpringSystem, np.ndarray, equilibrium.Params, np.ndarray]:
+    """A 3x3x4 `full` block's system at a random state with stretched and compressed springs,
+    random stiffnesses and forces: springs only (the paper's model), or with the volume term
+    (random kappa per cell, cells grown and shrunk)."""
+    mode = request.param
+    problem = fpm.load_problem(box_spec((3, 3, 4), 0.01, fpm_settings={"stiffness": mode}))
     system, _ = StaticSolver(problem).system(0, None)
     rng = np.random.default_rng(7)
     u = rng.normal(0, 0.002, (system.n_free, 3))
-    k = rng.uniform(5, 20, len(system.springs))
+    springs = rng.uniform(5, 20, len(problem.solid.springs))
+    kappa = None
+    if mode == "families+volume":
+        kappa = rng.uniform(1e3, 1e4, len(problem.solid.elements()))
+    k = system.parameters(Stiffness(springs, kappa))
     forces = rng.normal(0, 0.01, (system.n_free, 3))
     stretch = system.stretch(u)
     assert (stretch < 0).sum() > 20 and (stretch > 0).sum() > 20
+    if kappa is not None:
+        assert system.cells is not None and len(system.cell_ids) == 12
+        padded = np.zeros((problem.n_nodes, 3))
+        padded[system.free] = u
+        change = cell_volumes(system.cells, padded)
+        assert (change < 0).sum() >= 2 and (change > 0).sum() >= 2
     return system, u, k, forces
 
 
@@ -291,20 +307,11 @@ def test_clamped_tangent_is_positive_semidefinite_and_above_the_exact_one(strain
     scale = np.abs(clamped).max()
     assert np.linalg.eigvalsh(exact).min() < -1e-3 * scale  # compressed springs: indefinite
     assert np.linalg.eigvalsh(clamped).min() > -1e-12 * scale
-    assert np.linalg.eigvalsh(clamped - exact).min() > -1e-12 * scale
+    if k.kappa is None:  # the cells' dropped pressure term has no sign
+        assert np.linalg.eigvalsh(clamped - exact).min() > -1e-12 * scale
     # Reduced (Galerkin) tangent: Q^T K Q of the clamped tangent.
     q = np.linalg.qr(np.random.default_rng(4).normal(size=(3 * system.n_free, 5)))[0]
-    reduced = np.empty((5, 5))
-    equilibrium._reduced_tangent(
-        system.rest_vector,
-        system.ends,
-        system.rest_length,
-        k,
-        u,
-        np.ascontiguousarray(q.reshape(-1, 3, 5)),
-        True,
-        reduced,
-    )
+    reduced = system.reduced_tangent(u, k, np.ascontiguousarray(q.reshape(-1, 3, 5)), True)
     assert reduced == pytest.approx(q.T @ clamped @ q, rel=1e-10, abs=1e-10 * scale)
 
 

@@ -23,12 +23,12 @@ from fpm.fem.neo_hookean import (
     first_piola,
     internal_forces,
     kinematics,
-    lame_constants,
     reference_gradients,
     strain_energy,
 )
 from fpm.fem.reference import FemError, FemResult, solve_fem
 from fpm.model.geometry import box_hexahedra
+from fpm.model.spec import lame_constants
 from store.hashing import fem_hash, spec_hash
 
 PAPER_A = Path(__file__).resolve().parents[1] / "examples" / "paper-material-a.json"

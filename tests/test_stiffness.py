@@ -52,7 +52,7 @@ def test_voxels_and_box_give_the_same_families() -> None:
 
 
 def test_spring_stiffness_single_families_and_scale() -> None:
-    single = load_problem(_box("full", stiffness_scale=(1, 1, 2)))
+    single = load_problem(_box("full", stiffness="single", stiffness_scale=(1, 1, 2)))
     fam = load_problem(_box("full", stiffness="families"))
     assert family_names(single) == ("k",)
     assert family_names(fam) == ("axis", "face", "body")

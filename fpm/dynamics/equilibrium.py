@@ -49,6 +49,7 @@ import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -64,9 +65,18 @@ from ..fem.linear_solver import (
     factorize,
     rigid_body_modes,
 )
+from ..model.forces import Stiffness, cells
 from ..model.perturbed_list import Adjacency, PerturbedListCache
 from ..model.problem import Problem
-from ..model.stiffness import spring_stiffness
+from ..model.stiffness import has_volume, model_stiffness
+from ..model.volume import (
+    COEFFICIENTS,
+    Cells,
+    coefficient_gradient,
+    coefficient_hessian,
+    corner_gradient,
+    volume_change,
+)
 
 AMG_FROM_UNKNOWNS = 300
 """Free unknowns from which the Newton steps use multigrid-preconditioned CG instead of LU.
@@ -165,14 +175,25 @@ class Equilibrium:
         return self
 
 
+class Params(NamedTuple):
+    """The stiffness of one system's active terms: ``springs`` (A,) N/m, ``kappa`` (C,) Pa or
+    None (no volume term), and both as one ``flat`` vector (what warm starts compare)."""
+
+    springs: np.ndarray
+    kappa: np.ndarray | None
+    flat: np.ndarray
+
+
 class SpringSystem:
-    """The springs of one perturbed list, as functions of the free nodes' displacements.
+    """The force terms of one perturbed list (springs, and cells when the model has the volume
+    term), as functions of the free nodes' displacements.
 
     Free nodes are the list's nodes in ascending index order (``free``); a displacement field
     is an (M, 3) array over them (node-major unknowns u0, v0, w0, u1, ... in the matrices).
-    Only springs with at least one free end take part ("active" springs); the held end of a
-    spring stays at rest. The loops over springs are compiled (:func:`_spring_forces` and
-    friends); the tangent's block pattern is built once, vectorised.
+    Only springs with at least one free end take part ("active" springs), and only cells with
+    at least one free corner; held nodes stay at rest. The loops over springs and cells are
+    compiled (:func:`_spring_forces`, :func:`_cell_forces` and friends); the tangent's block
+    pattern is built once, vectorised.
 
     Attributes:
         free: (M,) int64 free node indices, ascending.
@@ -180,6 +201,9 @@ class SpringSystem:
         ends: (A, 2) int64 local indices of each active spring's ends (-1: a held node).
         rest_length: (A,) their rest lengths, m.
         rest_vector: (A, 3) x_j - x_i at rest, m.
+        cells: the active cells (:class:`fpm.model.volume.Cells`), or None without a volume term.
+        cell_ids: (C,) their indices among the solid's hexahedra.
+        cell_ends: (C, 8) local indices of their corners (-1: a held node).
     """
 
     def __init__(self, problem: Problem, free: np.ndarray):
@@ -194,6 +218,15 @@ class SpringSystem:
         self.rest_length = problem.rest_lengths[self.springs]
         nodes = problem.nodes
         self.rest_vector = nodes[pairs[self.springs, 1]] - nodes[pairs[self.springs, 0]]
+        self.cells: Cells | None = None
+        self.cell_ids = np.zeros(0, dtype=np.int64)
+        self.cell_ends = np.zeros((0, 8), dtype=np.int64)
+        if has_volume(problem):
+            every = cells(problem)
+            corner_ends = local[every.corners]
+            self.cell_ids = np.flatnonzero((corner_ends >= 0).any(axis=1))
+            self.cells = every.subset(self.cell_ids)
+            self.cell_ends = np.ascontiguousarray(corner_ends[self.cell_ids])
         self._scratch: np.ndarray | None = None
         self._tangent_pattern()
 
@@ -201,15 +234,29 @@ class SpringSystem:
     def n_free(self) -> int:
         return len(self.free)
 
+    def parameters(self, stiffness: Stiffness) -> Params:
+        """The active terms' stiffness from the model's :class:`~fpm.model.forces.Stiffness`."""
+        k = np.ascontiguousarray(stiffness.springs[self.springs])
+        if self.cells is None:
+            return Params(k, None, k)
+        if stiffness.volume is None:
+            raise ValueError("this model has a volume term: give kappa (Stiffness.volume)")
+        kappa = np.ascontiguousarray(stiffness.volume[self.cell_ids])
+        return Params(k, kappa, np.concatenate([k, kappa]))
+
     def _tangent_pattern(self) -> None:
         """The tangent's block sparsity (BSR, 3x3 blocks, sorted) and, per active spring, the
-        positions of its four blocks ii, jj, ij, ji in the block list (-1: not free)."""
+        positions of its four blocks ii, jj, ij, ji in the block list (-1: not free); per
+        active cell, the positions of its 8 x 8 corner blocks (-1: not both free)."""
         m = self.n_free
         li, lj = self.ends[:, 0], self.ends[:, 1]
         both = (li >= 0) & (lj >= 0)
         diag = np.arange(m)
-        rows = np.concatenate([diag, li[both], lj[both]])
-        cols = np.concatenate([diag, lj[both], li[both]])
+        ca = np.repeat(self.cell_ends, 8, axis=1).ravel()  # (C*64,) corner a of each pair
+        cb = np.tile(self.cell_ends, (1, 8)).ravel()  # corner b
+        cell_pair = (ca >= 0) & (cb >= 0)
+        rows = np.concatenate([diag, li[both], lj[both], ca[cell_pair]])
+        cols = np.concatenate([diag, lj[both], li[both], cb[cell_pair]])
         keys, where = np.unique(rows * m + cols, return_inverse=True)
         self._indices = (keys % m).astype(np.int32)
         self._indptr = np.zeros(m + 1, dtype=np.int32)
@@ -221,8 +268,11 @@ class SpringSystem:
         position[lj >= 0, 1] = where[lj[lj >= 0]]
         nb = int(both.sum())
         position[both, 2] = where[m : m + nb]
-        position[both, 3] = where[m + nb :]
+        position[both, 3] = where[m + nb : m + 2 * nb]
         self._position = position
+        cell_position = np.full(len(ca), -1, dtype=np.int64)
+        cell_position[cell_pair] = where[m + 2 * nb :]
+        self._cell_position = cell_position.reshape(-1, 8, 8)
 
     def stretch(self, u: np.ndarray) -> np.ndarray:
         """(A,) spring elongations |r| - L at displacements u (M, 3), m."""
@@ -230,35 +280,44 @@ class SpringSystem:
         r = self.rest_vector + padded[self.ends[:, 1]] - padded[self.ends[:, 0]]
         return np.sqrt(np.einsum("ij,ij->i", r, r)) - self.rest_length
 
-    def energy(self, u: np.ndarray, k: np.ndarray, forces: np.ndarray) -> float:
-        """E(u), J: springs' energy minus the forces' work. u (M, 3) m, k (A,) N/m, forces
-        (M, 3) N."""
-        grad = np.empty_like(u)
-        springs = _spring_forces(self.rest_vector, self.ends, self.rest_length, k, u, grad)
-        return float(springs - np.einsum("ij,ij->", forces, u))
+    def energy(self, u: np.ndarray, k: Params, forces: np.ndarray) -> float:
+        """E(u), J: the terms' energy minus the forces' work. u (M, 3) m, forces (M, 3) N."""
+        return float(self._internal(u, k, np.empty_like(u)) - np.einsum("ij,ij->", forces, u))
 
-    def gradient(self, u: np.ndarray, k: np.ndarray, forces: np.ndarray) -> np.ndarray:
+    def gradient(self, u: np.ndarray, k: Params, forces: np.ndarray) -> np.ndarray:
         """dE/du (M, 3), N: minus the unbalanced nodal force F_i + F_s of each free node."""
         grad = np.empty_like(u)
-        _spring_forces(self.rest_vector, self.ends, self.rest_length, k, u, grad)
+        self._internal(u, k, grad)
         grad -= forces
         return grad
 
+    def _internal(self, u: np.ndarray, k: Params, grad: np.ndarray) -> float:
+        """The terms' energy, J; fills ``grad`` (M, 3) with its gradient, N."""
+        energy = _spring_forces(self.rest_vector, self.ends, self.rest_length, k.springs, u, grad)
+        if self.cells is not None and k.kappa is not None:
+            c = self.cells
+            energy += _cell_forces(c.rest, c.volume, self.cell_ends, k.kappa, u, grad)
+        return energy
+
     def energy_change(
-        self, u: np.ndarray, step: np.ndarray, k: np.ndarray, forces: np.ndarray
+        self, u: np.ndarray, step: np.ndarray, k: Params, forces: np.ndarray
     ) -> float:
         """E(u + step) - E(u), J, without the cancellation of subtracting two energies.
 
         Per spring, (l' - L)^2 - (l - L)^2 = (l' - l)(l' + l - 2L) with
-        l' - l = (2 r.dr + |dr|^2) / (l' + l).
+        l' - l = (2 r.dr + |dr|^2) / (l' + l); per cell likewise with the volume change
+        (:func:`fpm.model.volume.volume_change`).
         """
-        springs = _energy_change(self.rest_vector, self.ends, self.rest_length, k, u, step)
-        return float(springs - np.einsum("ij,ij->", forces, step))
+        change = _energy_change(self.rest_vector, self.ends, self.rest_length, k.springs, u, step)
+        if self.cells is not None and k.kappa is not None:
+            c = self.cells
+            change += _cell_energy_change(c.rest, c.volume, self.cell_ends, k.kappa, u, step)
+        return float(change - np.einsum("ij,ij->", forces, step))
 
     def tangent(
         self,
         u: np.ndarray,
-        k: np.ndarray,
+        k: Params,
         *,
         modified: bool = True,
         shift: float = 0.0,
@@ -266,8 +325,10 @@ class SpringSystem:
     ) -> sp.bsr_matrix:
         """Hessian of E at u, (3M, 3M) N/m in 3x3 node blocks.
 
-        Per spring k [n n^T + c (I - n n^T)], c = 1 - L/|r|; ``modified`` clamps c at 0 (a
-        positive semi-definite tangent; exact wherever no spring is compressed). ``shift`` adds
+        Per spring k [n n^T + c (I - n n^T)], c = 1 - L/|r|; per cell
+        (kappa / V0) g g^T + p d^2V/dx^2 (g = dV/dx, p = kappa (V - V0) / V0). ``modified``
+        clamps c at 0 and drops the cells' p term (a positive semi-definite tangent; exact
+        wherever no spring is compressed and no cell has changed volume). ``shift`` adds
         shift * (largest diagonal entry) to the diagonal. ``scratch``: fill this system's one
         reusable buffer (the matrix is valid until the next scratch tangent) rather than new
         memory (at 20k nodes 34 MB, whose first touch costs more than the assembly).
@@ -280,8 +341,14 @@ class SpringSystem:
         else:
             data = np.zeros((self._n_blocks, 3, 3))
         _tangent_blocks(
-            self.rest_vector, self.ends, self.rest_length, k, u, modified, self._position, data
-        )
+            self.rest_vector, self.ends, self.rest_length, k.springs, u, modified, self._position,
+            data,
+        )  # fmt: skip
+        if self.cells is not None and k.kappa is not None:
+            c = self.cells
+            _cell_tangent_blocks(
+                c.rest, c.volume, self.cell_ends, k.kappa, u, modified, self._cell_position, data
+            )
         if shift:
             diagonal = data[self._diagonal_block]
             top = float(np.einsum("nii->ni", diagonal).max(initial=0.0))
@@ -289,6 +356,165 @@ class SpringSystem:
             data[self._diagonal_block] = diagonal
         m = self.n_free
         return sp.bsr_matrix((data, self._indices, self._indptr), shape=(3 * m, 3 * m))
+
+    def reduced_tangent(self, u: np.ndarray, k: Params, basis: np.ndarray, modified: bool):
+        """(m, m) Q^T K Q for the basis Q (M, 3, m) at u; the cells contribute their
+        modified part (kappa / V0) (Q^T g)(Q^T g)^T only (a warm start's chord steps need no
+        more; every answer is checked against the full residual)."""
+        m = basis.shape[2]
+        out = np.empty((m, m))
+        _reduced_tangent(
+            self.rest_vector, self.ends, self.rest_length, k.springs, u, basis, modified, out
+        )
+        if self.cells is not None and k.kappa is not None:
+            c = self.cells
+            _cell_reduced_tangent(c.rest, c.volume, self.cell_ends, k.kappa, u, basis, out)
+        return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cell_state(
+    rest: np.ndarray, ends: np.ndarray, u: np.ndarray, c: int, a: np.ndarray, da: np.ndarray
+) -> None:
+    """a1..a6 of cell ``c`` at displacements u (``a`` (6, 3)) and their change from rest
+    (``da``); held corners (-1) do not move."""
+    for k in range(6):
+        for d in range(3):
+            value = 0.0
+            for n in range(8):
+                i = ends[c, n]
+                if i >= 0:
+                    value += COEFFICIENTS[k, n] * u[i, d]
+            da[k, d] = value
+            a[k, d] = rest[c, k, d] + value
+
+
+@njit(cache=True, nogil=True)
+def _cell_forces(
+    rest: np.ndarray,
+    volume: np.ndarray,
+    ends: np.ndarray,
+    kappa: np.ndarray,
+    u: np.ndarray,
+    grad: np.ndarray,
+) -> float:
+    """Add the cells' dE/du to ``grad`` (M, 3), N; return their energy, J."""
+    a, da = np.empty((6, 3)), np.empty((6, 3))
+    grad_a, grad_x = np.empty((6, 3)), np.empty((8, 3))
+    energy = 0.0
+    for c in range(len(volume)):
+        _cell_state(rest, ends, u, c, a, da)
+        change = volume_change(rest[c], da)
+        energy += 0.5 * kappa[c] * change * change / volume[c]
+        pressure = kappa[c] * change / volume[c]
+        coefficient_gradient(a, grad_a)
+        corner_gradient(grad_a, grad_x)
+        for n in range(8):
+            i = ends[c, n]
+            if i >= 0:
+                for d in range(3):
+                    grad[i, d] += pressure * grad_x[n, d]
+    return energy
+
+
+@njit(cache=True, nogil=True)
+def _cell_energy_change(
+    rest: np.ndarray,
+    volume: np.ndarray,
+    ends: np.ndarray,
+    kappa: np.ndarray,
+    u: np.ndarray,
+    step: np.ndarray,
+) -> float:
+    """The cells' energy at u + step minus at u, J: per cell
+    1/2 kappa / V0 (dV' - dV)(dV' + dV), dV' - dV = V(a + ds) - V(a) without cancellation."""
+    a, da = np.empty((6, 3)), np.empty((6, 3))
+    ds, dummy = np.empty((6, 3)), np.empty((6, 3))
+    total = 0.0
+    for c in range(len(volume)):
+        _cell_state(rest, ends, u, c, a, da)
+        _cell_state(rest, ends, step, c, dummy, ds)
+        change = volume_change(rest[c], da)
+        more = volume_change(a, ds)
+        total += 0.5 * kappa[c] / volume[c] * more * (2.0 * change + more)
+    return total
+
+
+@njit(cache=True, nogil=True)
+def _cell_tangent_blocks(
+    rest: np.ndarray,
+    volume: np.ndarray,
+    ends: np.ndarray,
+    kappa: np.ndarray,
+    u: np.ndarray,
+    modified: bool,
+    position: np.ndarray,
+    data: np.ndarray,
+) -> None:
+    """Add each cell's blocks (kappa / V0) g_n g_m^T + p H_nm (p term unless ``modified``) into
+    ``data`` at ``position`` (C, 8, 8)."""
+    a, da = np.empty((6, 3)), np.empty((6, 3))
+    grad_a, grad_x = np.empty((6, 3)), np.empty((8, 3))
+    hessian_a = np.empty((6, 6, 3, 3))
+    for c in range(len(volume)):
+        _cell_state(rest, ends, u, c, a, da)
+        weight = kappa[c] / volume[c]
+        pressure = weight * volume_change(rest[c], da)
+        coefficient_gradient(a, grad_a)
+        corner_gradient(grad_a, grad_x)
+        if not modified:
+            coefficient_hessian(a, hessian_a)
+        for n in range(8):
+            for m in range(8):
+                at = position[c, n, m]
+                if at < 0:
+                    continue
+                for x in range(3):
+                    for y in range(3):
+                        value = weight * grad_x[n, x] * grad_x[m, y]
+                        if not modified:
+                            h = 0.0
+                            for k in range(6):
+                                ck = COEFFICIENTS[k, n]
+                                for q in range(6):
+                                    h += ck * COEFFICIENTS[q, m] * hessian_a[k, q, x, y]
+                            value += pressure * h
+                        data[at, x, y] += value
+
+
+@njit(cache=True, nogil=True)
+def _cell_reduced_tangent(
+    rest: np.ndarray,
+    volume: np.ndarray,
+    ends: np.ndarray,
+    kappa: np.ndarray,
+    u: np.ndarray,
+    basis: np.ndarray,
+    out: np.ndarray,
+) -> None:
+    """Add sum_c (kappa_c / V0_c) w w^T to ``out`` (m, m), w = sum_n Q_n^T g_n (m,)."""
+    m = basis.shape[2]
+    a, da = np.empty((6, 3)), np.empty((6, 3))
+    grad_a, grad_x = np.empty((6, 3)), np.empty((8, 3))
+    w = np.empty(m)
+    for c in range(len(volume)):
+        _cell_state(rest, ends, u, c, a, da)
+        coefficient_gradient(a, grad_a)
+        corner_gradient(grad_a, grad_x)
+        w[:] = 0.0
+        for n in range(8):
+            i = ends[c, n]
+            if i >= 0:
+                for p in range(m):
+                    w[p] += (
+                        grad_x[n, 0] * basis[i, 0, p]
+                        + grad_x[n, 1] * basis[i, 1, p]
+                        + grad_x[n, 2] * basis[i, 2, p]
+                    )
+        weight = kappa[c] / volume[c]
+        for p in range(m):
+            for q in range(m):
+                out[p, q] += weight * w[p] * w[q]
 
 
 @njit(cache=True, nogil=True)
@@ -634,7 +860,7 @@ class StaticSolver:
     def solve(
         self,
         load_case: int,
-        stiffness: np.ndarray,
+        stiffness: Stiffness | np.ndarray,
         depth: int | None,
         *,
         tolerance: float | None = None,
@@ -643,8 +869,9 @@ class StaticSolver:
 
         Args:
             load_case: index into the problem's load cases.
-            stiffness: (S,) stiffness of every spring, N/m
-                (:func:`fpm.model.stiffness.spring_stiffness`, the spec's stiffness_scale included).
+            stiffness: the model's :class:`~fpm.model.forces.Stiffness`
+                (:func:`fpm.model.stiffness.model_stiffness`), or (S,) stiffness of every
+                spring, N/m, for a model without the volume term.
             depth: layers of the perturbed list; None = all reachable.
             tolerance: converged when the largest unbalanced nodal force is at most this times
                 the largest applied nodal force; None = :meth:`default_tolerance`.
@@ -653,27 +880,29 @@ class StaticSolver:
         p = self.problem
         if not 0 <= load_case < len(p.load_cases):
             raise ValueError(f"load_case must be in 0..{len(p.load_cases) - 1}")
-        stiffness = np.asarray(stiffness, dtype=float)
-        if stiffness.shape != (len(p.solid.springs),):
+        stiffness = Stiffness.of(stiffness)
+        if stiffness.springs.shape != (len(p.solid.springs),):
             raise ValueError(f"need one stiffness per spring, shape ({len(p.solid.springs)},)")
-        if not np.all(stiffness > 0):
+        if not np.all(stiffness.springs > 0):
             raise ValueError("need every spring stiffness > 0")
+        if stiffness.volume is not None and not np.all(stiffness.volume >= 0):
+            raise ValueError("need every volume stiffness >= 0")
         tol = self.default_tolerance() if tolerance is None else float(tolerance)
         if not tol > 0:
             raise ValueError("need tolerance > 0")
         system, layers = self.system(load_case, depth)
         forces = self.forces(load_case, system)
-        k = stiffness[system.springs]
+        k = system.parameters(stiffness)
         applied = float(np.sqrt(np.einsum("ij,ij->i", forces, forces)).max(initial=0.0))
         target = tol * applied
         stats = _Stats()
         predictor = self._predictors.get((load_case, depth))
         if predictor is None:
-            predictor = self._predictors[(load_case, depth)] = _Predictor(len(k))
+            predictor = self._predictors[(load_case, depth)] = _Predictor(len(k.flat))
         u, gradient = self._start(predictor, system, k, forces, applied, target, stats)
         u, residual, converged = self._newton(system, k, forces, u, gradient, target, stats)
         if converged and self.warm:
-            predictor.add(u, k)
+            predictor.add(u, k.flat)
         displacements = np.zeros_like(p.nodes)
         displacements[system.free] = u
         return Equilibrium(
@@ -695,7 +924,7 @@ class StaticSolver:
         self,
         predictor: _Predictor,
         system: SpringSystem,
-        k: np.ndarray,
+        k: Params,
         forces: np.ndarray,
         applied: float,
         target: float,
@@ -704,9 +933,9 @@ class StaticSolver:
         """Where Newton starts, and dE/du there: rest, or the predictor's guess refined on the
         reduced model."""
         rest = np.zeros((system.n_free, 3))
-        if not self.warm or not predictor.snapshots or not len(k):
+        if not self.warm or not predictor.snapshots or not len(k.flat):
             return rest, -forces
-        scale, spread = predictor.relation(k)
+        scale, spread = predictor.relation(k.flat)
         u = predictor.predict(system.n_free, scale, spread)
         gradient = system.gradient(u, k, forces)
         if not _largest(gradient) < applied:  # worse than rest (the residual at rest: forces)
@@ -721,7 +950,7 @@ class StaticSolver:
     def _newton(
         self,
         system: SpringSystem,
-        k: np.ndarray,
+        k: Params,
         forces: np.ndarray,
         u: np.ndarray,
         gradient: np.ndarray,
@@ -802,7 +1031,7 @@ class StaticSolver:
         self,
         system: SpringSystem,
         u: np.ndarray,
-        k: np.ndarray,
+        k: Params,
         gradient: np.ndarray,
         eta: float,
         nodal_stop: float,
@@ -835,7 +1064,7 @@ class StaticSolver:
         self,
         system: SpringSystem,
         u: np.ndarray,
-        k: np.ndarray,
+        k: Params,
         tangent: sp.bsr_matrix,
         rhs: np.ndarray,
         eta: float,
@@ -864,7 +1093,7 @@ class StaticSolver:
         mg.record(cg.iterations, cg.residual, cg.converged)
         return cg.x, cg.iterations
 
-    def _hierarchy(self, system: SpringSystem, u: np.ndarray, k: np.ndarray) -> ReusedHierarchy:
+    def _hierarchy(self, system: SpringSystem, u: np.ndarray, k: Params) -> ReusedHierarchy:
         """The list's multigrid hierarchy, built on the clamped tangent at u when missing or
         stale."""
         key = system.free.tobytes()
@@ -878,7 +1107,11 @@ class StaticSolver:
         return mg
 
     def linear_response(
-        self, load_case: int, stiffness: np.ndarray, depth: int | None, loads: np.ndarray
+        self,
+        load_case: int,
+        stiffness: Stiffness | np.ndarray,
+        depth: int | None,
+        loads: np.ndarray,
     ) -> np.ndarray:
         """(N, 3) displacements, m, of ``load_case``'s list linearised at rest (each spring
         acting along its rest direction) under nodal ``loads`` (N, 3), N; zero off the list.
@@ -891,7 +1124,7 @@ class StaticSolver:
                 'axis' lattice at rest is a mechanism).
         """
         system, _ = self.system(load_case, depth)
-        k = np.asarray(stiffness, dtype=float)[system.springs]
+        k = system.parameters(Stiffness.of(stiffness))
         rest = np.zeros((system.n_free, 3))
         tangent = system.tangent(rest, k, modified=True)
         rhs = np.ascontiguousarray(loads[system.free]).ravel()
@@ -910,7 +1143,7 @@ class StaticSolver:
 
 def _galerkin(
     system: SpringSystem,
-    k: np.ndarray,
+    k: Params,
     forces: np.ndarray,
     u: np.ndarray,
     gradient: np.ndarray,
@@ -928,11 +1161,8 @@ def _galerkin(
     """
     m = basis.shape[2]
     q = basis.reshape(-1, m)
-    hessian = np.empty((m, m))
     for modified in (False, True):
-        _reduced_tangent(
-            system.rest_vector, system.ends, system.rest_length, k, u, basis, modified, hessian
-        )
+        hessian = system.reduced_tangent(u, k, basis, modified)
         if np.all(np.isfinite(hessian)) and np.linalg.eigvalsh(hessian).min() > 0:
             break
     else:
@@ -1027,5 +1257,5 @@ def static_equilibrium(
         depth = int(problem.spec.fpm.depth)
     if depth is not None and depth < 0:
         raise ValueError("depth must be >= 0")
-    stiffness = spring_stiffness(problem, k)
+    stiffness = model_stiffness(problem, k)
     return static_solver(problem).solve(load_case, stiffness, depth, tolerance=tolerance)

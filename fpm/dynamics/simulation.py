@@ -8,11 +8,14 @@ from typing import Any
 
 import numpy as np
 
+from ..model.forces import Stiffness, cells
 from ..model.perturbed_list import Adjacency, PerturbedList, PerturbedListCache
 from ..model.problem import Problem
 from ..model.spec import FpmSettings
-from ..model.stiffness import axis_factors, spring_stiffness
-from .voigt import DIVERGED, RUNNING, SETTLED, run_steps
+from ..model.stiffness import axis_factors, has_volume, model_stiffness
+from ..model.volume import Cells
+from .stability import auto_time_step
+from .voigt import DIVERGED, INVERTED, RUNNING, SETTLED, run_steps
 
 
 @dataclass
@@ -24,11 +27,13 @@ class SimulationResult:
         displacements: (N, 3) final displacements, m (zero outside the perturbed list).
         steps: time steps taken.
         settled: the run reached equilibrium within max_steps (physics.md criterion).
-        diverged: positions became non-finite or moved further than the solid's size.
+        diverged: positions became non-finite or moved further than the solid's size, or a
+            cell inverted.
         perturbed: number of nodes in the perturbed list.
         depth: layers actually reached (<= the depth asked for).
         residual: largest unbalanced nodal force |F_i + F_s| in the last sweep, N.
         load_case: index of the load case.
+        inverted_cell: the cell (hexahedron index) whose volume reached zero, or None.
     """
 
     nodes: np.ndarray
@@ -40,6 +45,23 @@ class SimulationResult:
     depth: int
     residual: float
     load_case: int
+    inverted_cell: int | None = None
+
+    @property
+    def message(self) -> str:
+        """Why the run stopped short of settling ("" if it settled or is still running)."""
+        if self.inverted_cell is not None:
+            return (
+                f"load case {self.load_case}: cell {self.inverted_cell} (hexahedron index) "
+                f"inverted at step {self.steps}: its volume reached zero; the load is too large "
+                "for this lattice, or dt is too long (try a smaller fpm.dt)"
+            )
+        if self.diverged:
+            return (
+                f"load case {self.load_case}: diverged at step {self.steps} (a node left the "
+                "solid's size or became non-finite): lower fpm.dt or raise d"
+            )
+        return ""
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form (arrays as nested lists)."""
@@ -67,6 +89,7 @@ class FpmModel:
         self.lists = PerturbedListCache(self.adjacency, problem.fixed)
         self._x = np.empty_like(solid.nodes)
         self._v = np.empty_like(solid.nodes)
+        self._cells: dict[bytes, tuple[Cells, np.ndarray]] = {}
         gravity = np.asarray(problem.spec.fpm.gravity, dtype=float)
         self._weight = solid.masses[:, None] * gravity[None, :] if np.any(gravity) else None
 
@@ -74,11 +97,24 @@ class FpmModel:
         """The (cached) list of ``load_case`` for ``depth`` layers (None = all reachable)."""
         return self.lists.get(self.problem.load_cases[load_case].nodes, depth)
 
+    def active_cells(self, plist: PerturbedList) -> tuple[Cells, np.ndarray]:
+        """The cells with a corner in ``plist`` (only they can move) and their indices (C,)
+        among the solid's hexahedra; kept per list."""
+        key = plist.order.tobytes()
+        found = self._cells.get(key)
+        if found is None:
+            every = cells(self.problem)
+            listed = np.zeros(self.problem.n_nodes, dtype=bool)
+            listed[plist.order] = True
+            which = np.flatnonzero(listed[every.corners].any(axis=1))
+            found = self._cells[key] = (every.subset(which), which)
+        return found
+
     def run(
         self,
         load_case: int,
         *,
-        k: float | np.ndarray,
+        k: float | np.ndarray | Stiffness,
         d: float,
         depth: int | None,
         dt: float,
@@ -87,9 +123,9 @@ class FpmModel:
     ) -> SimulationResult:
         """Simulate ``load_case`` from rest; see :func:`simulate`.
 
-        ``k`` is one stiffness for every spring (scaled by the spec's stiffness_scale), N/m, or
+        ``k`` is one stiffness for every spring (scaled by the spec's stiffness_scale), N/m,
         the (S,) stiffness of every spring (:func:`fpm.model.stiffness.spring_stiffness`, scale
-        included).
+        included), or the model's :class:`~fpm.model.forces.Stiffness` (springs and volume).
         """
         run = self.start(load_case, k=k, d=d, depth=depth, dt=dt, settle_tolerance=settle_tolerance)
         run.advance(max_steps, buffers=(self._x, self._v))
@@ -99,7 +135,7 @@ class FpmModel:
         self,
         load_case: int,
         *,
-        k: float | np.ndarray,
+        k: float | np.ndarray | Stiffness,
         d: float,
         depth: int | None,
         dt: float,
@@ -114,8 +150,17 @@ class FpmModel:
             external += self._weight
         a = self.adjacency
         factor = a.stiffness_factor
+        kappa: np.ndarray | None = None
+        if isinstance(k, Stiffness):
+            kappa = k.volume
+            k = k.springs
         if np.ndim(k):  # per-spring stiffness: the kernel's factor carries it, with k = 1
             factor, k = np.asarray(k, dtype=float)[a.spring], 1.0
+        if kappa is not None:
+            active, which = self.active_cells(plist)
+            volume = (active, np.ascontiguousarray(kappa[which], dtype=float))
+        else:
+            volume = (_NO_CELLS, np.zeros(0))
         return DynamicRun(
             model=self,
             load_case=load_case,
@@ -127,7 +172,11 @@ class FpmModel:
             dt=float(dt),
             settle_force=settle_tolerance
             * float(np.linalg.norm(external[plist.order], axis=1).max()),
+            volume=volume,
         )
+
+
+_NO_CELLS = Cells(np.zeros((0, 8), dtype=np.int64), np.zeros((0, 6, 3)), np.zeros(0))
 
 
 class DynamicRun:
@@ -153,8 +202,11 @@ class DynamicRun:
         d: float,
         dt: float,
         settle_force: float,
+        volume: tuple[Cells, np.ndarray],
     ):
         p = model.problem
+        self.cells, self.kappa = volume
+        self.inverted_cell: int | None = None
         self.model, self.load_case, self.plist = model, load_case, plist
         self.external, self.factor = external, factor
         self.k, self.d, self.dt, self.settle_force = k, d, dt, settle_force
@@ -162,10 +214,12 @@ class DynamicRun:
         self.v: np.ndarray | None = None
         self.steps, self.state, self.residual = 0, RUNNING, 0.0
         self._rest = p.nodes
+        self._force: np.ndarray | None = None  # volume forces (N, 3), made on the first piece
 
     @property
     def diverged(self) -> bool:
-        return self.state == DIVERGED
+        """Diverged, or a cell inverted."""
+        return self.state in (DIVERGED, INVERTED)
 
     @property
     def finished(self) -> bool:
@@ -181,13 +235,18 @@ class DynamicRun:
             self.x, self.v = buffers or (np.empty_like(self._rest), np.empty_like(self._rest))
             self.x[:] = self._rest
             self.v[:] = 0.0
-        a, p = self.model.adjacency, self.model.problem
-        taken, self.state, self.residual = run_steps(
+        a, p, c = self.model.adjacency, self.model.problem, self.cells
+        if self._force is None:
+            self._force = np.zeros_like(self._rest) if len(c.volume) else np.zeros((0, 3))
+        taken, self.state, self.residual, inverted = run_steps(
             self.plist.order, a.ptr, a.neighbour, a.rest_length, self.factor, p.nodes,
             self.x, self.v, self.external, p.solid.masses, self.k, self.d, self.dt,
             int(steps), self.settle_force, p.size,
+            c.corners, c.rest, c.volume, self.kappa, self._force,
         )  # fmt: skip
         self.steps += int(taken)
+        if inverted >= 0:
+            self.inverted_cell = int(self.model.active_cells(self.plist)[1][inverted])
         return self.finished
 
     def result(self) -> SimulationResult:
@@ -199,11 +258,12 @@ class DynamicRun:
             displacements=x - p.nodes,
             steps=self.steps,
             settled=self.state == SETTLED,
-            diverged=self.state == DIVERGED,
+            diverged=self.diverged,
             perturbed=len(self.plist.order),
             depth=self.plist.layers,
             residual=float(self.residual),
             load_case=self.load_case,
+            inverted_cell=self.inverted_cell,
         )
 
 
@@ -222,7 +282,7 @@ def simulate(
     d: float,
     depth: int | None = None,
     load_case: int = 0,
-    dt: float | None = None,
+    dt: float | str | None = None,
     max_steps: int | None = None,
     settle_tolerance: float | None = None,
 ) -> SimulationResult:
@@ -230,12 +290,13 @@ def simulate(
 
     Args:
         problem: from :func:`fpm.load_problem`.
-        k: spring stiffness, N/m: one value for every spring, or one per spring family
-            (:mod:`fpm.model.stiffness`).
+        k: the fitted stiffness parameters: one k for every spring (N/m), or one per spring
+            family, then kappa (Pa) for families+volume (:mod:`fpm.model.stiffness`).
         d: nodal damping, N s/m.
         depth: penetration depth in layers; None = the spec's (its 'auto' means all layers).
         load_case: index into the spec's load cases.
-        dt, max_steps, settle_tolerance: None = the spec's value; ``settle_tolerance=0`` never
+        dt, max_steps, settle_tolerance: None = the spec's value (dt 'auto': half the
+            lattice's stability estimate at k, at most 1 ms); ``settle_tolerance=0`` never
             settles.
     """
     s = problem.spec.fpm
@@ -243,8 +304,10 @@ def simulate(
         raise ValueError(f"load_case must be in 0..{len(problem.load_cases) - 1}")
     if not (np.all(np.asarray(k) > 0) and d >= 0):
         raise ValueError("need k > 0 and d >= 0")
-    stiffness: float | np.ndarray = (
-        spring_stiffness(problem, k) if np.ndim(k) else float(k)  # type: ignore[arg-type]
+    stiffness: float | Stiffness = (
+        model_stiffness(problem, k)  # type: ignore[arg-type]
+        if np.ndim(k) or has_volume(problem)
+        else float(k)  # type: ignore[arg-type]
     )
     if depth is None and s.depth != "auto":
         depth = int(s.depth)
@@ -255,12 +318,13 @@ def simulate(
     settings = FpmSettings.model_validate(
         s.model_dump() | {key: v for key, v in given.items() if v is not None}
     )
+    step = auto_time_step(problem, stiffness) if settings.dt == "auto" else float(settings.dt)
     return fpm_model(problem).run(
         load_case,
         k=stiffness,
         d=d,
         depth=depth,
-        dt=settings.dt,
+        dt=step,
         max_steps=settings.max_steps,
         settle_tolerance=settings.settle_tolerance,
     )

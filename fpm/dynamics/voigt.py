@@ -7,6 +7,14 @@ One step visits the perturbed list node by node, always using the newest positio
     v_i <- (v_i + dt (F_i + F_s) / m_i) / (1 + dt d / m_i)      (damping taken implicitly)
     x_i <- x_i + dt v_i
 
+With the volume term (:mod:`fpm.model.volume`), F_i also holds the volume forces
+-kappa_c (V_c - V0_c) / V0_c dV_c/dx_i of the cells around node i. They are computed once per
+step, at its start, in one pass over the cells that touch the list (a cell acts when any of its
+corners is in the list): a cell's volume depends on all 8 corners, so refreshing it after every
+node would cost 8 volume gradients per node instead of one per cell. The springs keep the
+paper's node-by-node order. A settled run is the same static equilibrium either way (nothing
+moves there), which the tests check against :mod:`fpm.dynamics.equilibrium`.
+
 The loop is sequential by nature (each node sees its predecessors' new positions), so it is
 compiled with numba rather than vectorised; compilation is cached on disk, and the GIL is
 released so that annealing chains can run on threads.
@@ -17,7 +25,50 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from ..model.volume import COEFFICIENTS, coefficient_gradient, corner_gradient, volume_of
+
 RUNNING, SETTLED, DIVERGED = 0, 1, 2
+INVERTED = 3
+"""A cell's volume reached zero or below (the run stops; :func:`volume_forces` names it)."""
+
+
+@njit(cache=True, nogil=True)
+def volume_forces(
+    corners: np.ndarray,
+    rest_coefficients: np.ndarray,
+    rest_volume: np.ndarray,
+    kappa: np.ndarray,
+    x: np.ndarray,
+    order: np.ndarray,
+    out: np.ndarray,
+) -> int:
+    """Set ``out`` (N, 3) at the list nodes ``order`` to their volume forces at positions ``x``,
+    N, from cells ``corners`` (C, 8) with rest a1..a6 ``rest_coefficients`` (C, 6, 3), rest
+    volumes (C,) m^3 and ``kappa`` (C,) Pa. Returns -1, or the first cell whose volume is not
+    positive (an inverted cell)."""
+    for i in order:
+        out[i, 0] = out[i, 1] = out[i, 2] = 0.0
+    a = np.empty((6, 3))
+    grad_a = np.empty((6, 3))
+    grad_x = np.empty((8, 3))
+    for c in range(corners.shape[0]):
+        for k in range(6):
+            for d in range(3):
+                value = 0.0
+                for n in range(8):
+                    value += COEFFICIENTS[k, n] * x[corners[c, n], d]
+                a[k, d] = value
+        volume = volume_of(a)
+        if not volume > 0.0:
+            return c
+        pressure = kappa[c] * (volume - rest_volume[c]) / rest_volume[c]
+        coefficient_gradient(a, grad_a)
+        corner_gradient(grad_a, grad_x)
+        for n in range(8):
+            node = corners[c, n]
+            for d in range(3):
+                out[node, d] -= pressure * grad_x[n, d]
+    return -1
 
 
 @njit(cache=True, nogil=True)
@@ -38,23 +89,41 @@ def run_steps(
     max_steps: int,
     settle_force: float,
     max_move: float,
-) -> tuple[int, int, float]:
+    corners: np.ndarray,
+    rest_coefficients: np.ndarray,
+    rest_volume: np.ndarray,
+    kappa: np.ndarray,
+    volume_force: np.ndarray,
+) -> tuple[int, int, float, int]:
     """Advance ``x``, ``v`` (N, 3) in place by up to ``max_steps`` steps over ``order`` (M,).
 
     ``external`` (N, 3) is F_i, N; ``mass`` (N,) kg; ``stiffness_factor`` (2S,) or empty (all 1);
-    ``rest`` (N, 3) the rest positions. Stops early once the largest |F_i + F_s| of a sweep is
-    below ``settle_force`` (N), or once a node is non-finite or further than ``max_move`` (m)
-    from rest. Returns (steps taken, RUNNING/SETTLED/DIVERGED, largest |F_i + F_s| of the last
-    sweep).
+    ``rest`` (N, 3) the rest positions. The volume term's cells (``corners`` (C, 8) ... ``kappa``
+    as :func:`volume_forces`; C = 0: none) add their forces, kept in ``volume_force`` (N, 3).
+    Stops early once the largest |F_i + F_s| of a sweep is below ``settle_force`` (N), once a
+    node is non-finite or further than ``max_move`` (m) from rest (DIVERGED), or once a cell
+    inverts (INVERTED). Returns (steps taken, RUNNING/SETTLED/DIVERGED/INVERTED, largest
+    |F_i + F_s| of the last sweep, the inverted cell or -1).
     """
     scaled = stiffness_factor.shape[0] > 0
+    cells = corners.shape[0] > 0
     limit2 = max_move * max_move
     worst = 0.0
     for step in range(1, max_steps + 1):
         worst2 = 0.0
+        if cells:
+            inverted = volume_forces(
+                corners, rest_coefficients, rest_volume, kappa, x, order, volume_force
+            )
+            if inverted >= 0:
+                return step, INVERTED, worst, inverted
         for i in order:
             xi0, xi1, xi2 = x[i, 0], x[i, 1], x[i, 2]
             f0, f1, f2 = external[i, 0], external[i, 1], external[i, 2]
+            if cells:
+                f0 += volume_force[i, 0]
+                f1 += volume_force[i, 1]
+                f2 += volume_force[i, 2]
             for e in range(ptr[i], ptr[i + 1]):
                 j = neighbour[e]
                 r0 = x[j, 0] - xi0
@@ -82,8 +151,8 @@ def run_steps(
             x[i, 0], x[i, 1], x[i, 2] = xi0, xi1, xi2
             u0, u1, u2 = xi0 - rest[i, 0], xi1 - rest[i, 1], xi2 - rest[i, 2]
             if not (u0 * u0 + u1 * u1 + u2 * u2 <= limit2):  # also catches NaN
-                return step, DIVERGED, np.sqrt(worst2)
+                return step, DIVERGED, np.sqrt(worst2), -1
         worst = np.sqrt(worst2)
         if worst < settle_force:
-            return step, SETTLED, worst
-    return max_steps, RUNNING, worst
+            return step, SETTLED, worst, -1
+    return max_steps, RUNNING, worst, -1

@@ -4,8 +4,9 @@ Strain energy per unit reference volume, Pa (J/m^3)::
 
     W(F) = mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2,    I1 = tr(F^T F),  J = det F
 
-with the Lame constants ``mu``, ``lambda`` of E and nu (:func:`lame_constants`). Its first
-Piola-Kirchhoff stress and the derivative of that stress (the material tangent), Pa::
+with the Lame constants ``mu``, ``lambda`` of E and nu
+(:func:`fpm.model.spec.lame_constants`). Its first Piola-Kirchhoff stress and the derivative
+of that stress (the material tangent), Pa::
 
     P = mu (F - F^-T) + lambda ln J F^-T
     dP_iJ/dF_kL = mu d_ik d_JL + (mu - lambda ln J) Finv_Li Finv_Jk + lambda Finv_Ji Finv_Lk
@@ -27,15 +28,6 @@ import numpy as np
 from ..model.hexahedron import GAUSS_POINTS
 from .assembly import identical_elements
 from .elasticity import physical_gradients
-
-
-def lame_constants(youngs_modulus: float, poisson_ratio: float) -> tuple[float, float]:
-    """(mu, lambda), Pa, of E (Pa) and nu.
-
-    mu = E / (2 (1 + nu)), lambda = E nu / ((1 + nu)(1 - 2 nu)).
-    """
-    e, nu = youngs_modulus, poisson_ratio
-    return e / (2 * (1 + nu)), e * nu / ((1 + nu) * (1 - 2 * nu))
 
 
 @dataclass(frozen=True)

@@ -130,7 +130,8 @@ def solve_fem(problem: Problem, method: str = "auto", *, load_steps: int = 1) ->
             "check their node order (see fpm.model.hexahedron)"
         )
     material = problem.spec.material
-    forces = np.stack([case.dense(len(nodes)) for case in problem.load_cases])  # (L, N, 3)
+    # The validation cases too (after the load cases): the fit never sees them, the result does.
+    forces = np.stack([case.dense(len(nodes)) for case in problem.all_cases])  # (L + V, N, 3)
     in_solid = np.zeros(len(nodes), dtype=bool)
     in_solid[hexahedra] = True
     stray = np.flatnonzero(~in_solid & np.any(forces != 0, axis=(0, 2)))
@@ -138,10 +139,10 @@ def solve_fem(problem: Problem, method: str = "auto", *, load_steps: int = 1) ->
         raise FemError(f"node {int(stray[0])} is loaded but belongs to no hexahedron")
     free = np.repeat(in_solid & ~problem.fixed, 3)
     method = choose_method(int(free.sum())) if method == "auto" else method
-    names = [case.name for case in problem.load_cases]
+    names = [case.name for case in problem.all_cases]
     if material.model == "neo-hookean":
+        from ..model.spec import lame_constants
         from .hyperelastic import solve_hyperelastic
-        from .neo_hookean import lame_constants
 
         mu, lam = lame_constants(material.youngs_modulus, material.poisson_ratio)
         u, paths = solve_hyperelastic(

@@ -42,11 +42,23 @@ from scipy.optimize import minimize, minimize_scalar
 
 from ..dynamics.equilibrium import StaticSolver
 from ..dynamics.simulation import fpm_model
+from ..dynamics.stability import time_step
 from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
+from ..model.forces import Stiffness
 from ..model.problem import Problem
-from ..model.stiffness import family_names, spring_stiffness, stiffness_dict
+from ..model.spec import lame_constants
+from ..model.stiffness import (
+    FLOOR,
+    continuum_start,
+    family_names,
+    has_volume,
+    model_stiffness,
+    spring_stiffness,
+    stiffness_dict,
+    volume_stiffness,
+)
 from .annealing import AnnealingError, Checkpoint, Schedule, State, anneal
-from .cost import CostFunction, Evaluation, StaticCost, discrepancies
+from .cost import CostFunction, Evaluation, StaticCost, discrepancies, dynamic_time_step
 from .damping import critical_damping, fastest_damping
 from .result import CalibrationResult, ChainSummary
 
@@ -195,6 +207,7 @@ class DampingStage:
         depth: resolved penetration depth; full_depth the deepest reachable.
         d: fastest-settling nodal damping, N s/m; d_min the smallest that settles;
             d_guess the critical-damping estimate the search started from.
+        dt: the time step d was fitted at, s (the spec's, or 'auto' resolved at theta).
         damping_runs: dynamic runs of the d search.
         damping_tried: [d, total steps or None] for every d tried.
         final: the check at (theta, d, depth): the d search's runs at d, which are the last
@@ -210,6 +223,7 @@ class DampingStage:
     d: float
     d_min: float
     d_guess: float
+    dt: float
     damping_runs: int
     damping_tried: list[tuple[float, int | None]]
     final: FinalRun
@@ -224,12 +238,22 @@ class DampingStage:
 
 
 def stiffness_bounds(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
-    """(lower, upper) for the stiffness parameters, N/m: the spec's k bounds, else
-    [E h / 100, 10 E h], the same for every family."""
+    """(lower, upper) for the stiffness parameters: the spec's k bounds, else
+    [E h / 100, 10 E h] N/m, the same for every family. families+volume: each family from
+    FLOOR mu h (its 'zero') to the top of the k bounds, and kappa in [FLOOR mu, 10 (lambda +
+    2 mu)] Pa (kappa >= 0: for nu < 1/4 it stays at its floor, see
+    :func:`fpm.model.stiffness.continuum_start`)."""
     eh = problem.spec.material.youngs_modulus * problem.h
     k = problem.spec.annealing.bounds.k or (eh / 100, 10 * eh)
     n = len(family_names(problem))
-    return np.full(n, float(k[0])), np.full(n, float(k[1]))
+    if not has_volume(problem):
+        return np.full(n, float(k[0])), np.full(n, float(k[1]))
+    m = problem.spec.material
+    mu, lam = lame_constants(m.youngs_modulus, m.poisson_ratio)
+    low = min(float(k[0]), FLOOR * mu * problem.h)
+    lower = np.append(np.full(n - 1, low), FLOOR * mu)
+    upper = np.append(np.full(n - 1, float(k[1])), 10 * (lam + 2 * mu))
+    return lower, upper
 
 
 def damping_bounds(problem: Problem) -> tuple[float, float]:
@@ -252,9 +276,21 @@ def full_depth(problem: Problem) -> int:
     return max(model.perturbed_list(j, None).layers for j in range(len(problem.load_cases)))
 
 
-def reference_displacements(reference: Any) -> np.ndarray:
-    """(L, N, 3) from a FemResult (``.displacements``) or an array."""
-    return np.asarray(getattr(reference, "displacements", reference), dtype=float)
+def reference_displacements(reference: Any, problem: Problem | None = None) -> np.ndarray:
+    """(L, N, 3) from a FemResult (``.displacements``) or an array: the load cases' part
+    (the reference also holds the validation cases after them, :func:`validation_reference`)."""
+    every = np.asarray(getattr(reference, "displacements", reference), dtype=float)
+    return every if problem is None else every[: len(problem.load_cases)]
+
+
+def validation_reference(reference: Any, problem: Problem) -> np.ndarray | None:
+    """(V, N, 3) the reference of the validation cases, or None if it holds none (a reference
+    of the load cases only)."""
+    every = np.asarray(getattr(reference, "displacements", reference), dtype=float)
+    n, v = len(problem.load_cases), len(problem.validation_cases)
+    if not v or len(every) < n + v:
+        return None
+    return every[n : n + v]
 
 
 def run_chain(
@@ -280,7 +316,7 @@ def run_chain(
     """
     t0 = time.perf_counter()
     a = problem.spec.annealing
-    disp = reference_displacements(reference)
+    disp = reference_displacements(reference, problem)
     depth = fit_depth(problem)
     lower, upper = stiffness_bounds(problem)
     n = len(lower)
@@ -294,7 +330,12 @@ def run_chain(
             ev = static(x)
             return State(list(x), ev.cost / reference_cost, {"rejected": ev.rejected})
 
-        initial = [linear_estimate(static, lower[0], upper[0])] * n if resume is None else None
+        if resume is not None:
+            initial = None
+        elif has_volume(problem):  # the closed form is the natural start (fpm.model.stiffness)
+            initial = list(np.clip(continuum_start(problem), lower, upper))
+        else:
+            initial = [linear_estimate(static, lower[0], upper[0])] * n
 
     else:
         dynamic = CostFunction(problem, disp, depth)
@@ -384,13 +425,17 @@ def linear_estimate(cost: StaticCost, lower: float, upper: float) -> float:
 def _explain(problem: Problem, error: AnnealingError) -> str:
     """The annealer's failure with its counts and what to change."""
     try:
-        from .diagnosis import explain_rejections, stable_time_step
+        from ..dynamics.stability import stable_time_step, time_step
+        from .diagnosis import explain_rejections
     except ImportError:  # pragma: no cover - the diagnosis module is part of the package
         return str(error)
     lower, upper = stiffness_bounds(problem)
-    stiffest = spring_stiffness(problem, upper)
+    stiffest = model_stiffness(problem, upper)
     return explain_rejections(
-        error.rejected, error.tries, stable_time_step(problem, stiffest), problem.spec.fpm.dt
+        error.rejected,
+        error.tries,
+        stable_time_step(problem, stiffest),
+        time_step(problem, stiffest),
     )
 
 
@@ -521,14 +566,14 @@ def fit_damping(
     family fit never ends worse than the single-k fit of the same problem.
     """
     t0 = time.perf_counter()
-    disp = reference_displacements(reference)
+    disp = reference_displacements(reference, problem)
     best = min(chains, key=lambda c: c.cost)
     cost = StaticCost(problem, disp, fit_depth(problem))
     if progress is not None:
         progress({"phase": "polish"})
     bounds = stiffness_bounds(problem)
     start, ceilings = best.x, None
-    if len(start) > 1:
+    if len(start) > 1 and not has_volume(problem):
         uniform, _ = polish(
             cost, [float(np.exp(np.mean(np.log(start))))], (bounds[0][:1], bounds[1][:1]),
             progress, span=UNIFORM_SPAN, uniform=len(start),
@@ -555,13 +600,15 @@ def fit_damping(
     )
     if progress is not None:
         progress({"phase": "damping"})
-    stiffness = spring_stiffness(problem, theta)
+    stiffness = model_stiffness(problem, theta)
+    dt = time_step(problem, stiffness)
     fit = fastest_damping(
         problem,
         stiffness,
         depth,
         damping_bounds(problem),
         damping_guesses(problem, cost.solver, stiffness, depth, static),
+        dt=dt,
         progress=None if progress is None else (lambda i: progress({"phase": "damping", **i})),
     )
     final = final_run(cost, theta, depth, fit.displacements, fit.steps, settled=True)
@@ -574,6 +621,7 @@ def fit_damping(
         d=fit.d,
         d_min=fit.d_min,
         d_guess=fit.guess,
+        dt=dt,
         damping_runs=fit.runs,
         damping_tried=fit.tried,
         final=final,
@@ -584,7 +632,7 @@ def fit_damping(
 def damping_guesses(
     problem: Problem,
     solver: StaticSolver,
-    stiffness: np.ndarray,
+    stiffness: Stiffness,
     depth: int,
     static: np.ndarray,
 ) -> tuple[float, float]:
@@ -638,7 +686,7 @@ def finalize(
     if not chains:
         raise ValueError("no chain results")
     t0 = time.perf_counter()
-    disp = reference_displacements(reference)
+    disp = reference_displacements(reference, problem)
     method = chains[0].method
     if method == "two-stage":
         if damping is None:
@@ -665,11 +713,20 @@ def finalize(
         )
     winner = min(chains, key=lambda c: c.cost)
     stiffness = stiffness_dict(problem, theta)
+    dt = damping.dt if damping is not None else dynamic_time_step(problem)
+    # Full depth reaches every node from any load (a validation load elsewhere needs it).
+    validation = validate(problem, reference, theta, None if depth >= deepest else depth)
     m = problem.solid.masses
     return CalibrationResult(
         method=method,
+        stiffness_mode=problem.spec.fpm.stiffness,
         k=float(theta[0]),
         stiffness=stiffness,
+        volume_stiffness=volume_stiffness(problem, theta),
+        dt=dt,
+        validation_cases=[c.name for c in problem.validation_cases],
+        validation_relative_discrepancy=validation.relative,
+        validation_discrepancy_h=validation.h_percent,
         d=float(d),
         d_min=None if damping is None else damping.d_min,
         depth=int(depth),
@@ -697,7 +754,7 @@ def finalize(
             "mean": float(m.mean()),
             "total": float(m.sum()),
         },
-        warnings=list(warnings or []) + final.notes,
+        warnings=list(warnings or []) + final.notes + validation.notes + mode_notes(problem),
         chains=[
             ChainSummary(chain=c.chain, x=c.x, cost=c.cost, evaluations=c.evaluations)
             for c in chains
@@ -705,12 +762,58 @@ def finalize(
     )
 
 
+@dataclass
+class Validation:
+    """The validation cases at the fitted parameters: relative and % of h per case, and notes."""
+
+    relative: list[float]
+    h_percent: list[float]
+    notes: list[str]
+
+
+def validate(problem: Problem, reference: Any, theta: list[float], depth: int | None) -> Validation:
+    """The validation cases (never in the cost) at the fitted stiffness ``theta`` and ``depth``
+    (None: every layer), against their reference: their static equilibria, the state a settled
+    run reaches (d and dt decide only how fast)."""
+    if not problem.validation_cases:
+        return Validation([], [], [])
+    truth = validation_reference(reference, problem)
+    if truth is None:
+        return Validation(
+            [], [], ["the reference holds no validation cases: they were not evaluated"]
+        )
+    checked = problem.validation_problem()
+    cost = StaticCost(checked, truth, depth)
+    solved = [cost.displacements(theta, j) for j in range(len(checked.load_cases))]
+    figures = discrepancies(checked, np.stack([e.displacements for e in solved]), truth)
+    notes = [
+        f"validation case '{checked.load_cases[e.load_case].name}': no static equilibrium "
+        f"({e.message}): its figure is of an unconverged state"
+        for e in solved
+        if not e.converged
+    ]
+    return Validation(figures.relative, figures.h_percent, notes)
+
+
+def mode_notes(problem: Problem) -> list[str]:
+    """What the user should know about the stiffness mode (families+volume below nu 1/4)."""
+    m = problem.spec.material
+    mu, lam = lame_constants(m.youngs_modulus, m.poisson_ratio)
+    if has_volume(problem) and lam < mu:
+        return [
+            f"Poisson's ratio {m.poisson_ratio:g} < 1/4: the volume term would need a negative "
+            f"kappa (lambda - mu = {lam - mu:.4g} Pa), which can let cells collapse; kappa is "
+            "held at its floor, so the lattice stays near nu = 1/4 (as the spring-only models)"
+        ]
+    return []
+
+
 def check_reference(problem: Problem, reference: Any) -> list[str]:
     """Units sanity of the FEM reference (:func:`fpm.fitting.diagnosis.check_reference`): raises
     on a reference no small-strain solid gives, returns warnings."""
     from .diagnosis import check_reference as check
 
-    return check(problem, reference_displacements(reference))
+    return check(problem, reference_displacements(reference, problem))
 
 
 def calibrate(

@@ -20,10 +20,11 @@ import numpy as np
 
 from ..dynamics.simulation import FpmModel
 from ..model.problem import Problem
-from ..model.stiffness import spring_stiffness
+from ..model.stiffness import model_stiffness
 
 Theta = float | Sequence[float] | np.ndarray
-"""Stiffness parameters: k, or one k per spring family (:mod:`fpm.model.stiffness`), N/m."""
+"""Stiffness parameters: k, or one k per spring family (N/m), then kappa (Pa) for
+families+volume (:mod:`fpm.model.stiffness`)."""
 
 
 @dataclass
@@ -95,6 +96,15 @@ class _Reference:
         return float(np.linalg.norm(displacements - self.reference[j], axis=1).sum())
 
 
+def dynamic_time_step(problem: Problem) -> float:
+    """The paper method's dt, s: the spec's, or for 'auto' the auto dt at the top of the
+    stiffness bounds (one dt for every candidate of the joint (k, d) search, stable for all)."""
+    from ..dynamics.stability import time_step
+    from .calibration import stiffness_bounds
+
+    return time_step(problem, model_stiffness(problem, stiffness_bounds(problem)[1]))
+
+
 class CostFunction(_Reference):
     """Eq. (2) from dynamic FPM runs, counting its evaluations.
 
@@ -102,11 +112,15 @@ class CostFunction(_Reference):
         problem: the problem.
         reference: (L, N, 3) FEM displacements, m, one per load case in spec order.
         depth: penetration depth (None = every layer reachable).
+        dt: time step, s; None = :func:`dynamic_time_step`.
     """
 
-    def __init__(self, problem: Problem, reference: np.ndarray, depth: int | None):
+    def __init__(
+        self, problem: Problem, reference: np.ndarray, depth: int | None, dt: float | None = None
+    ):
         super().__init__(problem, reference, depth)
         self.model = FpmModel(problem)  # own buffers: one cost function per thread
+        self.dt = dynamic_time_step(problem) if dt is None else float(dt)
 
     def displacements(
         self,
@@ -120,10 +134,10 @@ class CostFunction(_Reference):
         s = self.problem.spec.fpm
         return self.model.run(
             load_case,
-            k=spring_stiffness(self.problem, theta),
+            k=model_stiffness(self.problem, theta),
             d=d,
             depth=self.depth if depth is None else depth,
-            dt=s.dt,
+            dt=self.dt,
             max_steps=s.max_steps if max_steps is None else max_steps,
             settle_tolerance=s.settle_tolerance,
         )
@@ -163,7 +177,7 @@ class StaticCost(_Reference):
         """The equilibrium of one load case (depth None = this cost function's depth)."""
         return self.solver.solve(
             load_case,
-            spring_stiffness(self.problem, theta),
+            model_stiffness(self.problem, theta),
             self.depth if depth is None else depth,
         )
 

@@ -39,7 +39,9 @@ from typing import Any
 import numpy as np
 
 from ..dynamics.simulation import DynamicRun, FpmModel
+from ..dynamics.stability import auto_time_step, time_step
 from ..dynamics.voigt import SETTLED
+from ..model.forces import Stiffness
 from ..model.problem import Problem
 
 BRACKET_STEP = 1.25
@@ -116,10 +118,13 @@ def critical_damping(
 class _Runs:
     """Runs every load case at one d, in pieces, on threads (the kernel releases the GIL)."""
 
-    def __init__(self, problem: Problem, stiffness: np.ndarray, depth: int | None):
+    def __init__(
+        self, problem: Problem, stiffness: Stiffness | np.ndarray, depth: int | None, dt: float
+    ):
         self.problem = problem
         self.stiffness = stiffness
         self.depth = depth
+        self.dt = dt
         self.model = FpmModel(problem)
         self.cases = len(problem.load_cases)
         self.threads = min(self.cases, os.cpu_count() or 1)
@@ -137,7 +142,7 @@ class _Runs:
                 k=self.stiffness,
                 d=d,
                 depth=self.depth,
-                dt=s.dt,
+                dt=self.dt,
                 settle_tolerance=s.settle_tolerance,
             )  # fmt: skip
             for j in range(self.cases)
@@ -173,18 +178,21 @@ class _Runs:
 
 def fastest_damping(
     problem: Problem,
-    stiffness: np.ndarray,
+    stiffness: Stiffness | np.ndarray,
     depth: int | None,
     bounds: tuple[float, float],
     guesses: tuple[float, float],
     *,
+    dt: float | None = None,
     progress: Callable[[dict[str, Any]], None] | None = None,
 ) -> DampingFit:
     """The d in ``bounds`` that settles every load case in the fewest total steps.
 
     Args:
-        problem: the problem (dt, max_steps, settle_tolerance from its spec).
-        stiffness: (S,) per-spring stiffness, N/m (:func:`fpm.model.stiffness.spring_stiffness`).
+        problem: the problem (max_steps, settle_tolerance from its spec).
+        stiffness: the model's :class:`~fpm.model.forces.Stiffness`
+            (:func:`fpm.model.stiffness.model_stiffness`), or (S,) per-spring stiffness, N/m.
+        dt: the time step, s; None = the spec's (resolved at ``stiffness`` for 'auto').
         depth: penetration depth (None = every layer).
         bounds: (low, high) for d, N s/m.
         guesses: two estimates of d to start from (e.g. :func:`critical_damping` of the
@@ -195,7 +203,7 @@ def fastest_damping(
     Raises:
         DampingError: no d in the bounds settles every load case within max_steps.
     """
-    runs = _Runs(problem, stiffness, depth)
+    runs = _Runs(problem, stiffness, depth, time_step(problem, stiffness) if dt is None else dt)
     try:
         return _search(runs, bounds, guesses, progress)
     finally:
@@ -261,9 +269,8 @@ def _search(
         if not best:
             raise DampingError(
                 f"no d in [{bounds[0]:.3g}, {bounds[1]:.3g}] N s/m settles every load case "
-                f"within max_steps={max_steps}: raise max_steps, lower dt (see the lattice's "
-                "stability estimate, fpm.fitting.diagnosis.stable_time_step) or widen "
-                "annealing.bounds.d"
+                f"within max_steps={max_steps} at dt = {runs.dt:.3g} s: "
+                + _what_would_work(runs, math.exp(y0), max_steps)
             )
     # Refine: golden-section steps between the best d and its tried neighbours.
     for _ in range(REFINE_STEPS):
@@ -336,6 +343,38 @@ def _smallest_settling(
             return middle if settles(middle) else y_ok
         y_ok = y
     return y_ok
+
+
+PROBE_STEPS = 20
+"""When nothing settles, the probe run may take this many times max_steps (capped at the
+schema's 1,000,000) to measure the steps a run needs."""
+
+
+def _what_would_work(runs: _Runs, d: float, max_steps: int) -> str:
+    """Numbers for a run that cannot settle: the dt 'auto' would take (half the stability
+    estimate, at most 1 ms) and the steps a run at d needs there, measured by one probe of up to
+    PROBE_STEPS x max_steps steps per load case."""
+    p = runs.problem
+    dt = min(runs.dt, auto_time_step(p, runs.stiffness))
+    cap = min(1_000_000, PROBE_STEPS * max_steps)
+    probe = _Runs(p, runs.stiffness, runs.depth, dt)
+    try:
+        results = probe(d, [cap] * probe.cases)
+    finally:
+        probe.close()
+    steps = [r.steps for r in results]
+    if all(r.state == SETTLED for r in results):
+        need = max(steps)
+        return (
+            f"at fpm.dt = {dt:.3g} s (half the lattice's stability estimate, at most 1 ms) and "
+            f"d = {d:.3g} N s/m every load case settles within {need} steps: set fpm.dt <= "
+            f"{dt:.3g} and fpm.max_steps >= {int(math.ceil(1.2 * need))}"
+        )
+    return (
+        f"even at fpm.dt = {dt:.3g} s (half the lattice's stability estimate) and d = "
+        f"{d:.3g} N s/m a run does not settle within {cap} steps: lower the loads, or check "
+        "that the fixed nodes hold the solid; widening annealing.bounds.d may help"
+    )
 
 
 class DampingError(RuntimeError):

@@ -1,43 +1,7 @@
-"""Diagnoses for the user: a reference in the wrong units, a time step the lattice cannot take,
-and why an annealing start failed. Every message says what to change.
+"""Diagnoses for the user: a reference in the wrong units, and why an annealing start failed.
+Every message says what to change.
 
-The stability estimate (:func:`stable_time_step`), derived for the step of :mod:`fpm.dynamics.voigt`
-(semi-implicit Euler, node by node, damping taken implicitly)::
-
-    v_i <- (v_i + dt F_i / m_i) / (1 + dt d / m_i),     x_i <- x_i + dt v_i
-
-1. One mode, all nodes updated at once, no damping. Near rest the spring forces are linear,
-   F = -K u (K: each spring ij adds k_ij e e^T to the diagonal 3x3 blocks of i and j and
-   -k_ij e e^T to the off-diagonal ones, e its unit vector), so a mode of M^-1 K with
-   eigenvalue w^2 evolves as (u, dt v) <- A (u, dt v) with A = [[1 - s, 1], [-s, 1]],
-   s = (w dt)^2: trace 2 - s, determinant 1. Its eigenvalues stay on the unit circle while
-   |2 - s| < 2, i.e. w dt < 2. So dt_max = 2 / w_max with w_max^2 = lambda_max(M^-1 K).
-2. Implicit damping, c = dt d / m: trace (2 + c - s) / (1 + c), determinant 1 / (1 + c); the
-   Jury conditions give s < 4 + 2c. Damping only raises the limit, so the estimate ignores it:
-   it holds for every d >= 0 as far as this mode analysis goes.
-3. Gershgorin's theorem by 3x3 block rows of M^-1 K (Feingold and Varga; over the nodes that
-   move; ||e e^T|| = 1): the diagonal block of node i has eigenvalues at most sum_j k_ij / m_i,
-   its off-diagonal blocks add at most as much again (springs to fixed nodes add none), so
-   w_max^2 <= 2 max_i (sum_j k_ij) / m_i = 2 kappa, and
-
-       dt_max = 2 / sqrt(2 kappa) = sqrt(2 / kappa),   kappa = max_i (sum_j k_ij) / m_i,
-
-   the sum over every spring of node i (springs to fixed nodes included), i over free nodes.
-   Light surface nodes with few springs often have the largest ratio.
-4. Node-by-node order. Node i sees its predecessors' new positions; linearised,
-   M (u+ - 2u + u-) = -dt^2 (K u + L (u+ - u)), L the strictly lower part of K in list order.
-   The extra term, -dt^3 L v+, is not symmetric: it feeds energy into modes whose neighbours
-   move against each other, so without damping the step is weakly unstable at every dt (the
-   spectral radius is about 1 + 0.1 (dt / dt_max)^2 per step on examples/small-box.json with
-   k = 38.8 N/m), and with damping its limit sits below the all-at-once one. Measured on
-   small-box, the paper's cube (k = 38.8 N/m) and bench/organ.py's ellipsoid (h = 10 mm,
-   k = 20 N/m) with d = 0.5 sqrt(E h m) (m the mean node mass; the default d range is 0.1 to 5
-   times that): runs at 0.5 dt_max settle, at 1.0 dt_max they do not diverge, at 1.5 dt_max
-   they do (at 1.25 already on the cube and the ellipsoid), at 3 dt_max within a few steps.
-   With d = 0.3 sqrt(E h m), 1.0 dt_max already diverges; with 0.1, runs diverge even at
-   0.5 dt_max. The factor 2 of step 3 (about 1.5 too generous for the all-at-once step: its
-   true limit is 1.7 dt_max on small-box) thus roughly pays for the order. dt_max is an
-   estimate, not a guarantee: take dt at most about dt_max, and enough damping.
+The lattice's stability estimate lives in :mod:`fpm.dynamics.stability`.
 """
 
 from __future__ import annotations
@@ -116,41 +80,6 @@ def check_reference(problem: Problem, displacements: Any) -> list[str]:
         for j in range(len(names))
         if linear and largest[j] > SMALL_STRAIN * extent
     ]
-
-
-def stable_time_step(problem: Problem, stiffness: float | Any) -> float:
-    """The lattice's stability estimate for the FPM step, s: ``sqrt(2 / kappa)``.
-
-    ``kappa = max_i (sum_j k_ij) / m_i`` over the nodes that are not fixed (the derivation and
-    how well it holds are in this module's docstring). Damping only raises the limit of the
-    all-at-once step; the node-by-node step also needs some damping (see there).
-
-    Args:
-        problem: the problem.
-        stiffness: (S,) stiffness of every spring, N/m (as
-            :func:`fpm.model.stiffness.spring_stiffness` gives, stiffness_scale included), or one k
-            for every spring (the spec's stiffness_scale is then applied).
-
-    Returns:
-        dt_max, s (inf if no free node has a spring).
-    """
-    solid = problem.solid
-    k = np.asarray(stiffness, dtype=float)
-    if k.ndim == 0:
-        from ..model.stiffness import spring_stiffness
-
-        k = spring_stiffness(problem, float(k))
-    if k.shape != (len(solid.springs),):
-        raise ValueError(
-            f"stiffness has shape {k.shape}: give one value, or one per spring "
-            f"({len(solid.springs)},)"
-        )
-    nodal = np.bincount(solid.springs.ravel(), weights=np.repeat(k, 2), minlength=problem.n_nodes)
-    free = ~problem.fixed
-    if not free.any():
-        return float("inf")
-    kappa = float((nodal[free] / solid.masses[free]).max())
-    return float(np.sqrt(2.0 / kappa)) if kappa > 0 else float("inf")
 
 
 def explain_rejections(

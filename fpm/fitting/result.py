@@ -26,9 +26,25 @@ class CalibrationResult(BaseModel):
     """The fitted parameters and how well they fit (units in each field's description)."""
 
     method: str = Field(description="'two-stage' or 'paper'")
+    stiffness_mode: str = Field(
+        "single",
+        description="the model fitted (fpm.stiffness): 'families+volume' (spring families "
+        "assembled from cells plus a volume term), 'single' (the paper's model: one k), or "
+        "'families'",
+    )
     k: float = Field(description="stiffness of the axis family (the one k for 'single'), N/m")
     stiffness: dict[str, float] = Field(
-        description="k per spring family present, N/m (all equal for 'single')"
+        description="k per spring family present, N/m (all equal for 'single'); with "
+        "'families+volume' a spring gets its family's k times its cells' shares (an interior "
+        "spring k, a surface one less)"
+    )
+    volume_stiffness: float | None = Field(
+        None,
+        description="kappa, Pa: the volume stiffness of every cell ('families+volume'; None "
+        "for the spring-only models)",
+    )
+    dt: float | None = Field(
+        None, description="the time step d was fitted at and settle_steps count, s"
     )
     d: float = Field(description="nodal damping, N s/m: the fastest-settling at the spec's dt")
     d_min: float | None = Field(
@@ -48,6 +64,17 @@ class CalibrationResult(BaseModel):
     discrepancy_h: list[float] = Field(
         description="mean nodal discrepancy per load case, % of h (the paper's unit; shrinks "
         "with soft materials and small loads, so read it beside the relative figure)"
+    )
+    validation_cases: list[str] = Field(
+        [], description="names of the validation cases (never in the cost), in spec order"
+    )
+    validation_relative_discrepancy: list[float] = Field(
+        [],
+        description="per validation case, the relative discrepancy at the fitted parameters, "
+        "% (the honest figure: loads the fit never saw)",
+    )
+    validation_discrepancy_h: list[float] = Field(
+        [], description="per validation case, mean nodal discrepancy, % of h"
     )
     settle_steps: list[int] = Field(description="time steps to settle, per load case")
     settled: bool = Field(description="every load case settled within max_steps")
@@ -69,6 +96,12 @@ class CalibrationResult(BaseModel):
     def mean_relative_discrepancy(self) -> float:
         """Mean over the load cases, %."""
         return sum(self.relative_discrepancy) / len(self.relative_discrepancy)
+
+    @property
+    def mean_validation_discrepancy(self) -> float | None:
+        """Mean over the validation cases, % (None without validation cases)."""
+        v = self.validation_relative_discrepancy
+        return sum(v) / len(v) if v else None
 
     def to_dict(self) -> dict[str, Any]:
         """The stored form (JSON-able)."""

@@ -574,7 +574,7 @@ def spec_from_mesh(
     problem = load_problem(spec)  # selectors checked against the nodes
     notes = made.notes + [f"{problem.n_nodes} nodes, h = {problem.h:.4g} m"] + problem.notes
     if dt == "auto":
-        from ..fitting.diagnosis import stable_time_step
+        from ..dynamics.stability import stable_time_step
 
         k = DT_RULE_K * youngs_modulus * problem.h
         step = min(1e-3, 0.5 * stable_time_step(problem, k))

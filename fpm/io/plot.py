@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..dynamics.simulation import simulate
+from ..model.stiffness import theta_of
 from ..model.problem import Problem
 
 if TYPE_CHECKING:
@@ -79,7 +80,10 @@ def calibration_figure(problem: Problem, reference: np.ndarray, result: Any) -> 
     for j, case in enumerate(problem.load_cases):
         line, along, _ = profile_line(problem, j)
         axes_used.add(along)
-        run = simulate(problem, k=theta, d=result.d, depth=result.depth, load_case=j)
+        run = simulate(
+            problem, k=theta, d=result.d, depth=result.depth, load_case=j,
+            dt=getattr(result, "dt", None),
+        )  # fmt: skip
         p, q = run.displacements, reference[j]
         rel = relative[j] if relative is not None else relative_discrepancy(p, q)
         hp = h_percent[j] if h_percent is not None else 100 * _mean_error(p, q) / problem.h
@@ -127,18 +131,21 @@ def plot_calibration(problem: Problem, reference: np.ndarray, result: Any, out: 
 
 
 def _stiffness(problem: Problem, result: Any) -> float | list[float]:
-    """What :func:`fpm.simulate` takes as k: one value, or one per family for 'families'."""
+    """What :func:`fpm.simulate` takes as k: one value, or the fitted parameters."""
     stiffness = getattr(result, "stiffness", None)
-    if problem.spec.fpm.stiffness == "families" and isinstance(stiffness, dict):
-        return [float(v) for v in stiffness.values()]
-    return float(result.k)
+    if problem.spec.fpm.stiffness == "single" or not isinstance(stiffness, dict):
+        return float(result.k)
+    return theta_of(problem, result.k, stiffness, getattr(result, "volume_stiffness", None))
 
 
 def _stiffness_label(result: Any) -> str:
     stiffness = getattr(result, "stiffness", None)
+    kappa = getattr(result, "volume_stiffness", None)
+    volume = "" if kappa is None else f", kappa = {kappa:.4g} Pa"
     if isinstance(stiffness, dict) and len(set(stiffness.values())) > 1:
-        return "k = " + ", ".join(f"{v:.4g} ({name})" for name, v in stiffness.items()) + " N/m"
-    return f"k = {result.k:.4g} N/m"
+        springs = ", ".join(f"{v:.4g} ({name})" for name, v in stiffness.items())
+        return f"k = {springs} N/m{volume}"
+    return f"k = {result.k:.4g} N/m{volume}"
 
 
 def _field(result: Any, *names: str) -> Any:

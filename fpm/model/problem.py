@@ -67,6 +67,7 @@ class Problem:
         h: shortest spring rest length, m (discrepancies are quoted in % of h).
         size: bounding-box diagonal, m (a node moving further than this has diverged).
         cache: derived models kept with the problem (e.g. the FPM's neighbour arrays).
+        validation_cases: the spec's validation cases (never fitted), as load cases.
         notes: what the spec left to interpretation, one line each, for the user to check
             (e.g. which node a ``nearest`` selector took and how far it is from the point).
     """
@@ -80,6 +81,7 @@ class Problem:
     size: float = field(init=False)
     cache: dict[str, Any] = field(init=False, repr=False, default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    validation_cases: list[LoadCase] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.h = float(self.rest_lengths.min())
@@ -93,6 +95,21 @@ class Problem:
     @property
     def n_nodes(self) -> int:
         return len(self.solid.nodes)
+
+    @property
+    def all_cases(self) -> list[LoadCase]:
+        """The load cases, then the validation cases (what the FEM reference solves)."""
+        return self.load_cases + self.validation_cases
+
+    def validation_problem(self) -> Problem:
+        """The same solid with the validation cases as its load cases (none of its own), for
+        simulating them at fitted parameters; kept in the cache."""
+        found = self.cache.get("validation_problem")
+        if found is None:
+            found = self.cache["validation_problem"] = Problem(
+                self.spec, self.solid, self.fixed, self.validation_cases, self.rest_lengths
+            )
+        return found
 
 
 def load_problem(spec: dict[str, Any] | str | Path | ProblemSpec) -> Problem:
@@ -139,12 +156,31 @@ def build_problem(spec: ProblemSpec) -> Problem:
         picked = finder.select(sel, ("fixed", i), errors)
         fixed[picked] = True
 
+    load_cases = _load_cases(spec.load_cases, "load_cases", finder, fixed, errors)
+    validation = _load_cases(spec.validation_cases, "validation_cases", finder, fixed, errors)
+    _check_stiffness_mode(spec, errors)
+    if errors:
+        raise SpecError(errors)
+    return Problem(
+        spec, solid, fixed, load_cases, lengths, notes=finder.notes, validation_cases=validation
+    )
+
+
+def _load_cases(
+    cases: list[Any],
+    field: str,
+    finder: _NodeFinder,
+    fixed: np.ndarray,
+    errors: list[tuple[Loc, str]],
+) -> list[LoadCase]:
+    """The spec's ``cases`` (its ``field``: load_cases or validation_cases) as arrays; bad
+    selections are appended to ``errors`` at their location."""
     load_cases = []
-    for c, case in enumerate(spec.load_cases):
+    for c, case in enumerate(cases):
         idx: list[int] = []
         vec: list[np.ndarray] = []
         for f, force in enumerate(case.forces):
-            loc: Loc = ("load_cases", c, "forces", f)
+            loc: Loc = (field, c, "forces", f)
             where = _dotted((*loc, force.kind))
             picked = finder.select(force, loc, errors)
             free = picked[~fixed[picked]]
@@ -173,11 +209,33 @@ def build_problem(spec: ProblemSpec) -> Problem:
         forces = np.zeros((len(nodes), 3))
         np.add.at(forces, inverse, np.asarray(vec, dtype=float).reshape(-1, 3))
         if len(vec) and not np.any(forces):
-            errors.append((("load_cases", c, "forces"), "all forces are zero"))
+            errors.append(((field, c, "forces"), "all forces are zero"))
         load_cases.append(LoadCase(case.name or f"load case {c + 1}", nodes, forces))
-    if errors:
-        raise SpecError(errors)
-    return Problem(spec, solid, fixed, load_cases, lengths, notes=finder.notes)
+    return load_cases
+
+
+def _check_stiffness_mode(spec: ProblemSpec, errors: list[tuple[Loc, str]]) -> None:
+    """families+volume needs cells (hexahedra) with face diagonals."""
+    if spec.fpm.stiffness != "families+volume":
+        return
+    g = spec.geometry
+    if isinstance(g, NetworkGeometry):
+        errors.append(
+            (
+                ("fpm", "stiffness"),
+                "a network geometry has no cells for the volume term of 'families+volume': "
+                "use 'single' or 'families'",
+            )
+        )
+    elif g.connectivity == "axis":
+        errors.append(
+            (
+                ("fpm", "stiffness"),
+                "'families+volume' needs face diagonals for shear (geometry.connectivity "
+                "'axis+face' or 'full'; an 'axis' lattice has no shear stiffness): change the "
+                "connectivity, or use 'single' or 'families'",
+            )
+        )
 
 
 def _all_fixed(picked: np.ndarray) -> str:

@@ -15,7 +15,7 @@ from typing import Annotated, Any, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-MODEL_VERSION = "2026.11.22"
+MODEL_VERSION = "2026.11.25"
 """Version of the numerics behind a result; bump it whenever a change alters fitted values.
 It is part of a calibration's identity, so a resubmitted spec is not answered from results
 that older numerics computed."""
@@ -38,6 +38,17 @@ class _Strict(BaseModel):
 
 
 MaterialModel = Literal["linear", "neo-hookean"]
+StiffnessMode = Literal["families+volume", "single", "families"]
+STIFFNESS_MODES: tuple[str, ...] = get_args(StiffnessMode)
+MAX_DT = 1e-3
+"""dt 'auto' is at most this, s (a haptic 1 kHz loop)."""
+
+
+def lame_constants(youngs_modulus: float, poisson_ratio: float) -> tuple[float, float]:
+    """(mu, lambda), Pa, of E (Pa) and nu: mu = E / (2 (1 + nu)),
+    lambda = E nu / ((1 + nu)(1 - 2 nu))."""
+    e, nu = youngs_modulus, poisson_ratio
+    return e / (2 * (1 + nu)), e * nu / ((1 + nu) * (1 - 2 * nu))
 
 
 class Material(_Strict):
@@ -246,12 +257,19 @@ class FpmSettings(_Strict):
         description="depth 'auto': allowed relative rise of the cost over full depth's (0.01 = "
         "the relative discrepancy may grow by 1% of itself); larger trades realism for speed",
     )
-    stiffness: Literal["single", "families"] = Field(
-        "single",
-        description="'single': one k for every spring (the paper's); 'families': one k per "
-        "spring family present (axis, face diagonal, body diagonal)",
+    stiffness: StiffnessMode = Field(
+        "families+volume",
+        description="'families+volume' (the default where the lattice has cells with face "
+        "diagonals, else 'single'): one k per spring family, springs assembled from cells, and "
+        "a volume stiffness kappa per cell (Pa): can be any isotropic solid with nu >= 1/4; "
+        "'single': one k for every spring (the paper's model); 'families': one k per spring "
+        "family present (axis, face diagonal, body diagonal)",
     )
-    dt: float = Field(1e-3, gt=0, description="time step, s (default 1 ms: a haptic 1 kHz loop)")
+    dt: float | Literal["auto"] = Field(
+        "auto",
+        description="time step, s, or 'auto' (default): half the lattice's stability estimate "
+        "at the fitted stiffness, at most 1 ms (a haptic 1 kHz loop)",
+    )
     max_steps: int = Field(
         2000, ge=1, le=1_000_000, description="steps per load case before giving up"
     )
@@ -267,6 +285,13 @@ class FpmSettings(_Strict):
         "k * (sx ex^2 + sy ey^2 + sz ez^2) (paper Fig. 5)",
     )
     gravity: Vector3 = Field((0.0, 0.0, 0.0), description="m/s^2; the paper ignores gravity")
+
+    @field_validator("dt")
+    @classmethod
+    def _positive_dt(cls, v: float | str) -> float | str:
+        if not isinstance(v, str) and not v > 0:
+            raise ValueError("dt must be > 0 (s) or 'auto'")
+        return v
 
     @field_validator("depth")
     @classmethod
@@ -372,5 +397,32 @@ class ProblemSpec(_Strict):
     geometry: Geometry
     fixed: list[Selector] = Field(description="fixed nodes; [] = none (FPM only)")
     load_cases: list[LoadCase] = Field(min_length=1)
+    validation_cases: list[LoadCase] = Field(
+        [],
+        description="load cases the fit never sees (same form as load_cases): simulated at "
+        "the fitted parameters and reported beside the fit (validation_relative_discrepancy): "
+        "the honest measure of how the model does on loads it was not fitted to",
+    )
     fpm: FpmSettings = Field(default_factory=FpmSettings)
     annealing: AnnealingSettings = Field(default_factory=AnnealingSettings)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_stiffness(cls, data: Any) -> Any:
+        """No fpm.stiffness: 'families+volume' where the lattice has cells with face diagonals
+        (a box, voxels or mesh not of 'axis' connectivity), else 'single'."""
+        if not isinstance(data, dict):
+            return data
+        settings = data.get("fpm")
+        if isinstance(settings, dict) and "stiffness" in settings:
+            return data
+        if settings is not None and not isinstance(settings, dict):
+            return data  # a FpmSettings instance, or the field's own error
+        g = data.get("geometry")
+        kind = g.get("type") if isinstance(g, dict) else getattr(g, "type", None)
+        connectivity = (
+            g.get("connectivity", "full") if isinstance(g, dict) else getattr(g, "connectivity", "")
+        )
+        has_cells = kind in ("box", "voxels", "mesh") and connectivity != "axis"
+        mode = "families+volume" if has_cells else "single"
+        return {**data, "fpm": {**(settings or {}), "stiffness": mode}}

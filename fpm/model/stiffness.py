@@ -1,15 +1,25 @@
-"""Spring stiffness: one k for every spring (the paper's) or one k per spring family.
+"""The stiffness modes: from the fitted parameters theta to the model's :class:`Stiffness`.
 
-The stiffness parameters of a fit are a vector ``theta`` (N/m):
+The stiffness parameters of a fit are a vector ``theta``:
 
-- ``single``: ``theta = [k]``, every spring gets k (paper Sec. 4.2);
-- ``families``: one k per family the connectivity has, in :data:`fpm.model.hexahedron.FAMILIES`
-  order (axis = hexahedron edges, face diagonals, body diagonals): ``axis`` 1 value,
-  ``axis+face`` 2, ``full`` 3.
+- ``single``: ``theta = [k]`` (N/m), every spring gets k (the paper's model, Sec. 4.2);
+- ``families``: one k (N/m) per family the connectivity has, in
+  :data:`fpm.model.hexahedron.FAMILIES` order (axis = hexahedron edges, face diagonals, body
+  diagonals): ``axis`` 1 value, ``axis+face`` 2, ``full`` 3;
+- ``families+volume`` (the default): the family stiffnesses (N/m) and then kappa (Pa), the
+  volume stiffness of every cell (:mod:`fpm.model.volume`). Here springs are *assembled from
+  cells*: each cell gives its 12 edges, 12 face diagonals and 4 body diagonals 1/4, 1/2 and 1
+  of their family's k, so an interior spring gets k and a surface one less, as in an FEM's
+  assembly (:func:`assembly_weights`). Its continuum limit is the isotropic solid
+  ``C11 = (k1 + 2 k2 + 4 k3 / 3) / h + kappa``, ``C12 = (k2 + 4 k3 / 3) / h + kappa``,
+  ``C44 = (k2 + 4 k3 / 3) / h``, so :func:`continuum_start` (``k1 = k2 = mu h``, ``k3 = 0``,
+  ``kappa = lambda - mu``) matches the material's Lame constants exactly in the lattice's
+  interior; the fit corrects the boundary and the discretisation.
 
-On top of either, the spec's per-axis ``stiffness_scale`` (paper Fig. 5) multiplies a spring
-along unit vector e by ``sx ex^2 + sy ey^2 + sz ez^2``. :func:`spring_stiffness` turns theta
-into the (S,) per-spring stiffness every solver (dynamic and static) works with.
+On top of any mode, the spec's per-axis ``stiffness_scale`` (paper Fig. 5) multiplies a spring
+along unit vector e by ``sx ex^2 + sy ey^2 + sz ez^2``. :func:`model_stiffness` turns theta
+into the :class:`fpm.model.forces.Stiffness` every solver (dynamic and static) works with;
+:func:`spring_stiffness` is its (S,) spring part.
 """
 
 from __future__ import annotations
@@ -18,16 +28,80 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .hexahedron import FAMILIES, connectivity_families
+from .forces import Stiffness
+from .hexahedron import FAMILIES, connectivity_families, local_families, local_pairs
 from .problem import Problem
+from .spec import lame_constants
+
+VOLUME = "kappa"
+"""Name of the volume stiffness among the fitted parameters (Pa)."""
+
+FLOOR = 1e-3
+"""families+volume: the smallest body-diagonal stiffness (times mu h) and volume stiffness
+(times mu) a fit considers; 'zero' in a log-space search."""
+
+CELL_SHARE = np.array([0.25, 0.5, 1.0])
+"""Share of its family's k a cell gives each of its edges, face and body diagonals (an interior
+edge is in 4 cells, a face diagonal in 2, a body diagonal in 1)."""
 
 
 def family_names(problem: Problem) -> tuple[str, ...]:
-    """Names of the fitted stiffness parameters: ("k",) for single, else the families present."""
-    if problem.spec.fpm.stiffness == "single":
+    """Names of the fitted stiffness parameters: ("k",) for single, the families present for
+    families, and then "kappa" for families+volume."""
+    mode = problem.spec.fpm.stiffness
+    if mode == "single":
         return ("k",)
     g = problem.spec.geometry
-    return connectivity_families(getattr(g, "connectivity", "axis"))
+    names = connectivity_families(getattr(g, "connectivity", "axis"))
+    return (*names, VOLUME) if mode == "families+volume" else names
+
+
+def has_volume(problem: Problem) -> bool:
+    """The spec's stiffness mode carries the volume term."""
+    return problem.spec.fpm.stiffness == "families+volume"
+
+
+def assembly_weights(problem: Problem) -> np.ndarray:
+    """(S,) per spring, the sum over the cells that contain it of :data:`CELL_SHARE` of its
+    family in that cell: 1 for an interior spring of a regular lattice, less on the surface."""
+    cached = problem.cache.get("assembly_weights")
+    if cached is None:
+        solid = problem.solid
+        hexahedra = solid.elements()
+        if hexahedra is None:
+            raise ValueError("a network geometry has no cells to assemble springs from")
+        connectivity = problem.spec.geometry.connectivity  # type: ignore[union-attr]
+        pairs = local_pairs(connectivity)
+        a = hexahedra[:, pairs[:, 0]].ravel()
+        b = hexahedra[:, pairs[:, 1]].ravel()
+        n = problem.n_nodes
+        keys = np.minimum(a, b).astype(np.int64) * n + np.maximum(a, b)
+        springs = solid.springs.astype(np.int64)
+        spring_keys = springs[:, 0] * n + springs[:, 1]
+        order = np.argsort(spring_keys)
+        which = order[np.searchsorted(spring_keys, keys, sorter=order)]
+        share = np.tile(CELL_SHARE[local_families(connectivity)], len(hexahedra))
+        cached = problem.cache["assembly_weights"] = np.bincount(
+            which, weights=share, minlength=len(springs)
+        )
+    return cached
+
+
+def continuum_start(problem: Problem) -> list[float]:
+    """families+volume: the closed-form parameters whose lattice, in its interior, is the
+    material's isotropic solid: k1 = k2 = mu h, k3 = 0, kappa = lambda - mu (N/m, Pa).
+
+    For nu < 1/4, lambda - mu < 0: a negative volume stiffness could make cells collapse, so
+    kappa starts (and stays, see :func:`fpm.fitting.calibration.stiffness_bounds`) at its
+    floor, and the lattice cannot go below nu = 1/4 (the families' limit). k3 = 0 cannot be a
+    point of a log-space search: it starts at the floor :data:`FLOOR` times mu h.
+    """
+    m = problem.spec.material
+    mu, lam = lame_constants(m.youngs_modulus, m.poisson_ratio)
+    h = problem.h
+    names = family_names(problem)
+    k = [mu * h, mu * h, FLOOR * mu * h][: len(names) - 1]
+    return [*k, max(lam - mu, FLOOR * mu)]
 
 
 def axis_factors(problem: Problem) -> np.ndarray | None:
@@ -44,14 +118,38 @@ def axis_factors(problem: Problem) -> np.ndarray | None:
     return cached
 
 
+def model_stiffness(problem: Problem, theta: float | Sequence[float] | np.ndarray) -> Stiffness:
+    """The model's :class:`~fpm.model.forces.Stiffness` from the fitted parameters ``theta``
+    (as :func:`spring_stiffness` reads them; for families+volume the last value is kappa, Pa,
+    given to every cell)."""
+    if not has_volume(problem):
+        return Stiffness(spring_stiffness(problem, theta))
+    values = np.atleast_1d(np.asarray(theta, dtype=float))
+    names = family_names(problem)
+    if len(values) != len(names):
+        raise ValueError(
+            f"this spec fits {', '.join(names)} (fpm.stiffness 'families+volume'): give "
+            f"{len(names)} values, not {len(values)}"
+        )
+    springs = values[:-1][problem.solid.families] * assembly_weights(problem)
+    factor = axis_factors(problem)
+    if factor is not None:
+        springs = springs * factor
+    n_cells = len(problem.solid.elements())  # type: ignore[arg-type]
+    return Stiffness(springs, np.full(n_cells, values[-1]))
+
+
 def spring_stiffness(problem: Problem, theta: float | Sequence[float] | np.ndarray) -> np.ndarray:
     """(S,) stiffness of every spring, N/m, from the fitted parameters ``theta``.
 
     Args:
         problem: the problem (its ``fpm.stiffness`` says how theta is read).
         theta: k (a float or one value) for ``single``; one k per family present for
-            ``families`` (a single value is also accepted there: every family gets it).
+            ``families`` (a single value is also accepted there: every family gets it); for
+            ``families+volume`` the families then kappa (:func:`model_stiffness`).
     """
+    if has_volume(problem):
+        return model_stiffness(problem, theta).springs
     values = np.atleast_1d(np.asarray(theta, dtype=float))
     families = problem.solid.families
     if len(values) > 1 and problem.spec.fpm.stiffness == "single":
@@ -73,13 +171,56 @@ def spring_stiffness(problem: Problem, theta: float | Sequence[float] | np.ndarr
 
 
 def stiffness_dict(problem: Problem, theta: Sequence[float]) -> dict[str, float]:
-    """Theta as {family: k, N/m} for every family present (single: each family gets k)."""
+    """Theta as {family: k, N/m} for every family present (single: each family gets k); the
+    volume stiffness (families+volume) is not a spring's and is left out (see
+    :func:`volume_stiffness`)."""
     g = problem.spec.geometry
     present = connectivity_families(getattr(g, "connectivity", "axis"))
-    values = list(theta)
+    values = list(theta)[: len(present)] if has_volume(problem) else list(theta)
     if len(values) == 1:
         values = values * len(present)
     return {name: float(v) for name, v in zip(present, values, strict=True)}
 
 
-__all__ = ["FAMILIES", "axis_factors", "family_names", "spring_stiffness", "stiffness_dict"]
+def theta_of(
+    problem: Problem, k: float, stiffness: dict[str, float] | None, kappa: float | None
+) -> list[float]:
+    """The fitted parameters as :func:`model_stiffness` reads them, from what a result or a
+    parameter set holds: ``k`` (N/m), ``stiffness`` ({family: k}, N/m) and ``kappa`` (Pa).
+
+    Raises:
+        ValueError: the record lacks what the spec's mode needs (a family, or kappa).
+    """
+    names = family_names(problem)
+    if names == ("k",):
+        return [float(k)]
+    families = [n for n in names if n != VOLUME]
+    if stiffness is None or any(n not in stiffness for n in families):
+        raise ValueError(f"the parameters lack the stiffness of {', '.join(families)}")
+    theta = [float(stiffness[n]) for n in families]
+    if has_volume(problem):
+        if kappa is None:
+            raise ValueError("the parameters lack the volume stiffness kappa (families+volume)")
+        theta.append(float(kappa))
+    return theta
+
+
+def volume_stiffness(problem: Problem, theta: Sequence[float]) -> float | None:
+    """kappa, Pa, for families+volume (theta's last value); None for the other modes."""
+    return float(theta[-1]) if has_volume(problem) else None
+
+
+__all__ = [
+    "FAMILIES",
+    "VOLUME",
+    "assembly_weights",
+    "axis_factors",
+    "continuum_start",
+    "family_names",
+    "has_volume",
+    "model_stiffness",
+    "spring_stiffness",
+    "stiffness_dict",
+    "theta_of",
+    "volume_stiffness",
+]
