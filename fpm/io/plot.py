@@ -16,8 +16,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..dynamics.simulation import simulate
-from ..model.stiffness import theta_of
 from ..model.problem import Problem
+from ..model.stiffness import theta_of
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
