@@ -60,6 +60,7 @@ from ..model.stiffness import (
 from .annealing import AnnealingError, Checkpoint, Schedule, State, anneal
 from .cost import CostFunction, Evaluation, StaticCost, discrepancies, dynamic_time_step
 from .damping import critical_damping, fastest_damping
+from .reduced import ReducedLinearModel, fit_reduced
 from .result import CalibrationResult, ChainSummary
 
 EQUALLY_GOOD = 0.001
@@ -322,11 +323,22 @@ def run_chain(
     n = len(lower)
     objective: Callable[[list[float]], State]
     initial: list[float] | None = None  # two-stage: the linear estimate
+    reduced: ReducedLinearModel | None = None
     if a.method == "two-stage":
         static = StaticCost(problem, disp, depth)
         reference_cost = static.reference_cost
+        if has_volume(problem) and resume is None:
+            # families+volume: the chain anneals the reduced linear model (fpm.fitting.reduced),
+            # then the defect-corrected reduced fit lands on the static equilibria's minimum.
+            reduced = ReducedLinearModel(
+                static, list(np.clip(continuum_start(problem), lower, upper))
+            )
 
         def objective(x: list[float]) -> State:
+            if reduced is not None:
+                value = reduced(np.asarray(x))
+                rejected = "" if math.isfinite(value) else "no equilibrium"
+                return State(list(x), value / reference_cost, {"rejected": rejected})
             ev = static(x)
             return State(list(x), ev.cost / reference_cost, {"rejected": ev.rejected})
 
@@ -378,12 +390,16 @@ def run_chain(
         NearBest(s.x, s.cost, s.info.get("steps"), s.info.get("settled", True))
         for s in result.near_best
     ]
+    best_x, best_cost, evaluations = list(result.best.x), result.best.cost, result.evaluations
+    if reduced is not None:
+        best_x, best_cost, reduced = fit_reduced(static, best_x, (lower, upper), reduced)
+        evaluations += reduced.solves
     return ChainResult(
         chain=chain,
         method=a.method,
-        x=list(result.best.x),
-        cost=result.best.cost,
-        evaluations=result.evaluations,
+        x=best_x,
+        cost=best_cost,
+        evaluations=evaluations,
         accepted=result.accepted,
         history=result.history,
         near_best=near,
@@ -583,7 +599,10 @@ def fit_damping(
         if constrained_cost(cost(uniform * len(start)), cost.reference_cost, None) < chains_best:
             start = uniform * len(start)
     span = UNIFORM_SPAN if len(start) > 1 else POLISH_SPAN
-    theta, _ = polish(cost, start, bounds, progress, span=span, ceilings=ceilings)
+    if has_volume(problem):  # the chains' defect-corrected fit is the polish
+        theta = list(start)
+    else:
+        theta, _ = polish(cost, start, bounds, progress, span=span, ceilings=ceilings)
     static_cost = cost(theta).cost / cost.reference_cost
     evaluations = cost.evaluations
     depth = fit_depth(problem)

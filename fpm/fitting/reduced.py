@@ -1,0 +1,216 @@
+"""families+volume, stage 1: the fit on a reduced linear model (docs/physics.md, *Calibration*).
+
+Linearised at rest, the lattice's stiffness matrix is linear in the fitted parameters:
+``K(theta) = sum_p theta_p K_p`` (K_p: the matrix of family p's assembled springs at k = 1, and
+of the cells at kappa = 1). Its response to a load case's forces f, ``u(theta) = K(theta)^-1 f``,
+lies close to the span of a few responses at other parameters, so on a basis Q of such
+responses (per load case, orthonormal) the reduced model
+
+    u(theta) ~ Q (sum_p theta_p Q^T K_p Q)^-1 Q^T f
+
+costs an m x m solve (m <= a few tens) instead of a sparse solve with 10^4-10^5 unknowns, and the
+Eq. (2) cost of the linear model can be evaluated hundreds of times. The fit alternates: minimise
+the reduced cost (Nelder-Mead in log theta from the current best), solve the full linear model at
+the minimiser, add that response to the basis; until the minimiser stops moving.
+
+The model is nonlinear (springs rotate, cells change volume), and a probe's load moves its node
+a good fraction of h. That is a *defect correction*: at the linear fit's minimiser the static
+equilibria (the nonlinear answer) are solved, their difference delta_j from the linear
+responses is added to the reduced model's displacements, ``Q y(theta) + delta_j``, and the
+reduced fit is repeated; delta changes slowly with theta, so a few rounds (one warm-started
+static solve per load case each) reach the minimiser of the nonlinear cost, where a
+derivative-free polish on static solves would need a hundred.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import minimize
+
+from ..model.problem import Problem
+from ..model.stiffness import family_names, model_stiffness
+from .cost import StaticCost
+
+SNAPSHOT_FACTOR = 2.0
+"""The first basis: the responses at the start and at the start with each parameter times this."""
+ROUNDS = 6
+"""At most this many enrichments (a full linear solve each per load case)."""
+CONVERGED = 1e-3
+"""The reduced fit has converged when no parameter moved more than this (relative) in a round."""
+MAX_EVALUATIONS = 400
+"""Nelder-Mead evaluations of the reduced cost per round."""
+
+
+@dataclass
+class _Case:
+    """One load case's reduced model: basis (M, m) over its free nodes, K_p projected, f."""
+
+    free: np.ndarray
+    unit: list  # the K_p, sparse (3M, 3M)
+    loads: np.ndarray  # (3M,)
+    reference: np.ndarray  # (M, 3) reference displacements of the free nodes
+    held: float  # sum of |reference| over the nodes that do not move in this list
+    basis: np.ndarray  # (3M, m)
+    projected: np.ndarray  # (P, m, m)
+    rhs: np.ndarray  # (m,)
+    correction: np.ndarray | None = None  # (M, 3) nonlinear minus linear displacements
+    last: np.ndarray | None = None  # (3M,) the last full linear response added
+
+    def add(self, response: np.ndarray) -> None:
+        """Extend the basis by ``response`` (3M,) (Gram-Schmidt twice; dropped if dependent)."""
+        self.last = response
+        v = response.copy()
+        size = float(np.linalg.norm(v))
+        for _ in range(2):
+            if self.basis.shape[1]:
+                v -= self.basis @ (self.basis.T @ v)
+        left = float(np.linalg.norm(v))
+        if size == 0 or left <= 1e-10 * size:
+            return
+        v /= left
+        self.basis = np.column_stack([self.basis, v])
+        kv = np.stack([k @ v for k in self.unit])  # (P, 3M)
+        column = np.einsum("ia,pi->pa", self.basis, kv)  # (P, m)
+        m = self.basis.shape[1]
+        projected = np.zeros((len(self.unit), m, m))
+        projected[:, : m - 1, : m - 1] = self.projected
+        projected[:, :, m - 1] = column
+        projected[:, m - 1, :] = column
+        self.projected = projected
+        self.rhs = self.basis.T @ self.loads
+
+    def cost(self, theta: np.ndarray) -> float:
+        """Eq. (2) of the reduced linear model at theta, m (inf if it is not positive definite)."""
+        a = np.einsum("p,pab->ab", theta, self.projected)
+        try:
+            y = np.linalg.solve(a, self.rhs)
+        except np.linalg.LinAlgError:
+            return float("inf")
+        u = (self.basis @ y).reshape(-1, 3)
+        if self.correction is not None:
+            u += self.correction
+        return float(np.linalg.norm(u - self.reference, axis=1).sum() + self.held)
+
+
+class ReducedLinearModel:
+    """The linear lattice of every load case on a growing basis (this module's docstring).
+
+    Args:
+        cost: the static cost (its solver's lists, multigrid and linear solves are used).
+        start: parameters whose response (and that of each parameter times
+            :data:`SNAPSHOT_FACTOR`) makes the first basis.
+    """
+
+    def __init__(self, cost: StaticCost, start: list[float]):
+        self.cost = cost
+        self.problem: Problem = cost.problem
+        self.solves = 0
+        n = len(family_names(self.problem))
+        units = [model_stiffness(self.problem, np.eye(n)[p]) for p in range(n)]
+        solver = cost.solver
+        self.cases: list[_Case] = []
+        for j in range(len(self.problem.load_cases)):
+            system, _ = solver.system(j, cost.depth)
+            rest = np.zeros((system.n_free, 3))
+            unit = [
+                system.tangent(rest, system.parameters(s), modified=True).tocsr() for s in units
+            ]
+            loads = solver.loads(j)
+            reference = cost.reference[j]
+            moving = np.zeros(self.problem.n_nodes, dtype=bool)
+            moving[system.free] = True
+            held = float(np.linalg.norm(reference[~moving], axis=1).sum())
+            self.cases.append(
+                _Case(
+                    free=system.free,
+                    unit=unit,
+                    loads=np.ascontiguousarray(loads[system.free]).ravel(),
+                    reference=reference[system.free],
+                    held=held,
+                    basis=np.zeros((3 * system.n_free, 0)),
+                    projected=np.zeros((n, 0, 0)),
+                    rhs=np.zeros(0),
+                )
+            )
+        theta = np.asarray(start, dtype=float)
+        self.enrich(theta)
+        for p in range(n):
+            scaled = theta.copy()
+            scaled[p] *= SNAPSHOT_FACTOR
+            self.enrich(scaled)
+
+    def enrich(self, theta: np.ndarray) -> None:
+        """Add the full linear responses at ``theta`` to every load case's basis."""
+        stiffness = model_stiffness(self.problem, theta)
+        solver = self.cost.solver
+        for j, case in enumerate(self.cases):
+            response = solver.linear_response(j, stiffness, self.cost.depth, solver.loads(j))
+            self.solves += 1
+            case.add(np.ascontiguousarray(response[case.free]).ravel())
+
+    def __call__(self, theta: np.ndarray) -> float:
+        """Eq. (2) of the reduced linear model over every load case, m."""
+        return float(sum(case.cost(theta) for case in self.cases))
+
+
+DEFECT_ROUNDS = 6
+"""At most this many defect corrections (one static solve per load case each)."""
+
+
+def fit_reduced(
+    cost: StaticCost,
+    start: list[float],
+    bounds: tuple[np.ndarray, np.ndarray],
+    model: ReducedLinearModel | None = None,
+) -> tuple[list[float], float, ReducedLinearModel]:
+    """Minimise Eq. (2) of the nonlinear static equilibria within ``bounds`` from ``start``:
+    reduced linear fits with enrichment, corrected by the nonlinear defect until the minimiser
+    stops moving (this module's docstring).
+
+    Returns (parameters, their normalised static cost (inf if a load case has no equilibrium),
+    the model)."""
+    model = ReducedLinearModel(cost, start) if model is None else model
+    lo, hi = np.log(bounds[0]), np.log(bounds[1])
+    y = np.clip(np.log(np.asarray(start, dtype=float)), lo, hi)
+    static = float("inf")
+    for _ in range(DEFECT_ROUNDS):
+        previous = y
+        y = _linear_fit(model, y, lo, hi)
+        theta = np.exp(y)
+        evaluation = cost(theta)
+        static = evaluation.cost / cost.reference_cost
+        if not np.isfinite(static):
+            break
+        for j, case in enumerate(model.cases):
+            solved = cost.displacements(theta, j).displacements[case.free]
+            assert case.last is not None  # _linear_fit ends with an enrichment at theta
+            case.correction = solved - case.last.reshape(-1, 3)
+        if float(np.abs(y - previous).max()) < CONVERGED:
+            break
+    return list(np.exp(y)), static, model
+
+
+def _linear_fit(model: ReducedLinearModel, y: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+    """log theta minimising the (corrected) reduced cost from ``y``, the basis enriched until the
+    minimiser stops moving; ends with an enrichment at the answer."""
+
+    def f(z: np.ndarray) -> float:
+        return model(np.exp(np.clip(z, lo, hi)))
+
+    for _ in range(ROUNDS):
+        value = f(y)
+        r = minimize(
+            f,
+            y,
+            method="Nelder-Mead",
+            bounds=list(zip(lo, hi, strict=True)),
+            options={"xatol": 1e-4, "fatol": 1e-9 * value, "maxfev": MAX_EVALUATIONS},
+        )
+        moved = float(np.abs(r.x - y).max())
+        y = np.asarray(r.x)
+        model.enrich(np.exp(y))
+        if moved < CONVERGED:
+            break
+    return y
