@@ -456,6 +456,8 @@ def _cell_tangent_blocks(
     a, da = np.empty((6, 3)), np.empty((6, 3))
     grad_a, grad_x = np.empty((6, 3)), np.empty((8, 3))
     hessian_a = np.empty((6, 6, 3, 3))
+    half = np.empty((6, 8, 3, 3))  # sum_q H_a[k, q] C_qm
+    hessian_x = np.empty((8, 8, 3, 3))  # sum_k C_kn half[k, m]
     for c in range(len(volume)):
         _cell_state(rest, ends, u, c, a, da)
         weight = kappa[c] / volume[c]
@@ -464,6 +466,22 @@ def _cell_tangent_blocks(
         corner_gradient(grad_a, grad_x)
         if not modified:
             coefficient_hessian(a, hessian_a)
+            half[:] = 0.0
+            for k in range(6):
+                for q in range(6):
+                    for m in range(8):
+                        cq = COEFFICIENTS[q, m]
+                        for x in range(3):
+                            for y in range(3):
+                                half[k, m, x, y] += hessian_a[k, q, x, y] * cq
+            hessian_x[:] = 0.0
+            for k in range(6):
+                for n in range(8):
+                    ck = COEFFICIENTS[k, n]
+                    for m in range(8):
+                        for x in range(3):
+                            for y in range(3):
+                                hessian_x[n, m, x, y] += ck * half[k, m, x, y]
         for n in range(8):
             for m in range(8):
                 at = position[c, n, m]
@@ -473,12 +491,7 @@ def _cell_tangent_blocks(
                     for y in range(3):
                         value = weight * grad_x[n, x] * grad_x[m, y]
                         if not modified:
-                            h = 0.0
-                            for k in range(6):
-                                ck = COEFFICIENTS[k, n]
-                                for q in range(6):
-                                    h += ck * COEFFICIENTS[q, m] * hessian_a[k, q, x, y]
-                            value += pressure * h
+                            value += pressure * hessian_x[n, m, x, y]
                         data[at, x, y] += value
 
 
@@ -1112,12 +1125,16 @@ class StaticSolver:
         stiffness: Stiffness | np.ndarray,
         depth: int | None,
         loads: np.ndarray,
+        *,
+        guess: np.ndarray | None = None,
+        rtol: float = 1e-8,
     ) -> np.ndarray:
         """(N, 3) displacements, m, of ``load_case``'s list linearised at rest (each spring
         acting along its rest direction) under nodal ``loads`` (N, 3), N; zero off the list.
 
-        Solved to a relative residual of 1e-8 (LU or multigrid CG as for Newton steps; the
-        solve does not count towards the hierarchy's staleness).
+        Solved to a relative residual of ``rtol`` (LU or multigrid CG as for Newton steps; the
+        solve does not count towards the hierarchy's staleness); CG starts from ``guess``
+        ((N, 3), m; e.g. a reduced model's answer) when given.
 
         Raises:
             SingularStiffnessError, NegativeCurvature: the linear lattice is not held (e.g. an
@@ -1125,17 +1142,49 @@ class StaticSolver:
         """
         system, _ = self.system(load_case, depth)
         k = system.parameters(Stiffness.of(stiffness))
-        rest = np.zeros((system.n_free, 3))
-        tangent = system.tangent(rest, k, modified=True)
+        tangent = system.tangent(np.zeros((system.n_free, 3)), k, modified=True)
+        return self.linear_solve(load_case, depth, tangent, loads, guess=guess, rtol=rtol)
+
+    def linear_solve(
+        self,
+        load_case: int,
+        depth: int | None,
+        tangent: sp.sparray | sp.spmatrix,
+        loads: np.ndarray,
+        *,
+        guess: np.ndarray | None = None,
+        rtol: float = 1e-8,
+    ) -> np.ndarray:
+        """(N, 3) displacements, m: ``tangent`` (3M, 3M) (a stiffness over the list's free
+        nodes, e.g. :meth:`SpringSystem.tangent` at rest) solved for nodal ``loads`` (N, 3), N,
+        as :meth:`linear_response` does; zero off the list."""
+        system, _ = self.system(load_case, depth)
         rhs = np.ascontiguousarray(loads[system.free]).ravel()
         if 3 * system.n_free < self.amg_from:
             x = _direct_solve(tangent, rhs)
         else:
-            mg = self._hierarchy(system, rest, k)
-            cg = conjugate_gradients(
-                tangent, rhs, mg.precondition, rtol=1e-8, max_iterations=10 * MAX_CG_ITERATIONS
-            )
-            x = cg.x
+            start = np.zeros_like(rhs)
+            if guess is not None:
+                start = np.ascontiguousarray(guess[system.free]).ravel()
+            left = rhs - tangent @ start
+            size, remaining = float(np.linalg.norm(rhs)), float(np.linalg.norm(left))
+            x = start
+            if remaining > rtol * size:
+                mg = self._multigrid.get(system.free.tobytes())
+                if mg is None:  # a hierarchy needs a stiffness: the tangent's own blocks
+                    mg = ReusedHierarchy(
+                        amg_hierarchy(
+                            sp.bsr_matrix(tangent, blocksize=(3, 3)),
+                            rigid_body_modes(self.problem.nodes[system.free]),
+                        )
+                    )
+                    self._multigrid[system.free.tobytes()] = mg
+                    self.hierarchies_built += 1
+                cg = conjugate_gradients(
+                    tangent, left, mg.precondition, rtol=rtol * size / remaining,
+                    max_iterations=10 * MAX_CG_ITERATIONS,
+                )  # fmt: skip
+                x = start + cg.x
         out = np.zeros_like(self.problem.nodes)
         out[system.free] = x.reshape(-1, 3)
         return out

@@ -9,17 +9,17 @@ responses (per load case, orthonormal) the reduced model
     u(theta) ~ Q (sum_p theta_p Q^T K_p Q)^-1 Q^T f
 
 costs an m x m solve (m <= a few tens) instead of a sparse solve with 10^4-10^5 unknowns, and the
-Eq. (2) cost of the linear model can be evaluated hundreds of times. The fit alternates: minimise
-the reduced cost (Nelder-Mead in log theta from the current best), solve the full linear model at
-the minimiser, add that response to the basis; until the minimiser stops moving.
+Eq. (2) cost of the linear model can be evaluated hundreds of times.
 
 The model is nonlinear (springs rotate, cells change volume), and a probe's load moves its node
-a good fraction of h. That is a *defect correction*: at the linear fit's minimiser the static
-equilibria (the nonlinear answer) are solved, their difference delta_j from the linear
-responses is added to the reduced model's displacements, ``Q y(theta) + delta_j``, and the
-reduced fit is repeated; delta changes slowly with theta, so a few rounds (one warm-started
-static solve per load case each) reach the minimiser of the nonlinear cost, where a
-derivative-free polish on static solves would need a hundred.
+a good fraction of h. Each round therefore (1) minimises
+the reduced cost (Nelder-Mead in log theta from the last minimiser), (2) solves the full linear
+model at the minimiser and adds that response to the basis, (3) solves the static equilibria
+there and keeps their difference delta_j from the linear responses, a *defect correction* added
+to the reduced model's displacements, ``Q y(theta) + delta_j``; until the minimiser stops moving.
+delta changes slowly with theta, so a few rounds (one linear and one warm-started static solve
+per load case each) reach the minimiser of the nonlinear cost, where a derivative-free polish
+on static solves would need a hundred.
 """
 
 from __future__ import annotations
@@ -35,10 +35,10 @@ from .cost import StaticCost
 
 SNAPSHOT_FACTOR = 2.0
 """The first basis: the responses at the start and at the start with each parameter times this."""
-ROUNDS = 6
-"""At most this many enrichments (a full linear solve each per load case)."""
 CONVERGED = 1e-3
 """The reduced fit has converged when no parameter moved more than this (relative) in a round."""
+RTOL = 1e-7
+"""Relative residual of the full linear solves that enrich the basis."""
 MAX_EVALUATIONS = 400
 """Nelder-Mead evaluations of the reduced cost per round."""
 
@@ -80,6 +80,11 @@ class _Case:
         projected[:, m - 1, :] = column
         self.projected = projected
         self.rhs = self.basis.T @ self.loads
+
+    def linear(self, theta: np.ndarray) -> np.ndarray:
+        """(3M,) the reduced linear model's displacements at theta."""
+        a = np.einsum("p,pab->ab", theta, self.projected)
+        return self.basis @ np.linalg.solve(a, self.rhs)
 
     def cost(self, theta: np.ndarray) -> float:
         """Eq. (2) of the reduced linear model at theta, m (inf if it is not positive definite)."""
@@ -143,10 +148,16 @@ class ReducedLinearModel:
 
     def enrich(self, theta: np.ndarray) -> None:
         """Add the full linear responses at ``theta`` to every load case's basis."""
-        stiffness = model_stiffness(self.problem, theta)
         solver = self.cost.solver
         for j, case in enumerate(self.cases):
-            response = solver.linear_response(j, stiffness, self.cost.depth, solver.loads(j))
+            guess = None
+            if case.basis.shape[1]:  # start CG from the reduced model's answer
+                guess = np.zeros((self.problem.n_nodes, 3))
+                guess[case.free] = case.linear(theta).reshape(-1, 3)
+            matrix = sum(t * k for t, k in zip(theta, case.unit, strict=True))  # K(theta)
+            response = solver.linear_solve(
+                j, self.cost.depth, matrix, solver.loads(j), guess=guess, rtol=RTOL
+            )
             self.solves += 1
             case.add(np.ascontiguousarray(response[case.free]).ravel())
 
@@ -155,8 +166,9 @@ class ReducedLinearModel:
         return float(sum(case.cost(theta) for case in self.cases))
 
 
-DEFECT_ROUNDS = 6
-"""At most this many defect corrections (one static solve per load case each)."""
+DEFECT_ROUNDS = 8
+"""At most this many rounds: a reduced fit, then a full linear and a static solve per load case
+at its minimiser (the basis grows, the defect is renewed)."""
 
 
 def fit_reduced(
@@ -177,40 +189,38 @@ def fit_reduced(
     static = float("inf")
     for _ in range(DEFECT_ROUNDS):
         previous = y
-        y = _linear_fit(model, y, lo, hi)
+        y = _reduced_minimum(model, y, lo, hi)
         theta = np.exp(y)
-        evaluation = cost(theta)
-        static = evaluation.cost / cost.reference_cost
-        if not np.isfinite(static):
+        model.enrich(theta)  # the full linear response at theta joins the basis
+        solved = [cost.displacements(theta, j) for j in range(len(model.cases))]
+        if not all(e.converged for e in solved):
+            static = float("inf")
             break
-        for j, case in enumerate(model.cases):
-            solved = cost.displacements(theta, j).displacements[case.free]
-            assert case.last is not None  # _linear_fit ends with an enrichment at theta
-            case.correction = solved - case.last.reshape(-1, 3)
+        cost.evaluations += 1
+        static = sum(cost.case_cost(j, e.displacements) for j, e in enumerate(solved))
+        static /= cost.reference_cost
+        for case, equilibrium in zip(model.cases, solved, strict=True):
+            assert case.last is not None
+            case.correction = equilibrium.displacements[case.free] - case.last.reshape(-1, 3)
         if float(np.abs(y - previous).max()) < CONVERGED:
             break
     return list(np.exp(y)), static, model
 
 
-def _linear_fit(model: ReducedLinearModel, y: np.ndarray, lo: np.ndarray, hi: np.ndarray):
-    """log theta minimising the (corrected) reduced cost from ``y``, the basis enriched until the
-    minimiser stops moving; ends with an enrichment at the answer."""
+def _reduced_minimum(
+    model: ReducedLinearModel, y: np.ndarray, lo: np.ndarray, hi: np.ndarray
+) -> np.ndarray:
+    """log theta minimising the (corrected) reduced cost, Nelder-Mead from ``y``."""
 
     def f(z: np.ndarray) -> float:
         return model(np.exp(np.clip(z, lo, hi)))
 
-    for _ in range(ROUNDS):
-        value = f(y)
-        r = minimize(
-            f,
-            y,
-            method="Nelder-Mead",
-            bounds=list(zip(lo, hi, strict=True)),
-            options={"xatol": 1e-4, "fatol": 1e-9 * value, "maxfev": MAX_EVALUATIONS},
-        )
-        moved = float(np.abs(r.x - y).max())
-        y = np.asarray(r.x)
-        model.enrich(np.exp(y))
-        if moved < CONVERGED:
-            break
-    return y
+    value = f(y)
+    r = minimize(
+        f,
+        y,
+        method="Nelder-Mead",
+        bounds=list(zip(lo, hi, strict=True)),
+        options={"xatol": 1e-4, "fatol": 1e-9 * value, "maxfev": MAX_EVALUATIONS},
+    )
+    return np.asarray(r.x)
