@@ -35,9 +35,11 @@ from .cost import StaticCost
 
 SNAPSHOT_FACTOR = 2.0
 """The first basis: the responses at the start and at the start with each parameter times this."""
-CONVERGED = 1e-3
-"""The reduced fit has converged when no parameter moved more than this (relative) in a round."""
-RTOL = 1e-7
+CONVERGED = 2e-3
+"""The fit has converged when no parameter moved more than this (relative) in a round."""
+FIRST_STEP = 0.2
+"""The first reduced fit's Nelder-Mead simplex, log units (later ones: twice the last move)."""
+RTOL = 1e-6
 """Relative residual of the full linear solves that enrich the basis."""
 MAX_EVALUATIONS = 400
 """Nelder-Mead evaluations of the reduced cost per round."""
@@ -187,9 +189,11 @@ def fit_reduced(
     lo, hi = np.log(bounds[0]), np.log(bounds[1])
     y = np.clip(np.log(np.asarray(start, dtype=float)), lo, hi)
     static = float("inf")
+    step = FIRST_STEP
     for _ in range(DEFECT_ROUNDS):
         previous = y
-        y = _reduced_minimum(model, y, lo, hi)
+        y = _reduced_minimum(model, y, lo, hi, step)
+        step = max(min(step, 2 * float(np.abs(y - previous).max())), 10 * CONVERGED)
         theta = np.exp(y)
         model.enrich(theta)  # the full linear response at theta joins the basis
         solved = [cost.displacements(theta, j) for j in range(len(model.cases))]
@@ -208,19 +212,26 @@ def fit_reduced(
 
 
 def _reduced_minimum(
-    model: ReducedLinearModel, y: np.ndarray, lo: np.ndarray, hi: np.ndarray
+    model: ReducedLinearModel, y: np.ndarray, lo: np.ndarray, hi: np.ndarray, step: float
 ) -> np.ndarray:
-    """log theta minimising the (corrected) reduced cost, Nelder-Mead from ``y``."""
+    """log theta minimising the (corrected) reduced cost, Nelder-Mead from ``y`` with an initial
+    simplex of ``step`` (log units) along each parameter."""
 
     def f(z: np.ndarray) -> float:
         return model(np.exp(np.clip(z, lo, hi)))
 
     value = f(y)
+    simplex = np.vstack([y] + [y + step * row for row in np.eye(len(y))])
     r = minimize(
         f,
         y,
         method="Nelder-Mead",
         bounds=list(zip(lo, hi, strict=True)),
-        options={"xatol": 1e-4, "fatol": 1e-9 * value, "maxfev": MAX_EVALUATIONS},
+        options={
+            "xatol": 0.1 * CONVERGED,
+            "fatol": 1e-7 * value,
+            "maxfev": MAX_EVALUATIONS,
+            "initial_simplex": np.clip(simplex, lo, hi),
+        },
     )
     return np.asarray(r.x)
