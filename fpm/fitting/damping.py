@@ -55,6 +55,9 @@ GOLDEN = (3 - math.sqrt(5)) / 2
 """Golden-section fraction: where in the wider gap the next d goes."""
 REFINE_STEPS = 4
 """At most this many refining runs after the bracket."""
+FLAT = 0.02
+"""The refinement stops once both neighbours of the best d settle within this fraction of its
+total steps (the steps-versus-d curve is flat there)."""
 CHUNK = 200
 """Time steps each load case advances between checks of a d's running total."""
 MARGIN_CAP = 2
@@ -274,6 +277,8 @@ def _search(
             )
     # Refine: golden-section steps between the best d and its tried neighbours.
     for _ in range(REFINE_STEPS):
+        if _flat(steps, best[0]):
+            break
         y = _next_point([*steps, *slower], best[0])
         if y is None:
             break
@@ -297,6 +302,18 @@ def _search(
 
 def _total(steps: list[int] | None) -> int:
     return sum(steps) if steps is not None else 1 << 62
+
+
+def _flat(steps: dict[float, list[int] | None], y_best: float) -> bool:
+    """The best d's two tried neighbours both settled within FLAT of its total steps: a d between
+    them could gain at most that, not worth a run."""
+    tried = sorted(steps)
+    i = tried.index(y_best)
+    neighbours = [steps[y] for y in tried[max(i - 1, 0) : i] + tried[i + 1 : i + 2]]
+    best = _total(steps[y_best])
+    return len(neighbours) == 2 and all(
+        n is not None and _total(n) <= (1 + FLAT) * best for n in neighbours
+    )
 
 
 def _next_point(tried: list[float], y_best: float) -> float | None:
