@@ -40,7 +40,7 @@ def small_spec(**annealing) -> dict:
             {"forces": [{"at": [0.01, 0.01, 0.04], "vector": [0, 0, 0.05]}]},
             {"forces": [{"at": [0.01, 0.01, 0.04], "vector": [0.02, 0, 0.1]}]},
         ],
-        "fpm": {"depth": 10},
+        "fpm": {"depth": 10, "stiffness": "single", "dt": 1e-3, "max_steps": 2000},
         "annealing": {"seed": 3, "chains": 2, "t_initial": 0.05, "t_final": 1e-3, "beta": 15.0,
                       **annealing},
     }  # fmt: skip

@@ -271,7 +271,11 @@ class FpmSettings(_Strict):
         "at the fitted stiffness, at most 1 ms (a haptic 1 kHz loop)",
     )
     max_steps: int = Field(
-        2000, ge=1, le=1_000_000, description="steps per load case before giving up"
+        20_000,
+        ge=1,
+        le=1_000_000,
+        description="steps per load case before giving up (a cap: the result reports the steps "
+        "each load case took)",
     )
     settle_tolerance: float = Field(
         1e-5,
