@@ -24,6 +24,7 @@ from fpm.fitting.calibration import (
 )
 from fpm.fitting.cost import CostFunction, Evaluation, StaticCost, discrepancies
 from fpm.model.spec import lundy_mees_moves
+from fpm.model.stiffness import theta_of
 
 K_TRUE = 50.0
 
@@ -281,17 +282,18 @@ def test_auto_depth_never_costs_more_than_one_percent_relative_on_a_soft_solid()
     ref = fpm.solve_fem(problem).displacements
     assert np.abs(ref).max() < 0.01 * problem.h  # the trap: everything below 1% of h
     result = calibrate(problem, reference=ref)
+    theta = theta_of(problem, result.k, result.stiffness, result.volume_stiffness)
     static = StaticCost(problem, ref, None)
-    full = static([result.k], None).case_costs
-    at = static([result.k], result.depth).case_costs
+    full = static(theta, None).case_costs
+    at = static(theta, result.depth).case_costs
     assert all(c <= f * 1.01 for c, f in zip(at, full, strict=True))
     assert result.depth > 0
     if result.depth > 0:  # the smallest such depth: one layer less is worse than 1%
-        less = static([result.k], result.depth - 1).case_costs
+        less = static(theta, result.depth - 1).case_costs
         assert any(c > f * 1.01 for c, f in zip(less, full, strict=True))
     # a looser tolerance trades realism for speed: never deeper
     loose = fpm.load_problem(soft_box_spec(auto_depth_tolerance=0.2))
-    depth, deepest, _ = resolve_depth(StaticCost(loose, ref, None), [result.k], 0.2)
+    depth, deepest, _ = resolve_depth(StaticCost(loose, ref, None), theta, 0.2)
     assert depth <= result.depth and deepest == result.full_depth
 
 
@@ -313,6 +315,7 @@ def test_families_beat_one_k_in_every_load_case_of_a_soft_box():
         {"forces": [{"at": [0.01, 0.02, 0.03], "vector": [0, 0, -0.001]}]},
         {"forces": [{"at": [0.03, 0.02, 0.03], "vector": [0.0005, 0, 0]}]},
     ]
+    spec["fpm"]["stiffness"] = "single"
     ref = fpm.solve_fem(fpm.load_problem(spec)).displacements
     single = calibrate(fpm.load_problem(spec), reference=ref)
     spec["fpm"]["stiffness"] = "families"

@@ -512,11 +512,6 @@ def parse_force(text: str) -> list[dict[str, Any]]:
     return forces
 
 
-DT_RULE_K = 3 * 0.35
-"""``dt="auto"``: half the stability estimate at k = this * E h (3x the k ~ 0.35 E h fitted on
-voxelised solids; bench/bench_calibration.py's rule), at most 1 ms."""
-
-
 def spec_from_mesh(
     mesh: Any,
     *,
@@ -542,7 +537,8 @@ def spec_from_mesh(
         youngs_modulus, poisson_ratio, density: the material (Pa, -, kg/m^3).
         spacing, connectivity, scale, voxelise: as :func:`geometry_from_mesh`.
         name: the spec's name (default: the file's name).
-        dt: the FPM time step, s, or ``"auto"`` (:data:`DT_RULE_K`).
+        dt: the FPM time step, s, or ``"auto"`` (resolved by the fit: half the lattice's
+            stability estimate at the fitted stiffness, at most 1 ms).
 
     Raises:
         MeshError: the mesh cannot become a solid. ValueError: a bad selector or force.
@@ -574,14 +570,10 @@ def spec_from_mesh(
     problem = load_problem(spec)  # selectors checked against the nodes
     notes = made.notes + [f"{problem.n_nodes} nodes, h = {problem.h:.4g} m"] + problem.notes
     if dt == "auto":
-        from ..dynamics.stability import stable_time_step
-
-        k = DT_RULE_K * youngs_modulus * problem.h
-        step = min(1e-3, 0.5 * stable_time_step(problem, k))
-        spec["fpm"] = {"dt": float(f"{step:.2g}")}
+        spec["fpm"] = {"dt": "auto"}
         notes.append(
-            f"fpm.dt = {spec['fpm']['dt']:.2g} s: half the lattice's stability estimate at "
-            f"k = {DT_RULE_K:g} E h (at most 1 ms)"
+            "fpm.dt = 'auto': half the lattice's stability estimate at the fitted stiffness, at "
+            "most 1 ms (the result's dt says which)"
         )
     else:
         spec["fpm"] = {"dt": float(dt)}
