@@ -93,28 +93,34 @@ def _emit(data: dict[str, Any], out: str | None) -> None:
 
 def cmd_simulate(args: argparse.Namespace) -> None:
     from fpm.dynamics.simulation import simulate
-    from fpm.dynamics.stability import stable_time_step
+    from fpm.dynamics.stability import auto_time_step, stable_time_step
+    from fpm.model.stiffness import model_stiffness
 
     problem = _load(args.spec)
+    k = args.k[0] if len(args.k) == 1 else args.k
+    stiffness = model_stiffness(problem, k)
     dt = args.dt if args.dt is not None else problem.spec.fpm.dt
-    limit = stable_time_step(problem, args.k) if args.k > 0 else float("inf")
-    advice = f"the lattice's stability estimate for k = {args.k:g} N/m is dt <= {limit:.3g} s"
+    dt = auto_time_step(problem, stiffness) if dt == "auto" else float(dt)
+    limit = stable_time_step(problem, stiffness)
+    given = " ".join(f"{v:g}" for v in args.k)
+    advice = f"the lattice's stability estimate for k = {given} is dt <= {limit:.3g} s"
     if dt > limit:
         _warn([f"dt = {dt:.3g} s: {advice}; the run may diverge (lower --dt)"])
     result = simulate(
         problem,
-        k=args.k,
+        k=k,
         d=args.d,
         depth=args.depth,
         load_case=args.load_case,
-        dt=args.dt,
+        dt=dt,
         max_steps=args.max_steps,
     )
     if result.diverged:
         _warn(
             [
-                f"the run diverged after {result.steps} steps at dt = {dt:.3g} s: {advice}, and "
-                "the node-by-node step needs some damping: lower --dt or raise --d"
+                result.message
+                + f" (dt = {dt:.3g} s: {advice}, and the node-by-node step needs some damping: "
+                "lower --dt or raise --d)"
             ]
         )
     _emit(result.to_dict(), args.output)
@@ -332,7 +338,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("simulate", help="run the FPM for one load case, print JSON")
     p.add_argument("spec", help="problem spec JSON file")
-    p.add_argument("--k", type=float, required=True, help="spring stiffness, N/m")
+    p.add_argument(
+        "--k", type=float, nargs="+", required=True,
+        help="the stiffness parameters: one k (N/m), one per family (axis face body), or for "
+        "families+volume the families then kappa (Pa)",
+    )  # fmt: skip
     p.add_argument("--d", type=float, required=True, help="nodal damping, N s/m")
     p.add_argument("--depth", type=int, default=None, help="penetration depth (layers)")
     p.add_argument("--load-case", type=int, default=0)

@@ -148,7 +148,7 @@ def test_notes_and_warnings_go_to_stderr(tmp_path: Path, capsys: pytest.CaptureF
         "the point"
     )
     assert err[1].startswith("warning: dt = 0.003 s: the lattice's stability estimate for k = ")
-    assert any(line.startswith("warning: the run diverged after") for line in err)
+    assert any(line.startswith("warning: load case 0: diverged at step") for line in err)
 
 
 def test_anything_else_is_one_line_too():
