@@ -1,5 +1,6 @@
 """FPM dynamics and statics (paper Sec. 3.2): the compiled Voigt time step, a load case run to
-rest, and the static equilibrium that a settled run reaches, found directly.
+rest, the static equilibrium that a settled run reaches, found directly, and the lattice's
+stability estimate (dt auto).
 
-Modules: voigt (the one hot loop, numba), simulation, equilibrium.
+Modules: voigt (the one hot loop, numba), simulation, equilibrium, stability.
 """

@@ -1,6 +1,7 @@
 """Fitting the FPM to the FEM (paper Sec. 4.2-4.4): the cost of Eq. (2) and the scale-free
-figures, simulated annealing, the damping search, the calibration methods (two-stage and the
-paper's), and the diagnoses a user reads when a fit cannot proceed.
+figures, simulated annealing, the damping search, the reduced linear model of families+volume,
+the calibration methods (two-stage and the paper's), and the diagnoses a user reads when a fit
+cannot proceed.
 
-Modules: cost, annealing, damping, calibration, result (CalibrationResult), diagnosis.
+Modules: cost, annealing, damping, reduced, calibration, result (CalibrationResult), diagnosis.
 """
