@@ -1106,6 +1106,21 @@ class StaticSolver:
         mg.record(cg.iterations, cg.residual, cg.converged)
         return cg.x, cg.iterations
 
+    def _linear_hierarchy(
+        self, system: SpringSystem, tangent: sp.sparray | sp.spmatrix
+    ) -> ReusedHierarchy:
+        """The list's multigrid hierarchy, built on ``tangent`` when there is none."""
+        key = system.free.tobytes()
+        mg = self._multigrid.get(key)
+        if mg is None:
+            nodes = self.problem.nodes[system.free]
+            blocks = sp.bsr_matrix(tangent, blocksize=(3, 3))
+            mg = self._multigrid[key] = ReusedHierarchy(
+                amg_hierarchy(blocks, rigid_body_modes(nodes))
+            )
+            self.hierarchies_built += 1
+        return mg
+
     def _hierarchy(self, system: SpringSystem, u: np.ndarray, k: Params) -> ReusedHierarchy:
         """The list's multigrid hierarchy, built on the clamped tangent at u when missing or
         stale."""
@@ -1157,11 +1172,14 @@ class StaticSolver:
     ) -> np.ndarray:
         """(N, 3) displacements, m: ``tangent`` (3M, 3M) (a stiffness over the list's free
         nodes, e.g. :meth:`SpringSystem.tangent` at rest) solved for nodal ``loads`` (N, 3), N,
-        as :meth:`linear_response` does; zero off the list."""
+        as :meth:`linear_response` does; zero off the list. ``rtol`` >= 1 asks for one
+        multigrid V-cycle only (LU is exact below AMG_FROM_UNKNOWNS)."""
         system, _ = self.system(load_case, depth)
         rhs = np.ascontiguousarray(loads[system.free]).ravel()
         if 3 * system.n_free < self.amg_from:
             x = _direct_solve(tangent, rhs)
+        elif rtol >= 1.0:  # one multigrid V-cycle: an approximate answer, for search directions
+            x = self._linear_hierarchy(system, tangent).precondition(rhs)
         else:
             start = np.zeros_like(rhs)
             if guess is not None:
@@ -1170,16 +1188,7 @@ class StaticSolver:
             size, remaining = float(np.linalg.norm(rhs)), float(np.linalg.norm(left))
             x = start
             if remaining > rtol * size:
-                mg = self._multigrid.get(system.free.tobytes())
-                if mg is None:  # a hierarchy needs a stiffness: the tangent's own blocks
-                    mg = ReusedHierarchy(
-                        amg_hierarchy(
-                            sp.bsr_matrix(tangent, blocksize=(3, 3)),
-                            rigid_body_modes(self.problem.nodes[system.free]),
-                        )
-                    )
-                    self._multigrid[system.free.tobytes()] = mg
-                    self.hierarchies_built += 1
+                mg = self._linear_hierarchy(system, tangent)
                 cg = conjugate_gradients(
                     tangent, left, mg.precondition, rtol=rtol * size / remaining,
                     max_iterations=10 * MAX_CG_ITERATIONS,

@@ -33,8 +33,6 @@ from ..model.problem import Problem
 from ..model.stiffness import family_names, model_stiffness
 from .cost import StaticCost
 
-SNAPSHOT_FACTOR = 2.0
-"""The first basis: the responses at the start and at the start with each parameter times this."""
 CONVERGED = 2e-3
 """The fit has converged when no parameter moved more than this (relative) in a round."""
 FIRST_STEP = 0.2
@@ -60,9 +58,11 @@ class _Case:
     correction: np.ndarray | None = None  # (M, 3) nonlinear minus linear displacements
     last: np.ndarray | None = None  # (3M,) the last full linear response added
 
-    def add(self, response: np.ndarray) -> None:
-        """Extend the basis by ``response`` (3M,) (Gram-Schmidt twice; dropped if dependent)."""
-        self.last = response
+    def add(self, response: np.ndarray, *, last: bool = True) -> None:
+        """Extend the basis by ``response`` (3M,) (Gram-Schmidt twice; dropped if dependent);
+        ``last``: it is the full linear response at the parameters last enriched at."""
+        if last:
+            self.last = response
         v = response.copy()
         size = float(np.linalg.norm(v))
         for _ in range(2):
@@ -106,8 +106,8 @@ class ReducedLinearModel:
 
     Args:
         cost: the static cost (its solver's lists, multigrid and linear solves are used).
-        start: parameters whose response (and that of each parameter times
-            :data:`SNAPSHOT_FACTOR`) makes the first basis.
+        start: parameters whose response, and the directions in which it turns as each
+            parameter grows, make the first basis.
     """
 
     def __init__(self, cost: StaticCost, start: list[float]):
@@ -143,10 +143,16 @@ class ReducedLinearModel:
             )
         theta = np.asarray(start, dtype=float)
         self.enrich(theta)
-        for p in range(n):
-            scaled = theta.copy()
-            scaled[p] *= SNAPSHOT_FACTOR
-            self.enrich(scaled)
+        # How the response turns as each parameter grows: du/dtheta_p = -K^-1 K_p u, taken as
+        # one multigrid V-cycle on K_p u (a direction for the basis; exact solves come later).
+        for j, case in enumerate(self.cases):
+            assert case.last is not None
+            matrix = sum(t * k for t, k in zip(theta, case.unit, strict=True))
+            for unit in case.unit:
+                loads = np.zeros((self.problem.n_nodes, 3))
+                loads[case.free] = (unit @ case.last).reshape(-1, 3)
+                turn = solver.linear_solve(j, cost.depth, matrix, loads, rtol=1.0)
+                case.add(np.ascontiguousarray(turn[case.free]).ravel(), last=False)
 
     def enrich(self, theta: np.ndarray) -> None:
         """Add the full linear responses at ``theta`` to every load case's basis."""
