@@ -48,8 +48,9 @@ class FemResult:
         residuals: (L,) ||K u - f|| / ||f|| over the free unknowns (reactions excluded); for
             the neo-Hookean model the final unbalanced force ||f_int(u) - f|| / ||f||.
         load_cases: (L,) load case names.
-        method: linear solver used, ``"direct"`` or ``"amg"``.
-        model: the material model, ``"linear"`` or ``"neo-hookean"``.
+        method: linear solver used, ``"direct"`` or ``"amg"`` (``"supplied"``: no solve).
+        model: the material model, ``"linear"`` or ``"neo-hookean"``, or ``"supplied"`` for
+            displacements the spec brought (:func:`supplied_reference`).
         load_steps: (L,) load steps taken per load case (neo-Hookean; empty for linear).
         newton_iterations: (L, steps) Newton iterations of each load step (neo-Hookean).
     """
@@ -96,6 +97,36 @@ class FemResult:
             [int(n) for n in data.get("load_steps", [])],
             [[int(n) for n in steps] for steps in data.get("newton_iterations", [])],
         )
+
+
+def reference_label(spec: Any) -> str:
+    """Which reference a calibration of ``spec`` (a :class:`fpm.model.spec.ProblemSpec`) is fitted
+    to: ``"supplied"`` (``reference.displacements``), ``"fem-neo-hookean"``, or
+    ``"fem-linear-selective"`` / ``"fem-linear-full"`` (the integration)."""
+    if spec.reference.displacements is not None:
+        return "supplied"
+    if spec.material.model == "neo-hookean":
+        return "fem-neo-hookean"
+    return f"fem-linear-{spec.reference.integration}"
+
+
+def supplied_reference(problem: Problem) -> FemResult | None:
+    """The spec's ``reference.displacements`` as a :class:`FemResult` (model and method
+    ``"supplied"``, residuals 0), or None when the spec supplies none. Its shape was checked by
+    :func:`fpm.load_problem`."""
+    supplied = problem.spec.reference.displacements
+    if supplied is None:
+        return None
+    u = np.asarray(supplied, dtype=float).reshape(len(problem.load_cases), len(problem.nodes), 3)
+    names = [case.name for case in problem.load_cases]
+    return FemResult(problem.nodes.copy(), u, [0.0] * len(names), names, "supplied", "supplied")
+
+
+def reference_for(problem: Problem, method: str = "auto", *, load_steps: int = 1) -> FemResult:
+    """The reference ``problem`` is calibrated against: the supplied displacements when the
+    spec has them (no FEM is solved), else :func:`solve_fem`."""
+    supplied = supplied_reference(problem)
+    return supplied if supplied is not None else solve_fem(problem, method, load_steps=load_steps)
 
 
 def solve_fem(problem: Problem, method: str = "auto", *, load_steps: int = 1) -> FemResult:

@@ -666,7 +666,10 @@ def finalize(
     winner = min(chains, key=lambda c: c.cost)
     stiffness = stiffness_dict(problem, theta)
     m = problem.solid.masses
+    from ..fem.reference import reference_label
+
     return CalibrationResult(
+        reference=reference_label(problem.spec),
         method=method,
         k=float(theta[0]),
         stiffness=stiffness,
@@ -728,7 +731,8 @@ def calibrate(
         chains: number of annealing chains (None = the spec's).
         progress: called with {phase, chain, move, moves, temperature, best_cost, ...};
             phases fem, annealing, polish, depth, damping, finalize.
-        reference: FEM result or (L, N, 3) displacements (None = solve the FEM now).
+        reference: FEM result or (L, N, 3) displacements (None = the spec's
+            ``reference.displacements`` if given, else solve the FEM now).
         threads: chains run at once (None = one per core).
 
     Raises:
@@ -740,11 +744,11 @@ def calibrate(
     if n < 1:
         raise ValueError("chains must be >= 1")
     if reference is None:
-        from ..fem.reference import solve_fem
+        from ..fem.reference import reference_for
 
         if progress is not None:
             progress({"phase": "fem"})
-        reference = solve_fem(problem)
+        reference = reference_for(problem)
     warnings = check_reference(problem, reference)
 
     def one(chain: int) -> ChainResult:

@@ -26,6 +26,12 @@ class CalibrationResult(BaseModel):
     """The fitted parameters and how well they fit (units in each field's description)."""
 
     method: str = Field(description="'two-stage' or 'paper'")
+    reference: str = Field(
+        "fem",
+        description="what the fit was measured against: 'fem-linear-selective', "
+        "'fem-linear-full', 'fem-neo-hookean' or 'supplied' (the spec's reference.displacements); "
+        "'fem' in results stored before the field existed",
+    )
     k: float = Field(description="stiffness of the axis family (the one k for 'single'), N/m")
     stiffness: dict[str, float] = Field(
         description="k per spring family present, N/m (all equal for 'single')"

@@ -175,6 +175,22 @@ def build_problem(spec: ProblemSpec) -> Problem:
         if len(vec) and not np.any(forces):
             errors.append((("load_cases", c, "forces"), "all forces are zero"))
         load_cases.append(LoadCase(case.name or f"load case {c + 1}", nodes, forces))
+    supplied = spec.reference.displacements
+    if supplied is not None:
+        field_loc: Loc = ("reference", "displacements")
+        shape = (len(spec.load_cases), len(solid.nodes), 3)
+        if len(supplied) != shape[0]:
+            errors.append(
+                (field_loc, f"need one field per load case ({shape[0]}), got {len(supplied)}")
+            )
+        for c, field in enumerate(supplied):
+            if len(field) != shape[1]:
+                errors.append(
+                    (
+                        (*field_loc, c),
+                        f"need one [ux, uy, uz] per lattice node ({shape[1]}), got {len(field)}",
+                    )
+                )
     if errors:
         raise SpecError(errors)
     return Problem(spec, solid, fixed, load_cases, lengths, notes=finder.notes)

@@ -383,12 +383,24 @@ class ReferenceSettings(_Strict):
 
     The neo-Hookean reference always uses 2x2x2 points (its locking is measured in
     docs/physics.md).
+
+    ``displacements``: a reference brought by the user (their own nonlinear FEM, measured
+    displacements), one list per load case (spec order) of one ``[ux, uy, uz]`` per lattice
+    node (node order of the built solid), m. When given it takes the FEM's place in the cost and
+    in every reported figure, and no FEM is solved. Its shape is checked against the built solid
+    in :func:`fpm.model.problem.load_problem` (errors at ``reference.displacements``); values
+    must be finite.
     """
 
     integration: Integration = Field(
         "selective",
         description="linear hexahedra: 'selective' (shear at 2x2x2 Gauss points, volume on the "
         "mean dilatation: B-bar, no volumetric locking) or 'full' (2x2x2 for all, the paper's)",
+    )
+    displacements: list[list[Vector3]] | None = Field(
+        None,
+        description="a supplied reference instead of the FEM: per load case, per lattice node, "
+        "[ux, uy, uz], m (finite); null = solve the FEM",
     )
 
 
