@@ -119,3 +119,35 @@ def test_the_service_runs_no_fem_job_for_a_supplied_reference(api, redis, run_wo
     done = api.get(submitted.headers["location"]).json()
     assert done["status"] == "succeeded", done
     assert done["result"]["reference"] == "supplied"
+
+
+def test_the_cli_reads_a_supplied_field_from_json_or_vtu(tmp_path, capsys):
+    import meshio
+
+    from fpmcal.cli import main
+
+    problem = fpm.load_problem(small())
+    u = 1.25 * fem_field()
+    spec = tmp_path / "spec.json"
+    spec.write_text(json.dumps(small()))
+    as_json = tmp_path / "field.json"
+    as_json.write_text(json.dumps({"displacements": u.tolist()}))
+    as_vtu = tmp_path / "field.vtu"
+    point_data = {f"displacement_{j + 1}": u[j] for j in range(len(u))}
+    meshio.write(as_vtu, meshio.Mesh(problem.nodes, [("vertex", [[0]])], point_data=point_data))
+    ks = []
+    for path in (as_json, as_vtu):
+        capsys.readouterr()
+        assert main(["calibrate", str(spec), "--reference", str(path), "--json", "-q"]) == 0
+        result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        assert result["reference"] == "supplied"
+        ks.append(result["k"])
+    assert ks[0] == pytest.approx(ks[1], rel=1e-9)
+    short = tmp_path / "short.json"
+    short.write_text(json.dumps(u[:, :-1].tolist()))
+    assert main(["calibrate", str(spec), "--reference", str(short), "-q"]) == 2
+    assert "reference.displacements" in capsys.readouterr().err
+    missing = tmp_path / "missing.vtu"
+    meshio.write(missing, meshio.Mesh(problem.nodes, [("vertex", [[0]])]))
+    assert main(["calibrate", str(spec), "--reference", str(missing), "-q"]) == 2
+    assert "displacement_1" in capsys.readouterr().err
