@@ -37,6 +37,10 @@ MODEL_REPEATS = 2
 """Processes per model in that comparison; the fastest counts."""
 MODEL_GOALS = (10.0, 2.0)
 """Neo-Hookean over linear: (time, peak memory) ratios not to exceed."""
+LOCKING_RATIOS = (0.3, 0.45, 0.49)
+"""Poisson's ratios of the locking table."""
+LOCKING_GOAL = 0.07
+"""Selective hexahedra at nu = 0.49: relative gap to the triquadratic ones not to exceed."""
 
 
 def cube_spec(n: int) -> dict:
@@ -146,6 +150,66 @@ def compare_models() -> list[str]:
     return failures
 
 
+def compare_locking() -> list[str]:
+    """The locking table (module docstring); returns failures."""
+    from pathlib import Path
+
+    import numpy as np
+
+    import fpm
+    from fpm.fem.elasticity import constitutive_matrix
+    from fpm.fem.hex27 import solve_hex27
+
+    root = Path(__file__).resolve().parents[1]
+    base = json.loads((root / "examples" / "paper-material-a.json").read_text())
+    base["load_cases"] = base["load_cases"][:1]
+
+    def gap(u: np.ndarray, reference: np.ndarray) -> float:
+        return float(
+            np.linalg.norm(u - reference, axis=-1).sum() / np.linalg.norm(reference, axis=-1).sum()
+        )
+
+    print(
+        "\nvolumetric locking: paper cube, 0.25 N per pulled node, relative gap (%) to the "
+        "triquadratic hexahedron (hex27, 3x3x3 points) on the same grid"
+    )
+    print(f"{'nu':>5} {'full':>7} {'selective':>10} {'neo-Hookean':>12} {'hex27 s':>8}")
+    failures = []
+    for nu in LOCKING_RATIOS:
+        spec = json.loads(json.dumps(base))
+        spec["material"]["poisson_ratio"] = nu
+        row = {}
+        for integration in ("full", "selective"):
+            spec["reference"] = {"integration": integration}
+            row[integration] = fpm.solve_fem(fpm.load_problem(spec)).displacements[0]
+        small = json.loads(json.dumps(spec))
+        small["material"]["model"] = "neo-hookean"
+        for force in small["load_cases"][0]["forces"]:
+            force["vector"] = [1e-3 * v for v in force["vector"]]
+        row["neo-hookean"] = 1e3 * fpm.solve_fem(fpm.load_problem(small)).displacements[0]
+        problem = fpm.load_problem(spec)
+        hexahedra = problem.solid.elements()
+        assert hexahedra is not None
+        forces = problem.load_cases[0].dense(len(problem.nodes))[None]
+        t0 = time.perf_counter()
+        c = constitutive_matrix(spec["material"]["youngs_modulus"], nu)
+        u27 = solve_hex27(problem.nodes, hexahedra, problem.fixed, c, forces)[0]
+        seconds = time.perf_counter() - t0
+        gaps = {name: 100 * gap(u, u27) for name, u in row.items()}
+        print(
+            f"{nu:>5} {gaps['full']:>7.2f} {gaps['selective']:>10.2f} "
+            f"{gaps['neo-hookean']:>12.2f} {seconds:>8.1f}",
+            flush=True,
+        )
+        if nu == 0.49 and gaps["selective"] > 100 * LOCKING_GOAL:
+            failures.append(f"selective at nu 0.49: {gaps['selective']:.1f}% > 7%")
+    print(
+        f"goal: selective within {100 * LOCKING_GOAL:g}% of hex27 at nu 0.49: "
+        + ("met" if not failures else "MISSED")
+    )
+    return failures
+
+
 def main() -> None:
     from fpm.fem.linear_solver import choose_method
 
@@ -180,6 +244,7 @@ def main() -> None:
                 failures.append(f"{n}^3: {row['peak_mb']:.0f} MB > {megabytes} MB")
     print("* = the method solve_fem picks at that size")
     failures += compare_models()
+    failures += compare_locking()
     print("goals: " + ("all met" if not failures else "MISSED " + "; ".join(failures)))
 
 
@@ -190,6 +255,9 @@ if __name__ == "__main__":
         print(json.dumps(run_case(int(sys.argv[1]), sys.argv[2])))
     elif sys.argv[1:] == ["models"]:
         failures = compare_models()
+        print("goals: " + ("all met" if not failures else "MISSED " + "; ".join(failures)))
+    elif sys.argv[1:] == ["locking"]:
+        failures = compare_locking()
         print("goals: " + ("all met" if not failures else "MISSED " + "; ".join(failures)))
     else:
         main()

@@ -63,11 +63,22 @@ def _mesh_hint(path: str) -> str:
     )
 
 
-def _load(path: str) -> Any:
-    """The problem of the spec file ``path``; its notes go to stderr."""
+def _load(path: str, reference: str | None = None) -> Any:
+    """The problem of the spec file ``path``; its notes go to stderr. ``reference``: a file
+    whose displacement field becomes the spec's ``reference.displacements``
+    (:func:`fpm.io.meshes.read_reference`)."""
     from fpm.model.problem import load_problem
 
-    problem = load_problem(_read_spec(path))
+    spec = _read_spec(path)
+    if reference is not None:
+        from fpm.io.meshes import read_reference
+
+        try:
+            field = read_reference(reference, len(spec.get("load_cases") or []))
+        except (OSError, ValueError) as e:
+            raise SpecFileError(f"--reference {reference}: {e}") from None
+        spec["reference"] = {**(spec.get("reference") or {}), "displacements": field}
+    problem = load_problem(spec)
     for note in problem.notes:
         print(f"note: {note}", file=sys.stderr)
     return problem
@@ -185,15 +196,15 @@ class _Bar:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> None:
-    from fpm.fem.reference import solve_fem
+    from fpm.fem.reference import reference_for
     from fpm.fitting.calibration import calibrate
     from fpm.fitting.diagnosis import check_reference
 
-    problem = _load(args.spec)
+    problem = _load(args.spec, args.reference)
     a = problem.spec.annealing
     chains = args.chains or a.chains
     print(f"{problem.spec.name}: {problem.n_nodes} nodes, h = {problem.h:.4g} m", file=sys.stderr)
-    reference = solve_fem(problem)
+    reference = reference_for(problem)  # the supplied field, if any: then no FEM
     warned = check_reference(problem, reference.displacements)  # a UnitsError stops here
     _warn(warned)
     progress = None if args.quiet else _Bar(chains, a.moves)
@@ -375,6 +386,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plot", default=None, metavar="OUT.png", help="save profiles + cost history")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--reference",
+        default=None,
+        metavar="FILE",
+        help="fit to this displacement field instead of the FEM (JSON: a list per load case of "
+        "[ux, uy, uz] per node, m; VTU: point data displacement_1..L); sets the spec's "
+        "reference.displacements",
+    )
     p.set_defaults(func=cmd_calibrate)
 
     from fpm.io.meshes import FORCE_HELP, SELECTOR_HELP

@@ -176,3 +176,23 @@ def check_calibration_spec(spec: ProblemSpec, settings: Settings) -> Problem:
 def dump_spec(spec: ProblemSpec) -> dict[str, Any]:
     """The validated spec with every default filled in (what jobs and hashes see)."""
     return spec.model_dump(mode="json")
+
+
+def supplied_reference(problem: Problem) -> dict[str, Any] | None:
+    """The spec's ``reference.displacements`` in the stored FemResult layout (model and method
+    ``"supplied"``), or None when it supplies none; its shape was checked by
+    :func:`fpm.load_problem`."""
+    displacements = problem.spec.reference.displacements
+    if displacements is None:
+        return None
+    names = [case.name for case in problem.load_cases]
+    return {
+        "nodes": problem.nodes.tolist(),
+        "displacements": [[list(u) for u in case] for case in displacements],
+        "residuals": [0.0] * len(names),
+        "load_cases": names,
+        "method": "supplied",
+        "model": "supplied",
+        "load_steps": [],
+        "newton_iterations": [],
+    }

@@ -100,9 +100,13 @@ def enqueue_ready(redis: Redis) -> int:
 
 
 def submit_calibration(
-    redis: Redis, spec: dict[str, Any], options: JobOptions
+    redis: Redis,
+    spec: dict[str, Any],
+    options: JobOptions,
+    supplied: dict[str, Any] | None = None,
 ) -> tuple[records.CalibrationRecord, bool]:
-    """Start a calibration of the validated ``spec`` (a dumped ProblemSpec).
+    """Start a calibration of the validated ``spec`` (a dumped ProblemSpec); ``supplied``:
+    the reference of a spec with ``reference.displacements`` (:func:`submit_fem`).
 
     Returns (record, created): an identical spec already queued, running or succeeded gives
     that calibration and ``created=False``; otherwise a new record and its jobs.
@@ -140,18 +144,23 @@ def submit_calibration(
     )
     if existing is not None:
         return existing, False
-    _enqueue(redis, record, options)
+    _enqueue(redis, record, options, supplied)
     return record, True
 
 
-def _enqueue(redis: Redis, record: records.CalibrationRecord, options: JobOptions) -> None:
+def _enqueue(
+    redis: Redis,
+    record: records.CalibrationRecord,
+    options: JobOptions,
+    supplied: dict[str, Any] | None = None,
+) -> None:
     """Enqueue the jobs: chains on the queue of long jobs, the damping stage and finalize on
     the priority queue (RQ puts a job whose dependencies finished on its own queue, so they
     jump the chains of calibrations submitted later)."""
     q = queue(redis)
     finish = priority_queue(redis)
     common = _common(options)
-    fem_job = None if record.fem_cached else submit_fem(redis, record.spec, options)
+    fem_job = None if record.fem_cached else submit_fem(redis, record.spec, options, supplied)
     chains = [
         q.enqueue_call(
             keys.CHAIN_JOB,
@@ -188,14 +197,27 @@ def _enqueue(redis: Redis, record: records.CalibrationRecord, options: JobOption
     )
 
 
-def submit_fem(redis: Redis, spec: dict[str, Any], options: JobOptions) -> Job | None:
+def submit_fem(
+    redis: Redis,
+    spec: dict[str, Any],
+    options: JobOptions,
+    supplied: dict[str, Any] | None = None,
+) -> Job | None:
     """Make sure the FEM reference of ``spec`` is stored or on its way.
+
+    A spec with ``reference.displacements`` has no FEM job: ``supplied`` (the stored
+    FemResult layout of those displacements) is stored as its reference at once.
 
     Returns the pending FEM job to wait for (an existing one if the same reference is already
     being computed), or None if the reference is stored.
     """
     digest = fem_hash(spec)
     if redis.exists(keys.fem_reference(digest)):
+        return None
+    if (spec.get("reference") or {}).get("displacements") is not None:
+        if supplied is None:
+            raise ValueError("a spec with reference.displacements needs its supplied reference")
+        store_supplied_reference(redis, spec, supplied)  # the user's own reference: no FEM job
         return None
     q = queue(redis)
     job_id = keys.fem_job_id(digest)
@@ -227,6 +249,30 @@ def submit_fem(redis: Redis, spec: dict[str, Any], options: JobOptions) -> Job |
         description=f"FEM reference {digest[:12]}",
         **_common(options),
     )
+
+
+def store_supplied_reference(redis: Redis, spec: dict[str, Any], reference: dict[str, Any]) -> str:
+    """Store a spec's supplied ``reference.displacements`` as its reference, so chains and
+    finalize read it as they read a FEM reference; no FEM job runs.
+
+    ``reference`` is the stored FemResult layout (``nodes``, ``displacements``, ``load_cases``,
+    ..., model and method ``"supplied"``), built by the caller from the loaded problem (the
+    store takes only the spec from the numerical core). Returns the reference id."""
+    digest = fem_hash(spec)
+    now = time.time()
+    meta = {
+        "id": digest,
+        "status": FemStatus.SUCCEEDED.value,
+        "spec": json.dumps(fem_spec(spec)),
+        "created": str(now),
+        "finished": now,
+        "error": "",
+        "n_nodes": len(reference["nodes"]),
+        "load_cases": reference["load_cases"],
+        "model": "supplied",
+    }
+    records.save_fem_reference(redis, digest, reference, meta)
+    return digest
 
 
 SMALL_FEM_NODES = 5_000

@@ -33,12 +33,23 @@ def spec_hash(spec: dict[str, Any]) -> str:
 
 
 def fem_spec(spec: dict[str, Any]) -> dict[str, Any]:
-    """The part of ``spec`` the FEM reference depends on (itself a loadable spec)."""
-    return {name: spec[name] for name in FEM_FIELDS}
+    """The part of ``spec`` the FEM reference depends on (itself a loadable spec): geometry,
+    material, fixed nodes and load cases, the reference's ``integration`` (and its supplied
+    ``displacements``, if any), and ``fpm.gravity`` when it is set (the FEM then carries the
+    solid's weight)."""
+    out = {name: spec[name] for name in FEM_FIELDS}
+    reference = spec.get("reference") or {}
+    out["reference"] = {"integration": reference.get("integration", "selective")}
+    if reference.get("displacements") is not None:  # a supplied reference: its own identity
+        out["reference"]["displacements"] = reference["displacements"]
+    gravity = (spec.get("fpm") or {}).get("gravity")
+    if gravity is not None and any(gravity):
+        out["fpm"] = {"gravity": list(gravity)}
+    return out
 
 
 def fem_hash(spec: dict[str, Any]) -> str:
-    """sha256 of geometry + material + fixed + load cases and of
-    :data:`fpm.model.spec.FEM_VERSION`: the FEM reference's identity."""
+    """sha256 of :func:`fem_spec` (geometry, material, fixed, load cases, integration,
+    gravity) and of :data:`fpm.model.spec.FEM_VERSION`: the FEM reference's identity."""
     identity = {"fem": FEM_VERSION, "spec": fem_spec(spec)}
     return hashlib.sha256(canonical(identity)).hexdigest()

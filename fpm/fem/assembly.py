@@ -11,20 +11,25 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from ..model.hexahedron import GAUSS_POINTS, jacobians, shape_functions
 from .elasticity import element_stiffness
 
 
-def stiffness_matrix(nodes: np.ndarray, hexahedra: np.ndarray, c: np.ndarray) -> sp.bsr_matrix:
+def stiffness_matrix(
+    nodes: np.ndarray, hexahedra: np.ndarray, c: np.ndarray, integration: str = "full"
+) -> sp.bsr_matrix:
     """(3N, 3N) global stiffness K, N/m, in 3x3 blocks.
 
     Args:
         nodes: (N, 3) rest positions, m.
         hexahedra: (H, 8) node indices, :mod:`fpm.model.hexahedron` order, det J > 0.
         c: (6, 6) elasticity matrix, Pa.
+        integration: ``"full"`` (2x2x2 Gauss points) or ``"selective"`` (B-bar, mean
+            dilatation): :func:`fpm.fem.elasticity.element_stiffness`.
     """
     n = len(nodes)
     shapes, which = identical_elements(nodes[hexahedra])
-    ke = element_stiffness(shapes, c)  # (U, 24, 24)
+    ke = element_stiffness(shapes, c, integration)  # (U, 24, 24)
     blocks = ke.reshape(-1, 8, 3, 8, 3).transpose(0, 1, 3, 2, 4).reshape(-1, 64, 9)
     hexahedra = hexahedra.astype(np.int64)
     keys = (np.repeat(hexahedra, 8, axis=1) * n + np.tile(hexahedra, (1, 8))).ravel()
@@ -34,6 +39,33 @@ def stiffness_matrix(nodes: np.ndarray, hexahedra: np.ndarray, c: np.ndarray) ->
         data[:, entry] = np.bincount(slot, blocks[:, :, entry][which].ravel(), len(pairs))
     indptr = np.searchsorted(pairs // n, np.arange(n + 1))
     return sp.bsr_matrix((data.reshape(-1, 3, 3), pairs % n, indptr), shape=(3 * n, 3 * n))
+
+
+def body_forces(
+    nodes: np.ndarray, hexahedra: np.ndarray, density: float, gravity: np.ndarray
+) -> np.ndarray:
+    """(N, 3) consistent nodal body forces f_a = int N_a rho g dV, N, summed over hexahedra.
+
+    2x2x2 Gauss quadrature (exact for trilinear shape functions times a trilinear det J). On a
+    parallelepiped every corner gets ``rho g V_e / 8``, the lumped weight of the FPM's node
+    masses; on a distorted hexahedron the shares follow the shape functions. They sum to the
+    solid's weight ``rho g V``.
+
+    Args:
+        nodes: (N, 3) rest positions, m.
+        hexahedra: (H, 8) node indices, det J > 0.
+        density: rho, kg/m^3.
+        gravity: (3,) acceleration g, m/s^2.
+    """
+    coords = nodes[hexahedra]
+    share = np.zeros(hexahedra.shape)  # (H, 8) int N_a dV, m^3
+    for point in GAUSS_POINTS:
+        share += shape_functions(point)[None, :] * np.linalg.det(jacobians(coords, point))[:, None]
+    out = np.zeros((len(nodes), 3))
+    weight = density * np.asarray(gravity, dtype=float)
+    for i in range(3):
+        out[:, i] = np.bincount(hexahedra.ravel(), (share * weight[i]).ravel(), len(nodes))
+    return out
 
 
 def unique_inverse(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -45,16 +45,53 @@ def physical_gradients(coords: np.ndarray, point: np.ndarray) -> tuple[np.ndarra
     return grad, np.linalg.det(jac)
 
 
-def element_stiffness(coords: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """(H, 24, 24) K_e = sum over Gauss points of B^T C B det J, N/m, for ``coords`` (H, 8, 3).
+INTEGRATIONS = ("selective", "full")
+"""How :func:`element_stiffness` integrates (``reference.integration`` in the spec)."""
 
-    2x2x2 Gauss quadrature (exact for a parallelepiped). The caller checks det J > 0.
+VOLUMETRIC = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0])
+"""m: the volumetric strain is m . epsilon (Voigt order)."""
+
+
+def bulk_modulus(c: np.ndarray) -> float:
+    """kappa = (C11 + 2 C12) / 3, Pa, of an isotropic C (6, 6): lambda + 2 mu / 3."""
+    return float(c[0, 0] + 2 * c[0, 1]) / 3
+
+
+def element_stiffness(coords: np.ndarray, c: np.ndarray, integration: str = "full") -> np.ndarray:
+    """(H, 24, 24) element stiffness K_e, N/m, for ``coords`` (H, 8, 3).
+
+    ``"full"``: sum over the 2x2x2 Gauss points of B^T C B det J (exact for a
+    parallelepiped; locks volumetrically as nu approaches 1/2).
+
+    ``"selective"``: the deviatoric part ``C - kappa m m^T`` (kappa the bulk modulus) at the
+    2x2x2 Gauss points, plus the volumetric part on the element's mean dilatation,
+    ``kappa V b_bar b_bar^T`` with ``b_bar = (1/V) int m^T B dV``: exactly K of B-bar with the
+    mean dilatation (``B_bar = B + m (b_bar - m^T B) / 3``). On a parallelepiped b_bar is B's
+    volumetric row at the centre, so this is one-point integration of the volumetric part.
+    Uniform strains are still reproduced exactly (patch test).
+
+    The caller checks det J > 0.
     """
+    if integration not in INTEGRATIONS:
+        raise ValueError(f"unknown integration {integration!r} (use 'selective' or 'full')")
     ke = np.zeros((len(coords), 24, 24))
+    if integration == "full":
+        for point in GAUSS_POINTS:
+            grad, det = physical_gradients(coords, point)
+            b = strain_displacement(grad)
+            ke += np.einsum("hpa,pq,hqb->hab", b, c, b, optimize=True) * det[:, None, None]
+        return ke
+    kappa = bulk_modulus(c)
+    deviatoric = c - kappa * np.outer(VOLUMETRIC, VOLUMETRIC)
+    divergence = np.zeros((len(coords), 24))  # int m^T B dV
+    volume = np.zeros(len(coords))
     for point in GAUSS_POINTS:
         grad, det = physical_gradients(coords, point)
         b = strain_displacement(grad)
-        ke += np.einsum("hpa,pq,hqb->hab", b, c, b, optimize=True) * det[:, None, None]
+        ke += np.einsum("hpa,pq,hqb->hab", b, deviatoric, b, optimize=True) * det[:, None, None]
+        divergence += grad.reshape(len(coords), 24) * det[:, None]
+        volume += det
+    ke += kappa * np.einsum("ha,hb->hab", divergence, divergence) / volume[:, None, None]
     return ke
 
 

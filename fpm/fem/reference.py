@@ -3,9 +3,13 @@
 Small-strain linear elasticity on the problem's 8-node hexahedra (:mod:`fpm.fem.elasticity`),
 assembled into a block-sparse K (:mod:`fpm.fem.assembly`), fixed nodes as Dirichlet conditions
 (their displacement is zero), the load cases' nodal forces as right-hand sides, one
-factorisation for all of them (:mod:`fpm.fem.linear_solver`). Density plays no part. Nodes that
-belong to no hexahedron (possible in a ``mesh``) carry no stiffness; they stay at rest and may
-not be loaded.
+factorisation for all of them (:mod:`fpm.fem.linear_solver`). The hexahedra are integrated as
+the spec's ``reference.integration`` says: ``"selective"`` (B-bar with the mean dilatation, the
+default: no volumetric locking near nu = 1/2) or ``"full"`` (2x2x2 Gauss points, the paper's).
+With ``fpm.gravity`` set, every load case also carries the solid's weight as the consistent
+body force ``int N_a rho g dV`` (:func:`fpm.fem.assembly.body_forces`); density plays no other
+part. Nodes that belong to no hexahedron (possible in a ``mesh``) carry no stiffness; they stay
+at rest and may not be loaded.
 
 With ``material.model: "neo-hookean"`` the same hexahedra, supports and loads go to the
 large-deformation reference instead (:mod:`fpm.fem.hyperelastic`); :func:`solve_fem` dispatches on
@@ -22,7 +26,7 @@ import scipy.sparse as sp
 
 from ..model.problem import Problem
 from ..model.support import unheld_reason
-from .assembly import keep_nodes, stiffness_matrix
+from .assembly import body_forces, keep_nodes, stiffness_matrix
 from .elasticity import constitutive_matrix, min_jacobian_determinants
 from .linear_solver import SingularStiffnessError, choose_method, factorize, rigid_body_modes
 
@@ -44,8 +48,9 @@ class FemResult:
         residuals: (L,) ||K u - f|| / ||f|| over the free unknowns (reactions excluded); for
             the neo-Hookean model the final unbalanced force ||f_int(u) - f|| / ||f||.
         load_cases: (L,) load case names.
-        method: linear solver used, ``"direct"`` or ``"amg"``.
-        model: the material model, ``"linear"`` or ``"neo-hookean"``.
+        method: linear solver used, ``"direct"`` or ``"amg"`` (``"supplied"``: no solve).
+        model: the material model, ``"linear"`` or ``"neo-hookean"``, or ``"supplied"`` for
+            displacements the spec brought (:func:`supplied_reference`).
         load_steps: (L,) load steps taken per load case (neo-Hookean; empty for linear).
         newton_iterations: (L, steps) Newton iterations of each load step (neo-Hookean).
     """
@@ -94,6 +99,37 @@ class FemResult:
         )
 
 
+def reference_label(spec: Any) -> str:
+    """Which reference a calibration of ``spec`` (a :class:`fpm.model.spec.ProblemSpec`) is fitted
+    to: ``"supplied"`` (``reference.displacements``), ``"fem-neo-hookean"``, or
+    ``"fem-linear-selective"`` / ``"fem-linear-full"`` (the integration)."""
+    if spec.reference.displacements is not None:
+        return "supplied"
+    if spec.material.model == "neo-hookean":
+        return "fem-neo-hookean"
+    return f"fem-linear-{spec.reference.integration}"
+
+
+def supplied_reference(problem: Problem) -> FemResult | None:
+    """The spec's ``reference.displacements`` as a :class:`FemResult` (model and method
+    ``"supplied"``, residuals 0; one field per load case, then per validation case), or None
+    when the spec supplies none. Its shape was checked by :func:`fpm.load_problem`."""
+    supplied = problem.spec.reference.displacements
+    if supplied is None:
+        return None
+    cases = problem.all_cases  # the load cases, then the validation cases
+    u = np.asarray(supplied, dtype=float).reshape(len(cases), len(problem.nodes), 3)
+    names = [case.name for case in cases]
+    return FemResult(problem.nodes.copy(), u, [0.0] * len(names), names, "supplied", "supplied")
+
+
+def reference_for(problem: Problem, method: str = "auto", *, load_steps: int = 1) -> FemResult:
+    """The reference ``problem`` is calibrated against: the supplied displacements when the
+    spec has them (no FEM is solved), else :func:`solve_fem`."""
+    supplied = supplied_reference(problem)
+    return supplied if supplied is not None else solve_fem(problem, method, load_steps=load_steps)
+
+
 def solve_fem(problem: Problem, method: str = "auto", *, load_steps: int = 1) -> FemResult:
     """Nodal displacements of ``problem`` for every load case, by the spec's material model.
 
@@ -137,6 +173,9 @@ def solve_fem(problem: Problem, method: str = "auto", *, load_steps: int = 1) ->
     stray = np.flatnonzero(~in_solid & np.any(forces != 0, axis=(0, 2)))
     if len(stray):
         raise FemError(f"node {int(stray[0])} is loaded but belongs to no hexahedron")
+    gravity = np.asarray(problem.spec.fpm.gravity, dtype=float)
+    if np.any(gravity):  # the solid's own weight, in every load case
+        forces = forces + body_forces(nodes, hexahedra, material.density, gravity)[None]
     free = np.repeat(in_solid & ~problem.fixed, 3)
     method = choose_method(int(free.sum())) if method == "auto" else method
     names = [case.name for case in problem.all_cases]
@@ -159,7 +198,10 @@ def solve_fem(problem: Problem, method: str = "auto", *, load_steps: int = 1) ->
             [path.newton_iterations for path in paths],
         )
     k = stiffness_matrix(
-        nodes, hexahedra, constitutive_matrix(material.youngs_modulus, material.poisson_ratio)
+        nodes,
+        hexahedra,
+        constitutive_matrix(material.youngs_modulus, material.poisson_ratio),
+        problem.spec.reference.integration,
     )
     u, residuals = solve_dirichlet(k, forces.reshape(len(forces), -1), free, nodes, method)
     return FemResult(nodes.copy(), u.reshape(forces.shape), residuals.tolist(), names, method)

@@ -736,7 +736,10 @@ def finalize(
     # Full depth reaches every node from any load (a validation load elsewhere needs it).
     validation = validate(problem, reference, theta, None if depth >= deepest else depth)
     m = problem.solid.masses
+    from ..fem.reference import reference_label
+
     return CalibrationResult(
+        reference=reference_label(problem.spec),
         method=method,
         stiffness_mode=problem.spec.fpm.stiffness,
         k=float(theta[0]),
@@ -850,7 +853,8 @@ def calibrate(
         chains: number of annealing chains (None = the spec's).
         progress: called with {phase, chain, move, moves, temperature, best_cost, ...};
             phases fem, annealing, polish, depth, damping, finalize.
-        reference: FEM result or (L, N, 3) displacements (None = solve the FEM now).
+        reference: FEM result or (L, N, 3) displacements (None = the spec's
+            ``reference.displacements`` if given, else solve the FEM now).
         threads: chains run at once (None = one per core).
 
     Raises:
@@ -862,11 +866,11 @@ def calibrate(
     if n < 1:
         raise ValueError("chains must be >= 1")
     if reference is None:
-        from ..fem.reference import solve_fem
+        from ..fem.reference import reference_for
 
         if progress is not None:
             progress({"phase": "fem"})
-        reference = solve_fem(problem)
+        reference = reference_for(problem)
     warnings = check_reference(problem, reference)
 
     def one(chain: int) -> ChainResult:

@@ -32,6 +32,12 @@ class CalibrationResult(BaseModel):
         "assembled from cells plus a volume term), 'single' (the paper's model: one k), or "
         "'families'",
     )
+    reference: str = Field(
+        "fem",
+        description="what the fit was measured against: 'fem-linear-selective', "
+        "'fem-linear-full', 'fem-neo-hookean' or 'supplied' (the spec's reference.displacements); "
+        "'fem' in results stored before the field existed",
+    )
     k: float = Field(description="stiffness of the axis family (the one k for 'single'), N/m")
     stiffness: dict[str, float] = Field(
         description="k per spring family present, N/m (all equal for 'single'); with "

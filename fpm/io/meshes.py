@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import json
 import math
 from dataclasses import dataclass, field
 from fractions import Fraction
@@ -578,3 +579,47 @@ def spec_from_mesh(
     else:
         spec["fpm"] = {"dt": float(dt)}
     return spec, notes
+
+
+def read_reference(path: str | Path, load_cases: int) -> list[Any]:
+    """A supplied reference field from a file, for ``reference.displacements``: (L, N, 3), m.
+
+    - ``.json``: a list per load case of ``[ux, uy, uz]`` per lattice node, or an object with
+      such a ``displacements`` list (what ``fpmcal fem`` writes);
+    - ``.vtu`` (or any mesh file meshio reads): one point-data array of shape (N, 3) per load
+      case, named ``displacement_J`` or ``fem_displacement_J`` (J = 1..L, as the ``vtu``
+      export writes them), or a single ``displacement`` array when there is one load case;
+      points in the lattice's node order.
+
+    The shape and finiteness are checked when the spec is loaded (errors at
+    ``reference.displacements``); here only what the file holds.
+
+    Raises:
+        ValueError: the file holds no such field (the message says what it looked for).
+    """
+    path = Path(path)
+    if path.suffix.lower() == ".json":
+        data = json.loads(path.read_text())
+        if isinstance(data, dict):
+            if "displacements" not in data:
+                raise ValueError(f"{path}: a JSON reference needs a 'displacements' list")
+            data = data["displacements"]
+        if not isinstance(data, list):
+            raise ValueError(f"{path}: a JSON reference is a list per load case")
+        return data
+    import meshio
+
+    mesh = meshio.read(path)
+    fields = []
+    for j in range(1, load_cases + 1):
+        names = [f"displacement_{j}", f"fem_displacement_{j}"]
+        if load_cases == 1:
+            names.append("displacement")
+        found = next((n for n in names if n in mesh.point_data), None)
+        if found is None:
+            have = ", ".join(sorted(mesh.point_data)) or "none"
+            raise ValueError(
+                f"{path}: no point data {' or '.join(names)} for load case {j} (has: {have})"
+            )
+        fields.append(np.asarray(mesh.point_data[found], dtype=float).tolist())
+    return fields

@@ -159,6 +159,7 @@ def build_problem(spec: ProblemSpec) -> Problem:
     load_cases = _load_cases(spec.load_cases, "load_cases", finder, fixed, errors)
     validation = _load_cases(spec.validation_cases, "validation_cases", finder, fixed, errors)
     _check_stiffness_mode(spec, errors)
+    _check_supplied_reference(spec, len(solid.nodes), errors)
     if errors:
         raise SpecError(errors)
     return Problem(
@@ -236,6 +237,35 @@ def _check_stiffness_mode(spec: ProblemSpec, errors: list[tuple[Loc, str]]) -> N
                 "connectivity, or use 'single' or 'families'",
             )
         )
+
+
+def _check_supplied_reference(
+    spec: ProblemSpec, n_nodes: int, errors: list[tuple[Loc, str]]
+) -> None:
+    """reference.displacements: one (N, 3) field per load case, then one per validation case."""
+    supplied = spec.reference.displacements
+    if supplied is None:
+        return
+    field_loc: Loc = ("reference", "displacements")
+    cases, extra = len(spec.load_cases), len(spec.validation_cases)
+    if len(supplied) != cases + extra:
+        more = (
+            f" and one per validation case after them ({extra}): the validation figures need "
+            "their own fields (or drop validation_cases)"
+            if extra
+            else ""
+        )
+        errors.append(
+            (field_loc, f"need one field per load case ({cases}){more}; got {len(supplied)}")
+        )
+    for c, one in enumerate(supplied):
+        if len(one) != n_nodes:
+            errors.append(
+                (
+                    (*field_loc, c),
+                    f"need one [ux, uy, uz] per lattice node ({n_nodes}), got {len(one)}",
+                )
+            )
 
 
 def _all_fixed(picked: np.ndarray) -> str:

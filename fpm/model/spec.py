@@ -15,11 +15,11 @@ from typing import Annotated, Any, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-MODEL_VERSION = "2026.11.25"
+MODEL_VERSION = "2026.12.05"
 """Version of the numerics behind a result; bump it whenever a change alters fitted values.
 It is part of a calibration's identity, so a resubmitted spec is not answered from results
 that older numerics computed."""
-FEM_VERSION = "2026.11.22"
+FEM_VERSION = "2026.12.05"
 """Version of the FEM reference's numerics; bump it whenever a change alters FEM displacements.
 It is part of a stored reference's identity (references are kept without expiry), so new
 calibrations are never served a reference that older FEM numerics computed."""
@@ -393,6 +393,46 @@ def lundy_mees_moves(t_initial: float, t_final: float, beta: float) -> int:
     return math.floor(moves) + 1 if moves < MOVES_CAP else MOVES_CAP  # beta 5e-324: inf
 
 
+Integration = Literal["selective", "full"]
+
+
+class ReferenceSettings(_Strict):
+    """The FEM reference's discretisation (docs/physics.md, *The FEM reference*).
+
+    ``integration``: how the linear FEM's 8-node hexahedra are integrated.
+
+    - ``"selective"`` (default): selective reduced integration, free of volumetric locking
+      near nu = 1/2: the deviatoric (shear) part of C at the 2x2x2 Gauss points, the
+      volumetric part (bulk modulus) on the element's mean dilatation, which is one-point
+      integration at the centre on a parallelepiped. For the linear hexahedron this is
+      exactly B-bar with the mean dilatation (Hughes 1980).
+    - ``"full"``: 2x2x2 Gauss integration of all of C (the paper's element; it locks as nu
+      approaches 1/2: 10% too stiff at nu 0.45 on the paper's cube). The paper's examples
+      name it, so Table 1 is reproduced exactly.
+
+    The neo-Hookean reference always uses 2x2x2 points (its locking is measured in
+    docs/physics.md).
+
+    ``displacements``: a reference brought by the user (their own nonlinear FEM, measured
+    displacements), one list per load case (spec order) of one ``[ux, uy, uz]`` per lattice
+    node (node order of the built solid), m. When given it takes the FEM's place in the cost and
+    in every reported figure, and no FEM is solved. Its shape is checked against the built solid
+    in :func:`fpm.model.problem.load_problem` (errors at ``reference.displacements``); values
+    must be finite.
+    """
+
+    integration: Integration = Field(
+        "selective",
+        description="linear hexahedra: 'selective' (shear at 2x2x2 Gauss points, volume on the "
+        "mean dilatation: B-bar, no volumetric locking) or 'full' (2x2x2 for all, the paper's)",
+    )
+    displacements: list[list[Vector3]] | None = Field(
+        None,
+        description="a supplied reference instead of the FEM: per load case, per lattice node, "
+        "[ux, uy, uz], m (finite); null = solve the FEM",
+    )
+
+
 class ProblemSpec(_Strict):
     """A calibration (or simulation) problem."""
 
@@ -409,6 +449,7 @@ class ProblemSpec(_Strict):
     )
     fpm: FpmSettings = Field(default_factory=FpmSettings)
     annealing: AnnealingSettings = Field(default_factory=AnnealingSettings)
+    reference: ReferenceSettings = Field(default_factory=ReferenceSettings)
 
     @model_validator(mode="before")
     @classmethod

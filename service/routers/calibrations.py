@@ -14,7 +14,7 @@ from store.status import CalibrationStatus, FemStatus, Phase
 from ..deps import CalibrationId, RedisDep, SettingsDep
 from ..errors import ProblemError, problem_responses
 from ..examples import openapi_examples
-from ..limits import check_calibration_spec, dump_spec
+from ..limits import check_calibration_spec, dump_spec, supplied_reference
 from ..schemas import (
     Calibration,
     CalibrationPage,
@@ -61,8 +61,10 @@ def submit(
     An identical spec (after defaults) already queued, running or succeeded returns that
     calibration with 200 instead; a failed or canceled one is started afresh.
     """
-    check_calibration_spec(spec, settings)
-    record, created = graph.submit_calibration(redis, dump_spec(spec), settings.job_options)
+    problem = check_calibration_spec(spec, settings)
+    record, created = graph.submit_calibration(
+        redis, dump_spec(spec), settings.job_options, supplied_reference(problem)
+    )
     response.headers["Location"] = f"{router.prefix}/{record.id}"
     if not created:
         response.status_code = status.HTTP_200_OK

@@ -15,7 +15,7 @@ from store.status import FemStatus
 from ..deps import FemId, RedisDep, SettingsDep
 from ..errors import ProblemError, problem_responses
 from ..examples import openapi_examples
-from ..limits import check_calibration_spec, dump_spec
+from ..limits import check_calibration_spec, dump_spec, supplied_reference
 from ..schemas import FemReference
 
 router = APIRouter(prefix="/v1/fem-references", tags=["fem-references"])
@@ -41,12 +41,15 @@ def submit(
     202 + Location when a job was started; 200 + Location when the same reference is already
     stored or being computed. Its id is the content hash, so it can be shared.
     """
-    check_calibration_spec(spec, settings)
+    problem = check_calibration_spec(spec, settings)
     dumped = dump_spec(spec)
     digest = fem_hash(dumped)
     meta = records.get_fem_meta(redis, digest)
     pending = meta.get("status") in (FemStatus.QUEUED.value, FemStatus.RUNNING.value)
-    started = graph.submit_fem(redis, dumped, settings.job_options) if not pending else None
+    supplied = supplied_reference(problem)
+    started = (
+        graph.submit_fem(redis, dumped, settings.job_options, supplied) if not pending else None
+    )
     response.headers["Location"] = f"{router.prefix}/{digest}"
     if started is None:
         response.status_code = status.HTTP_200_OK
