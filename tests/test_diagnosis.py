@@ -25,9 +25,12 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def block(youngs_modulus: float, forces: tuple[float, ...] = (0.05,)) -> fpm.Problem:
     """A 6 cm cube, 4x4x4 nodes, bottom fixed, one load case per force (N, along +z) at a top
-    node."""
+    node. The figures quoted in the tests below are those of the 2x2x2 ("full") element, which
+    the spec names; the default selective element moves the loaded node 65% further on this
+    coarse block (0.69 -> 1.14 m at E = 5 Pa)."""
     spec = box_spec((4, 4, 4), 0.02)
     spec["material"]["youngs_modulus"] = youngs_modulus
+    spec["reference"] = {"integration": "full"}
     spec["load_cases"] = [
         {"name": f"{f:g} N", "forces": [{"at": [0.02, 0.02, 0.06], "vector": [0, 0, f]}]}
         for f in forces
