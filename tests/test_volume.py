@@ -4,6 +4,9 @@ the dynamic kernel against the static equilibrium, inverted cells, and the stabi
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 from helpers_fpm import box_spec
@@ -23,6 +26,7 @@ from fpm.model.stiffness import (
     family_names,
     model_stiffness,
     spring_stiffness,
+    theta_of,
 )
 from fpm.model.volume import (
     COEFFICIENTS,
@@ -261,3 +265,52 @@ def test_the_mode_is_refused_where_the_lattice_has_no_cells_or_no_shear():
     default["fpm"] = {}
     assert fpm.load_problem(default).spec.fpm.stiffness == "families+volume"
     assert fpm.load_problem(default).spec.fpm.dt == "auto"
+
+
+PAPER_A = Path(__file__).resolve().parents[1] / "examples" / "paper-material-a.json"
+
+
+def cube_spec(nu: float, integration: str) -> dict:
+    """The paper's cube and forces (material A) with the default model, two validation cases."""
+    spec = json.loads(PAPER_A.read_text())
+    spec["material"]["poisson_ratio"] = nu
+    spec["reference"] = {"integration": integration}
+    spec["fpm"] = {"depth": 10}  # the default model, dt auto
+    spec["validation_cases"] = [
+        {"name": "sideways", "forces": [{"at": [0.0444444444, 0.0444444444, 0.1],
+                                         "vector": [0.5, 0, 0]}]},
+        {"name": "corner", "forces": [{"at": [0.1, 0.1, 0.1], "vector": [0, 0, -0.5]}]},
+    ]  # fmt: skip
+    return spec
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("nu", "integration", "goal"),
+    [(0.45, "full", 5.0), (0.45, "selective", 7.5), (0.49, "selective", 10.0)],
+)
+def test_the_default_model_is_soft_tissue_on_the_paper_cube(
+    nu: float, integration: str, goal: float
+):
+    """The issue's goal: at nu 0.45 the default model's mean relative discrepancy <= 5% against
+    the reference its prototype was measured on (2x2x2, measured 3.8%), 7.5% against the default
+    selective one (measured 6.8%); <= 10% at nu 0.49 (measured 6.6%), where one k stays at 21-25%.
+    The validation figures are the static equilibria of the validation cases at the fitted
+    stiffness, checked here by an independent solve."""
+    problem = fpm.load_problem(cube_spec(nu, integration))
+    assert problem.spec.fpm.stiffness == "families+volume"
+    reference = fpm.solve_fem(problem)
+    result = fpm.calibrate(problem, reference=reference)
+    assert result.mean_relative_discrepancy <= goal
+    assert result.volume_stiffness is not None and result.dt is not None and result.dt <= 1e-3
+    assert result.validation_cases == ["sideways", "corner"]
+    assert len(result.validation_relative_discrepancy) == 2
+    assert max(result.validation_relative_discrepancy) < 20.0
+    theta = theta_of(problem, result.k, result.stiffness, result.volume_stiffness)
+    checked = problem.validation_problem()
+    truth = reference.displacements[len(problem.load_cases) :]
+    for j in range(2):
+        u = fpm.dynamics.equilibrium.static_equilibrium(checked, k=theta, load_case=j)
+        error = np.linalg.norm(u.displacements - truth[j], axis=1).sum()
+        relative = 100 * error / np.linalg.norm(truth[j], axis=1).sum()
+        assert relative == pytest.approx(result.validation_relative_discrepancy[j], abs=0.05)
