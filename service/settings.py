@@ -30,7 +30,12 @@ class Settings(BaseSettings):
         default_factory=list,
         description="accepted X-API-Key values (comma-separated); empty = no authentication",
     )
-    max_nodes: int = Field(20_000, ge=8, description="largest solid, in nodes")
+    max_nodes: int = Field(
+        100_000,
+        ge=8,
+        description="largest solid, in nodes (a 94,000-node organ calibrates in minutes, well "
+        "inside the job timeouts; docs/service.md)",
+    )
     max_load_cases: int = Field(20, ge=1)
     max_chains: int = Field(16, ge=1, description="most annealing chains per calibration")
     max_body_bytes: int = Field(2_000_000, ge=1024, description="largest request body, bytes")
