@@ -273,7 +273,7 @@ def cmd_export(args: argparse.Namespace) -> None:
                 "give the spec and the parameters fitted on it (SPEC PARAMS: a result of "
                 "fpmcal calibrate --json, or a parameter set), or --parameter-set ID"
             )
-        from fpm.io.export import export
+        from fpm.io.export import export, export_warnings
 
         if args.output and any(
             Path(args.output).resolve() == Path(f).resolve() for f in (args.spec, args.params)
@@ -284,6 +284,7 @@ def cmd_export(args: argparse.Namespace) -> None:
         if isinstance(params.get("result"), dict):  # a calibration as the service shows it
             params = params["result"]
         body = export(problem, params, args.format)
+        _warn(export_warnings(problem, args.format))
     if args.output:
         Path(args.output).write_bytes(body)
         print(f"wrote {args.output}", file=sys.stderr)

@@ -11,13 +11,13 @@ import json
 import time
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
-from typing import Any, Literal
+from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 from redis import Redis
 from redis.client import Pipeline
 
-from fpm.model.spec import Material
+from fpm.model.spec import Material, StiffnessMode
 
 from . import keys
 from .status import TERMINAL, CalibrationStatus, FemStatus, Phase
@@ -317,7 +317,12 @@ class ParameterSetRecord(BaseModel):
     name: str
     k: float = Field(description="stiffness of the axis family (the one k for 'single'), N/m")
     stiffness: dict[str, float] = Field(description="k per spring family present, N/m")
-    stiffness_mode: Literal["single", "families"] = Field(description="the spec's fpm.stiffness")
+    stiffness_mode: StiffnessMode = Field(description="the spec's fpm.stiffness")
+    volume_stiffness: float | None = Field(
+        None,
+        description="kappa, Pa: every cell's volume stiffness ('families+volume'; None for the "
+        "spring-only models)",
+    )
     d: float = Field(description="nodal damping, N s/m (meaningful only with dt)")
     d_min: float | None = Field(description="smallest d that still settles (two-stage), N s/m")
     depth: int
@@ -332,6 +337,13 @@ class ParameterSetRecord(BaseModel):
     discrepancy_h: list[float] = Field(
         description="per load case, % of h (the paper's unit; read it beside the relative figure)"
     )
+    validation_cases: list[str] = Field([], description="the validation cases' names")
+    validation_relative_discrepancy: list[float] = Field(
+        [],
+        description="per validation case (never in the cost), % at the fitted parameters: the "
+        "honest figure",
+    )
+    validation_discrepancy_h: list[float] = Field([], description="per validation case, % of h")
     node_mass: dict[str, float] = Field(description="lumped node masses: min, max, mean, total, kg")
     warnings: list[str] = []
     cost: float = Field(description="Eq. (2) of the last dynamic run, m")

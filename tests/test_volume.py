@@ -12,7 +12,7 @@ import pytest
 from helpers_fpm import box_spec
 
 import fpm
-from fpm.dynamics.equilibrium import StaticSolver
+from fpm.dynamics.equilibrium import StaticSolver, static_equilibrium
 from fpm.dynamics.simulation import FpmModel
 from fpm.dynamics.stability import stable_time_step
 from fpm.dynamics.voigt import volume_forces as kernel_volume_forces
@@ -207,7 +207,7 @@ def test_the_dynamic_run_settles_at_the_static_equilibrium(force: float):
     )  # fmt: skip
     problem = fpm.load_problem(spec)
     theta = continuum_start(problem)
-    static = fpm.dynamics.equilibrium.static_equilibrium(problem, k=theta, tolerance=1e-10)
+    static = static_equilibrium(problem, k=theta, tolerance=1e-10)
     run = fpm.simulate(problem, k=theta, d=0.3)
     assert run.settled
     scale = np.abs(static.displacements).max()
@@ -310,7 +310,7 @@ def test_the_default_model_is_soft_tissue_on_the_paper_cube(
     checked = problem.validation_problem()
     truth = reference.displacements[len(problem.load_cases) :]
     for j in range(2):
-        u = fpm.dynamics.equilibrium.static_equilibrium(checked, k=theta, load_case=j)
+        u = static_equilibrium(checked, k=theta, load_case=j)
         error = np.linalg.norm(u.displacements - truth[j], axis=1).sum()
         relative = 100 * error / np.linalg.norm(truth[j], axis=1).sum()
         assert relative == pytest.approx(result.validation_relative_discrepancy[j], abs=0.05)

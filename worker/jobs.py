@@ -332,10 +332,11 @@ def _parameter_set(
         k=result["k"],
         stiffness=result["stiffness"],
         stiffness_mode=spec["fpm"]["stiffness"],
+        volume_stiffness=result.get("volume_stiffness"),
         d=result["d"],
         d_min=result["d_min"],
         depth=result["depth"],
-        dt=spec["fpm"]["dt"],
+        dt=result.get("dt") or spec["fpm"]["dt"],  # 'auto' resolved by the fit
         stiffness_scale=spec["fpm"]["stiffness_scale"],
         material=spec["material"],
         geometry=records.GeometrySummary(
@@ -348,6 +349,9 @@ def _parameter_set(
         relative_discrepancy=result["relative_discrepancy"],
         loaded_discrepancy=result["loaded_discrepancy"],
         discrepancy_h=result["discrepancy_h"],
+        validation_cases=result.get("validation_cases", []),
+        validation_relative_discrepancy=result.get("validation_relative_discrepancy", []),
+        validation_discrepancy_h=result.get("validation_discrepancy_h", []),
         node_mass=result["node_mass"],
         warnings=result["warnings"],
         cost=result["cost"],

@@ -5,8 +5,11 @@ calibration result (``fpmcal calibrate --json``) or a stored parameter set (the 
 lattice is rebuilt from the spec they were fitted on. Formats:
 
 - ``json``: every number an engine needs, with units: nodes, springs ``[i, j, rest length,
-  stiffness]``, lumped masses, fixed nodes, d, dt, depth, and per load case the nodal forces
-  and the perturbed list's layers (the paper's lookup table);
+  stiffness]`` (each spring's assembled stiffness), the hexahedra with their volume stiffness
+  kappa and rest volume (the volume term; null in the spring-only models), lumped masses, fixed
+  nodes, the model's energy in words, d, dt, depth, and per load case the nodal forces and the
+  perturbed list's layers (the paper's lookup table): from it alone another program rebuilds
+  the model's static equilibrium (tests/test_export.py does, with its own linear solve);
 - ``vtu``: the hexahedra and the springs (VTK_LINE cells) with, per load case, the FPM's and
   the FEM's displacements, the error between them and the perturbed list's layer as point
   data (written by meshio; ParaView reads it);
@@ -15,6 +18,8 @@ lattice is rebuilt from the spec they were fitted on. Formats:
   ks kd L"``, kd = 0), the nodal damping d (``UniformVelocityDampingForceField``), the fixed
   nodes (``FixedProjectiveConstraint``) and the load cases (``ConstantForceField``; the first
   one active). docs/physics.md, *Engines*, says why each component and where SOFA defines it.
+  SOFA has no component for the volume term (a penalty on each trilinear hexahedron's volume):
+  a scene of a families+volume fit says so in a comment, and :func:`export_warnings` warns.
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ import numpy as np
 
 from ..model.hexahedron import FAMILIES
 from ..model.problem import Problem
-from ..model.stiffness import family_names, spring_stiffness
+from ..model.stiffness import family_names, has_volume, model_stiffness, theta_of
 
 FORMATS = ("json", "vtu", "sofa")
 MEDIA_TYPES = {"json": "application/json", "vtu": "application/xml", "sofa": "application/xml"}
@@ -48,8 +53,24 @@ UNITS = {
 STEP = (
     "node by node in perturbed-list order (layer 0 = the loaded nodes, then layer by layer; "
     "nodes outside the list do not move): F_s = sum_j k_ij (|r_ij| - L_ij) r_ij / |r_ij| "
-    "with r_ij = x_j - x_i; v_i <- (v_i + dt (F_i + F_s) / m_i) / (1 + dt d / m_i); "
+    "with r_ij = x_j - x_i, plus the volume forces (computed once per step, from the "
+    "positions at its start); v_i <- (v_i + dt (F_i + F_s) / m_i) / (1 + dt d / m_i); "
     "x_i <- x_i + dt v_i (each node sees the new positions of the nodes before it)"
+)
+ENERGY = (
+    "E = sum_s 1/2 k_s (|x_j - x_i| - L_s)^2 + sum_c 1/2 kappa_c (V_c - V0_c)^2 / V0_c - "
+    "sum_i F_i . (x_i - X_i): springs s (i, j, rest length L_s, stiffness k_s), and per "
+    "hexahedron c the volume term (kappa_c = volume_stiffness[c], Pa; V_c the volume of the "
+    "trilinear hexahedron of its 8 corners in the hexahedron node order of fpm.model.hexahedron, "
+    "V0_c = rest_volumes[c]; absent when volume_stiffness is null); F_i the nodal forces (plus "
+    "m_i g with gravity). Forces = -dE/dx; the static equilibrium is dE/dx = 0 over the free "
+    "nodes with the fixed nodes at rest"
+)
+SOFA_NO_VOLUME = (
+    "SOFA has no component for this model's volume term (1/2 kappa (V - V0)^2 / V0 per "
+    "trilinear hexahedron): the scene has the springs only and is softer in compression than "
+    "the fitted model; add the term with a custom ForceField (the JSON export carries kappa "
+    "per hexahedron), or use another engine"
 )
 
 
@@ -60,12 +81,14 @@ class ExportError(ValueError):
 @dataclass
 class Parameters:
     """What a fit hands over: k per spring family present (N/m), d (N s/m), the depth
-    (layers) and the time step d was fitted at (s)."""
+    (layers), the time step d was fitted at (s), and the volume stiffness kappa (Pa; None for
+    the spring-only models)."""
 
     stiffness: dict[str, float]
     d: float
     depth: int
     dt: float
+    volume_stiffness: float | None = None
 
     @classmethod
     def from_record(cls, problem: Problem, record: dict[str, Any]) -> Parameters:
@@ -98,13 +121,25 @@ class Parameters:
                 f"the parameters were fitted with fpm.stiffness {mode!r}, the spec says "
                 f"{problem.spec.fpm.stiffness!r}: export with the spec they were fitted on"
             )
-        dt = float(record.get("dt") or problem.spec.fpm.dt)
-        return cls({k: float(v) for k, v in stiffness.items()}, d, depth, dt)
+        kappa = record.get("volume_stiffness")
+        params = cls(
+            {k: float(v) for k, v in stiffness.items()},
+            d,
+            depth,
+            0.0,
+            None if kappa is None else float(kappa),
+        )
+        dt = record.get("dt") or problem.spec.fpm.dt
+        if dt == "auto":  # a record from before the fit reported its dt: resolve it the same way
+            from ..dynamics.stability import auto_time_step
+
+            dt = auto_time_step(problem, model_stiffness(problem, params.theta(problem)))
+        params.dt = float(dt)
+        return params
 
     def theta(self, problem: Problem) -> list[float]:
-        """The stiffness parameters as the solvers take them (one k, or one per family)."""
-        names = family_names(problem)
-        if names == ("k",):
+        """The stiffness parameters as the solvers take them (:func:`theta_of`)."""
+        if family_names(problem) == ("k",):
             values = set(self.stiffness.values())
             if len(values) > 1:
                 raise ExportError(
@@ -112,10 +147,10 @@ class Parameters:
                     "(fpm.stiffness 'single'): export with the spec they were fitted on"
                 )
             return [values.pop()]
-        missing = [n for n in names if n not in self.stiffness]
-        if missing:
-            raise ExportError(f"the parameters lack the stiffness of {', '.join(missing)}")
-        return [self.stiffness[n] for n in names]
+        try:
+            return theta_of(problem, 0.0, self.stiffness, self.volume_stiffness)
+        except ValueError as e:
+            raise ExportError(str(e)) from None
 
 
 @dataclass
@@ -125,14 +160,17 @@ class Lattice:
     Attributes:
         problem: the problem (nodes, masses, fixed nodes, load cases).
         params: the parameters.
-        stiffness: (S,) per-spring stiffness, N/m (family k times the spec's stiffness_scale).
+        stiffness: (S,) per-spring stiffness, N/m (family k, assembled from cells for
+            families+volume, times the spec's stiffness_scale).
         layers: per load case, the perturbed list's layers at ``params.depth`` (node arrays).
+        volume: (H,) kappa per hexahedron, Pa, or None (the spring-only models).
     """
 
     problem: Problem
     params: Parameters
     stiffness: np.ndarray
     layers: list[list[np.ndarray]]
+    volume: np.ndarray | None = None
 
     @property
     def hexahedra(self) -> np.ndarray:
@@ -146,13 +184,13 @@ def build_lattice(problem: Problem, params: Parameters) -> Lattice:
     """The lattice of ``problem`` carrying ``params``."""
     from ..dynamics.simulation import fpm_model
 
-    stiffness = spring_stiffness(problem, params.theta(problem))
+    stiffness = model_stiffness(problem, params.theta(problem))
     model = fpm_model(problem)
     layers = []
     for j in range(len(problem.load_cases)):
         plist = model.perturbed_list(j, params.depth)
         layers.append([plist.layer(i) for i in range(len(plist.layer_start) - 1)])
-    return Lattice(problem, params, stiffness, layers)
+    return Lattice(problem, params, stiffness.springs, layers, stiffness.volume)
 
 
 def fpm_displacements(lattice: Lattice) -> tuple[np.ndarray, list[int], list[bool]]:
@@ -182,6 +220,14 @@ def to_json(lattice: Lattice, fit: dict[str, Any] | None = None) -> dict[str, An
             solid.springs, problem.rest_lengths, lattice.stiffness, strict=True
         )
     ]
+    volume: dict[str, Any] = {"volume_stiffness": None, "rest_volumes": None}
+    if lattice.volume is not None:
+        from ..model.forces import cells
+
+        volume = {
+            "volume_stiffness": lattice.volume.tolist(),
+            "rest_volumes": cells(problem).volume.tolist(),
+        }
     return {
         "format": "fpm-lattice",
         "version": 1,
@@ -190,6 +236,7 @@ def to_json(lattice: Lattice, fit: dict[str, Any] | None = None) -> dict[str, An
         "material": spec.material.model_dump(),
         "parameters": {
             "stiffness": p.stiffness,
+            "volume_stiffness": p.volume_stiffness,
             "stiffness_mode": spec.fpm.stiffness,
             "stiffness_scale": list(spec.fpm.stiffness_scale),
             "d": p.d,
@@ -199,6 +246,7 @@ def to_json(lattice: Lattice, fit: dict[str, Any] | None = None) -> dict[str, An
             "max_steps": spec.fpm.max_steps,
             "gravity": list(spec.fpm.gravity),
         },
+        "energy": ENERGY,
         "step": STEP,
         "h": problem.h,
         "nodes": solid.nodes.tolist(),
@@ -209,6 +257,7 @@ def to_json(lattice: Lattice, fit: dict[str, Any] | None = None) -> dict[str, An
         "spring_family": solid.families.tolist(),
         "families": list(FAMILIES),
         "hexahedra": lattice.hexahedra.tolist(),
+        **volume,
         "load_cases": [
             {
                 "name": case.name,
@@ -227,7 +276,8 @@ def vtu_bytes(lattice: Lattice, fem: np.ndarray, fpm: np.ndarray) -> bytes:
     suffixes in load case order): ``fpm_displacement_J``, ``fem_displacement_J``, ``error_J``
     (|FPM - FEM|, m) and ``layer_J`` (perturbed-list layer, -1 outside); ``mass`` and
     ``fixed`` per node; ``stiffness``, ``rest_length`` and ``family`` per cell (-1 / 0 on the
-    hexahedra)."""
+    hexahedra); ``volume_stiffness`` (kappa, Pa) per hexahedron (0 on the springs and without
+    the volume term)."""
     import meshio
 
     problem = lattice.problem
@@ -250,6 +300,10 @@ def vtu_bytes(lattice: Lattice, fem: np.ndarray, fpm: np.ndarray) -> bytes:
         "family": [
             np.full(len(hexes), -1, dtype=np.int32),
             problem.solid.families.astype(np.int32),
+        ],
+        "volume_stiffness": [
+            np.zeros(len(hexes)) if lattice.volume is None else lattice.volume,
+            np.zeros(len(springs)),
         ],
     }
     mesh = meshio.Mesh(
@@ -309,6 +363,7 @@ def sofa_scene(lattice: Lattice) -> str:
             f"d = {p.d!r} N s/m fitted at dt = {p.dt!r} s for the FPM's node-by-node step "
             "(choose d again for this integrator and time step); the FPM's perturbed list has "
             "no SOFA counterpart: SOFA moves every node (full depth)."
+            + ("" if lattice.volume is None else " " + SOFA_NO_VOLUME + ".")
         ),
         f'<Node name="root" dt={quoteattr(repr(p.dt))} gravity="{g}">',
     ]
@@ -369,6 +424,13 @@ def _fmt_stiffness(stiffness: dict[str, float]) -> str:
     return ", ".join(f"{name} {value:.6g}" for name, value in stiffness.items())
 
 
+def export_warnings(problem: Problem, fmt: str) -> list[str]:
+    """What the user should know about an export of ``problem`` in ``fmt`` (one line each)."""
+    if fmt == "sofa" and has_volume(problem):
+        return [SOFA_NO_VOLUME]
+    return []
+
+
 def export(
     problem: Problem,
     record: dict[str, Any],
@@ -390,7 +452,14 @@ def export(
         raise ExportError(f"unknown format {fmt!r}: one of {', '.join(FORMATS)}")
     lattice = build_lattice(problem, Parameters.from_record(problem, record))
     if fmt == "json":
-        keys = ("relative_discrepancy", "loaded_discrepancy", "discrepancy_h")
+        keys = (
+            "relative_discrepancy",
+            "loaded_discrepancy",
+            "discrepancy_h",
+            "validation_cases",
+            "validation_relative_discrepancy",
+            "validation_discrepancy_h",
+        )
         fit = {k: record[k] for k in keys if k in record}
         return json.dumps(to_json(lattice, fit)).encode()
     if fmt == "sofa":
