@@ -34,10 +34,13 @@ def spec_hash(spec: dict[str, Any]) -> str:
 
 def fem_spec(spec: dict[str, Any]) -> dict[str, Any]:
     """The part of ``spec`` the FEM reference depends on (itself a loadable spec): geometry,
-    material, fixed nodes and load cases, the reference's ``integration`` (and its supplied
+    material, fixed nodes, load cases and validation cases (when there are any, so a spec
+    without them keeps its identity), the reference's ``integration`` (and its supplied
     ``displacements``, if any), and ``fpm.gravity`` when it is set (the FEM then carries the
     solid's weight)."""
     out = {name: spec[name] for name in FEM_FIELDS}
+    if spec.get("validation_cases"):  # solved with the load cases, after them
+        out["validation_cases"] = spec["validation_cases"]
     reference = spec.get("reference") or {}
     out["reference"] = {"integration": reference.get("integration", "selective")}
     if reference.get("displacements") is not None:  # a supplied reference: its own identity

@@ -160,6 +160,55 @@ def test_a_neo_hookean_parameter_set_is_served(api, run_workers, small_spec):
     assert listed.status_code == 200 and listed.json()["items"] == [read.json()]
 
 
+def test_the_default_volume_model_with_validation_cases_runs_end_to_end(
+    api, run_workers, small_spec
+):
+    """A spec that names no model gets families+volume; its validation cases are solved by the
+    FEM with the load cases, reported in the result and the parameter set, and the parameter
+    set exports with kappa per hexahedron."""
+    del small_spec["fpm"]["stiffness"]
+    del small_spec["fpm"]["dt"]
+    del small_spec["fpm"]["max_steps"]
+    small_spec["validation_cases"] = [
+        {"name": "sideways", "forces": [{"node": 63, "vector": [0.01, 0, 0]}]}
+    ]
+    calibration_id = api.post("/v1/calibrations", json=small_spec).json()["id"]
+    run_workers()
+    done = api.get(f"/v1/calibrations/{calibration_id}").json()
+    assert done["status"] == "succeeded", done["error"]
+    result = done["result"]
+    assert result["stiffness_mode"] == "families+volume" and result["volume_stiffness"] > 0
+    assert result["validation_cases"] == ["sideways"]
+    assert len(result["validation_relative_discrepancy"]) == 1
+    assert 0 < result["dt"] <= 1e-3
+    ps = api.get(f"/v1/parameter-sets/{done['parameter_set_id']}").json()
+    assert ps["volume_stiffness"] == result["volume_stiffness"] and ps["dt"] == result["dt"]
+    assert ps["validation_relative_discrepancy"] == result["validation_relative_discrepancy"]
+    exported = api.get(
+        f"/v1/parameter-sets/{done['parameter_set_id']}/export", params={"format": "json"}
+    )
+    assert exported.status_code == 200
+    model = exported.json()
+    assert model["volume_stiffness"] == [result["volume_stiffness"]] * len(model["hexahedra"])
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        ({"validation_cases": [{"forces": []}]}, "validation_cases"),
+        ({"validation_cases": [{"forces": [{"node": 10_000, "vector": [0, 0, 1]}]}]},
+         "validation_cases"),
+        ({"validation_cases": [{"forces": [{"at": [9, 9, 9], "vector": [0, 0, 1]}]}]},
+         "validation_cases"),
+    ],
+)  # fmt: skip
+def test_bad_validation_cases_are_422_naming_the_field(api, redis, small_spec, change, field):
+    body = assert_problem(api.post("/v1/calibrations", json={**small_spec, **change}), 422)
+    fields = [e["field"] for e in body["errors"]]
+    assert any(f.startswith(field) for f in fields), fields
+    assert not redis.keys("*")
+
+
 def test_listing_is_newest_first_and_paginated(api, small_spec):
     ids = []
     for seed in range(3):
