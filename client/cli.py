@@ -92,6 +92,20 @@ def discrepancy_rows(result: dict[str, Any], names: list[str] | None = None) -> 
 DISCREPANCY_HEADERS = ["load case", "relative %", "loaded nodes %", "% of h", "settle steps"]
 """Headers of :func:`discrepancy_rows`: the relative figure first."""
 
+VALIDATION_HEADERS = ["validation case (never fitted)", "relative %", "% of h"]
+"""Headers of :func:`validation_rows`."""
+
+
+def validation_rows(result: dict[str, Any]) -> list[list[Any]]:
+    """Per validation case: relative % (the honest figure) and % of h; then the mean."""
+    relative = result.get("validation_relative_discrepancy") or []
+    h_percent = result.get("validation_discrepancy_h") or []
+    names = result.get("validation_cases") or [f"case {i + 1}" for i in range(len(relative))]
+    rows: list[list[Any]] = [list(r) for r in zip(names, relative, h_percent, strict=True)]
+    if len(rows) > 1:
+        rows.append(["mean", mean(relative), mean(h_percent)])
+    return rows
+
 
 def show_calibration(c: dict[str, Any]) -> str:
     """A calibration as a short report: status and stage, then the fit with the relative
@@ -118,16 +132,23 @@ def show_calibration(c: dict[str, Any]) -> str:
     r = c.get("result")
     if r:
         d_min = r.get("d_min")
+        kappa = r.get("volume_stiffness")
         lines += [
-            f"stiffness   {stiffness_text(r['stiffness'], unit=' N/m')}",
+            f"model       {r.get('stiffness_mode', 'single')}",
+            f"stiffness   {stiffness_text(r['stiffness'], unit=' N/m')}"
+            + (f"; kappa {kappa:.5g} Pa" if kappa is not None else ""),
             f"d           {r.get('damping', r.get('d')):.5g} N s/m"
-            + (f" (smallest that settles: {d_min:.5g})" if d_min is not None else ""),
+            + (f" (smallest that settles: {d_min:.5g})" if d_min is not None else "")
+            + (f" at dt {r['dt']:.4g} s" if r.get("dt") else ""),
             f"depth       {r['depth']} layers (full depth {r['full_depth']})",
             f"h           {r['h']:.5g} m",
             f"param set   {c['parameter_set_id']}",
             "",
             table(DISCREPANCY_HEADERS, discrepancy_rows(r)),
         ]
+        validation = validation_rows(r)
+        if validation:
+            lines += ["", table(VALIDATION_HEADERS, validation)]
         lines += [f"warning     {w}" for w in r.get("warnings", [])]
     return "\n".join(lines)
 

@@ -306,11 +306,18 @@ def _read_json(path: str, what: str) -> Any:
 def result_table(problem: Any, result: Any) -> str:
     """The calibration result as a readable table (the relative discrepancy beside % of h)."""
     stiffness = getattr(result, "stiffness", None)
+    lines = [f"model  {getattr(result, 'stiffness_mode', 'single'):>12}"]
     if isinstance(stiffness, dict) and len(set(stiffness.values())) > 1:
-        lines = [f"k {name:<5}{value:12.5g} N/m" for name, value in stiffness.items()]
+        lines += [f"k {name:<5}{value:12.5g} N/m" for name, value in stiffness.items()]
     else:
-        lines = [f"k      {result.k:12.5g} N/m"]
+        lines += [f"k      {result.k:12.5g} N/m"]
+    kappa = getattr(result, "volume_stiffness", None)
+    if kappa is not None:
+        lines.append(f"kappa  {kappa:12.5g} Pa (volume stiffness of every cell)")
     lines.append(f"d      {result.d:12.5g} N s/m")
+    dt = getattr(result, "dt", None)
+    if dt is not None:
+        lines.append(f"dt     {dt:12.5g} s (d and the settle steps belong to it)")
     d_min = getattr(result, "d_min", None)
     if d_min is not None:
         lines.append(f"d_min  {d_min:12.5g} N s/m (smallest d that settles)")
@@ -329,6 +336,16 @@ def result_table(problem: Any, result: Any) -> str:
     ):
         lines.append(f"{case.name:<16}{rel:>24.3f}{disc:>10.3f}{steps:>14d}")
     lines.append(f"{'mean':<16}{_mean(relative):>24.3f}{_mean(h_percent):>10.3f}")
+    validation = list(getattr(result, "validation_relative_discrepancy", None) or [])
+    if validation:
+        lines += ["", f"{'validation case':<16}{'relative discrepancy %':>24}{'% of h':>10}"]
+        names = getattr(result, "validation_cases", None) or [""] * len(validation)
+        for name, rel, disc in zip(names, validation, result.validation_discrepancy_h, strict=True):
+            lines.append(f"{name:<16}{rel:>24.3f}{disc:>10.3f}")
+        lines.append(
+            f"{'mean':<16}{_mean(validation):>24.3f}{_mean(result.validation_discrepancy_h):>10.3f}"
+            "  (never fitted: the honest figure)"
+        )
     seconds = result.seconds
     total = sum(seconds.values()) if isinstance(seconds, dict) else seconds
     lines.append("")

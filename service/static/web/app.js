@@ -417,7 +417,23 @@
         "relative discrepancy, % (100 Σ|p−q| / Σ|q|, all nodes)"),
       el("p", { class: "muted" }, "Relative: summed nodal error over the FEM's summed displacement (0% perfect, ",
         "100% no better than not moving). Loaded nodes: the same at the loaded nodes. % of h: mean nodal ",
-        "error over the lattice spacing h (the paper's unit), read beside the relative figure."));
+        "error over the lattice spacing h (the paper's unit), read beside the relative figure."),
+      validationTable(r));
+  }
+
+  function validationTable(r) {
+    const v = r.validation_relative_discrepancy || [];
+    if (!v.length) return null;
+    const names = r.validation_cases || [];
+    return el("div", { id: "validation" },
+      el("h3", null, "Validation cases (never fitted: the honest figure)"),
+      el("table", null,
+        el("thead", null, el("tr", null, ["Validation case", "Relative discrepancy", "% of h"]
+          .map((h, i) => el("th", { class: i ? "num" : null }, h)))),
+        el("tbody", null, v.map((value, j) => el("tr", { "data-validation": j },
+          el("td", null, names[j] || `case ${j + 1}`),
+          el("td", { class: "num headline validation" }, pct(value)),
+          el("td", { class: "num" }, pct((r.validation_discrepancy_h || [])[j])))))));
   }
 
   function parametersPanel(c) {
@@ -425,7 +441,11 @@
     const mass = r.node_mass || {};
     const facts = [
       ["method", r.method],
+      ["model", r.stiffness_mode || "single"],
       ["stiffness k", stiffnessText(r.stiffness, r.k)],
+      ...(r.volume_stiffness !== null && r.volume_stiffness !== undefined
+        ? [["volume stiffness kappa", `${num(r.volume_stiffness)} Pa`]] : []),
+      ...(r.dt ? [["dt", `${num(r.dt * 1e3)} ms`]] : []),
       ["damping d", `${num(damping(r))} N s/m${r.d_min !== null && r.d_min !== undefined ? ` (d_min ${num(r.d_min)})` : ""}`],
       ["depth", `${r.depth} layers (the deepest perturbed list: ${r.full_depth})`],
       ["h", mm(r.h)],
@@ -613,7 +633,11 @@
       ["stiffness scale", (ps.stiffness_scale || []).map((s) => num(s)).join(", ")],
       ["damping d", `${num(damping(ps))} N s/m${ps.d_min !== null && ps.d_min !== undefined ? ` (d_min ${num(ps.d_min)})` : ""}`],
       ["dt", `${num(ps.dt * 1e3)} ms`], ["depth", ps.depth],
+      ...(ps.volume_stiffness !== null && ps.volume_stiffness !== undefined
+        ? [["volume stiffness kappa", `${num(ps.volume_stiffness)} Pa`]] : []),
       ["relative discrepancy", ps.relative_discrepancy.map((v) => pct(v)).join(" / ")],
+      ...((ps.validation_relative_discrepancy || []).length
+        ? [["validation (never fitted)", ps.validation_relative_discrepancy.map((v) => pct(v)).join(" / ")]] : []),
       ["loaded nodes", ps.loaded_discrepancy.map((v) => pct(v)).join(" / ")],
       ["% of h", ps.discrepancy_h.map((v) => pct(v)).join(" / ")],
       ["cost", `${num(ps.cost)} m`], ["created", when(ps.created)],
