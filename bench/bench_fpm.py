@@ -133,8 +133,23 @@ def fig7_spec() -> dict:
         "load_cases": [
             {"forces": [{"at": [size[0] / 2, size[1], size[2] / 2], "vector": [0, 1.0, 0]}]}
         ],
-        "fpm": {"dt": FIG7_DT, "max_steps": FIG7_STEPS, "settle_tolerance": 0.0},
+        "fpm": {
+            "dt": FIG7_DT,
+            "max_steps": FIG7_STEPS,
+            "settle_tolerance": 0.0,
+            "stiffness": "single",
+        },
     }
+
+
+NO_CELLS = (
+    np.zeros((0, 8), dtype=np.int64),
+    np.zeros((0, 6, 3)),
+    np.zeros(0),
+    np.zeros(0),
+    np.zeros((0, 3)),
+)
+"""The kernel's volume-term arguments for a model without it (the C yardstick has none)."""
 
 
 class Kernel:
@@ -160,10 +175,12 @@ class Kernel:
     def numba(self, k: float, d: float, dt: float, steps: int) -> tuple[int, int, float]:
         from fpm.dynamics.voigt import run_steps
 
-        return run_steps(
+        taken, state, worst, _ = run_steps(
             self.order, self.ptr, self.neighbour, self.rest_length, self.factor, self.rest,
             self.x, self.v, self.external, self.mass, k, d, dt, steps, 0.0, self.size,
+            *NO_CELLS,
         )  # fmt: skip
+        return taken, state, worst
 
     def c(self, lib, k: float, d: float, dt: float, steps: int) -> tuple[int, int, float]:
         state, worst = ctypes.c_int64(), ctypes.c_double()
@@ -372,7 +389,7 @@ def scale_spec(n: int) -> dict:
         },
         "fixed": [{"face": "z-"}],
         "load_cases": [{"forces": [{"at": [middle, middle, 0.1], "vector": [0, 0, 1.0]}]}],
-        "fpm": {"dt": 1e-3, "settle_tolerance": 0.0},
+        "fpm": {"dt": 1e-3, "settle_tolerance": 0.0, "stiffness": "single"},
     }
 
 
@@ -473,12 +490,56 @@ def scale(failures: list[str]) -> None:
         failures.append(f"scale: peak {r['peak_mb']:.0f} MB > {SCALE_MB_GOAL:.0f} MB")
 
 
+VOLUME_SIDE = 47
+"""The volume-term part's box: 47^3 = 103,823 nodes."""
+VOLUME_STEPS = 20
+VOLUME_RATIO_GOAL = 1.5
+
+
+def volume_step(failures: list[str]) -> None:
+    """Part 5: the step with the volume term against the same springs alone, at 10^5 nodes."""
+    import fpm
+    from fpm.dynamics.simulation import FpmModel
+    from fpm.model.forces import Stiffness
+    from fpm.model.stiffness import continuum_start, model_stiffness
+
+    n = VOLUME_SIDE
+    spec = scale_spec(n)
+    spec["fpm"] = {"dt": 1e-5, "settle_tolerance": 0.0, "stiffness": "families+volume"}
+    problem = fpm.load_problem(spec)
+    model = FpmModel(problem)
+    full = model_stiffness(problem, continuum_start(problem))
+    springs = Stiffness(full.springs)
+
+    def run(k: Stiffness, steps: int) -> None:
+        model.run(0, k=k, d=0.1, depth=None, dt=1e-5, max_steps=steps, settle_tolerance=0.0)
+
+    run(full, 1)  # compiled kernels loaded, cell lists built
+    run(springs, 1)
+    with_volume = best_of(lambda: run(full, VOLUME_STEPS), 3) / VOLUME_STEPS
+    springs_only = best_of(lambda: run(springs, VOLUME_STEPS), 3) / VOLUME_STEPS
+    ratio = with_volume / springs_only
+    ok = ratio <= VOLUME_RATIO_GOAL
+    print(
+        f"\n5. The volume term's step cost: {n}^3 = {problem.n_nodes:,} nodes 'full', "
+        f"{len(problem.solid.elements()):,} cells, full depth, best of 3 x {VOLUME_STEPS} steps"
+    )
+    print(f"{'springs only ms/step':>22} {'springs + volume ms/step':>26} {'ratio':>7} {'goal':>6}")
+    print(
+        f"{1e3 * springs_only:>22.2f} {1e3 * with_volume:>26.2f} {ratio:>7.2f} "
+        f"{VOLUME_RATIO_GOAL:>6.1f}  {'met' if ok else 'NOT met'}"
+    )
+    if not ok:
+        failures.append(f"volume step: {ratio:.2f}x the spring-only step > {VOLUME_RATIO_GOAL}x")
+
+
 def main() -> None:
     failures: list[str] = []
     model, kernel = fig7(failures)
     yardstick(kernel, failures)
     lookup(model, failures)
     scale(failures)
+    volume_step(failures)
     print("\ngoals: " + ("all met" if not failures else "MISSED " + "; ".join(failures)))
 
 
