@@ -88,7 +88,10 @@ def organ_settings(h: float, stiffness: str = "single") -> tuple[dict[str, Any],
     from fpm.dynamics.stability import stable_time_step
     from fpm.model.stiffness import spring_stiffness
 
-    problem = fpm.load_problem(ellipsoid_spec(h))
+    if stiffness == "families+volume":  # the default model: dt auto, validation cases
+        settings = {"max_steps": 20_000, "settle_tolerance": 1e-6, "stiffness": stiffness}
+        return ellipsoid_spec(h, validation=True, fpm=settings), float("nan")
+    problem = fpm.load_problem(ellipsoid_spec(h, fpm={"stiffness": "single"}))
     k = DT_RULE_K * problem.spec.material.youngs_modulus * h
     dt = 0.5 * stable_time_step(problem, spring_stiffness(problem, k))
     settings = {
@@ -129,8 +132,11 @@ def organ_child(h: float, stiffness: str, out: Path, progress_file: Path | None)
         "h": h,
         "stiffness_mode": stiffness,
         "nodes": problem.n_nodes,
-        "dt": problem.spec.fpm.dt,
+        "dt": result.dt,
         "dt_raw": dt_raw,
+        "volume_stiffness": result.volume_stiffness,
+        "validation": result.validation_relative_discrepancy,
+        "validation_h": result.validation_discrepancy_h,
         "setup": t0 - t_start,
         "load": t_load,
         "fem": t_fem,
