@@ -13,7 +13,7 @@ from redis import Redis
 from redis.backoff import NoBackoff
 from redis.retry import Retry
 
-from store import keys
+from store import keys, quotas
 
 from .errors import ProblemError
 from .settings import Settings, get_settings
@@ -65,6 +65,15 @@ def require_api_key(
             "missing or unknown API key (send it in the X-API-Key header)",
             headers={"WWW-Authenticate": "X-API-Key"},
         )
+
+
+def owner(settings: SettingsDep, key: Annotated[str | None, Security(api_key_header)]) -> str:
+    """Who a request counts against for the per-key quotas: a hash of its API key (never the
+    key), or "anonymous" when the service has no keys."""
+    return quotas.owner_of(key if settings.api_keys else None)
+
+
+OwnerDep = Annotated[str, Depends(owner)]
 
 
 def _known_form(value: str, pattern: re.Pattern[str], what: str) -> str:

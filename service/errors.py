@@ -57,6 +57,8 @@ PROBLEM_DESCRIPTIONS = {
     410: "stored by an older version of the service in a form it no longer serves",
     413: "request body over the configured limit",
     422: "invalid input: names each bad field and the reason",
+    429: "over the API key's quota (calibrations or nodes in flight); Retry-After says when to "
+    "try again",
     500: "an unexpected error (logged; no traceback in the answer)",
     503: "Redis (queue and store) unreachable; retry later",
 }

@@ -21,6 +21,8 @@ Read from Redis and RQ on each scrape (:class:`QueueCollector`):
   every succeeded calibration (``_sum / _count`` the mean; the rate of both, recent ones)
 - ``fpm_cost_evaluations_total`` (counter): annealing cost evaluations of every finished chain;
   ``rate(fpm_cost_evaluations_total[1m])`` is the evaluations per second
+- ``fpm_key_active_calibrations{owner}``, ``fpm_key_nodes_in_flight{owner}``: each API key's
+  usage of its quotas (``owner``: the first 16 hex digits of the key's SHA-256, never the key)
 
 Each app has a registry of its own, so apps built in one process (tests) do not collide.
 The endpoint needs no API key (like ``/docs``): it shows counts, no data.
@@ -45,7 +47,7 @@ from prometheus_fastapi_instrumentator import Instrumentator
 from redis import Redis
 from redis.exceptions import RedisError
 
-from store import queue_stats, records
+from store import queue_stats, quotas, records
 from store.status import CalibrationStatus
 
 ENDPOINT = "/metrics"
@@ -112,7 +114,20 @@ class QueueCollector(Collector):
         )
         sets = GaugeMetricFamily("fpm_parameter_sets", "Stored parameter sets")
         sets.add_metric([], records.parameter_set_count(redis))
-        return [depth, jobs, workers, calibrations, duration, evaluations, sets]
+        active = GaugeMetricFamily(
+            "fpm_key_active_calibrations",
+            "Calibrations queued or running per API key (owner: a hash of the key, never the key)",
+            labels=["owner"],
+        )
+        nodes = GaugeMetricFamily(
+            "fpm_key_nodes_in_flight",
+            "Lattice nodes of the calibrations queued or running per API key (owner: a hash)",
+            labels=["owner"],
+        )
+        for owner, used in quotas.all_usage(redis).items():
+            active.add_metric([owner], used.active)
+            nodes.add_metric([owner], used.nodes)
+        return [depth, jobs, workers, calibrations, duration, evaluations, sets, active, nodes]
 
 
 def calibration_statuses(redis: Redis) -> tuple[dict[str, int], list[float]]:

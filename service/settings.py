@@ -37,6 +37,19 @@ class Settings(BaseSettings):
         "inside the job timeouts; docs/service.md)",
     )
     max_load_cases: int = Field(20, ge=1)
+    max_active_per_key: int = Field(
+        20,
+        ge=0,
+        description="calibrations one API key may have queued or running (0 = unlimited); "
+        "over it, 429 with Retry-After",
+    )
+    max_nodes_per_key: int = Field(
+        1_000_000,
+        ge=0,
+        description="lattice nodes one API key may have in calibrations queued or running (0 = "
+        "unlimited)",
+    )
+    quota_retry_after: int = Field(60, ge=1, description="Retry-After of a 429 over a quota, s")
     max_chains: int = Field(16, ge=1, description="most annealing chains per calibration")
     max_body_bytes: int = Field(2_000_000, ge=1024, description="largest request body, bytes")
     page_size_limit: int = Field(200, ge=1, description="most items per page of a listing")

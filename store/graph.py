@@ -99,6 +99,23 @@ def enqueue_ready(redis: Redis) -> int:
     return moved
 
 
+def answered_by(redis: Redis, spec: dict[str, Any]) -> str | None:
+    """The id of the calibration an identical ``spec`` would be answered with (queued, running
+    or succeeded), or None when submitting it starts a new one."""
+    existing_id = redis.get(keys.calibration_by_spec(spec_hash(spec)))
+    if existing_id is None:
+        return None
+    raw = existing_id.decode() if isinstance(existing_id, bytes) else str(existing_id)
+    existing = records.get_calibration(redis, raw)
+    if existing is not None and existing.status in (
+        CalibrationStatus.QUEUED,
+        CalibrationStatus.RUNNING,
+        CalibrationStatus.SUCCEEDED,
+    ):
+        return existing.id
+    return None
+
+
 def submit_calibration(
     redis: Redis,
     spec: dict[str, Any],

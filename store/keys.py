@@ -142,3 +142,13 @@ def finalize_job_id(calibration_id: str) -> str:
 def profile_job_id(calibration_id: str) -> str:
     """RQ job id of the profile job of a calibration (the web view's plot data)."""
     return f"{calibration_id}-profile"
+
+
+def owner_calibrations(owner: str) -> str:
+    """Sorted set: an owner's (an API key's hash) calibrations, scored by their node count."""
+    return f"{PREFIX}:owner:{owner}:calibrations"
+
+
+def owners() -> str:
+    """Set: every owner that has submitted a calibration (for the usage metrics)."""
+    return f"{PREFIX}:owners"

@@ -8,10 +8,10 @@ from fastapi import APIRouter, Body, Query, Response, status
 
 from fpm import ProblemSpec
 from fpm.model.spec import AnnealingSettings
-from store import graph, records
+from store import graph, quotas, records
 from store.status import CalibrationStatus, FemStatus, Phase
 
-from ..deps import CalibrationId, RedisDep, SettingsDep
+from ..deps import CalibrationId, OwnerDep, RedisDep, SettingsDep
 from ..errors import ProblemError, problem_responses
 from ..examples import openapi_examples
 from ..limits import check_calibration_spec, dump_spec, supplied_reference
@@ -50,25 +50,57 @@ SpecBody = Annotated[ProblemSpec, Body(openapi_examples=openapi_examples())]
     operation_id="submit_calibration",
     responses={
         200: {"model": Calibration, "description": "the identical spec's calibration"},
-        **problem_responses(400, 413, 422),
+        **problem_responses(400, 413, 422, 429),
     },
 )
 def submit(
-    spec: SpecBody, redis: RedisDep, settings: SettingsDep, response: Response
+    spec: SpecBody, redis: RedisDep, settings: SettingsDep, owner: OwnerDep, response: Response
 ) -> Calibration:
     """Start a calibration (202 + Location).
 
     An identical spec (after defaults) already queued, running or succeeded returns that
-    calibration with 200 instead; a failed or canceled one is started afresh.
+    calibration with 200 instead; a failed or canceled one is started afresh. A new calibration
+    that would take the API key over its quota (calibrations queued or running, their lattice
+    nodes) is refused with 429 and Retry-After; other keys are not affected.
     """
     problem = check_calibration_spec(spec, settings)
+    dumped = dump_spec(spec)
+    if graph.answered_by(redis, dumped) is None:
+        _check_quota(redis, settings, owner, problem.n_nodes)
     record, created = graph.submit_calibration(
-        redis, dump_spec(spec), settings.job_options, supplied_reference(problem)
+        redis, dumped, settings.job_options, supplied_reference(problem)
     )
+    if created:
+        quotas.add(redis, owner, record.id, problem.n_nodes)
     response.headers["Location"] = f"{router.prefix}/{record.id}"
     if not created:
         response.status_code = status.HTTP_200_OK
     return read(record.id, redis)
+
+
+def _check_quota(redis: Any, settings: Any, owner: str, nodes: int) -> None:
+    """429 when a new calibration of ``nodes`` nodes takes ``owner`` over a quota."""
+    used = quotas.usage(redis, owner)
+    over = []
+    if settings.max_active_per_key and used.active + 1 > settings.max_active_per_key:
+        over.append(
+            f"this API key has {used.active} calibrations queued or running (limit "
+            f"{settings.max_active_per_key})"
+        )
+    if settings.max_nodes_per_key and used.nodes + nodes > settings.max_nodes_per_key:
+        over.append(
+            f"its calibrations in flight hold {used.nodes:,} lattice nodes and this one "
+            f"{nodes:,} (limit {settings.max_nodes_per_key:,})"
+        )
+    if over:
+        raise ProblemError(
+            429,
+            "Too many requests",
+            "; ".join(over) + ": wait for one to finish (or cancel one), then submit again",
+            headers={"Retry-After": str(settings.quota_retry_after)},
+            active=used.active,
+            nodes_in_flight=used.nodes,
+        )
 
 
 @router.get("", operation_id="list_calibrations", responses=problem_responses(422))
