@@ -254,6 +254,45 @@ def _positive(text: str, flag: str) -> float:
     return value
 
 
+def _store_redis() -> Any:
+    import os
+
+    from redis import Redis
+
+    url = os.environ.get("FPM_REDIS_URL") or os.environ.get("REDIS_URL")
+    return Redis.from_url(url or "redis://localhost:6379/0", socket_timeout=10)
+
+
+def cmd_store(args: argparse.Namespace) -> None:
+    from redis.exceptions import RedisError
+
+    from store.backup import DumpError, dump, restore
+
+    try:
+        redis = _store_redis()
+        if args.store_command == "dump":
+            count = 0
+            with open(args.output, "w", encoding="utf-8") as out:
+                for line in dump(redis):
+                    out.write(line + "\n")
+                    count += 1
+            print(f"wrote {args.output}: {count - 1} records", file=sys.stderr)
+            return
+        try:
+            with open(args.file, encoding="utf-8") as lines:
+                written = restore(redis, (line.rstrip("\n") for line in lines))
+        except OSError as e:
+            raise SpecFileError(f"{args.file}: {_one_line(e)}") from None
+        except DumpError as e:
+            raise ValueError(f"{args.file}: {e}") from None
+        summary = ", ".join(f"{n} {kind.replace('_', ' ')}s" for kind, n in written.items())
+        print(
+            f"restored from {args.file}: {summary} (records already stored kept)", file=sys.stderr
+        )
+    except RedisError as e:
+        raise ServiceError(f"Redis: {_one_line(e)}") from None
+
+
 def cmd_export(args: argparse.Namespace) -> None:
     if args.parameter_set:
         if args.spec or args.params:
@@ -471,6 +510,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     # `up` hands its arguments to stack.local (see main); listed here for --help.
     sub.add_parser("up", help="run the local stack: Redis, API, workers (Ctrl-C stops)")
+
+    p = sub.add_parser(
+        "store",
+        help="back up or migrate the store: parameter sets, FEM references, finished "
+        "calibrations (Redis from FPM_REDIS_URL / REDIS_URL)",
+    )
+    store_sub = p.add_subparsers(dest="store_command", required=True)
+    p = store_sub.add_parser("dump", help="write the store as JSON lines")
+    p.add_argument("-o", "--output", required=True, help="the dump file to write")
+    p.set_defaults(func=cmd_store)
+    p = store_sub.add_parser("restore", help="write a dump's records the store lacks")
+    p.add_argument("file", help="a dump written by fpmcal store dump")
+    p.set_defaults(func=cmd_store)
     return parser
 
 
