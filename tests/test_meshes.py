@@ -311,3 +311,85 @@ def test_a_bad_selector_is_one_line(tmp_path: Path, capsys):
     assert capsys.readouterr().err.splitlines() == [
         "error: 'face:q': a face is one of x-, x+, y-, y+, z-, z+ (e.g. face:z-)"
     ]
+
+
+# --- meshes users actually have: Gmsh v1, VTK POLYDATA, fragments -----------------------------
+
+
+def write_gmsh1(path: Path, points: np.ndarray, tets: np.ndarray) -> None:
+    """A Gmsh legacy v1 file (ids from 10, in reverse order: the reader maps ids, not rows)."""
+    ids = 10 + np.arange(len(points))[::-1]
+    lines = ["$NOD", str(len(points))]
+    lines += [f"{i} {x!r} {y!r} {z!r}" for i, (x, y, z) in zip(ids, points.tolist(), strict=True)]
+    lines += ["$ENDNOD", "$ELM", str(len(tets) + 1), "1 15 0 0 1 " + str(ids[0])]  # a point
+    lines += [f"{e + 2} 4 1 1 4 " + " ".join(str(ids[n]) for n in t) for e, t in enumerate(tets)]
+    lines += ["$ENDELM", ""]
+    path.write_text("\n".join(lines))
+
+
+def write_polydata(path: Path, points: np.ndarray, triangles: np.ndarray) -> None:
+    lines = ["# vtk DataFile Version 3.0", "surface", "ASCII", "DATASET POLYDATA",
+             f"POINTS {len(points)} double"]  # fmt: skip
+    lines += [" ".join(repr(v) for v in p) for p in points.tolist()]
+    lines += [f"POLYGONS {len(triangles)} {4 * len(triangles)}"]
+    lines += ["3 " + " ".join(map(str, t)) for t in triangles.tolist()]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_gmsh_v1_and_vtk_polydata_import_as_their_modern_forms_do(tmp_path: Path):
+    """The same tetrahedralised box as Gmsh v1 (which meshio cannot read) and as Gmsh 2.2, and
+    its boundary as a VTK POLYDATA surface: the same lattice from all three."""
+    points, tets, triangles = kuhn_box([0, 0, 0], [0.04, 0.03, 0.02], 4)
+    write_gmsh1(tmp_path / "old.msh", points, tets)
+    meshio.write(tmp_path / "new.msh", meshio.Mesh(points, [("tetra", tets)]),
+                 file_format="gmsh22")  # fmt: skip
+    write_polydata(tmp_path / "surface.vtk", points, triangles)
+    made = [geometry_from_mesh(read_mesh(tmp_path / f), spacing=0.005).geometry
+            for f in ("old.msh", "new.msh", "surface.vtk")]  # fmt: skip
+    assert made[0] == made[1] == made[2]
+    assert np.asarray(made[0]["occupancy"]).sum() == 8 * 6 * 4
+
+
+@pytest.mark.parametrize(
+    ("name", "text", "reason"),
+    [
+        ("cut.msh", "$NOD\n2\n1 0 0 0\n", "not a readable Gmsh v1 file"),
+        ("bad.vtk", "# vtk DataFile Version 3.0\nx\nBINARY\nDATASET POLYDATA\n",
+         "binary VTK is not read"),
+        ("open.vtk", "# vtk DataFile Version 3.0\nx\nASCII\nDATASET POLYDATA\nPOINTS 3 float\n"
+         "0 0 0 1 0 0 0 1 0\nPOLYGONS 1 4\n3 0 1 7\n", "names a point that does not exist"),
+    ],
+)  # fmt: skip
+def test_a_broken_legacy_file_is_one_line_in_the_cli(tmp_path: Path, capsys, name, text, reason):
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.raises(MeshError, match=reason):
+        read_mesh(path)
+    argv = ["spec", "from-mesh", str(path), "--spacing", "0.01", "--fix", "face:z-",
+            "--force", "face:z+:0,0,1", "--E", "5000", "--nu", "0.45"]  # fmt: skip
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and reason in err[0]
+
+
+def test_cells_joined_by_less_than_a_face_are_dropped_and_the_fem_holds_the_rest(tmp_path: Path):
+    """A block with a cube touching it only along an edge (and one only at a corner): both are
+    dropped with a note of how many cells and how much volume, and the FEM accepts the spec."""
+    h = 0.01
+    block = kuhn_box([0, 0, 0], [0.04, 0.04, 0.03], 4)
+    edge = kuhn_box([0.04, 0.04, 0.0], [0.05, 0.05, 0.01], 1)  # shares the edge x=y=0.04
+    corner = kuhn_box([0.04, 0.04, 0.03], [0.05, 0.05, 0.04], 1)  # shares the corner only
+    points, tets = block[0], block[1]
+    for p, t, _ in (edge, corner):
+        tets = np.concatenate([tets, t + len(points)])
+        points = np.concatenate([points, p])
+    path = tmp_path / "fragments.vtu"
+    meshio.write(path, meshio.Mesh(points, [("tetra", tets)]))
+    spec, notes = spec_from_mesh(
+        path, fix=["face:z-"], forces=["face:z+:0,0,0.01:distribute"], youngs_modulus=5e3,
+        poisson_ratio=0.45, spacing=h,
+    )  # fmt: skip
+    assert np.asarray(spec["geometry"]["occupancy"]).sum() == 4 * 4 * 3
+    dropped = [n for n in notes if n.startswith("dropped")]
+    assert dropped and "dropped 2 cells (2e-06 m^3" in dropped[0]
+    fpm.solve_fem(fpm.load_problem(spec))  # held: no "part of the solid is not held"

@@ -94,6 +94,24 @@ def mesh_suffix(path: str | Path) -> str | None:
     return next((s for s in known if name.endswith(s)), None)
 
 
+def legacy_format(path: Path) -> str | None:
+    """``"gmsh1"`` for a Gmsh legacy v1 ``.msh`` ($NOD/$ELM), ``"polydata"`` for a legacy VTK
+    POLYDATA ``.vtk`` (meshio reads neither), else None; from the file's first lines."""
+    suffix = path.suffix.lower()
+    if suffix not in (".msh", ".vtk"):
+        return None
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096).decode("latin-1")
+    except OSError:
+        return None
+    if suffix == ".msh" and head.lstrip().startswith("$NOD"):
+        return "gmsh1"
+    if suffix == ".vtk" and "DATASET POLYDATA" in head.upper():
+        return "polydata"
+    return None
+
+
 def read_mesh(path: str | Path) -> Any:
     """The meshio Mesh in ``path``; :class:`MeshError` with the reason when it cannot be read.
 
@@ -109,10 +127,17 @@ def read_mesh(path: str | Path) -> Any:
             f"{p}: not a mesh format meshio reads by its suffix (known: .msh, .vtu, .vtk, "
             ".inp, .stl, .obj, .ply, .off, .mesh, .xdmf, ...)"
         )
+    legacy = legacy_format(p)
     printed = io.StringIO()
     try:
+        if legacy is not None:
+            from .legacy import read_legacy
+
+            return read_legacy(p, legacy)
         with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed):
             return meshio.read(p)
+    except MeshError:
+        raise
     except (Exception, SystemExit) as e:
         said = " ".join((printed.getvalue() + " " + str(e)).split()).strip(" 1")
         raise MeshError(f"{p}: cannot read it as a mesh ({said or type(e).__name__})") from None
@@ -176,12 +201,20 @@ def geometry_from_mesh(
             f"the mesh has no volume cells and no surface triangles ({types}): give "
             "hexahedra, tetrahedra or a closed triangle surface"
         )
+    occupancy, dropped = one_piece(occupancy)
     occupancy, origin = _crop(occupancy, origin, spacing)
     cells = int(occupancy.sum())
     notes = [
         f"voxelised {what} at h = {spacing:.4g} m: {cells} cells of a "
         f"{'x'.join(map(str, occupancy.shape))} lattice"
     ]
+    if dropped:
+        volume = dropped * spacing**3
+        notes.append(
+            f"dropped {dropped} cells ({volume:.3g} m^3, {100 * dropped / (dropped + cells):.2g}% "
+            "of the volume) joined to the rest by less than a face (an edge, a corner, or "
+            "nothing): the FEM could not hold them"
+        )
     geometry = {
         "type": "voxels",
         "occupancy": occupancy.astype(np.uint8).tolist(),
@@ -414,6 +447,21 @@ def _orientation(
         exact = (f[2] - f[0]) * (f[5] - f[1]) - (f[3] - f[1]) * (f[4] - f[0])
         sign[k] = (exact > 0) - (exact < 0)
     return sign
+
+
+def one_piece(occupancy: np.ndarray) -> tuple[np.ndarray, int]:
+    """The largest piece of ``occupancy`` (cx, cy, cz) whose cells are joined through shared
+    faces, and how many cells the other pieces had. A cell joined only along an edge or at a
+    corner is its own piece (two hexahedra sharing an edge hinge on it: the FEM finds part of
+    the solid not held)."""
+    from scipy.ndimage import label
+
+    labels, pieces = label(occupancy)  # the default structure: the 6 face neighbours
+    if pieces <= 1:
+        return occupancy, 0
+    sizes = np.bincount(labels.ravel())[1:]
+    keep = labels == 1 + int(np.argmax(sizes))
+    return keep, int(occupancy.sum() - keep.sum())
 
 
 def _crop(occupancy: np.ndarray, origin: np.ndarray, spacing: float) -> tuple[np.ndarray, Any]:
