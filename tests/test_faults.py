@@ -8,6 +8,7 @@ killed during the damping stage is here.
 
 from __future__ import annotations
 
+import copy
 import os
 import signal
 import time
@@ -340,3 +341,49 @@ def test_worker_killed_in_the_damping_stage_is_retried(
         assert api.get("/v1/parameter-sets").json()["total"] == 1
         assert not redis.exists(keys.damping_result(calibration_id))
         assert_no_work_left(redis)
+
+
+# --- Workers and Redis killed while seeded calibrations run ------------------------------------
+
+
+def test_workers_and_redis_killed_mid_run_give_the_undisturbed_answers(durable_redis, small_spec):
+    """Two seeded calibrations; while they run, a worker is SIGKILLed, then Redis is SIGKILLed
+    and restarted (append-only file), then the dead worker's jobs are requeued as RQ's
+    maintenance does and a fresh worker finishes them: each ends with exactly the (k, d, depth)
+    and figures of an undisturbed in-process run, and one parameter set each."""
+    settings = Settings(redis_url=durable_redis.url, redis_timeout=0.5, max_chains=4)
+    specs = []
+    for seed in (5, 6):
+        spec = slow_damping(copy.deepcopy(small_spec))
+        spec["annealing"]["seed"] = seed
+        specs.append(spec)
+    workers = WorkerProcesses(durable_redis.url)
+    first = workers.start()
+    try:
+        with TestClient(create_app(settings), raise_server_exceptions=False) as api:
+            ids = [api.post("/v1/calibrations", json=s).json()["id"] for s in specs]
+            wait_for(in_damping(api, ids[0]), 90, "the first calibration's damping stage")
+            os.kill(first.pid, signal.SIGKILL)  # the worker dies mid-job
+            first.wait()
+            durable_redis.stop(kill=True)  # and Redis crashes
+            durable_redis.start()  # replays its append-only file
+            redis = Redis.from_url(durable_redis.url)
+            wait_for(lambda: api.get("/v1/health").status_code == 200, 20, "the API to recover")
+            for name in (keys.QUEUE, keys.PRIORITY_QUEUE):  # RQ's maintenance, now
+                StartedJobRegistry(name, connection=redis, serializer=JSONSerializer).cleanup(
+                    timestamp=time.time() + 3600
+                )
+            workers.start()
+            done = [wait_until_done(api, i, timeout=180) for i in ids]
+            for spec, answer in zip(specs, done, strict=True):
+                assert answer["status"] == "succeeded", answer["error"]
+                expected = calibrate(fpm.load_problem(spec))  # undisturbed, in-process
+                for name in ("k", "d", "depth", "relative_discrepancy", "settle_steps"):
+                    assert answer["result"][name] == pytest.approx(
+                        getattr(expected, name), rel=1e-12
+                    ), name
+            assert api.get("/v1/parameter-sets").json()["total"] == 2
+            assert_no_work_left(redis)
+    finally:
+        for process in workers.started:
+            workers.stop(process)
