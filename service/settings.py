@@ -31,10 +31,10 @@ class Settings(BaseSettings):
         description="accepted X-API-Key values (comma-separated); empty = no authentication",
     )
     max_nodes: int = Field(
-        100_000,
+        20_000,
         ge=8,
-        description="largest solid, in nodes (a 94,000-node organ calibrates in minutes, well "
-        "inside the job timeouts; docs/service.md)",
+        description="largest solid, in nodes (what a calibration has been measured to finish "
+        "in minutes and about 2 GB; docs/service.md)",
     )
     max_load_cases: int = Field(20, ge=1)
     max_active_per_key: int = Field(

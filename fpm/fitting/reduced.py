@@ -118,12 +118,17 @@ class ReducedLinearModel:
         units = [model_stiffness(self.problem, np.eye(n)[p]) for p in range(n)]
         solver = cost.solver
         self.cases: list[_Case] = []
+        shared: dict[bytes, list] = {}  # load cases with the same list share their K_p
         for j in range(len(self.problem.load_cases)):
             system, _ = solver.system(j, cost.depth)
             rest = np.zeros((system.n_free, 3))
-            unit = [
-                system.tangent(rest, system.parameters(s), modified=True).tocsr() for s in units
-            ]
+            key = system.free.tobytes()
+            if key not in shared:
+                shared[key] = [
+                    system.tangent(rest, system.parameters(s), modified=True).tocsr()
+                    for s in units
+                ]
+            unit = shared[key]
             loads = solver.loads(j)
             reference = cost.reference[j]
             moving = np.zeros(self.problem.n_nodes, dtype=bool)
