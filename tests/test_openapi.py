@@ -21,7 +21,7 @@ PROBLEM_JSON = "application/problem+json"
 PROBLEM_REF = {"$ref": "#/components/schemas/Problem"}
 
 OPERATIONS = {
-    ("post", "/v1/calibrations"): ("submit_calibration", {400, 401, 413, 422, 500, 503}),
+    ("post", "/v1/calibrations"): ("submit_calibration", {400, 401, 413, 422, 429, 500, 503}),
     ("get", "/v1/calibrations"): ("list_calibrations", {401, 422, 500, 503}),
     ("get", "/v1/calibrations/{calibration_id}"): ("get_calibration", {401, 404, 422, 500, 503}),
     ("delete", "/v1/calibrations/{calibration_id}"): (
