@@ -125,8 +125,7 @@ class ReducedLinearModel:
             key = system.free.tobytes()
             if key not in shared:
                 shared[key] = [
-                    system.tangent(rest, system.parameters(s), modified=True).tocsr()
-                    for s in units
+                    system.tangent(rest, system.parameters(s), modified=True).tocsr() for s in units
                 ]
             unit = shared[key]
             loads = solver.loads(j)
