@@ -235,6 +235,14 @@ class ParameterSetPage(BaseModel):
     total: int
 
 
+class KeyUsage(BaseModel):
+    """One API key's use of its quotas (the key itself is never shown)."""
+
+    owner: str = Field(description="the first 16 hex digits of the key's SHA-256 ('anonymous')")
+    active: int = Field(description="calibrations queued or running")
+    nodes_in_flight: int = Field(description="their lattice nodes")
+
+
 class Health(BaseModel):
     """Liveness of the parts: Redis, the workers, the queue."""
 
@@ -253,4 +261,7 @@ class Health(BaseModel):
     running_jobs: int = Field(description="jobs a worker is running")
     failed_jobs: int = Field(
         description="jobs that failed, kept for 7 days (jobs stopped by a cancel are not failures)"
+    )
+    keys: list[KeyUsage] = Field(
+        [], description="per API key with calibrations in flight, its use of the quotas"
     )

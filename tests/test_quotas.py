@@ -68,3 +68,19 @@ def test_usage_per_key_is_in_the_metrics_under_a_hash(settings, redis, small_spe
     assert f'fpm_key_active_calibrations{{owner="{owner}"}} 1.0' in text
     assert f'fpm_key_nodes_in_flight{{owner="{owner}"}} 64.0' in text
     assert "alice-key" not in text and owner != "alice-key"
+
+
+def test_health_shows_each_keys_usage_under_a_hash(settings, redis, small_spec):
+    api = client(settings)
+    assert post(api, "alice-key", variant(small_spec, 1)).status_code == 202
+    assert post(api, "bob-key", variant(small_spec, 2)).status_code == 202
+    assert post(api, "bob-key", variant(small_spec, 3)).status_code == 202
+    health = api.get("/v1/health", headers={"X-API-Key": "bob-key"})
+    usage = {u["owner"]: u for u in health.json()["keys"]}
+    assert usage[quotas.owner_of("alice-key")]["active"] == 1
+    assert usage[quotas.owner_of("bob-key")] == {
+        "owner": quotas.owner_of("bob-key"),
+        "active": 2,
+        "nodes_in_flight": 128,
+    }
+    assert "alice-key" not in health.text and "bob-key" not in health.text

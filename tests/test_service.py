@@ -391,5 +391,6 @@ def test_health_counts(api, small_spec):
         "queued_jobs": 1,  # the FEM job; chains and finalize wait on it
         "running_jobs": 0,
         "failed_jobs": 0,
+        "keys": [{"owner": "anonymous", "active": 1, "nodes_in_flight": 64}],  # no API keys
     }
     assert keys.QUEUE == "fpm"

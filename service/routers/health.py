@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from store import graph, liveness, queue_stats
+from store import graph, liveness, queue_stats, quotas
 
 from ..deps import RedisDep
-from ..schemas import Health
+from ..schemas import Health, KeyUsage
 
 router = APIRouter(prefix="/v1/health", tags=["health"])
 
@@ -33,4 +33,9 @@ def health(redis: RedisDep) -> Health:
         queued_jobs=sum(j.queued for j in jobs),
         running_jobs=sum(j.running for j in jobs),
         failed_jobs=sum(j.failed for j in jobs),
+        keys=[
+            KeyUsage(owner=owner, active=used.active, nodes_in_flight=used.nodes)
+            for owner, used in quotas.all_usage(redis).items()
+            if used.active
+        ],
     )

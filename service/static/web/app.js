@@ -305,6 +305,8 @@
     await Promise.all(stale.map(async (i) => {
       try { details.set(i.id, (await api("GET", `v1/calibrations/${enc(i.id)}`)).body); } catch (e) { /* shown without */ }
     }));
+    let usage = [];
+    try { usage = (await api("GET", "v1/health")).body.keys || []; } catch (e) { /* shown without */ }
     if (!alive(token)) return;
     const filter = el("select", {
       onchange: (event) => { listFilter = event.target.value; route(); },
@@ -316,6 +318,8 @@
       el("div", { class: "toolbar" }, el("label", null, "Status ", filter),
         el("span", { class: "muted" }, `${page.items.length} of ${page.total}, newest first`,
           active ? " · live: updated every 2 s" : "")),
+      usage.length ? el("p", { class: "muted", id: "key-usage" }, "In flight per API key (a hash of the key): ",
+        usage.map((u) => `${u.owner} ${u.active} calibrations, ${u.nodes_in_flight} nodes`).join(" · ")) : null,
       page.items.length ? el("table", { id: "calibrations" },
         el("thead", null, el("tr", null,
           ["Calibration", "Status", "Stage", "Progress", "Best cost", "Relative discrepancy per load case",
