@@ -188,6 +188,7 @@ class DynamicRun:
         steps: time steps taken so far.
         state: voigt.RUNNING, SETTLED or DIVERGED.
         residual: largest unbalanced nodal force of the last sweep, N.
+        history: (steps, residual) after every piece, for a caller that watches the decay.
     """
 
     def __init__(
@@ -213,6 +214,7 @@ class DynamicRun:
         self.x: np.ndarray | None = None  # own buffers, made on the first piece
         self.v: np.ndarray | None = None
         self.steps, self.state, self.residual = 0, RUNNING, 0.0
+        self.history: list[tuple[int, float]] = []
         self._rest = p.nodes
         self._force: np.ndarray | None = None  # volume forces (N, 3), made on the first piece
 
@@ -245,6 +247,7 @@ class DynamicRun:
             c.corners, c.rest, c.volume, self.kappa, self._force,
         )  # fmt: skip
         self.steps += int(taken)
+        self.history.append((self.steps, float(self.residual)))
         if inverted >= 0:
             self.inverted_cell = int(self.model.active_cells(self.plist)[1][inverted])
         return self.finished

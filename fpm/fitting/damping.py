@@ -23,8 +23,13 @@ diverge or creep).
 Runs advance in pieces of CHUNK steps (:class:`fpm.dynamics.simulation.DynamicRun`), all load cases
 together, and a d is dropped as soon as its load cases have taken as many steps between them as
 the best d's total: it can no longer win, so a poor d costs at most the best total, not a
-full run of every case. The runs of the fastest d are kept: they are the calibration's final
-dynamic check.
+full run of every case. Earlier still, once every running case has taken PREDICT_AFTER steps, the
+decay of its residual (the largest unbalanced force, sampled every SAMPLE steps; its envelope
+over the last two pieces) predicts the steps it still needs, and a d whose predicted total
+exceeds PRUNE times the best total is dropped then; likewise a margin probe whose predicted
+steps exceed PRUNE times its cap. A prediction only ever drops a d: every figure the search
+returns comes from runs that settled. The runs of the fastest d are kept: they are the
+calibration's final dynamic check.
 """
 
 from __future__ import annotations
@@ -64,6 +69,13 @@ MARGIN_CAP = 2
 """A d 'still settles' for the margin if every load case settles within this many times its
 steps at the fastest d (below the margin a run diverges or creeps; capping keeps the margin
 search as cheap as the rest)."""
+SAMPLE = 25
+"""Steps between the residual samples a run's decay is read from."""
+PREDICT_AFTER = 3 * CHUNK
+"""A run's remaining steps are predicted only once it has taken this many (past the transient)."""
+PRUNE = 1.3
+"""A d is dropped once its predicted total exceeds this times the best total (a margin probe:
+once a case's predicted steps exceed this times its cap); the slack absorbs prediction error."""
 
 
 @dataclass
@@ -79,6 +91,8 @@ class DampingFit:
         guess: the geometric mean of the two estimates the search started from, N s/m.
         runs: dynamic runs made (one per load case per d tried).
         tried: (d, total steps or None when some load case did not settle) for every d tried.
+        work: time steps simulated by the whole search, every run and load case together
+            (its cost in kernel steps, the final runs included).
     """
 
     d: float
@@ -88,6 +102,7 @@ class DampingFit:
     guess: float
     runs: int
     tried: list[tuple[float, int | None]] = field(default_factory=list)
+    work: int = 0
 
     @property
     def total_steps(self) -> int:
@@ -133,11 +148,24 @@ class _Runs:
         self.threads = min(self.cases, os.cpu_count() or 1)
         self.pool = ThreadPoolExecutor(self.threads)
         self.count = 0
+        self.work = 0
 
-    def __call__(self, d: float, caps: list[int], budget: int | None = None) -> list[DynamicRun]:
+    def _piece(self, run: DynamicRun, steps: int) -> None:
+        """Advance ``run`` by ``steps``, in samples of SAMPLE steps (its residual history)."""
+        start = run.steps
+        while run.steps - start < steps and not run.advance(min(SAMPLE, steps - run.steps + start)):
+            pass
+        self.work += run.steps - start
+
+    def __call__(
+        self, d: float, caps: list[int], budget: int | None = None, *, estimate: bool = False
+    ) -> list[DynamicRun]:
         """Every load case at d, case j for at most ``caps[j]`` steps; all are stopped once
         their steps add up to ``budget`` (None: no such limit) while one still runs, or once
-        one has diverged or reached its cap unsettled (the d has failed either way)."""
+        one has diverged or reached its cap unsettled (the d has failed either way), or once
+        the decay of the runs predicts (:func:`predicted_steps`) more than PRUNE times the
+        budget or a cap. ``estimate``: also stop once every running case is predicted to
+        settle within its cap (:func:`settles_within`)."""
         s = self.problem.spec.fpm
         runs = [
             self.model.start(
@@ -160,6 +188,8 @@ class _Runs:
                 r.diverged or (not r.finished and r.steps >= c)
                 for r, c in zip(runs, caps, strict=True)
             )
+            spent = spent or _predicted_to_lose(runs, caps, budget)
+            spent = spent or (estimate and settles_within(runs, caps, predicted=True))
             waiting = [
                 (r, c) for r, c in zip(runs, caps, strict=True)
                 if not r.finished and r.steps < c and r not in running.values()
@@ -167,7 +197,7 @@ class _Runs:
             while waiting and not spent and len(running) < self.threads:
                 r, c = min(waiting, key=lambda rc: rc[0].steps)
                 waiting.remove((r, c))
-                running[self.pool.submit(r.advance, min(CHUNK, c - r.steps))] = r
+                running[self.pool.submit(self._piece, r, min(CHUNK, c - r.steps))] = r
             if not running:
                 return runs
             done, _ = wait(running, return_when=FIRST_COMPLETED)
@@ -177,6 +207,52 @@ class _Runs:
 
     def close(self) -> None:
         self.pool.shutdown()
+
+
+def predicted_steps(run: DynamicRun) -> float:
+    """The steps ``run`` will have taken when it settles, predicted from the decay of its
+    residual: the envelope (largest sample) over the last CHUNK steps against that over the
+    CHUNK steps before, extrapolated exponentially down to the settle force. Its steps so far
+    before PREDICT_AFTER (no prediction yet); inf when the envelope does not decay."""
+    if run.finished:
+        return float(run.steps) if not run.diverged else math.inf
+    if run.steps < PREDICT_AFTER:
+        return float(run.steps)
+    s = run.steps
+    last = [r for n, r in run.history if s - CHUNK < n <= s]
+    before = [r for n, r in run.history if s - 2 * CHUNK < n <= s - CHUNK]
+    if not last or not before:
+        return float(s)
+    e1, e2 = max(before), max(last)
+    if not (0 < e2 < e1):
+        return math.inf
+    rate = math.log(e1 / e2) / CHUNK
+    return s + max(math.log(e2 / run.settle_force), 0.0) / rate
+
+
+def settles_within(runs: list[DynamicRun], caps: list[int], *, predicted: bool) -> bool:
+    """Every case settled within its cap, or (``predicted``) is past PREDICT_AFTER steps and
+    predicted to settle within it."""
+    return all(
+        r.state == SETTLED
+        and r.steps <= c
+        or predicted
+        and not r.finished
+        and r.steps >= PREDICT_AFTER
+        and predicted_steps(r) <= c
+        for r, c in zip(runs, caps, strict=True)
+    )
+
+
+def _predicted_to_lose(runs: list[DynamicRun], caps: list[int], budget: int | None) -> bool:
+    """Once every running case is past PREDICT_AFTER: some case is predicted past PRUNE times
+    its cap, or the predicted total past PRUNE times ``budget``."""
+    if any(not r.finished and r.steps < PREDICT_AFTER for r in runs):
+        return False
+    predicted = [predicted_steps(r) for r in runs]
+    if any(p > PRUNE * c for p, c in zip(predicted, caps, strict=True)):
+        return True
+    return budget is not None and sum(predicted) > PRUNE * budget
 
 
 def fastest_damping(
@@ -234,11 +310,16 @@ def _search(
             budget = _total(steps[best[0]]) if best else None
             results = runs(math.exp(y), [max_steps] * runs.cases, budget)
             taken = sum(r.steps for r in results)
-            if budget is not None and taken >= budget and not any(r.diverged for r in results):
-                slower[y] = taken
+            stopped = not all(r.finished for r in results) and not any(
+                r.diverged or r.steps >= max_steps for r in results
+            )  # by the budget or by its prediction: it cannot win
+            if budget is not None and stopped:
+                predicted = sum(predicted_steps(r) for r in results)
+                slower[y] = int(min(max(taken, budget, predicted), 1 << 62))
             elif all(r.state == SETTLED for r in results):
                 steps[y] = [r.steps for r in results]
-                best[:] = [y, np.stack([r.result().displacements for r in results])]
+                if budget is None or taken < budget:  # (a piece may overshoot the budget)
+                    best[:] = [y, np.stack([r.result().displacements for r in results])]
             else:
                 steps[y] = None
             if progress is not None:
@@ -293,6 +374,7 @@ def _search(
         ),
         guess=math.exp(y0),
         runs=runs.count,
+        work=runs.work,
         tried=sorted(
             [(math.exp(y), None if s is None else sum(s)) for y, s in steps.items()]
             + [(math.exp(y), None) for y in slower]
@@ -342,15 +424,16 @@ def _smallest_settling(
 ) -> float:
     """log d of the smallest d whose runs all settle within MARGIN_CAP times their steps at the
     fastest d: from the smallest settling d tried, down by ``step`` (log) while it settles, then
-    one bisection (the fastest d sits near the edge, so this takes few runs)."""
+    one bisection (the fastest d sits near the edge, so this takes few runs). A probe stops
+    once its decay predicts the answer (past PREDICT_AFTER steps): d_min is an estimate where
+    runs are long, exact where they settle sooner."""
     fastest = steps[y_best] or []
     caps = [min(max_steps, MARGIN_CAP * s) for s in fastest]
 
     def settles(y: float) -> bool:
         if steps.get(y) is not None:
             return all(s <= c for s, c in zip(steps[y] or [], caps, strict=True))
-        results = runs(math.exp(y), caps)
-        return all(r.state == SETTLED for r in results)
+        return settles_within(runs(math.exp(y), caps, estimate=True), caps, predicted=True)
 
     y_ok = min(y for y, s in steps.items() if s is not None and settles(y))
     while y_ok > lo:
