@@ -455,6 +455,13 @@ def test_export_endpoint_on_the_live_stack(live_api, small_spec, tmp_path: Path,
         done = client.calibrate(small_spec, wait=True, progress=False)
         assert done["status"] == "succeeded", done["error"]
         ps = done["parameter_set_id"]
+        out = tmp_path / "from-service.json"
+        argv = ["export", "--parameter-set", ps, "--url", live_api, "-o", str(out)]
+        capsys.readouterr()
+        assert main(argv) == 0  # the first request: waits for the worker, says so on stderr
+        waited = capsys.readouterr().err
+        assert f"{ps} json: the service makes the export ..." in waited
+        assert "ready after" in waited and f"wrote {out}" in waited
         data = client.export(ps, "json")
         assert data["format"] == "fpm-lattice" and len(data["nodes"]) == 64
         assert data["parameters"]["d"] == done["result"]["d"]
@@ -472,9 +479,6 @@ def test_export_endpoint_on_the_live_stack(live_api, small_spec, tmp_path: Path,
     answer = httpx.get(f"{live_api}/v1/parameter-sets/{ps}/export", params={"format": "sofa"})
     assert answer.headers["content-type"].startswith("application/xml")
     assert f'filename="{ps}.scn"' in answer.headers["content-disposition"]
-    out = tmp_path / "from-service.json"
-    argv = ["export", "--parameter-set", ps, "--url", live_api, "-o", str(out)]
-    assert main(argv) == 0
     assert json.loads(out.read_text()) == data
     assert main(["export", "--parameter-set", "ps-0123456789abcdef", "--url", live_api]) == 1
     assert "404 Not found" in capsys.readouterr().err
