@@ -1,4 +1,5 @@
-"""A text progress bar for a calibration, drawn on stderr (no dependencies)."""
+"""A text progress bar for a calibration, and a line for other waits, drawn on stderr (no
+dependencies)."""
 
 from __future__ import annotations
 
@@ -91,3 +92,27 @@ class ProgressBar:
         if self.tty and self.last:
             self.stream.write("\n")
             self.stream.flush()
+
+
+class WaitLine:
+    """A wait of unknown length (an export the service makes) on stderr: on a terminal one line
+    redrawn with the seconds waited; on a pipe the line once, then how it ended."""
+
+    def __init__(self, what: str, stream: TextIO | None = None):
+        self.stream = stream or sys.stderr
+        self.tty = self.stream.isatty()
+        self.what = printable(what)
+        self.shown = False
+
+    def update(self, seconds: float) -> None:
+        if self.tty:
+            self.stream.write(f"\r{self.what} ... {seconds:.0f} s")
+        elif not self.shown:
+            self.stream.write(f"{self.what} ...\n")
+        self.shown = True
+        self.stream.flush()
+
+    def close(self, seconds: float, done: bool = True) -> None:
+        end = f"ready after {seconds:.0f} s" if done else f"still waiting after {seconds:.0f} s"
+        self.stream.write(f"\r{self.what} ... {end}\n" if self.tty else f"{self.what}: {end}\n")
+        self.stream.flush()

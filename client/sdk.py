@@ -20,9 +20,11 @@ from typing import Any
 
 import httpx
 
-from .progress import ProgressBar
+from .progress import ProgressBar, WaitLine
 
 TERMINAL = ("succeeded", "failed", "canceled")
+EXPORT_TIMEOUT = 600.0
+"""Seconds :meth:`Client.export_bytes` waits by default for the service to make an export."""
 SpecLike = dict[str, Any] | str | Path
 
 
@@ -35,6 +37,16 @@ class ApiError(Exception):
         self.title = title
         self.detail = detail
         self.errors = errors or []
+
+
+def retry_after(response: httpx.Response, default: float = 1.0) -> float:
+    """The answer's Retry-After in seconds (the delay form; ``default`` when absent or a
+    date), kept within 0.1-30 s."""
+    try:
+        seconds = float(response.headers.get("retry-after", default))
+    except ValueError:
+        seconds = default
+    return min(max(seconds, 0.1), 30.0)
 
 
 def read_spec(spec: SpecLike) -> dict[str, Any]:
@@ -209,7 +221,13 @@ class Client:
         return self._call("GET", f"/v1/parameter-sets/{parameter_set_id}")
 
     def export(
-        self, parameter_set_id: str, format: str = "json", path: str | Path | None = None
+        self,
+        parameter_set_id: str,
+        format: str = "json",
+        path: str | Path | None = None,
+        *,
+        timeout: float | None = EXPORT_TIMEOUT,
+        progress: bool = True,
     ) -> Any:
         """A stored parameter set with its lattice, for other engines.
 
@@ -217,19 +235,55 @@ class Client:
         stiffness]``, masses, fixed nodes, d, dt, depth, perturbed layers per load case, units),
         ``vtu`` (ParaView: FPM and FEM displacements and their error per load case) or
         ``sofa`` (a SOFA scene), both returned as text. With ``path`` the answer is written
-        there and the path returned.
+        there and the path returned. Waits while the service makes it (:meth:`export_bytes`).
         """
-        body = self.export_bytes(parameter_set_id, format)
+        body = self.export_bytes(parameter_set_id, format, timeout=timeout, progress=progress)
         if path is not None:
             Path(path).write_bytes(body)
             return Path(path)
         return json.loads(body) if format == "json" else body.decode()
 
-    def export_bytes(self, parameter_set_id: str, format: str = "json") -> bytes:
-        """The export of :meth:`export` as the service sends it (UTF-8 bytes)."""
-        return self._request(
-            "GET", f"/v1/parameter-sets/{parameter_set_id}/export", params={"format": format}
-        ).content
+    def export_bytes(
+        self,
+        parameter_set_id: str,
+        format: str = "json",
+        *,
+        timeout: float | None = EXPORT_TIMEOUT,
+        progress: bool = True,
+    ) -> bytes:
+        """The export of :meth:`export` as the service sends it (UTF-8 bytes).
+
+        A worker makes an export the first time it is asked for (then the service keeps it a
+        day): until it is made the service answers 202 (pending) and this asks again after
+        the answer's Retry-After. ``progress`` shows the wait on one line of stderr. Raises
+        TimeoutError after ``timeout`` s (None: no limit), and ApiError for an error answer
+        (503 when the export job failed: Retry-After says when the service tries again).
+        """
+        url = f"/v1/parameter-sets/{parameter_set_id}/export"
+        started = time.monotonic()
+        line = None
+        while True:
+            response = self._request("GET", url, params={"format": format})
+            waited = time.monotonic() - started
+            if response.status_code != 202:
+                if line is not None:
+                    line.close(waited)
+                return response.content
+            if timeout is not None and waited >= timeout:
+                if line is not None:
+                    line.close(waited, done=False)
+                raise TimeoutError(
+                    f"the export of {parameter_set_id} as {format} is still being made after "
+                    f"{waited:.0f} s"
+                )
+            if progress:
+                if line is None:
+                    line = WaitLine(f"{parameter_set_id} {format}: the service makes the export")
+                line.update(waited)
+            pause = retry_after(response)
+            if timeout is not None:
+                pause = min(pause, max(timeout - waited, 0.0))
+            time.sleep(pause)
 
     def fem_reference(
         self, spec: SpecLike, *, poll: float = 0.5, timeout: float | None = None

@@ -303,8 +303,10 @@ def cmd_export(args: argparse.Namespace) -> None:
 
         try:
             with Client(args.url, api_key=args.api_key) as client:
-                body = client.export_bytes(args.parameter_set, args.format)
-        except (ApiError, httpx.HTTPError) as e:
+                body = client.export_bytes(
+                    args.parameter_set, args.format, timeout=args.timeout or None
+                )
+        except (ApiError, httpx.HTTPError, TimeoutError) as e:
             raise ServiceError(f"the service at {args.url}: {_one_line(e)}") from None
     else:
         if not (args.spec and args.params):
@@ -505,6 +507,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="the service (with --parameter-set; default $FPM_URL or http://127.0.0.1:8000)",
     )  # fmt: skip
     p.add_argument("--api-key", default=os.environ.get("FPM_API_KEY"), help="X-API-Key")
+    p.add_argument(
+        "--timeout", type=float, default=600.0, metavar="S",
+        help="with --parameter-set: seconds to wait while a worker makes the export (the "
+        "first request of one; 0 = no limit; default 600)",
+    )  # fmt: skip
     p.add_argument("-o", "--output", default=None, help="write here instead of stdout")
     p.set_defaults(func=cmd_export)
 

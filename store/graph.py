@@ -31,7 +31,7 @@ from rq.job import Dependency, Job, JobStatus
 from rq.serializers import JSONSerializer
 
 from . import keys, records, scratch
-from .hashing import fem_hash, fem_spec, spec_hash
+from .hashing import export_hash, fem_hash, fem_spec, spec_hash
 from .status import CalibrationStatus, FemStatus
 from .text import escape
 
@@ -350,6 +350,87 @@ def request_profile(redis: Redis, calibration_id: str, timeout: int) -> bool:
             description=f"profile of calibration {calibration_id}",
         )
     return True
+
+
+@dataclass(frozen=True)
+class ExportState:
+    """Where an export stands (:func:`request_export`).
+
+    Attributes:
+        body: the export's bytes once made, else None.
+        error: why the last export job failed (the cool-down is not over), else None.
+        invalid: the failure was the input's (the parameters do not fit the spec's lattice):
+            the same input fails again.
+        retry_after: seconds to wait before asking again (the rest of the cool-down when
+            failed; the polling interval when pending).
+    """
+
+    body: bytes | None = None
+    error: str | None = None
+    invalid: bool = False
+    retry_after: int = 1
+
+    @property
+    def pending(self) -> bool:
+        return self.body is None and self.error is None
+
+
+EXPORT_POLL = 1
+"""Seconds a client waits before asking again for a pending export (Retry-After)."""
+
+
+def request_export(
+    redis: Redis, parameter_set_id: str, fmt: str, spec: dict[str, Any], timeout: int
+) -> ExportState:
+    """The export of a stored parameter set in ``fmt`` (``spec``: the one it was fitted on, from
+    its calibration record): its bytes when cached, the failure of its last job during the
+    cool-down, else pending, its job enqueued unless it already is.
+
+    One job however many requests race: the job id derives from the export's key, and only the
+    request that wins :func:`store.scratch.claim_export` (SET NX) enqueues it. The job goes on
+    the priority queue for a lattice of at most :data:`SMALL_FEM_NODES` nodes (a fraction of a
+    second), else on the queue of long jobs. RQ keeps a job that failed without storing why
+    (its worker died, or it was killed) :data:`store.scratch.EXPORT_FAILED_TTL` seconds, which
+    is then its cool-down.
+    """
+    digest = export_hash(parameter_set_id, fmt)
+    body = scratch.get_export(redis, digest)
+    if body is not None:
+        return ExportState(body=body)
+    failure = scratch.get_export_failure(redis, digest)
+    if failure is not None:
+        data, left = failure
+        return ExportState(error=data["error"], invalid=bool(data["invalid"]), retry_after=left)
+    job_id = keys.export_job_id(digest)
+    try:
+        job: Job | None = Job.fetch(job_id, connection=redis, serializer=JSONSerializer)
+    except NoSuchJobError:
+        job = None
+    job_status = job.get_status() if job is not None else None
+    if job_status in PENDING:
+        return ExportState(retry_after=EXPORT_POLL)
+    if job is not None and job_status == JobStatus.FAILED:
+        left = int(redis.ttl(job.key))
+        return ExportState(
+            error="the export job stopped before it finished (its worker died or it ran past "
+            f"its timeout of {timeout} s)",
+            retry_after=max(left, 1),
+        )
+    if scratch.claim_export(redis, digest):
+        body = scratch.get_export(redis, digest)  # made between our first look and the claim
+        if body is not None:
+            return ExportState(body=body)
+        q = priority_queue(redis) if fem_nodes(spec) <= SMALL_FEM_NODES else queue(redis)
+        q.enqueue_call(
+            keys.EXPORT_JOB,
+            args=(parameter_set_id, fmt),
+            job_id=job_id,
+            timeout=timeout,
+            result_ttl=60,
+            failure_ttl=scratch.EXPORT_FAILED_TTL,
+            description=f"export of parameter set {parameter_set_id} as {fmt}",
+        )
+    return ExportState(retry_after=EXPORT_POLL)
 
 
 def cancel_calibration(redis: Redis, calibration_id: str) -> bool:

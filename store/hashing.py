@@ -8,7 +8,7 @@ import hashlib
 import json
 from typing import Any
 
-from fpm.model.spec import FEM_VERSION, MODEL_VERSION
+from fpm.model.spec import EXPORT_VERSION, FEM_VERSION, MODEL_VERSION
 
 FEM_FIELDS = ("geometry", "material", "fixed", "load_cases")
 """The spec fields the FEM reference depends on."""
@@ -55,4 +55,16 @@ def fem_hash(spec: dict[str, Any]) -> str:
     """sha256 of :func:`fem_spec` (geometry, material, fixed, load cases, integration,
     gravity) and of :data:`fpm.model.spec.FEM_VERSION`: the FEM reference's identity."""
     identity = {"fem": FEM_VERSION, "spec": fem_spec(spec)}
+    return hashlib.sha256(canonical(identity)).hexdigest()
+
+
+def export_hash(parameter_set_id: str, fmt: str) -> str:
+    """sha256 of a parameter set id, an export format and
+    :data:`fpm.model.spec.EXPORT_VERSION`: the identity of a cached export.
+
+    The id stands for the content: it derives from the spec hash (which covers the spec,
+    MODEL_VERSION and RECORD_VERSION), the set is written once (SET NX) and the spec and FEM
+    reference it is exported with are stored under that same spec hash and the set's FEM hash,
+    neither ever rewritten. The export version covers the code that writes the formats."""
+    identity = {"export": EXPORT_VERSION, "format": fmt, "parameter_set": parameter_set_id}
     return hashlib.sha256(canonical(identity)).hexdigest()

@@ -31,6 +31,7 @@ DAMPING_JOB = "worker.jobs.fit_damping_stage"
 FINALIZE_JOB = "worker.jobs.finalize_calibration"
 FAILURE_CALLBACK = "worker.jobs.on_failure"
 PROFILE_JOB = "worker.profile.calibration_profile"
+EXPORT_JOB = "worker.jobs.export_parameter_set"
 
 
 CALIBRATION_ID = re.compile(r"[0-9a-f]{16}")
@@ -142,6 +143,28 @@ def finalize_job_id(calibration_id: str) -> str:
 def profile_job_id(calibration_id: str) -> str:
     """RQ job id of the profile job of a calibration (the web view's plot data)."""
     return f"{calibration_id}-profile"
+
+
+def export(export_hash: str) -> str:
+    """String: the bytes of a parameter set's export in one format (made by the export job)."""
+    return f"{PREFIX}:export:{export_hash}"
+
+
+def export_failure(export_hash: str) -> str:
+    """String: JSON ``{"error", "invalid"}`` of an export job that failed (a short TTL: the
+    cool-down before it is tried again)."""
+    return f"{PREFIX}:export:{export_hash}:failed"
+
+
+def export_claim(export_hash: str) -> str:
+    """String: held (SET NX, a few seconds) by the request that enqueues an export job, so
+    concurrent first requests enqueue one job."""
+    return f"{PREFIX}:export:{export_hash}:claim"
+
+
+def export_job_id(export_hash: str) -> str:
+    """RQ job id of the export job of one (parameter set, format, export version)."""
+    return f"export-{export_hash[:40]}"
 
 
 def owner_calibrations(owner: str) -> str:

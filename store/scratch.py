@@ -7,7 +7,9 @@
   stage and finalize;
 - the damping stage's result (:class:`fpm.fitting.calibration.DampingStage` as JSON);
 - progress reports, one field per chain and one for the damping stage;
-- the FPM-vs-FEM profile data of a succeeded calibration (the web view's plot).
+- the FPM-vs-FEM profile data of a succeeded calibration (the web view's plot);
+- the exports of parameter sets (bytes, by :func:`store.hashing.export_hash`; kept
+  :data:`EXPORT_TTL` seconds) and the failures of export jobs.
 
 Values are the records' ``to_dict()`` as JSON; the job runner turns them back into records.
 """
@@ -27,6 +29,16 @@ SCRATCH_TTL = 7 * 24 * 3600
 
 PROFILE_FAILED_TTL = 600
 """Seconds a failed profile is remembered, so that polling does not re-run it at once (s)."""
+
+
+EXPORT_TTL = 24 * 3600
+"""Seconds an export is kept (s). Exports are derived data, made again from records that have no
+expiry, and a large lattice's is tens of MB: kept forever they would fill a Redis that must not
+evict (``noeviction``). A day serves the repeated downloads of one session (web view, SDK,
+CLI) from the cache; a later one waits once more for the job."""
+
+EXPORT_FAILED_TTL = 600
+"""Seconds a failed export is remembered, so that polling does not re-run it at once (s)."""
 
 
 def _json(raw: bytes | str | None) -> Any:
@@ -121,3 +133,53 @@ def save_profile(redis: Redis, calibration_id: str, data: dict[str, Any]) -> Non
     :data:`PROFILE_FAILED_TTL` seconds."""
     ttl = PROFILE_FAILED_TTL if data.get("status") == "failed" else SCRATCH_TTL
     redis.set(profile_key(calibration_id), json.dumps(data), ex=ttl)
+
+
+def get_export(redis: Redis, export_hash: str) -> bytes | None:
+    """The cached bytes of an export, or None (not made yet, or expired)."""
+    raw = redis.get(keys.export(export_hash))
+    if raw is None:
+        return None
+    return raw.encode() if isinstance(raw, str) else bytes(raw)
+
+
+def has_export(redis: Redis, export_hash: str) -> bool:
+    return bool(redis.exists(keys.export(export_hash)))
+
+
+def save_export(redis: Redis, export_hash: str, body: bytes) -> None:
+    """Cache an export for :data:`EXPORT_TTL` seconds; forget an earlier failure of it and
+    release the claim of its job (:func:`claim_export`)."""
+    pipe = redis.pipeline()
+    pipe.set(keys.export(export_hash), body, ex=EXPORT_TTL)
+    pipe.delete(keys.export_failure(export_hash), keys.export_claim(export_hash))
+    pipe.execute()
+
+
+def save_export_failure(redis: Redis, export_hash: str, error: str, invalid: bool) -> None:
+    """Remember for :data:`EXPORT_FAILED_TTL` seconds that an export failed: ``invalid`` when
+    the parameters do not fit the spec's lattice (the same input fails again), else any other
+    error (a retry after the cool-down may succeed). Releases the claim of its job."""
+    data = json.dumps({"error": error, "invalid": invalid})
+    pipe = redis.pipeline()
+    pipe.set(keys.export_failure(export_hash), data, ex=EXPORT_FAILED_TTL)
+    pipe.delete(keys.export_claim(export_hash))
+    pipe.execute()
+
+
+def get_export_failure(redis: Redis, export_hash: str) -> tuple[dict[str, Any], int] | None:
+    """``({"error", "invalid"}, seconds left of the cool-down)`` of a failed export, or None."""
+    pipe = redis.pipeline()
+    pipe.get(keys.export_failure(export_hash))
+    pipe.ttl(keys.export_failure(export_hash))
+    raw, ttl = pipe.execute()
+    if raw is None:
+        return None
+    return _json(raw), max(int(ttl), 1)
+
+
+def claim_export(redis: Redis, export_hash: str, seconds: int = 10) -> bool:
+    """True for the one caller that may enqueue the export job now: SET NX for ``seconds``
+    (which covers the moment between a request's finding no job and its enqueueing one; later
+    requests find the job), released when the job stores its export or its failure."""
+    return bool(redis.set(keys.export_claim(export_hash), b"1", nx=True, ex=seconds))

@@ -7,7 +7,10 @@ from __future__ import annotations
 
 import copy
 import json
+import re
+import threading
 import xml.etree.ElementTree as ET
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +18,11 @@ import httpx
 import meshio
 import numpy as np
 import pytest
+from redis import ConnectionPool, Redis
+from rq.job import Job, JobStatus
+from rq.serializers import JSONSerializer
 
+import client.sdk as sdk_module
 import fpm
 from client import Client
 from fpm.dynamics.equilibrium import static_equilibrium
@@ -23,7 +30,8 @@ from fpm.dynamics.simulation import fpm_model
 from fpm.io.export import ExportError, Parameters, build_lattice, export, fpm_displacements
 from fpm.model.perturbed_list import perturbed_list
 from fpmcal.cli import main
-from store import keys
+from store import graph, keys, records, scratch
+from store.hashing import export_hash
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL: dict[str, Any] = json.loads((ROOT / "examples" / "small-box.json").read_text())
@@ -248,23 +256,197 @@ def assert_problem(response: httpx.Response, status: int) -> dict[str, Any]:
     return response.json()
 
 
-def test_export_endpoint_in_process(api, redis, run_workers, small_spec):
-    calibration = api.post("/v1/calibrations", json=small_spec).json()
+def calibrated(api, run_workers, spec: dict[str, Any]) -> dict[str, Any]:
+    """A finished calibration of ``spec`` on the in-process app (its jobs run here)."""
+    calibration = api.post("/v1/calibrations", json=spec).json()
     run_workers()
     done = api.get(f"/v1/calibrations/{calibration['id']}").json()
+    assert done["status"] == "succeeded", done["error"]
+    return done
+
+
+def redis_url(redis: Redis) -> str:
+    kwargs = redis.connection_pool.connection_kwargs
+    return f"redis://{kwargs['host']}:{kwargs['port']}/{kwargs.get('db', 0)}"
+
+
+def direct_export(redis, done: dict[str, Any], fmt: str) -> bytes:
+    """The export computed here with fpm.io.export, from the same stored records."""
+    ps = records.get_parameter_set(redis, done["parameter_set_id"])
+    fem = None
+    if fmt == "vtu":
+        fem = records.get_fem_reference(redis, done["fem_reference_id"])["displacements"]
+    spec = records.get_calibration(redis, done["id"]).spec
+    return export(fpm.load_problem(spec), ps, fmt, fem=fem)
+
+
+def test_export_endpoint_in_process(api, redis, run_workers, small_spec):
+    done = calibrated(api, run_workers, small_spec)
     ps = done["parameter_set_id"]
-    answer = api.get(f"/v1/parameter-sets/{ps}/export")
+    path = f"/v1/parameter-sets/{ps}/export"
+    first = api.get(path)
+    assert first.status_code == 202 and first.json() == {"status": "pending", "retry_after": 1}
+    assert first.headers["retry-after"] == "1"
+    assert first.headers["location"] == f"{path}?format=json"
+    assert api.get(path).status_code == 202  # still pending: no second job
+    assert graph.priority_queue(redis).count == 1 and graph.queue(redis).count == 0
+    run_workers()
+    answer = api.get(path)
     assert answer.status_code == 200 and answer.headers["content-type"] == "application/json"
+    assert answer.headers["content-disposition"] == f'attachment; filename="{ps}.json"'
+    assert answer.content == direct_export(redis, done, "json")
     data = answer.json()
     assert data["parameters"]["d"] == done["result"]["d"]
     assert data["parameters"]["stiffness"] == done["result"]["stiffness"]
     assert data["fit"]["relative_discrepancy"] == done["result"]["relative_discrepancy"]
-    bad = assert_problem(api.get(f"/v1/parameter-sets/{ps}/export?format=obj"), 422)
+    assert graph.queue(redis).count == graph.priority_queue(redis).count == 0
+    digest = export_hash(ps, "json")
+    assert 0 < redis.ttl(keys.export(digest)) <= scratch.EXPORT_TTL
+    for fmt, media, suffix in (
+        ("vtu", "application/xml", "vtu"),
+        ("sofa", "application/xml", "scn"),
+    ):
+        assert api.get(path, params={"format": fmt}).status_code == 202
+        run_workers()
+        answer = api.get(path, params={"format": fmt})
+        assert answer.status_code == 200 and answer.headers["content-type"] == media
+        assert answer.headers["content-disposition"] == f'attachment; filename="{ps}.{suffix}"'
+        assert answer.content == direct_export(redis, done, fmt), fmt
+    bad = assert_problem(api.get(f"{path}?format=obj"), 422)
     assert bad["errors"][0]["field"].endswith("format")
     assert_problem(api.get("/v1/parameter-sets/ps-0123456789abcdef/export"), 404)
-    redis.delete(keys.calibration(calibration["id"]))  # the record that holds the spec
-    gone = assert_problem(api.get(f"/v1/parameter-sets/{ps}/export?format=sofa"), 410)
+    redis.delete(keys.calibration(done["id"]))  # the record that holds the spec
+    assert api.get(f"{path}?format=sofa").status_code == 200  # made: served from the cache
+    redis.delete(keys.export(export_hash(ps, "sofa")))
+    gone = assert_problem(api.get(f"{path}?format=sofa"), 410)
     assert "calibrate its spec again" in gone["detail"]
+
+
+def test_the_service_keeps_the_exporters_media_types():
+    from fpm.io.export import MEDIA_TYPES, SUFFIXES
+    from service.routers import exports
+
+    assert exports.MEDIA_TYPES == MEDIA_TYPES and exports.SUFFIXES == SUFFIXES
+
+
+def test_concurrent_first_requests_enqueue_one_job(api, redis, run_workers, small_spec):
+    done = calibrated(api, run_workers, small_spec)
+    path = f"/v1/parameter-sets/{done['parameter_set_id']}/export"
+    with ThreadPoolExecutor(8) as pool:
+        answers = list(pool.map(lambda _: api.get(path, params={"format": "sofa"}), range(16)))
+    assert [a.status_code for a in answers] == [202] * 16
+    queued = graph.priority_queue(redis).get_job_ids() + graph.queue(redis).get_job_ids()
+    assert queued == [keys.export_job_id(export_hash(done["parameter_set_id"], "sofa"))]
+    run_workers()
+    assert api.get(path, params={"format": "sofa"}).status_code == 200
+    # The store's own race: 8 threads, each with its own connection, ask at the same instant.
+    spec = records.get_calibration(redis, done["id"]).spec
+    start = threading.Barrier(8)
+
+    def ask(_: int) -> graph.ExportState:
+        own = Redis(connection_pool=ConnectionPool.from_url(redis_url(redis)))
+        start.wait()
+        return graph.request_export(own, done["parameter_set_id"], "vtu", spec, 60)
+
+    with ThreadPoolExecutor(8) as pool:
+        states = list(pool.map(ask, range(8)))
+    assert all(s.pending for s in states)
+    assert graph.priority_queue(redis).count == 1
+
+
+def test_each_parameter_set_and_format_has_its_own_export(api, redis, run_workers, small_spec):
+    first = calibrated(api, run_workers, small_spec)
+    other_spec = copy.deepcopy(small_spec)
+    other_spec["load_cases"] = other_spec["load_cases"][:1]
+    second = calibrated(api, run_workers, other_spec)
+    assert first["parameter_set_id"] != second["parameter_set_id"]
+    paths = [f"/v1/parameter-sets/{d['parameter_set_id']}/export" for d in (first, second)]
+    assert api.get(paths[0]).status_code == 202
+    run_workers()
+    assert api.get(paths[0]).status_code == 200
+    assert api.get(paths[1]).status_code == 202  # not answered from the first set's cache
+    run_workers()
+    answers = [api.get(p).content for p in paths]
+    assert answers[0] == direct_export(redis, first, "json")
+    assert answers[1] == direct_export(redis, second, "json")
+    assert (
+        len(json.loads(answers[1])["load_cases"]) == 1 != len(json.loads(answers[0])["load_cases"])
+    )
+    assert api.get(paths[0], params={"format": "sofa"}).status_code == 202  # nor another format's
+
+
+def test_a_failed_export_job_is_a_problem_not_a_500(api, redis, run_workers, small_spec):
+    done = calibrated(api, run_workers, small_spec)
+    ps_id = done["parameter_set_id"]
+    path = f"/v1/parameter-sets/{ps_id}/export"
+    # The parameters stop fitting the lattice (a set written by a buggy finalize, say): 422.
+    ps = records.get_parameter_set(redis, ps_id)
+    wrong = {**ps, "geometry": {**ps["geometry"], "h": 2 * ps["geometry"]["h"]}}
+    redis.set(keys.parameter_set(ps_id), json.dumps(wrong))
+    assert api.get(path).status_code == 202
+    run_workers()
+    invalid = assert_problem(api.get(path), 422)
+    assert "fitted on another lattice" in invalid["detail"]
+    assert invalid["errors"][0]["field"] == "parameter_set_id"
+    assert graph.priority_queue(redis).count == 0  # remembered: not re-run at every poll
+    # Any other failure of the job: 503 with Retry-After (the cool-down), then a retry.
+    redis.set(keys.parameter_set(ps_id), json.dumps(ps))
+    redis.delete(keys.export_failure(export_hash(ps_id, "json")))
+    assert api.get(path).status_code == 202
+    key = keys.calibration(done["id"])
+    spec = redis.hget(key, "spec")
+    redis.hset(key, "spec", json.dumps({"broken": True}))  # the job finds a spec it cannot load
+    run_workers()
+    redis.hset(key, "spec", spec)
+    failed = assert_problem(api.get(path), 503)
+    retry = int(api.get(path).headers["retry-after"])
+    assert 0 < retry <= scratch.EXPORT_FAILED_TTL
+    assert re.search(r"it is tried again in \d+ s$", failed["detail"])
+    assert "export job" in failed["detail"] and "ValidationError" in failed["detail"]
+    redis.delete(keys.export_failure(export_hash(ps_id, "json")))  # the cool-down is over
+    assert api.get(path).status_code == 202
+    run_workers()
+    assert api.get(path).content == direct_export(redis, done, "json")
+
+
+def test_an_export_job_that_died_is_a_503_until_its_cool_down_ends(
+    api, redis, run_workers, small_spec
+):
+    done = calibrated(api, run_workers, small_spec)
+    path = f"/v1/parameter-sets/{done['parameter_set_id']}/export"
+    assert api.get(path).status_code == 202
+    job_id = keys.export_job_id(export_hash(done["parameter_set_id"], "json"))
+    job = Job.fetch(job_id, connection=redis, serializer=JSONSerializer)
+    job.set_status(JobStatus.FAILED)  # as RQ leaves the job of a worker killed mid-export
+    redis.expire(job.key, 120)
+    graph.priority_queue(redis).remove(job_id)
+    died = assert_problem(api.get(path), 503)
+    assert "stopped before it finished" in died["detail"]
+    assert 100 < int(api.get(path).headers["retry-after"]) <= 120
+    claim = keys.export_claim(export_hash(done["parameter_set_id"], "json"))
+    redis.delete(job.key, claim)  # the cool-down over, RQ forgets the job; the claim expired
+    assert api.get(path).status_code == 202
+    run_workers()
+    assert api.get(path).status_code == 200
+
+
+def test_the_sdk_waits_for_the_export(api, sdk, run_workers, redis, small_spec, monkeypatch):
+    done = calibrated(api, run_workers, small_spec)
+    ps = done["parameter_set_id"]
+    polls: list[str] = []
+
+    def worker_between_polls(seconds: float) -> None:  # instead of sleeping: a worker runs
+        polls.append(f"slept {seconds}")
+        run_workers()
+
+    monkeypatch.setattr(sdk_module.time, "sleep", worker_between_polls)
+    body = sdk.export_bytes(ps, "sofa", progress=False)
+    assert body == direct_export(redis, done, "sofa")
+    assert polls == ["slept 1.0"]  # one 202, the Retry-After honoured, then 200
+    assert sdk.export(ps, "json", progress=False) == json.loads(direct_export(redis, done, "json"))
+    monkeypatch.setattr(sdk_module.time, "sleep", lambda s: None)  # no worker: it never ends
+    with pytest.raises(TimeoutError, match="still being made"):
+        sdk.export_bytes(ps, "vtu", timeout=0, progress=False)
 
 
 def test_export_endpoint_on_the_live_stack(live_api, small_spec, tmp_path: Path, capsys):
@@ -273,6 +455,13 @@ def test_export_endpoint_on_the_live_stack(live_api, small_spec, tmp_path: Path,
         done = client.calibrate(small_spec, wait=True, progress=False)
         assert done["status"] == "succeeded", done["error"]
         ps = done["parameter_set_id"]
+        out = tmp_path / "from-service.json"
+        argv = ["export", "--parameter-set", ps, "--url", live_api, "-o", str(out)]
+        capsys.readouterr()
+        assert main(argv) == 0  # the first request: waits for the worker, says so on stderr
+        waited = capsys.readouterr().err
+        assert f"{ps} json: the service makes the export ..." in waited
+        assert "ready after" in waited and f"wrote {out}" in waited
         data = client.export(ps, "json")
         assert data["format"] == "fpm-lattice" and len(data["nodes"]) == 64
         assert data["parameters"]["d"] == done["result"]["d"]
@@ -290,9 +479,6 @@ def test_export_endpoint_on_the_live_stack(live_api, small_spec, tmp_path: Path,
     answer = httpx.get(f"{live_api}/v1/parameter-sets/{ps}/export", params={"format": "sofa"})
     assert answer.headers["content-type"].startswith("application/xml")
     assert f'filename="{ps}.scn"' in answer.headers["content-disposition"]
-    out = tmp_path / "from-service.json"
-    argv = ["export", "--parameter-set", ps, "--url", live_api, "-o", str(out)]
-    assert main(argv) == 0
     assert json.loads(out.read_text()) == data
     assert main(["export", "--parameter-set", "ps-0123456789abcdef", "--url", live_api]) == 1
     assert "404 Not found" in capsys.readouterr().err

@@ -1,7 +1,8 @@
 """The architecture's rules that code can break silently (docs/service.md, "Layers"): the import
-graph (fpm imports no other package of ours; the service neither the job runner nor the local
-stack; the store none above it), Redis keys built only in the store, and a service that
-validates specs with fpm.model.spec / fpm.model.problem but never loads the numerical kernels."""
+graph (fpm imports no other package of ours; the service neither the job runner, the local
+stack nor the exporters (fpm.io); the store none above it), Redis keys built only in the
+store, and a service that validates specs with fpm.model.spec / fpm.model.problem but never
+loads the numerical kernels."""
 
 import ast
 import inspect
@@ -28,6 +29,13 @@ def test_the_service_does_not_import_the_numerical_kernels():
     code = f"import sys, service.main\nprint([m for m in {KERNELS!r} if m in sys.modules])\n"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_the_service_never_imports_the_exporters():
+    """Exports are a worker's job (worker.jobs.export_parameter_set): no module of the service
+    imports fpm.io, not even lazily inside a route."""
+    assert arrows("service", "fpm") != []
+    assert [a for a in arrows("service", "fpm") if a.split(" -> ")[1].startswith("fpm.io")] == []
 
 
 def test_fpm_public_names_load_on_first_use():

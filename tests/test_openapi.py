@@ -35,6 +35,10 @@ OPERATIONS = {
         "get_parameter_set",
         {401, 404, 410, 422, 500, 503},
     ),
+    ("get", "/v1/parameter-sets/{parameter_set_id}/export"): (
+        "export_parameter_set",
+        {401, 404, 410, 422, 500, 503},
+    ),
     ("get", "/v1/health"): ("get_health", {401, 500, 503}),
 }
 """Operation id and error statuses of each route. (A 422 on a route whose only parameter is a
@@ -102,6 +106,19 @@ def test_operation_ids_are_readable_and_errors_as_the_routes_answer(api):
     for operation_id in ids:  # no FastAPI-made ids (read_v1_calibrations__calibration_id__get)
         assert re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", operation_id), operation_id
         assert not re.search(r"_v1_|__|_(get|post|delete)$", operation_id), operation_id
+
+
+def test_the_export_documents_its_202_and_retry_after(api):
+    document = operations(api.get("/openapi.json").json())
+    responses = document[("get", "/v1/parameter-sets/{parameter_set_id}/export")]["responses"]
+    pending = responses["202"]
+    assert pending["content"]["application/json"]["schema"] == {
+        "$ref": "#/components/schemas/ExportPending"
+    }
+    assert {"Retry-After", "Location"} <= set(pending["headers"])
+    assert set(responses["200"]["content"]) == {"application/json", "application/xml"}
+    assert "export job failed" in responses["503"]["description"]
+    assert "Retry-After" in responses["503"]["headers"]
 
 
 def test_no_property_collides_with_generated_code(api):

@@ -1,5 +1,5 @@
 """RQ job functions: FEM reference, one annealing chain, the damping stage (two-stage method),
-finalize (enqueued by dotted path).
+finalize, and the export of a parameter set (enqueued by dotted path).
 
 Every job takes ids only and reads what it needs from our keys; every job may run twice
 (a retry after its worker died) and writes its results once, under deterministic keys:
@@ -35,7 +35,9 @@ from fpm.fitting.calibration import (
     run_chain,
 )
 from fpm.fitting.damping import DampingError
+from fpm.io.export import ExportError, export
 from store import keys, records, scratch
+from store.hashing import export_hash
 from store.status import CalibrationStatus, FemStatus, Phase
 
 PROGRESS_INTERVAL = 0.5
@@ -365,6 +367,47 @@ def _parameter_set(
             evaluations=result["evaluations"],
         ),
     )
+
+
+def export_parameter_set(parameter_set_id: str, fmt: str) -> dict[str, Any]:
+    """Make and cache the export of a stored parameter set in ``fmt`` (``json``, ``vtu`` or
+    ``sofa``: :func:`fpm.io.export.export`), which the service hands out
+    (:func:`store.graph.request_export`).
+
+    The lattice is rebuilt from the spec in the calibration record the set's provenance names;
+    ``vtu`` takes the FEM displacements from the stored reference and runs the FPM at the
+    parameters. A failure is stored, not raised, for the cool-down
+    (:data:`store.scratch.EXPORT_FAILED_TTL`), so that polling does not re-run it at once:
+    ``invalid`` when the parameters do not fit the lattice (:class:`fpm.io.export.ExportError`),
+    else an error a later run may not repeat. Returns a summary.
+    """
+    redis = _job().connection
+    digest = export_hash(parameter_set_id, fmt)
+    if scratch.has_export(redis, digest):
+        return {"skipped": True}
+    ps = records.get_parameter_set(redis, parameter_set_id)
+    provenance = (ps or {}).get("provenance") or {}
+    record = records.get_calibration(redis, str(provenance.get("calibration_id", "")))
+    invalid = False
+    try:
+        if ps is None:
+            raise LookupError(f"no parameter set {parameter_set_id!r}")
+        if record is None or record.spec_hash != provenance.get("spec_hash"):
+            raise LookupError("the calibration that holds the parameter set's spec is gone")
+        fem = None
+        if fmt == "vtu":
+            stored = records.get_fem_reference(redis, str(provenance.get("fem_hash", "")))
+            fem = None if stored is None else stored["displacements"]
+        body = export(load_problem(record.spec), ps, fmt, fem=fem)
+    except ExportError as e:
+        error, invalid = str(e), True
+    except Exception as e:  # stored and shown; tried again after the cool-down
+        error = f"{type(e).__name__}: {e}"
+    else:
+        scratch.save_export(redis, digest, body)
+        return {"bytes": len(body)}
+    scratch.save_export_failure(redis, digest, error, invalid)
+    return {"failed": error}
 
 
 def _fail(redis: Redis, calibration_id: str, error: str) -> None:

@@ -4,6 +4,11 @@ A parameter set holds the fitted numbers, not the lattice; its provenance names 
 whose record keeps the validated spec (no expiry), and the FEM reference (no expiry). The
 lattice is rebuilt from that spec, the FPM displacements (``vtu``) come from a run at the
 parameters, the FEM's from the stored reference. Formats: :mod:`fpm.io.export`.
+
+That takes the numerical kernels and up to seconds, so a worker makes the export, never this
+process: the first request for a (parameter set, format) enqueues the export job
+(:func:`store.graph.request_export`) and answers 202 ``pending`` with ``Retry-After``; once the
+job has cached the bytes (:data:`store.scratch.EXPORT_TTL`), the answer is 200 with them.
 """
 
 from __future__ import annotations
@@ -11,11 +16,14 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query
-from fastapi.responses import Response
+from fastapi.responses import JSONResponse, Response
+from pydantic import BaseModel, Field
 
-from store import records
+from store import graph, records, scratch
+from store.hashing import export_hash
+from store.text import escape
 
-from ..deps import ParameterSetId, RedisDep
+from ..deps import ParameterSetId, RedisDep, SettingsDep
 from ..errors import ProblemError, problem_responses
 from .parameter_sets import stored_parameter_set
 
@@ -23,9 +31,29 @@ router = APIRouter(prefix="/v1/parameter-sets", tags=["parameter-sets"])
 
 ExportFormat = Literal["json", "vtu", "sofa"]
 
+MEDIA_TYPES = {"json": "application/json", "vtu": "application/xml", "sofa": "application/xml"}
+"""Each format's media type (those of :mod:`fpm.io.export`, which this process does not load)."""
+SUFFIXES = {"json": ".json", "vtu": ".vtu", "sofa": ".scn"}
+"""Each format's file name suffix (:mod:`fpm.io.export`'s)."""
+
 CONTENT = {
     "application/json": {"schema": {"type": "object"}},
     "application/xml": {"schema": {"type": "string"}},
+}
+
+
+class ExportPending(BaseModel):
+    """The export is being made by a worker: ask again after ``retry_after`` seconds."""
+
+    status: Literal["pending"] = "pending"
+    retry_after: int = Field(description="seconds to wait before asking again (as Retry-After)")
+
+
+RETRY_HEADERS = {
+    "Retry-After": {
+        "description": "seconds to wait before asking again",
+        "schema": {"type": "integer"},
+    }
 }
 
 
@@ -41,36 +69,77 @@ CONTENT = {
             "SOFA scene (.scn)",
             "content": CONTENT,
         },
+        202: {
+            "model": ExportPending,
+            "description": "a worker is making the export: ask again after Retry-After seconds "
+            "(Location: this URL)",
+            "headers": {
+                **RETRY_HEADERS,
+                "Location": {"description": "where to ask", "schema": {"type": "string"}},
+            },
+        },
         **problem_responses(404, 410, 422),
+        503: {
+            **problem_responses(503)[503],
+            "description": "Redis unreachable, or the export job failed: it is tried again "
+            "after Retry-After seconds",
+            "headers": RETRY_HEADERS,
+        },
     },
 )
 def export(
     parameter_set_id: ParameterSetId,
     redis: RedisDep,
+    settings: SettingsDep,
     fmt: Annotated[ExportFormat, Query(alias="format", description="json | vtu | sofa")] = "json",
 ) -> Response:
     """A stored parameter set with its lattice: ``json`` (any engine), ``vtu`` (ParaView) or
-    ``sofa`` (a SOFA scene). 410 for a set stored by an older version, or whose calibration
-    record (which holds the spec) is gone."""
+    ``sofa`` (a SOFA scene). A worker makes it: the first request answers 202 (``pending``,
+    with Retry-After), ask again until 200. 410 for a set stored by an older version, or whose
+    calibration record (which holds the spec) is gone; 503 with Retry-After when its export job
+    failed (tried again after that); 422 when the parameters do not fit the spec's lattice."""
     ps = stored_parameter_set(redis, parameter_set_id)
-    provenance = ps.get("provenance") or {}
-    record = records.get_calibration(redis, str(provenance.get("calibration_id", "")))
-    if record is None or record.spec_hash != provenance.get("spec_hash"):
-        raise ProblemError(
-            410,
-            "Gone",
-            f"the calibration that holds the spec of parameter set {parameter_set_id} is gone: "
-            "calibrate its spec again",
+    body = scratch.get_export(redis, export_hash(parameter_set_id, fmt))
+    if body is None:
+        provenance = ps.get("provenance") or {}
+        record = records.get_calibration(redis, str(provenance.get("calibration_id", "")))
+        if record is None or record.spec_hash != provenance.get("spec_hash"):
+            raise ProblemError(
+                410,
+                "Gone",
+                f"the calibration that holds the spec of parameter set {parameter_set_id} is "
+                "gone: calibrate its spec again",
+            )
+        state = graph.request_export(
+            redis, parameter_set_id, fmt, record.spec, settings.finalize_timeout
         )
-    fem = None
-    if fmt == "vtu":
-        stored = records.get_fem_reference(redis, str(provenance.get("fem_hash", "")))
-        fem = None if stored is None else stored["displacements"]
-    from fpm.io.export import MEDIA_TYPES, SUFFIXES, export
-    from fpm.model.problem import load_problem
-
-    body = export(load_problem(record.spec), ps, fmt, fem=fem)  # a sync route: off the loop
-
+        if state.invalid:
+            error = escape(state.error or "")
+            raise ProblemError(
+                422,
+                "Invalid input",
+                f"parameter set {parameter_set_id} does not fit its spec's lattice: {error}",
+                errors=[{"field": "parameter_set_id", "message": error}],
+            )
+        if state.error is not None:
+            raise ProblemError(
+                503,
+                "Service unavailable",
+                f"the export job of parameter set {parameter_set_id} as {fmt} failed "
+                f"({escape(state.error)}); it is tried again in {state.retry_after} s",
+                headers={"Retry-After": str(state.retry_after)},
+            )
+        if state.body is None:
+            pending = ExportPending(retry_after=state.retry_after)
+            return JSONResponse(
+                pending.model_dump(),
+                status_code=202,
+                headers={
+                    "Retry-After": str(state.retry_after),
+                    "Location": f"/v1/parameter-sets/{parameter_set_id}/export?format={fmt}",
+                },
+            )
+        body = state.body
     filename = f"{parameter_set_id}{SUFFIXES[fmt]}"
     return Response(
         content=body,
