@@ -73,7 +73,7 @@ SAMPLE = 25
 """Steps between the residual samples a run's decay is read from."""
 PREDICT_AFTER = 3 * CHUNK
 """A run's remaining steps are predicted only once it has taken this many (past the transient)."""
-PRUNE = 1.3
+PRUNE = 1.1
 """A d is dropped once its predicted total exceeds this times the best total (a margin probe:
 once a case's predicted steps exceed this times its cap); the slack absorbs prediction error."""
 
