@@ -462,7 +462,9 @@ def tet10_reference(
         raise FemError(
             "the tetrahedral mesh is not held: no node of it is near the spec's fixed nodes"
         )
-    free = np.repeat(~fixed, 3)
+    used = np.zeros(len(mesh.nodes), dtype=bool)
+    used[mesh.elements] = True  # a node in no tetrahedron has no stiffness: it stays at rest
+    free = np.repeat(~fixed & used, 3)
     method = choose_method(int(free.sum())) if method == "auto" else method
     k = stiffness_matrix(mesh, constitutive_matrix(material.youngs_modulus, material.poisson_ratio))
     u, residuals = solve_dirichlet(k, forces.reshape(len(cases), -1), free, mesh.nodes, method)
