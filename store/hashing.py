@@ -59,3 +59,17 @@ def fem_hash(spec: dict[str, Any]) -> str:
     gravity) and of :data:`fpm.model.spec.FEM_VERSION`: the FEM reference's identity."""
     identity = {"fem": FEM_VERSION, "spec": fem_spec(spec)}
     return hashlib.sha256(canonical(identity)).hexdigest()
+
+
+def canonical_mesh(nodes: Any, tetrahedra: Any) -> dict[str, Any]:
+    """A tetrahedral mesh in one spelling: nodes as lists of floats (m), tetrahedra as lists of
+    ints, so that ``0`` and ``0.0`` name the same mesh."""
+    return {
+        "nodes": [[float(x) for x in node] for node in nodes],
+        "tetrahedra": [[int(i) for i in tet] for tet in tetrahedra],
+    }
+
+
+def mesh_hash(mesh: dict[str, Any]) -> str:
+    """sha256 of the canonical JSON of :func:`canonical_mesh`: an uploaded mesh's id."""
+    return hashlib.sha256(canonical(mesh)).hexdigest()

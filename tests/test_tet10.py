@@ -409,3 +409,56 @@ def test_organ_reference_at_the_lattice_nodes_matches_scikit_fem():
     independent[problem.fixed] = 0.0
     assert relative_gap(ours, independent) < 0.03
     assert relative_gap(ours, independent) < 1e-6  # in fact the same to the CG tolerance
+
+
+# --- the service: POST /v1/meshes and reference.mesh_id -----------------------------------------
+
+
+def test_mesh_upload_and_reference_mesh_id_over_rest(api, redis, run_workers, sdk):
+    spec = cube_spec(3, 2)
+    mesh = spec["reference"].pop("mesh")
+    # a bad mesh: 422 naming the element, nothing stored
+    bad = copy.deepcopy(mesh)
+    bad["tetrahedra"][3] = [bad["tetrahedra"][3][i] for i in (1, 0, 2, 3)]
+    answer = api.post("/v1/meshes", json=bad)
+    assert answer.status_code == 422, answer.text
+    assert "tetrahedra.3" in [e["field"] for e in answer.json()["errors"]]
+    assert "tetrahedron 3 is inverted" in answer.json()["detail"]
+    assert redis.dbsize() == 0
+    # content-addressed and idempotent: 201, then 200 with the same id (ints or floats alike)
+    first = api.post("/v1/meshes", json=mesh)
+    assert first.status_code == 201, first.text
+    again = copy.deepcopy(mesh)
+    again["nodes"] = [[float(x) for x in node] for node in again["nodes"]]
+    second = api.post("/v1/meshes", json=again)
+    assert second.status_code == 200 and second.json() == first.json()
+    assert sdk.upload_mesh(mesh) == first.json()["id"]
+    # an unknown mesh id is refused at submit, naming the field
+    unknown = copy.deepcopy(spec)
+    unknown["reference"]["mesh_id"] = "0" * 64
+    answer = api.post("/v1/fem-references", json=unknown)
+    assert answer.status_code == 422
+    assert "reference.mesh_id" in [e["field"] for e in answer.json()["errors"]]
+    # the worker solves the reference on the uploaded mesh: the inline mesh's answer
+    spec["reference"]["mesh_id"] = first.json()["id"]
+    submitted = api.post("/v1/fem-references", json=spec)
+    assert submitted.status_code == 202, submitted.text
+    run_workers()
+    reference = api.get(submitted.headers["location"]).json()
+    assert reference["status"] == "succeeded" and reference["element"] == "tet10"
+    inline = fpm.solve_fem(fpm.load_problem(cube_spec(3, 2))).displacements
+    assert relative_gap(np.asarray(reference["displacements"]), inline) < 1e-9
+    # another mesh is another reference (the FEM hash covers the mesh)
+    coarse = cube_spec(3, 1)["reference"]["mesh"]
+    spec["reference"]["mesh_id"] = sdk.upload_mesh(coarse)
+    assert api.post("/v1/fem-references", json=spec).status_code == 202
+
+
+def test_mesh_upload_body_limit_is_its_own(api, settings):
+    big = b'{"nodes": [' + b"[0.0, 0.0, 0.0], " * (settings.max_body_bytes // 16) + b"[0, 0, 0]]"
+    answer = api.post("/v1/meshes", content=big, headers={"content-type": "application/json"})
+    assert answer.status_code == 422  # past the spec routes' limit, within the mesh route's
+    assert len(big) > settings.max_body_bytes
+    huge = b" " * (settings.max_mesh_bytes + 1)
+    answer = api.post("/v1/meshes", content=huge, headers={"content-type": "application/json"})
+    assert answer.status_code == 413

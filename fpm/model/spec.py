@@ -396,6 +396,10 @@ def lundy_mees_moves(t_initial: float, t_final: float, beta: float) -> int:
 Integration = Literal["selective", "full"]
 
 
+NodeIndex = Annotated[int, Field(ge=0, lt=2**31)]
+"""A node index of a tetrahedral mesh (its range is checked against the nodes later)."""
+
+
 class ReferenceMesh(_Strict):
     """A tetrahedral mesh of the solid for the FEM reference (10-node tetrahedra built on it:
     :mod:`fpm.fem.tet10`). Nodes in m, tetrahedra as 4 node indices (0-based) with positive
@@ -404,7 +408,7 @@ class ReferenceMesh(_Strict):
     (errors at ``reference.mesh.tetrahedra.<element>``)."""
 
     nodes: list[Vector3] = Field(min_length=4, description="node coordinates, m")
-    tetrahedra: list[tuple[int, int, int, int]] = Field(
+    tetrahedra: list[tuple[NodeIndex, NodeIndex, NodeIndex, NodeIndex]] = Field(
         min_length=1, description="4 node indices (0-based) per tetrahedron, positive volume"
     )
 

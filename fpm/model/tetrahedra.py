@@ -71,9 +71,17 @@ def check_tetrahedra(
     if errors:
         return errors[:limit]
     tets = tets.astype(np.int64)
-    volume = tetrahedron_volumes(nodes, tets)
-    v = nodes[tets]
-    longest = np.linalg.norm(v[:, EDGES[:, 1]] - v[:, EDGES[:, 0]], axis=2).max(axis=1)
+    with np.errstate(over="ignore", invalid="ignore"):
+        volume = tetrahedron_volumes(nodes, tets)
+        v = nodes[tets]
+        longest = np.linalg.norm(v[:, EDGES[:, 1]] - v[:, EDGES[:, 0]], axis=2).max(axis=1)
+        huge = ~np.isfinite(volume) | ~np.isfinite(longest**3)
+    errors += [
+        ("tetrahedra", int(e), f"tetrahedron {int(e)}: its coordinates are too large (m)")
+        for e in np.flatnonzero(huge)[:limit]
+    ]
+    if errors:
+        return errors
     flat = np.abs(volume) <= DEGENERATE * longest**3
     inverted = (volume < 0) & ~flat
     for e in np.flatnonzero(flat | inverted)[:limit]:
