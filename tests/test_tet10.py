@@ -462,3 +462,21 @@ def test_mesh_upload_body_limit_is_its_own(api, settings):
     huge = b" " * (settings.max_mesh_bytes + 1)
     answer = api.post("/v1/meshes", content=huge, headers={"content-type": "application/json"})
     assert answer.status_code == 413
+
+
+def test_vtu_export_carries_the_tet10_reference(tmp_path):
+    meshio = pytest.importorskip("meshio")
+    from fpm.io.export import export
+
+    problem = fpm.load_problem(cube_spec(2))
+    record = {"stiffness": {"axis": 4.0, "face": 2.0, "body": 2.5}, "d": 0.15, "depth": 3}
+    record["volume_stiffness"] = 1e3
+    path = tmp_path / "lattice.vtu"
+    path.write_bytes(export(problem, record, "vtu"))
+    tet10_u = fpm.solve_fem(problem).displacements[0]
+    hex8 = copy.deepcopy(cube_spec(2))
+    del hex8["reference"]
+    hex8_u = fpm.solve_fem(fpm.load_problem(hex8)).displacements[0]
+    written = meshio.read(path).point_data["fem_displacement_1"]
+    np.testing.assert_allclose(written, tet10_u, rtol=1e-9, atol=1e-12)
+    assert relative_gap(written, hex8_u) > 1e-3  # not the hexahedra's
