@@ -16,6 +16,11 @@ against the linear one on the same :data:`MODEL_SIDE`^3 cube and load, each mode
 process, :data:`MODEL_REPEATS` times (the fastest run counts): goals at most
 :data:`MODEL_GOALS` times the linear solve's time and peak memory. ``python -m bench.bench_fem
 models`` runs only this part.
+
+Last, the tetrahedral reference (:mod:`fpm.fem.tet10`) of a 50,000-tetrahedron organ
+(:func:`bench.organ.ellipsoid_tetrahedra`), end to end (10-node mesh, assembly, solve, reading at
+the lattice nodes), against a goal of :data:`TET10_GOAL` s; ``python -m bench.bench_fem tet10``
+runs only this part.
 """
 
 from __future__ import annotations
@@ -210,6 +215,80 @@ def compare_locking() -> list[str]:
     return failures
 
 
+TET10_H = 0.0039
+"""Node spacing of the tetrahedral organ (:func:`bench.organ.ellipsoid_tetrahedra`): about
+51,000 tetrahedra (71,000 nodes of the 10-node mesh)."""
+TET10_LATTICE = 0.005
+"""Lattice spacing of the organ's spec (about 4,600 lattice nodes)."""
+TET10_GOAL = 60.0
+"""Seconds for the 50,000-tetrahedron reference, end to end, on 2 cores."""
+
+
+def run_tet10() -> dict:
+    """Time the tet10 reference of the tetrahedral organ in this process: the spec as
+    ``spec_from_mesh`` makes it (probe force on top, own weight, bottom centimetre fixed), then
+    one ``solve_fem``: 10-node mesh, assembly, solve, reading at the lattice nodes."""
+    import meshio
+
+    import fpm
+    import fpm.fem.tet10  # imported before the clock starts
+    from bench.organ import ellipsoid_tetrahedra
+    from fpm.io.meshes import spec_from_mesh
+
+    nodes, tets = ellipsoid_tetrahedra(TET10_H)
+    bottom = nodes[:, 2].min()
+    spec, _ = spec_from_mesh(
+        meshio.Mesh(nodes, [("tetra", tets)]),
+        fix=[f"box:-1,-1,-1:1,1,{bottom + 0.01}"],
+        forces=["nearest:0,0,0.04:0,0,-0.02"],
+        youngs_modulus=5e3,
+        poisson_ratio=0.45,
+        density=1040.0,
+        spacing=TET10_LATTICE,
+    )
+    spec["fpm"]["gravity"] = [0.0, 0.0, -9.81]
+    problem = fpm.load_problem(spec)
+    t0 = time.perf_counter()
+    result = fpm.solve_fem(problem)
+    total = time.perf_counter() - t0
+    return {
+        "tetrahedra": len(tets),
+        "lattice_nodes": problem.n_nodes,
+        "method": result.method,
+        "total": total,
+        "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "residual": max(result.residuals),
+    }
+
+
+def compare_tet10() -> list[str]:
+    """The tet10 reference of a 50,000-tetrahedron organ, in its own process: one row, time
+    against :data:`TET10_GOAL`."""
+    out = subprocess.run(
+        [sys.executable, "-m", "bench.bench_fem", "tet10-case"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    row = json.loads(out.stdout.strip().splitlines()[-1])
+    print(
+        f"{'tetrahedra':>10} {'lattice':>8} {'method':>7} {'total s':>8} {'goal s':>7} "
+        f"{'ratio':>6} {'peak MB':>8} {'residual':>9}"
+    )
+    print(
+        f"{row['tetrahedra']:>10} {row['lattice_nodes']:>8} {row['method']:>7} "
+        f"{row['total']:>8.1f} {TET10_GOAL:>7.0f} {row['total'] / TET10_GOAL:>6.2f} "
+        f"{row['peak_mb']:>8.0f} {row['residual']:>9.1e}",
+        flush=True,
+    )
+    failures = []
+    if row["total"] > TET10_GOAL:
+        failures.append(f"tet10 organ: {row['total']:.1f} s > {TET10_GOAL} s")
+    if row["residual"] > 1e-8:
+        failures.append(f"tet10 organ: residual {row['residual']:.1e} > 1e-8")
+    return failures
+
+
 def main() -> None:
     from fpm.fem.linear_solver import choose_method
 
@@ -245,6 +324,7 @@ def main() -> None:
     print("* = the method solve_fem picks at that size")
     failures += compare_models()
     failures += compare_locking()
+    failures += compare_tet10()
     print("goals: " + ("all met" if not failures else "MISSED " + "; ".join(failures)))
 
 
@@ -255,6 +335,11 @@ if __name__ == "__main__":
         print(json.dumps(run_case(int(sys.argv[1]), sys.argv[2])))
     elif sys.argv[1:] == ["models"]:
         failures = compare_models()
+        print("goals: " + ("all met" if not failures else "MISSED " + "; ".join(failures)))
+    elif sys.argv[1:] == ["tet10-case"]:
+        print(json.dumps(run_tet10()))
+    elif sys.argv[1:] == ["tet10"]:
+        failures = compare_tet10()
         print("goals: " + ("all met" if not failures else "MISSED " + "; ".join(failures)))
     elif sys.argv[1:] == ["locking"]:
         failures = compare_locking()

@@ -80,3 +80,43 @@ def ellipsoid_spec(
         ],
         **settings,
     }
+
+
+def ellipsoid_tetrahedra(h: float, *, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A tetrahedral mesh of the organ's ellipsoid, node spacing about ``h`` (m): nodes (N, 3),
+    m, and tetrahedra (T, 4) of positive volume. Delaunay (scipy) of a jittered grid inside the
+    ellipsoid and of points on its surface (a Fibonacci spiral mapped onto it), slivers (volume
+    under 1e-3 of the longest edge cubed) dropped, unused nodes removed. h = 4 mm gives about
+    50,000 tetrahedra."""
+    from scipy.spatial import Delaunay
+
+    from fpm.model.tetrahedra import EDGES, tetrahedron_volumes
+
+    a = np.asarray(SEMI_AXES)
+    rng = np.random.default_rng(seed)
+    axes = [np.arange(-a[i] + h / 2, a[i], h) for i in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    grid = grid + rng.uniform(-0.15 * h, 0.15 * h, grid.shape)
+    r = np.sqrt(((grid / a) ** 2).sum(axis=1))
+    inner = grid[r < 1 - 0.6 * h / a.min()]
+    # Surface points about h apart: area of the ellipsoid (Thomsen's approximation) / h^2.
+    p = 1.6075
+    area = (
+        4 * np.pi * (((a[0] * a[1]) ** p + (a[0] * a[2]) ** p + (a[1] * a[2]) ** p) / 3) ** (1 / p)
+    )
+    n = int(area / h**2 * 1.15)
+    k = np.arange(n) + 0.5
+    polar, azimuth = np.arccos(1 - 2 * k / n), np.pi * (1 + 5**0.5) * k
+    unit = np.stack(
+        [np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth), np.cos(polar)], axis=1
+    )
+    points = np.concatenate([inner, unit * a])
+    tets = Delaunay(points).simplices.astype(np.int64)
+    volume = tetrahedron_volumes(points, tets)
+    v = points[tets]
+    longest = np.linalg.norm(v[:, EDGES[:, 1]] - v[:, EDGES[:, 0]], axis=2).max(axis=1)
+    tets = tets[np.abs(volume) > 1e-3 * longest**3]
+    volume = tetrahedron_volumes(points, tets)
+    tets[volume < 0] = tets[volume < 0][:, [0, 2, 1, 3]]
+    used, inverse = np.unique(tets, return_inverse=True)
+    return points[used], inverse.reshape(-1, 4)

@@ -157,6 +157,14 @@ def cmd_fem(args: argparse.Namespace) -> None:
 
     problem = _load(args.spec)
     result = solve_fem(problem)
+    if result.element == "tet10":
+        mesh = problem.spec.reference.mesh
+        size = f" ({len(mesh.tetrahedra)} tetrahedra)" if mesh is not None else ""
+        print(
+            f"{problem.spec.name}: the reference solved on reference.mesh{size} with 10-node "
+            f"tetrahedra, read at the {problem.n_nodes} lattice nodes (what the fit compares)",
+            file=sys.stderr,
+        )
     try:
         _warn(check_reference(problem, result.displacements))
     except UnitsError as e:
@@ -238,6 +246,7 @@ def cmd_spec_from_mesh(args: argparse.Namespace) -> None:
         voxelise=args.voxelise,
         name=args.name,
         dt=dt,
+        voxel_reference=args.voxel_reference,
     )
     for note in notes:
         print(f"note: {note}", file=sys.stderr)
@@ -464,7 +473,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="a spec JSON from a mesh file (Gmsh .msh, VTK .vtu/.vtk, Abaqus .inp, STL, ...)",
         description="Hexahedral meshes are used as they are; tetrahedral meshes and closed "
         "triangle surfaces are voxelised at --spacing (a cell is solid when its centre lies "
-        "inside). Lengths in m (see --scale), forces in N, E in Pa.",
+        "inside). A tetrahedral mesh is also kept in the spec (reference.mesh): the FEM "
+        "reference is solved on it with 10-node tetrahedra and read at the lattice nodes "
+        "(--voxel-reference: on the voxels instead). Lengths in m (see --scale), forces in N, "
+        "E in Pa.",
     )
     p.add_argument("spec", metavar="MESH", help="mesh file")
     p.add_argument("--spacing", type=float, default=None, help="lattice spacing h, m")
@@ -482,6 +494,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--connectivity", choices=["axis", "axis+face", "full"], default="full")
     p.add_argument("--scale", type=float, default=1.0, help="coordinate factor (0.001: mm)")
     p.add_argument("--voxelise", action="store_true", help="voxelise a hexahedral mesh too")
+    p.add_argument(
+        "--voxel-reference", action="store_true",
+        help="tetrahedral meshes: solve the FEM reference on the voxel lattice (hexahedra) "
+        "instead of on the tetrahedra, and leave the mesh out of the spec",
+    )  # fmt: skip
     p.add_argument("--name", default=None, help="the spec's name (default: the file name)")
     p.add_argument(
         "--dt", default="auto",

@@ -11,11 +11,14 @@ import math
 from typing import Any
 
 import numpy as np
+from redis import Redis
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from fpm import Problem, ProblemSpec, load_problem
 from fpm.model.spec import BoxGeometry, MeshGeometry, NetworkGeometry, VoxelGeometry
 from fpm.model.support import unheld_reason
+from fpm.model.tetrahedra import check_tetrahedra
+from store import records
 from store.text import refusal
 
 from .errors import MEDIA_TYPE, ProblemError
@@ -25,17 +28,20 @@ from .settings import Settings
 class BodySizeLimit:
     """Answer 413 to a request whose body exceeds ``max_bytes`` (declared or streamed)."""
 
-    def __init__(self, app: ASGIApp, max_bytes: int):
+    def __init__(self, app: ASGIApp, max_bytes: int, per_path: dict[str, int] | None = None):
+        """``per_path``: other limits for requests to exactly these paths (the mesh upload)."""
         self.app = app
         self.max_bytes = max_bytes
+        self.per_path = per_path or {}
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        limit = self.per_path.get(scope.get("path", ""), self.max_bytes)
         declared = dict(scope["headers"]).get(b"content-length")
-        if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
-            await self._reject(send)
+        if declared is not None and declared.isdigit() and int(declared) > limit:
+            await self._reject(send, limit)
             return
         received = 0
         too_large = False
@@ -44,7 +50,7 @@ class BodySizeLimit:
             nonlocal received, too_large
             message = await receive()
             received += len(message.get("body", b""))
-            if received > self.max_bytes:
+            if received > limit:
                 too_large = True
                 raise _TooLarge
             return message
@@ -59,15 +65,15 @@ class BodySizeLimit:
         except _TooLarge:
             pass
         if too_large:
-            await self._reject(send)
+            await self._reject(send, limit)
 
-    async def _reject(self, send: Send) -> None:
+    async def _reject(self, send: Send, limit: int) -> None:
         body = json.dumps(
             {
                 "type": "about:blank",
                 "title": "Request body too large",
                 "status": 413,
-                "detail": f"the request body exceeds the limit of {self.max_bytes} bytes",
+                "detail": f"the request body exceeds the limit of {limit} bytes",
             }
         ).encode()
         headers = [(b"content-type", MEDIA_TYPE.encode()), (b"content-length", b"%d" % len(body))]
@@ -171,6 +177,43 @@ def check_calibration_spec(spec: ProblemSpec, settings: Settings) -> Problem:
     if reason:  # refused now rather than failed in a worker
         raise _rejected("fixed", reason)
     return problem
+
+
+def check_reference_mesh(spec: ProblemSpec, redis: Redis) -> None:
+    """A spec naming ``reference.mesh_id`` must name a mesh uploaded with ``POST /v1/meshes``.
+
+    Raises:
+        ProblemError: 422 at ``reference.mesh_id`` when no such mesh is stored.
+    """
+    mesh_id = spec.reference.mesh_id
+    if mesh_id is not None and not records.has_mesh(redis, mesh_id):
+        raise _rejected(
+            "reference.mesh_id",
+            f"no uploaded mesh {mesh_id}: upload it first (POST /v1/meshes returns its id)",
+        )
+
+
+def mesh_refusals(nodes: Any, tetrahedra: Any, settings: Settings) -> list[dict[str, str]]:
+    """[{field, message}] for an uploaded mesh over the limits or not usable as a reference
+    (:func:`fpm.model.tetrahedra.check_tetrahedra`: the element named); empty when fine."""
+    if len(tetrahedra) > settings.max_mesh_tetrahedra:
+        return [
+            {
+                "field": "tetrahedra",
+                "message": f"{len(tetrahedra)} tetrahedra is over the limit of "
+                f"{settings.max_mesh_tetrahedra}",
+            }
+        ]
+    found = check_tetrahedra(np.asarray(nodes, dtype=float), np.asarray(tetrahedra, dtype=np.int64))
+    return [
+        {"field": field if index is None else f"{field}.{index}", "message": message}
+        for field, index, message in found
+    ]
+
+
+def mesh_rejection(refusals: list[dict[str, str]]) -> ProblemError:
+    """The 422 of :func:`mesh_refusals`."""
+    return _invalid(refusals)
 
 
 def dump_spec(spec: ProblemSpec) -> dict[str, Any]:

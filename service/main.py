@@ -11,7 +11,7 @@ from fastapi import Depends, FastAPI
 from . import docs, errors, metrics, openapi, web
 from .deps import redis_client, require_api_key
 from .limits import BodySizeLimit
-from .routers import calibrations, exports, fem_references, health, parameter_sets
+from .routers import calibrations, exports, fem_references, health, meshes, parameter_sets
 from .settings import Settings, get_settings
 
 
@@ -35,13 +35,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.dependency_overrides[get_settings] = lambda: settings
     protected = [Depends(require_api_key)]
     documented = errors.problem_responses(401, 500, 503)  # the rest route by route
-    for module in (calibrations, fem_references, parameter_sets, exports, health):
+    for module in (calibrations, fem_references, meshes, parameter_sets, exports, health):
         app.include_router(module.router, dependencies=protected, responses=documented)
     web.install(app, documented)  # the web view at /, its assets, the profile plot's JSON
     errors.install(app)
     openapi.install(app)
     docs.install(app)
-    app.add_middleware(BodySizeLimit, max_bytes=config.max_body_bytes)
+    app.add_middleware(
+        BodySizeLimit,
+        max_bytes=config.max_body_bytes,
+        per_path={meshes.router.prefix: config.max_mesh_bytes},
+    )
     metrics.install(app, lambda: redis_client(config.redis_url, config.redis_timeout))
     return app
 

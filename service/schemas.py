@@ -191,6 +191,11 @@ class FemReference(BaseModel):
     n_nodes: int | None = None
     load_cases: list[str] | None = None
     model: str | None = Field(None, description="material model: linear or neo-hookean")
+    element: str | None = Field(
+        None,
+        description="hex8 (the lattice's hexahedra) or tet10 (reference.mesh or mesh_id in "
+        "10-node tetrahedra, read at the lattice nodes)",
+    )
     residuals: list[float] | None = Field(
         None, description="(L,) final relative residual of each load case's solve"
     )

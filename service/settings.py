@@ -52,6 +52,12 @@ class Settings(BaseSettings):
     quota_retry_after: int = Field(60, ge=1, description="Retry-After of a 429 over a quota, s")
     max_chains: int = Field(16, ge=1, description="most annealing chains per calibration")
     max_body_bytes: int = Field(2_000_000, ge=1024, description="largest request body, bytes")
+    max_mesh_bytes: int = Field(
+        32_000_000, ge=1024, description="largest body of a mesh upload (POST /v1/meshes), bytes"
+    )
+    max_mesh_tetrahedra: int = Field(
+        200_000, ge=1, description="most tetrahedra of an uploaded mesh"
+    )
     page_size_limit: int = Field(200, ge=1, description="most items per page of a listing")
     fem_timeout: int = Field(JobOptions.fem_timeout, ge=1, description="wall time of a FEM job, s")
     chain_timeout: int = Field(

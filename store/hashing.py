@@ -36,8 +36,8 @@ def fem_spec(spec: dict[str, Any]) -> dict[str, Any]:
     """The part of ``spec`` the FEM reference depends on (itself a loadable spec): geometry,
     material, fixed nodes, load cases and validation cases (when there are any, so a spec
     without them keeps its identity), the reference's ``integration`` (and its supplied
-    ``displacements``, if any), and ``fpm.gravity`` when it is set (the FEM then carries the
-    solid's weight)."""
+    ``displacements``, or its tetrahedral ``mesh`` or ``mesh_id``, if any), and ``fpm.gravity``
+    when it is set (the FEM then carries the solid's weight)."""
     out = {name: spec[name] for name in FEM_FIELDS}
     if spec.get("validation_cases"):  # solved with the load cases, after them
         out["validation_cases"] = spec["validation_cases"]
@@ -45,6 +45,9 @@ def fem_spec(spec: dict[str, Any]) -> dict[str, Any]:
     out["reference"] = {"integration": reference.get("integration", "selective")}
     if reference.get("displacements") is not None:  # a supplied reference: its own identity
         out["reference"]["displacements"] = reference["displacements"]
+    for name in ("mesh", "mesh_id"):  # the tetrahedral reference's mesh (the id is its sha256)
+        if reference.get(name) is not None:
+            out["reference"][name] = reference[name]
     gravity = (spec.get("fpm") or {}).get("gravity")
     if gravity is not None and any(gravity):
         out["fpm"] = {"gravity": list(gravity)}
@@ -68,3 +71,17 @@ def export_hash(parameter_set_id: str, fmt: str) -> str:
     neither ever rewritten. The export version covers the code that writes the formats."""
     identity = {"export": EXPORT_VERSION, "format": fmt, "parameter_set": parameter_set_id}
     return hashlib.sha256(canonical(identity)).hexdigest()
+
+
+def canonical_mesh(nodes: Any, tetrahedra: Any) -> dict[str, Any]:
+    """A tetrahedral mesh in one spelling: nodes as lists of floats (m), tetrahedra as lists of
+    ints, so that ``0`` and ``0.0`` name the same mesh."""
+    return {
+        "nodes": [[float(x) for x in node] for node in nodes],
+        "tetrahedra": [[int(i) for i in tet] for tet in tetrahedra],
+    }
+
+
+def mesh_hash(mesh: dict[str, Any]) -> str:
+    """sha256 of the canonical JSON of :func:`canonical_mesh`: an uploaded mesh's id."""
+    return hashlib.sha256(canonical(mesh)).hexdigest()

@@ -40,6 +40,9 @@ CALIBRATION_ID = re.compile(r"[0-9a-f]{16}")
 FEM_ID = re.compile(r"[0-9a-f]{64}")
 """Every FEM reference id: the sha256 hex digest of :func:`store.hashing.fem_hash`."""
 
+MESH_ID = re.compile(r"[0-9a-f]{64}")
+"""Every uploaded mesh id: the sha256 hex digest of :func:`store.hashing.mesh_hash`."""
+
 PARAMETER_SET_ID = re.compile(r"ps-[0-9a-f]{16}")
 """Every parameter set id (:func:`parameter_set_id`)."""
 
@@ -97,6 +100,12 @@ def damping_result(calibration_id: str) -> str:
 def fem_reference(fem_hash: str) -> str:
     """String: JSON FemResult (nodes, displacements per load case); no expiry."""
     return f"{PREFIX}:fem:{fem_hash}"
+
+
+def mesh(mesh_id: str) -> str:
+    """String: JSON tetrahedral mesh ``{"nodes", "tetrahedra"}`` uploaded for FEM references
+    (``POST /v1/meshes``), content-addressed; no expiry."""
+    return f"{PREFIX}:mesh:{mesh_id}"
 
 
 def fem_meta(fem_hash: str) -> str:

@@ -274,6 +274,23 @@ def get_fem_reference(redis: Redis, fem_hash: str) -> dict[str, Any] | None:
     return json.loads(raw) if raw else None
 
 
+def save_mesh(redis: Redis, mesh_id: str, mesh: dict[str, Any]) -> bool:
+    """Store an uploaded tetrahedral mesh (canonical, :func:`store.hashing.canonical_mesh`)
+    under its content hash, no expiry; True when it was new (a second upload is a no-op)."""
+    return bool(redis.set(keys.mesh(mesh_id), json.dumps(mesh), nx=True))
+
+
+def has_mesh(redis: Redis, mesh_id: str) -> bool:
+    return bool(redis.exists(keys.mesh(mesh_id)))
+
+
+def get_mesh(redis: Redis, mesh_id: str) -> dict[str, Any] | None:
+    """The uploaded mesh ``{"nodes": [[x, y, z], ...], "tetrahedra": [[i, j, k, l], ...]}``,
+    or None."""
+    raw = redis.get(keys.mesh(mesh_id))
+    return json.loads(raw) if raw else None
+
+
 class GeometrySummary(BaseModel):
     """The solid a parameter set was fitted on."""
 

@@ -30,6 +30,7 @@ OPERATIONS = {
     ),
     ("post", "/v1/fem-references"): ("submit_fem_reference", {400, 401, 413, 422, 500, 503}),
     ("get", "/v1/fem-references/{fem_id}"): ("get_fem_reference", {401, 404, 422, 500, 503}),
+    ("post", "/v1/meshes"): ("upload_mesh", {400, 401, 413, 422, 500, 503}),
     ("get", "/v1/parameter-sets"): ("list_parameter_sets", {401, 422, 500, 503}),
     ("get", "/v1/parameter-sets/{parameter_set_id}"): (
         "get_parameter_set",

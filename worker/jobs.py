@@ -66,7 +66,12 @@ def fem_reference(fem_hash: str) -> dict[str, Any]:
     meta = records.get_fem_meta(redis, fem_hash)
     records.update_fem_meta(redis, fem_hash, {"status": FemStatus.RUNNING, "started": time.time()})
     try:
-        result = solve_fem(load_problem(json.loads(meta["spec"])))
+        spec = json.loads(meta["spec"])
+        mesh_id = (spec.get("reference") or {}).get("mesh_id")
+        mesh = records.get_mesh(redis, mesh_id) if mesh_id else None
+        if mesh_id and mesh is None:
+            raise FemError(f"reference.mesh_id: no uploaded mesh {mesh_id}")
+        result = solve_fem(load_problem(spec), mesh=mesh)
     except FemError as e:
         # The problem cannot be solved (e.g. the solid is not held): a retry would fail the
         # same way, so the reference fails now and the chains waiting on it say why.
@@ -79,6 +84,7 @@ def fem_reference(fem_hash: str) -> dict[str, Any]:
         "n_nodes": len(result.nodes),
         "load_cases": result.load_cases,  # lists and dicts are stored as JSON
         "model": result.model,
+        "element": result.element,
         "solver": {
             "residuals": [float(r) for r in result.residuals],
             "load_steps": list(result.load_steps),

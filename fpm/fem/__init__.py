@@ -4,5 +4,5 @@ under dead loads solved by Newton's method.
 
 Modules: reference (solve_fem, FemResult: the entry point for both models), elasticity,
 assembly, linear_solver (shared with the FPM's static equilibrium), hyperelastic,
-neo_hookean.
+neo_hookean, tet10 (10-node tetrahedra on the spec's reference.mesh, read at the lattice nodes).
 """

@@ -53,6 +53,9 @@ class FemResult:
             displacements the spec brought (:func:`supplied_reference`).
         load_steps: (L,) load steps taken per load case (neo-Hookean; empty for linear).
         newton_iterations: (L, steps) Newton iterations of each load step (neo-Hookean).
+        element: the FEM's element: ``"hex8"`` (the lattice's hexahedra) or ``"tet10"`` (the
+            spec's ``reference.mesh`` in 10-node tetrahedra, read at the lattice nodes:
+            :mod:`fpm.fem.tet10`).
     """
 
     nodes: np.ndarray
@@ -63,6 +66,7 @@ class FemResult:
     model: str = "linear"
     load_steps: list[int] = field(default_factory=list)
     newton_iterations: list[list[int]] = field(default_factory=list)
+    element: str = "hex8"
 
     @property
     def positions(self) -> np.ndarray:
@@ -80,6 +84,7 @@ class FemResult:
             "model": self.model,
             "load_steps": list(self.load_steps),
             "newton_iterations": [list(steps) for steps in self.newton_iterations],
+            "element": self.element,
         }
 
     @classmethod
@@ -96,15 +101,19 @@ class FemResult:
             data.get("model", "linear"),
             [int(n) for n in data.get("load_steps", [])],
             [[int(n) for n in steps] for steps in data.get("newton_iterations", [])],
+            data.get("element", "hex8"),
         )
 
 
 def reference_label(spec: Any) -> str:
     """Which reference a calibration of ``spec`` (a :class:`fpm.model.spec.ProblemSpec`) is fitted
     to: ``"supplied"`` (``reference.displacements``), ``"fem-neo-hookean"``, or
-    ``"fem-linear-selective"`` / ``"fem-linear-full"`` (the integration)."""
+    ``"fem-linear-selective"`` / ``"fem-linear-full"`` (the integration), or
+    ``"fem-linear-tet10"`` (``reference.mesh`` or ``reference.mesh_id``: 10-node tetrahedra)."""
     if spec.reference.displacements is not None:
         return "supplied"
+    if spec.reference.mesh is not None or spec.reference.mesh_id is not None:
+        return "fem-linear-tet10"
     if spec.material.model == "neo-hookean":
         return "fem-neo-hookean"
     return f"fem-linear-{spec.reference.integration}"
@@ -123,21 +132,41 @@ def supplied_reference(problem: Problem) -> FemResult | None:
     return FemResult(problem.nodes.copy(), u, [0.0] * len(names), names, "supplied", "supplied")
 
 
-def reference_for(problem: Problem, method: str = "auto", *, load_steps: int = 1) -> FemResult:
+def reference_for(
+    problem: Problem,
+    method: str = "auto",
+    *,
+    load_steps: int = 1,
+    mesh: dict[str, Any] | None = None,
+) -> FemResult:
     """The reference ``problem`` is calibrated against: the supplied displacements when the
-    spec has them (no FEM is solved), else :func:`solve_fem`."""
+    spec has them (no FEM is solved), else :func:`solve_fem` (``mesh`` as there)."""
     supplied = supplied_reference(problem)
-    return supplied if supplied is not None else solve_fem(problem, method, load_steps=load_steps)
+    if supplied is not None:
+        return supplied
+    return solve_fem(problem, method, load_steps=load_steps, mesh=mesh)
 
 
-def solve_fem(problem: Problem, method: str = "auto", *, load_steps: int = 1) -> FemResult:
+def solve_fem(
+    problem: Problem,
+    method: str = "auto",
+    *,
+    load_steps: int = 1,
+    mesh: dict[str, Any] | None = None,
+) -> FemResult:
     """Nodal displacements of ``problem`` for every load case, by the spec's material model.
+
+    With ``reference.mesh`` (or ``reference.mesh_id`` and ``mesh``) the reference is solved with
+    10-node tetrahedra on that mesh and read at the lattice nodes (:mod:`fpm.fem.tet10`); the
+    result has the same shape, on the lattice, with ``element`` ``"tet10"``.
 
     Args:
         problem: from :func:`fpm.load_problem`; needs a box, voxels or mesh geometry.
         method: ``"auto"`` (by size), ``"direct"`` or ``"amg"`` (see :mod:`fpm.fem.linear_solver`).
         load_steps: neo-Hookean only: planned load steps per load case (halved where Newton
             fails, :mod:`fpm.fem.hyperelastic`).
+        mesh: the mesh ``reference.mesh_id`` names, ``{"nodes": (N, 3), "tetrahedra": (T, 4)}``
+            (m, 0-based), as the service stored it; ignored when the spec has none.
 
     Raises:
         FemError: a network geometry, an inverted or degenerate hexahedron, a solid that is
@@ -147,6 +176,23 @@ def solve_fem(problem: Problem, method: str = "auto", *, load_steps: int = 1) ->
     """
     if method not in ("auto", "direct", "amg"):
         raise ValueError(f"unknown method {method!r} (use 'auto', 'direct' or 'amg')")
+    settings = problem.spec.reference
+    if settings.mesh is not None or settings.mesh_id is not None:
+        from .tet10 import tet10_reference
+
+        if settings.mesh is not None:
+            mesh = {"nodes": settings.mesh.nodes, "tetrahedra": settings.mesh.tetrahedra}
+        elif mesh is None:
+            raise FemError(
+                f"reference.mesh_id {settings.mesh_id} names an uploaded mesh, which was not "
+                "given: submit the spec to the service, or put the mesh in reference.mesh"
+            )
+        return tet10_reference(
+            problem,
+            np.asarray(mesh["nodes"], dtype=float),
+            np.asarray(mesh["tetrahedra"], dtype=np.int64),
+            method,
+        )
     hexahedra = problem.solid.elements()
     if hexahedra is None:
         raise FemError(

@@ -35,7 +35,8 @@ class CalibrationResult(BaseModel):
     reference: str = Field(
         "fem",
         description="what the fit was measured against: 'fem-linear-selective', "
-        "'fem-linear-full', 'fem-neo-hookean' or 'supplied' (the spec's reference.displacements); "
+        "'fem-linear-full', 'fem-linear-tet10' (10-node tetrahedra on reference.mesh), "
+        "'fem-neo-hookean' or 'supplied' (the spec's reference.displacements); "
         "'fem' in results stored before the field existed",
     )
     k: float = Field(description="stiffness of the axis family (the one k for 'single'), N/m")

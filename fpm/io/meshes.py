@@ -83,6 +83,10 @@ class MeshGeometry:
     geometry: dict[str, Any]
     kind: str
     notes: list[str] = field(default_factory=list)
+    tetrahedra: dict[str, Any] | None = None
+    """For tetrahedra: the mesh as the spec's ``reference.mesh`` carries it,
+    ``{"nodes": [[x, y, z], ...], "tetrahedra": [[i, j, k, l], ...]}`` (m, after ``scale``;
+    0-based; only the nodes the tetrahedra use; every tetrahedron of positive volume)."""
 
 
 def mesh_suffix(path: str | Path) -> str | None:
@@ -222,7 +226,25 @@ def geometry_from_mesh(
         "origin": origin.tolist(),
         "connectivity": connectivity,
     }
-    return MeshGeometry(geometry, kind, notes)
+    reference = _reference_mesh(points, tets) if kind == "tetrahedra" else None
+    return MeshGeometry(geometry, kind, notes, reference)
+
+
+def _reference_mesh(points: np.ndarray, tets: np.ndarray) -> dict[str, Any]:
+    """``reference.mesh`` of the tetrahedra: used nodes only, inside-out tetrahedra renumbered,
+    flat ones (no volume: e.g. from a split wedge) dropped."""
+    from ..model.tetrahedra import DEGENERATE, EDGES, tetrahedron_volumes
+
+    used, inverse = np.unique(tets, return_inverse=True)
+    tets, nodes = inverse.reshape(-1, 4), points[used]
+    volume = tetrahedron_volumes(nodes, tets)
+    v = nodes[tets]
+    longest = np.linalg.norm(v[:, EDGES[:, 1]] - v[:, EDGES[:, 0]], axis=2).max(axis=1)
+    tets = tets[np.abs(volume) > DEGENERATE * longest**3]
+    volume = tetrahedron_volumes(nodes, tets)
+    tets[volume < 0] = tets[volume < 0][:, [0, 2, 1, 3]]
+    used, inverse = np.unique(tets, return_inverse=True)
+    return {"nodes": nodes[used].tolist(), "tetrahedra": inverse.reshape(-1, 4).tolist()}
 
 
 def _hexahedral(
@@ -575,6 +597,7 @@ def spec_from_mesh(
     voxelise: bool = False,
     name: str | None = None,
     dt: float | str = "auto",
+    voxel_reference: bool = False,
 ) -> tuple[dict[str, Any], list[str]]:
     """A problem spec for a mesh file (or a ``meshio.Mesh``), and notes for the user.
 
@@ -588,6 +611,10 @@ def spec_from_mesh(
         name: the spec's name (default: the file's name).
         dt: the FPM time step, s, or ``"auto"`` (resolved by the fit: half the lattice's
             stability estimate at the fitted stiffness, at most 1 ms).
+        voxel_reference: for a tetrahedral mesh, solve the FEM reference on the voxel lattice's
+            hexahedra (the staircase) instead of on the tetrahedra; by default the spec keeps
+            the tetrahedra in ``reference.mesh`` and the reference is solved on them with
+            10-node tetrahedra (:mod:`fpm.fem.tet10`).
 
     Raises:
         MeshError: the mesh cannot become a solid. ValueError: a bad selector or force.
@@ -616,8 +643,17 @@ def spec_from_mesh(
         "fixed": [parse_selector(s) for s in fix],
         "load_cases": [{"name": text.strip(), "forces": parse_force(text)} for text in forces],
     }
+    if made.tetrahedra is not None and not voxel_reference:
+        spec["reference"] = {"mesh": made.tetrahedra}
     problem = load_problem(spec)  # selectors checked against the nodes
     notes = made.notes + [f"{problem.n_nodes} nodes, h = {problem.h:.4g} m"] + problem.notes
+    if made.tetrahedra is not None:
+        notes.append(
+            "FEM reference: the voxel lattice's hexahedra (--voxel-reference)"
+            if voxel_reference
+            else f"FEM reference: the {len(made.tetrahedra['tetrahedra'])} tetrahedra "
+            "themselves (10-node, reference.mesh), read at the lattice nodes"
+        )
     if dt == "auto":
         spec["fpm"] = {"dt": "auto"}
         notes.append(

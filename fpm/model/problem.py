@@ -167,6 +167,13 @@ def build_problem(spec: ProblemSpec) -> Problem:
     )
 
 
+def select_nodes(problem: Problem, selector: Selector) -> np.ndarray:
+    """(K,) indices of the lattice nodes ``selector`` names in ``problem`` (as :func:`load_problem`
+    resolved it; the spec was checked, so it names at least one)."""
+    errors: list[tuple[Loc, str]] = []
+    return _NodeFinder(problem.nodes, tol=1e-3 * problem.h).select(selector, (), errors)
+
+
 def _load_cases(
     cases: list[Any],
     field: str,
@@ -318,6 +325,16 @@ def _check_indices(spec: ProblemSpec) -> None:
             errors.append(
                 (("geometry", "masses"), f"need {n} masses (one per node), got {len(g.masses)}")
             )
+    mesh = spec.reference.mesh
+    if mesh is not None:
+        from .tetrahedra import check_tetrahedra
+
+        errors.extend(
+            (("reference", "mesh", field) + (() if index is None else (index,)), msg)
+            for field, index, msg in check_tetrahedra(
+                np.asarray(mesh.nodes, dtype=float), np.asarray(mesh.tetrahedra, dtype=np.int64)
+            )
+        )
     if errors:
         raise SpecError(errors[:20])
 

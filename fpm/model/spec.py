@@ -19,7 +19,7 @@ MODEL_VERSION = "2026.12.05"
 """Version of the numerics behind a result; bump it whenever a change alters fitted values.
 It is part of a calibration's identity, so a resubmitted spec is not answered from results
 that older numerics computed."""
-FEM_VERSION = "2026.12.05"
+FEM_VERSION = "2026.12.06"
 """Version of the FEM reference's numerics; bump it whenever a change alters FEM displacements.
 It is part of a stored reference's identity (references are kept without expiry), so new
 calibrations are never served a reference that older FEM numerics computed."""
@@ -400,6 +400,27 @@ def lundy_mees_moves(t_initial: float, t_final: float, beta: float) -> int:
 Integration = Literal["selective", "full"]
 
 
+NodeIndex = Annotated[int, Field(ge=0, lt=2**31)]
+"""A node index of a tetrahedral mesh (its range is checked against the nodes later)."""
+
+
+class ReferenceMesh(_Strict):
+    """A tetrahedral mesh of the solid for the FEM reference (10-node tetrahedra built on it:
+    :mod:`fpm.fem.tet10`). Nodes in m, tetrahedra as 4 node indices (0-based) with positive
+    volume (corner 3 on the positive side of face 0-1-2). Indices in range, distinct corners,
+    and no inverted or degenerate tetrahedron are checked in :func:`fpm.model.problem.load_problem`
+    (errors at ``reference.mesh.tetrahedra.<element>``)."""
+
+    nodes: list[Vector3] = Field(min_length=4, description="node coordinates, m")
+    tetrahedra: list[tuple[NodeIndex, NodeIndex, NodeIndex, NodeIndex]] = Field(
+        min_length=1, description="4 node indices (0-based) per tetrahedron, positive volume"
+    )
+
+
+MESH_ID_PATTERN = r"^[0-9a-f]{64}$"
+"""A mesh id: the sha256 hex digest the service's ``POST /v1/meshes`` returned."""
+
+
 class ReferenceSettings(_Strict):
     """The FEM reference's discretisation (docs/physics.md, *The FEM reference*).
 
@@ -416,6 +437,10 @@ class ReferenceSettings(_Strict):
 
     The neo-Hookean reference always uses 2x2x2 points (its locking is measured in
     docs/physics.md).
+
+    ``mesh`` / ``mesh_id``: the solid's own tetrahedral mesh (inline, or the id of one uploaded
+    to the service): the linear reference is then solved on it with 10-node tetrahedra and read
+    at the lattice's nodes (:mod:`fpm.fem.tet10`); ``integration`` does not apply.
 
     ``displacements``: a reference brought by the user (their own nonlinear FEM, measured
     displacements), one list per load case (spec order) of one ``[ux, uy, uz]`` per lattice
@@ -435,6 +460,29 @@ class ReferenceSettings(_Strict):
         description="a supplied reference instead of the FEM: per load case, per lattice node, "
         "[ux, uy, uz], m (finite); null = solve the FEM",
     )
+    mesh: ReferenceMesh | None = Field(
+        None,
+        description="the solid's tetrahedral mesh: the linear FEM is solved on it with 10-node "
+        "tetrahedra and read at the lattice nodes (loads and fixed nodes mapped by position); "
+        "null = the lattice's hexahedra",
+        exclude_if=lambda v: v is None,
+    )
+    mesh_id: str | None = Field(
+        None,
+        pattern=MESH_ID_PATTERN,
+        description="service only: the id of a mesh uploaded with POST /v1/meshes, used as "
+        "'mesh' is",
+        exclude_if=lambda v: v is None,
+    )
+
+    @model_validator(mode="after")
+    def _one_reference(self) -> ReferenceSettings:
+        given = [
+            name for name in ("displacements", "mesh", "mesh_id") if getattr(self, name) is not None
+        ]
+        if len(given) > 1:
+            raise ValueError(f"give at most one of displacements, mesh, mesh_id (got {given})")
+        return self
 
 
 class ProblemSpec(_Strict):

@@ -14,7 +14,12 @@ from store.status import CalibrationStatus, FemStatus, Phase
 from ..deps import CalibrationId, OwnerDep, RedisDep, SettingsDep
 from ..errors import ProblemError, problem_responses
 from ..examples import openapi_examples
-from ..limits import check_calibration_spec, dump_spec, supplied_reference
+from ..limits import (
+    check_calibration_spec,
+    check_reference_mesh,
+    dump_spec,
+    supplied_reference,
+)
 from ..schemas import (
     Calibration,
     CalibrationPage,
@@ -64,6 +69,7 @@ def submit(
     nodes) is refused with 429 and Retry-After; other keys are not affected.
     """
     problem = check_calibration_spec(spec, settings)
+    check_reference_mesh(spec, redis)
     dumped = dump_spec(spec)
     if graph.answered_by(redis, dumped) is None:
         _check_quota(redis, settings, owner, problem.n_nodes)

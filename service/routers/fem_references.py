@@ -15,7 +15,12 @@ from store.status import FemStatus
 from ..deps import FemId, RedisDep, SettingsDep
 from ..errors import ProblemError, problem_responses
 from ..examples import openapi_examples
-from ..limits import check_calibration_spec, dump_spec, supplied_reference
+from ..limits import (
+    check_calibration_spec,
+    check_reference_mesh,
+    dump_spec,
+    supplied_reference,
+)
 from ..schemas import FemReference
 
 router = APIRouter(prefix="/v1/fem-references", tags=["fem-references"])
@@ -42,6 +47,7 @@ def submit(
     stored or being computed. Its id is the content hash, so it can be shared.
     """
     problem = check_calibration_spec(spec, settings)
+    check_reference_mesh(spec, redis)
     dumped = dump_spec(spec)
     digest = fem_hash(dumped)
     meta = records.get_fem_meta(redis, digest)
@@ -72,6 +78,7 @@ def read(
         n_nodes=int(meta["n_nodes"]) if meta.get("n_nodes") else None,
         load_cases=json.loads(meta["load_cases"]) if meta.get("load_cases") else None,
         model=meta.get("model") or None,
+        element=meta.get("element") or None,
         **(json.loads(meta["solver"]) if meta.get("solver") else {}),
         error=meta.get("error") or None,
     )
