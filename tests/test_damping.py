@@ -5,6 +5,7 @@ equilibrium, early stopping, and the fastest d against a grid of d."""
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from fpm.fitting.damping import (
     CHUNK,
     PREDICT_AFTER,
     _Runs,
+    _search,
     critical_damping,
     fastest_damping,
     predicted_steps,
@@ -104,15 +106,34 @@ def test_linear_response_is_the_small_load_limit(bar: fpm.Problem):
 def test_a_d_that_cannot_win_stops_at_the_budget(bar: fpm.Problem):
     runs = _Runs(bar, spring_stiffness(bar, K), None, 1e-3)
     try:
-        full = runs(0.4, [2000, 2000])
-        assert all(r.settled for r in (run.result() for run in full))
+        full, verdict = runs(0.4, [2000, 2000])
+        assert verdict.outcome == "done" and all(r.result().settled for r in full)
         total = sum(r.steps for r in full)
-        stopped = runs(0.4, [2000, 2000], budget=total // 2)
+        stopped, verdict = runs(0.4, [2000, 2000], budget=total // 2)
         taken = sum(r.steps for r in stopped)
-        assert taken < total // 2 + 2 * CHUNK  # at the budget, or earlier by the prediction
+        assert verdict.outcome == "lost" and verdict.total >= total // 2
+        assert taken < total // 2 + 2 * CHUNK  # at the first milestone past the budget
         assert not all(r.finished for r in stopped)
     finally:
         runs.close()
+
+
+def test_a_search_repeats_exactly_whatever_the_threads_do(bar: fpm.Problem):
+    """Every decision is taken at milestones from each case's own state, so one thread or
+    two give the same d, steps, d_min and tried list."""
+    stiffness = spring_stiffness(bar, K)
+    fits = []
+    for threads in (1, 2):
+        runs = _Runs(bar, stiffness, None, 1e-3)
+        runs.pool.shutdown()
+        runs.threads = threads
+        runs.pool = ThreadPoolExecutor(threads)
+        try:
+            fits.append(_search(runs, (0.01, 8.0), (3.0, 6.0), None))
+        finally:
+            runs.close()
+    one, two = fits
+    assert (one.d, one.steps, one.d_min, one.tried) == (two.d, two.steps, two.d_min, two.tried)
 
 
 @pytest.mark.parametrize("guesses", [(0.1, 0.2), (1.5, 1.5), (0.02, 0.02)])
@@ -136,12 +157,12 @@ def test_the_decay_predicts_the_settle_steps(bar: fpm.Problem, d):
     try:
         run = runs.model.start(0, k=runs.stiffness, d=d, depth=None, dt=runs.dt,
                                settle_tolerance=bar.spec.fpm.settle_tolerance)  # fmt: skip
-        runs._piece(run, PREDICT_AFTER)
+        taken = runs._piece(run, PREDICT_AFTER)
         assert not run.finished, "the case must still run when the prediction is made"
         predicted = predicted_steps(run)
-        runs._piece(run, 20 * PREDICT_AFTER)
+        taken += runs._piece(run, 20 * PREDICT_AFTER)
         assert run.state == SETTLED
         assert predicted == pytest.approx(run.steps, rel=0.15)
-        assert runs.work == run.steps
+        assert taken == run.steps
     finally:
         runs.close()

@@ -150,22 +150,26 @@ class _Runs:
         self.count = 0
         self.work = 0
 
-    def _piece(self, run: DynamicRun, steps: int) -> None:
-        """Advance ``run`` by ``steps``, in samples of SAMPLE steps (its residual history)."""
+    def _piece(self, run: DynamicRun, steps: int) -> int:
+        """Advance ``run`` by ``steps``, in samples of SAMPLE steps (its residual history);
+        returns the steps taken."""
         start = run.steps
         while run.steps - start < steps and not run.advance(min(SAMPLE, steps - run.steps + start)):
             pass
-        self.work += run.steps - start
+        return run.steps - start
 
     def __call__(
         self, d: float, caps: list[int], budget: int | None = None, *, estimate: bool = False
-    ) -> list[DynamicRun]:
-        """Every load case at d, case j for at most ``caps[j]`` steps; all are stopped once
-        their steps add up to ``budget`` (None: no such limit) while one still runs, or once
-        one has diverged or reached its cap unsettled (the d has failed either way), or once
-        the decay of the runs predicts (:func:`predicted_steps`) more than PRUNE times the
-        budget or a cap. ``estimate``: also stop once every running case is predicted to
-        settle within its cap (:func:`settles_within`)."""
+    ) -> tuple[list[DynamicRun], Verdict]:
+        """Every load case at d, case j for at most ``caps[j]`` steps, until every case has
+        settled, one has diverged or reached its cap unsettled, or a :class:`Verdict` of
+        :func:`verdict_at` ends it: at each milestone (every CHUNK steps) that every case has
+        passed, the d is ``lost`` once the steps taken up to there add up to ``budget`` (None:
+        no such limit), or once the predictions there exceed PRUNE times the budget or a cap;
+        with ``estimate`` it ``settles`` once every case is predicted within its cap.
+
+        Decisions are taken only from each case's own state at the milestone, so they do not
+        depend on how the threads happened to interleave: a search repeats exactly."""
         s = self.problem.spec.fpm
         runs = [
             self.model.start(
@@ -180,79 +184,101 @@ class _Runs:
         ]
         self.count += self.cases
         # Each free thread takes a piece of the case that has taken the fewest steps (so 3
-        # cases keep 2 threads busy), until every case is done or the d has lost.
-        running: dict[Future[bool], DynamicRun] = {}
+        # cases keep 2 threads busy), until every case is done or a milestone decides.
+        running: dict[Future[int], DynamicRun] = {}
+        milestone = CHUNK
+        verdict = Verdict("running")
         while True:
-            spent = budget is not None and sum(r.steps for r in runs) >= budget
-            spent = spent or any(
-                r.diverged or (not r.finished and r.steps >= c)
-                for r, c in zip(runs, caps, strict=True)
-            )
-            spent = spent or _predicted_to_lose(runs, caps, budget)
-            spent = spent or (estimate and settles_within(runs, caps, predicted=True))
+            stopped = [r.finished or r.steps >= c for r, c in zip(runs, caps, strict=True)]
+            while verdict.outcome == "running":
+                if all(stopped) and all(r.steps < milestone for r in runs):
+                    break  # every case ended before this milestone
+                if not all(e or r.steps >= milestone for e, r in zip(stopped, runs, strict=True)):
+                    break  # a case has not reached it yet
+                verdict = verdict_at(runs, caps, milestone, budget, estimate=estimate)
+                milestone += CHUNK
             waiting = [
-                (r, c) for r, c in zip(runs, caps, strict=True)
-                if not r.finished and r.steps < c and r not in running.values()
+                (r, c) for r, c, e in zip(runs, caps, stopped, strict=True)
+                if not e and r not in running.values()
             ]  # fmt: skip
-            while waiting and not spent and len(running) < self.threads:
+            while waiting and verdict.outcome == "running" and len(running) < self.threads:
                 r, c = min(waiting, key=lambda rc: rc[0].steps)
                 waiting.remove((r, c))
                 running[self.pool.submit(self._piece, r, min(CHUNK, c - r.steps))] = r
             if not running:
-                return runs
+                if verdict.outcome == "running":
+                    verdict = Verdict("done")
+                return runs, verdict
             done, _ = wait(running, return_when=FIRST_COMPLETED)
             for future in done:
-                future.result()
+                self.work += future.result()
                 del running[future]
 
     def close(self) -> None:
         self.pool.shutdown()
 
 
-def predicted_steps(run: DynamicRun) -> float:
+@dataclass
+class Verdict:
+    """How a d's runs ended: ``done`` (every case settled, diverged or reached its cap),
+    ``failed`` (a case diverged or reached its cap unsettled), ``lost`` (it cannot win;
+    ``total``: the steps it would take at least, from its steps and predictions at the
+    deciding milestone) or ``settles`` (every case predicted within its cap)."""
+
+    outcome: str
+    total: float = 0.0
+
+
+def predicted_steps(run: DynamicRun, at: int | None = None) -> float:
     """The steps ``run`` will have taken when it settles, predicted from the decay of its
-    residual: the envelope (largest sample) over the last CHUNK steps against that over the
-    CHUNK steps before, extrapolated exponentially down to the settle force. Its steps so far
-    before PREDICT_AFTER (no prediction yet); inf when the envelope does not decay."""
-    if run.finished:
+    residual up to step ``at`` (None: its steps so far): the envelope (largest sample) over the
+    last CHUNK steps against that over the CHUNK steps before, extrapolated exponentially down
+    to the settle force. Its steps if it finished by then; ``at`` before PREDICT_AFTER, or
+    when the run never settles (settle force 0), no prediction: ``at`` itself; inf when the
+    envelope does not decay."""
+    at = run.steps if at is None else at
+    if run.finished and run.steps <= at:
         return float(run.steps) if not run.diverged else math.inf
-    if run.steps < PREDICT_AFTER:
-        return float(run.steps)
-    s = run.steps
-    last = [r for n, r in run.history if s - CHUNK < n <= s]
-    before = [r for n, r in run.history if s - 2 * CHUNK < n <= s - CHUNK]
+    if at < PREDICT_AFTER or run.settle_force <= 0:
+        return float(at)
+    last = [r for n, r in run.history if at - CHUNK < n <= at]
+    before = [r for n, r in run.history if at - 2 * CHUNK < n <= at - CHUNK]
     if not last or not before:
-        return float(s)
+        return float(at)
     e1, e2 = max(before), max(last)
     if not (0 < e2 < e1):
         return math.inf
     rate = math.log(e1 / e2) / CHUNK
-    return s + max(math.log(e2 / run.settle_force), 0.0) / rate
+    return at + max(math.log(e2 / run.settle_force), 0.0) / rate
 
 
-def settles_within(runs: list[DynamicRun], caps: list[int], *, predicted: bool) -> bool:
-    """Every case settled within its cap, or (``predicted``) is past PREDICT_AFTER steps and
-    predicted to settle within it."""
-    return all(
-        r.state == SETTLED
-        and r.steps <= c
-        or predicted
-        and not r.finished
-        and r.steps >= PREDICT_AFTER
-        and predicted_steps(r) <= c
+def verdict_at(
+    runs: list[DynamicRun], caps: list[int], at: int, budget: int | None, *, estimate: bool
+) -> Verdict:
+    """The d's verdict at milestone ``at`` (every case ended or past it): ``failed`` if a case
+    diverged or reached its cap unsettled by ``at``; ``lost`` if the steps taken up to ``at``
+    add up to ``budget``, or (past PREDICT_AFTER) a case is predicted past PRUNE times its cap
+    or the predicted total past PRUNE times ``budget``; ``settles`` (with ``estimate``) if
+    every case settled within its cap or is predicted within it; else ``running``."""
+    if any(
+        (r.diverged and r.steps <= at) or (not r.finished and c <= at and r.steps >= c)
         for r, c in zip(runs, caps, strict=True)
-    )
-
-
-def _predicted_to_lose(runs: list[DynamicRun], caps: list[int], budget: int | None) -> bool:
-    """Once every running case is past PREDICT_AFTER: some case is predicted past PRUNE times
-    its cap, or the predicted total past PRUNE times ``budget``."""
-    if any(not r.finished and r.steps < PREDICT_AFTER for r in runs):
-        return False
-    predicted = [predicted_steps(r) for r in runs]
+    ):
+        return Verdict("failed")
+    taken = sum(min(r.steps, at) for r in runs)
+    if budget is not None and taken >= budget:
+        return Verdict("lost", float(taken))
+    if at < PREDICT_AFTER:
+        return Verdict("running")
+    predicted = [predicted_steps(r, at) for r in runs]
+    total = float(sum(predicted))
     if any(p > PRUNE * c for p, c in zip(predicted, caps, strict=True)):
-        return True
-    return budget is not None and sum(predicted) > PRUNE * budget
+        return Verdict("lost", total)
+    if budget is not None and total > PRUNE * budget:
+        return Verdict("lost", total)
+    if estimate and all(p <= c for p, c in zip(predicted, caps, strict=True)):
+        return Verdict("settles", total)
+    return Verdict("running")
 
 
 def fastest_damping(
@@ -308,17 +334,12 @@ def _search(
         if y not in steps and y not in slower:
             # A d whose steps already add up to the best total cannot win: stop it there.
             budget = _total(steps[best[0]]) if best else None
-            results = runs(math.exp(y), [max_steps] * runs.cases, budget)
-            taken = sum(r.steps for r in results)
-            stopped = not all(r.finished for r in results) and not any(
-                r.diverged or r.steps >= max_steps for r in results
-            )  # by the budget or by its prediction: it cannot win
-            if budget is not None and stopped:
-                predicted = sum(predicted_steps(r) for r in results)
-                slower[y] = int(min(max(taken, budget, predicted), 1 << 62))
-            elif all(r.state == SETTLED for r in results):
+            results, verdict = runs(math.exp(y), [max_steps] * runs.cases, budget)
+            if verdict.outcome == "lost" and budget is not None:  # it cannot win
+                slower[y] = int(min(max(budget, verdict.total), 1 << 62))
+            elif verdict.outcome == "done" and all(r.state == SETTLED for r in results):
                 steps[y] = [r.steps for r in results]
-                if budget is None or taken < budget:  # (a piece may overshoot the budget)
+                if budget is None or sum(steps[y]) < budget:
                     best[:] = [y, np.stack([r.result().displacements for r in results])]
             else:
                 steps[y] = None
@@ -433,7 +454,11 @@ def _smallest_settling(
     def settles(y: float) -> bool:
         if steps.get(y) is not None:
             return all(s <= c for s, c in zip(steps[y] or [], caps, strict=True))
-        return settles_within(runs(math.exp(y), caps, estimate=True), caps, predicted=True)
+        results, verdict = runs(math.exp(y), caps, estimate=True)
+        return verdict.outcome == "settles" or (
+            verdict.outcome == "done"
+            and all(r.state == SETTLED and r.steps <= c for r, c in zip(results, caps, strict=True))
+        )
 
     y_ok = min(y for y, s in steps.items() if s is not None and settles(y))
     while y_ok > lo:
@@ -459,7 +484,7 @@ def _what_would_work(runs: _Runs, d: float, max_steps: int) -> str:
     cap = min(1_000_000, PROBE_STEPS * max_steps)
     probe = _Runs(p, runs.stiffness, runs.depth, dt)
     try:
-        results = probe(d, [cap] * probe.cases)
+        results, _ = probe(d, [cap] * probe.cases)
     finally:
         probe.close()
     steps = [r.steps for r in results]
