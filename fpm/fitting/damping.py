@@ -338,8 +338,9 @@ def _search(
             if verdict.outcome == "lost" and budget is not None:  # it cannot win
                 slower[y] = int(min(max(budget, verdict.total), 1 << 62))
             elif verdict.outcome == "done" and all(r.state == SETTLED for r in results):
-                steps[y] = [r.steps for r in results]
-                if budget is None or sum(steps[y]) < budget:
+                settled = [r.steps for r in results]
+                steps[y] = settled
+                if budget is None or sum(settled) < budget:
                     best[:] = [y, np.stack([r.result().displacements for r in results])]
             else:
                 steps[y] = None
