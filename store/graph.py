@@ -326,17 +326,22 @@ def _common(options: JobOptions) -> dict[str, Any]:
     }
 
 
+def _fetch(redis: Redis, job_id: str) -> tuple[Job | None, JobStatus | None]:
+    """The job of ``job_id`` and its status, or (None, None) when RQ has no such job."""
+    try:
+        job = Job.fetch(job_id, connection=redis, serializer=JSONSerializer)
+    except NoSuchJobError:
+        return None, None
+    return job, job.get_status()
+
+
 def request_profile(redis: Redis, calibration_id: str, timeout: int) -> bool:
     """Enqueue the profile job of a succeeded calibration unless it is pending; False when its
     last run failed (the failure is stored: :func:`store.scratch.get_profile`, and RQ keeps the
     failed job for :data:`store.scratch.PROFILE_FAILED_TTL` seconds, so it is not re-run at
     every poll)."""
     job_id = keys.profile_job_id(calibration_id)
-    try:
-        job: Job | None = Job.fetch(job_id, connection=redis, serializer=JSONSerializer)
-    except NoSuchJobError:
-        job = None
-    job_status = job.get_status() if job is not None else None
+    job, job_status = _fetch(redis, job_id)
     if job_status == JobStatus.FAILED:
         return False
     if job_status not in PENDING:
@@ -402,11 +407,7 @@ def request_export(
         data, left = failure
         return ExportState(error=data["error"], invalid=bool(data["invalid"]), retry_after=left)
     job_id = keys.export_job_id(digest)
-    try:
-        job: Job | None = Job.fetch(job_id, connection=redis, serializer=JSONSerializer)
-    except NoSuchJobError:
-        job = None
-    job_status = job.get_status() if job is not None else None
+    job, job_status = _fetch(redis, job_id)
     if job_status in PENDING:
         return ExportState(retry_after=EXPORT_POLL)
     if job is not None and job_status == JobStatus.FAILED:
