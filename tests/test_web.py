@@ -258,6 +258,29 @@ def test_browser_shows_parameter_sets(finished):
     assert ps["provenance"]["calibration_id"] in row
 
 
+def test_the_parameter_set_page_downloads_its_exports(finished):
+    """The export buttons wait out the worker's 202s and save the file the service sends."""
+    ps = finished["parameter_set"]
+    with httpx.Client(base_url=finished["url"], timeout=10) as http:
+        expected = {}
+        for fmt in ("json", "sofa"):
+            answer = wait_for(
+                f"{fmt} export",
+                lambda fmt=fmt: http.get(f"/v1/parameter-sets/{ps['id']}/export?format={fmt}"),
+                lambda r: r.status_code == 200,
+                timeout=60,
+            )
+            expected[fmt] = len(answer.content)
+    with browser.Browser() as page:
+        page.open(f"{finished['url']}/#/parameter-sets/{ps['id']}")
+        page.wait_for("document.querySelector('#exports button[data-format=json]')")
+        for fmt, suffix in (("json", "json"), ("sofa", "scn")):
+            page.js(f"document.querySelector('#exports button[data-format={fmt}]').click()")
+            page.wait_for(f"document.getElementById('export-status').dataset.done === '{fmt}'")
+            text = page.js("document.getElementById('export-status').textContent")
+            assert text == f"{ps['id']}.{suffix}: {expected[fmt]} bytes"
+
+
 # --- The cancel button with API keys set --------------------------------------------------------
 
 KEY = "web-view-key-7d1c"

@@ -653,7 +653,54 @@
         el("dl", { class: "facts" }, facts.map(([k, v]) => [el("dt", null, k), el("dd", null, v)])),
         el("p", null, "From calibration ", el("a", { href: `#/calibrations/${enc(prov.calibration_id)}` }, prov.calibration_id),
           ` (${prov.method}, seed ${prov.seed}, ${prov.chains} chains, ${prov.evaluations} evaluations)`),
-        ps.warnings && ps.warnings.length ? el("ul", { class: "warnings" }, ps.warnings.map((w) => el("li", null, w))) : null));
+        ps.warnings && ps.warnings.length ? el("ul", { class: "warnings" }, ps.warnings.map((w) => el("li", null, w))) : null,
+        exportButtons(ps.id)));
+  }
+
+  // A worker makes an export: the first requests answer 202 with Retry-After, then 200 with the
+  // file, which is saved under the name the service gives (Content-Disposition).
+  const EXPORTS = [["json", "JSON (any engine)"], ["vtu", "VTU (ParaView)"], ["sofa", "SOFA scene"]];
+
+  function exportButtons(id) {
+    const status = el("span", { class: "muted", id: "export-status" });
+    return el("p", { id: "exports" }, "Export: ",
+      EXPORTS.map(([fmt, label]) => el("button", {
+        type: "button", "data-format": fmt, onclick: () => download(id, fmt, status),
+      }, label)), " ", status);
+  }
+
+  async function download(id, fmt, status) {
+    const started = Date.now();
+    try {
+      for (;;) {
+        const headers = {};
+        if (apiKey) headers["X-API-Key"] = apiKey;
+        const response = await fetch(`v1/parameter-sets/${enc(id)}/export?format=${fmt}`, { headers });
+        if (response.status === 202) {
+          const wait = Number(response.headers.get("Retry-After") || "1");
+          status.textContent = `preparing ${fmt}: a worker makes it (${Math.round((Date.now() - started) / 1000)} s)`;
+          await new Promise((resolve) => setTimeout(resolve, 1000 * Math.max(wait, 1)));
+          continue;
+        }
+        if (!response.ok) {
+          let body = null;
+          try { body = await response.json(); } catch (e) { body = null; }
+          throw new ApiError(response.status, body);
+        }
+        const blob = await response.blob();
+        const name = (/filename="([^"]+)"/.exec(response.headers.get("Content-Disposition") || "") || [])[1]
+          || `${id}.${fmt}`;
+        const link = el("a", { href: URL.createObjectURL(blob), download: name });
+        document.body.append(link);
+        link.click();
+        link.remove();
+        status.textContent = `${name}: ${blob.size} bytes`;
+        status.dataset.done = fmt;
+        return;
+      }
+    } catch (error) {
+      status.textContent = error instanceof ApiError ? error.message : `cannot reach the service (${error.message || error})`;
+    }
   }
 
   // ---- Charts (inline SVG) -------------------------------------------------------------------
