@@ -883,6 +883,7 @@ def calibrate(
     else:
         with ThreadPoolExecutor(workers) as pool:
             results = list(pool.map(one, range(n)))
+    problem.cache.pop("reduced_units", None)  # stage 1's shared matrices (fpm.fitting.reduced)
     damping = None
     if problem.spec.annealing.method == "two-stage":
         damping = fit_damping(problem, reference, results, progress=progress)
