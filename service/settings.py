@@ -34,7 +34,7 @@ class Settings(BaseSettings):
         100_000,
         ge=8,
         description="largest solid, in nodes (a 93,705-node organ was measured to calibrate "
-        "within the job timeouts in about 6 GB; docs/service.md)",
+        "within the job timeouts in under 5 GB; docs/service.md)",
     )
     max_load_cases: int = Field(20, ge=1)
     max_active_per_key: int = Field(
