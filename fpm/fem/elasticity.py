@@ -28,14 +28,16 @@ def constitutive_matrix(youngs_modulus: float, poisson_ratio: float) -> np.ndarr
 
 
 def strain_displacement(gradients: np.ndarray) -> np.ndarray:
-    """(H, 6, 24) B with epsilon = B u, from physical gradients dN_i/dx_b (H, 8, 3), 1/m."""
-    b = np.zeros((len(gradients), 6, 8, 3))
+    """(H, 6, 3n) B with epsilon = B u (Voigt xx, yy, zz, xy, yz, zx, engineering shear), from
+    physical gradients dN_i/dx_b (H, n, 3), 1/m, for any element of n nodes (node-major u)."""
+    h, n = gradients.shape[:2]
+    b = np.zeros((h, 6, n, 3))
     for a in range(3):
         b[:, a, :, a] = gradients[:, :, a]  # normal strains
     for row, (a, c) in enumerate(SHEAR_PAIRS, start=3):  # gamma_ac = du_a/dx_c + du_c/dx_a
         b[:, row, :, a] = gradients[:, :, c]
         b[:, row, :, c] = gradients[:, :, a]
-    return b.reshape(-1, 6, 24)
+    return b.reshape(h, 6, 3 * n)
 
 
 def physical_gradients(coords: np.ndarray, point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -25,7 +25,7 @@ import scipy.sparse as sp
 
 from ..model.hexahedron import NATURAL, shape_function_gradients, shape_functions
 from .assembly import identical_elements
-from .elasticity import SHEAR_PAIRS
+from .elasticity import strain_displacement
 from .linear_solver import factorize, rigid_body_modes
 
 LOCAL = np.array(list(product((-1, 0, 1), repeat=3)), dtype=float)[:, ::-1]
@@ -114,13 +114,7 @@ def element_stiffness_27(coords8: np.ndarray, c: np.ndarray) -> np.ndarray:
         jac = np.einsum("na,hnb->hab", corner_grad, coords8)  # dx_b / dxi_a
         grad = np.einsum("na,hba->hnb", local_grad, np.linalg.inv(jac))  # (H, 27, 3)
         det = np.linalg.det(jac)
-        blocks = np.zeros((len(coords8), 6, 27, 3))
-        for a in range(3):
-            blocks[:, a, :, a] = grad[:, :, a]
-        for row, (a, d) in enumerate(SHEAR_PAIRS, start=3):
-            blocks[:, row, :, a] = grad[:, :, d]
-            blocks[:, row, :, d] = grad[:, :, a]
-        b = blocks.reshape(-1, 6, 81)
+        b = strain_displacement(grad)  # (H, 6, 81)
         ke += np.einsum("hpa,pq,hqb->hab", b, c, b, optimize=True) * (weight * det)[:, None, None]
     return ke
 

@@ -46,7 +46,7 @@ from ..model.tetrahedra import (
     validate_tetrahedra,
 )
 from .assembly import keep_nodes, unique_inverse
-from .elasticity import SHEAR_PAIRS, constitutive_matrix
+from .elasticity import constitutive_matrix, strain_displacement
 from .linear_solver import (
     NegativeCurvature,
     _compiled_sweep,
@@ -132,18 +132,6 @@ def shape_gradients(lam: np.ndarray, grads: np.ndarray) -> np.ndarray:
     i, j = EDGES[:, 0], EDGES[:, 1]
     edge = 4 * (lam[i][None, :, None] * grads[:, j] + lam[j][None, :, None] * grads[:, i])
     return np.concatenate([corner, edge], axis=1)
-
-
-def strain_displacement(gradients: np.ndarray) -> np.ndarray:
-    """(T, 6, 30) B, epsilon = B u (Voigt xx, yy, zz, xy, yz, zx, engineering shear), from
-    dN_a/dx_b (T, 10, 3), 1/m."""
-    b = np.zeros((len(gradients), 6, 10, 3))
-    for a in range(3):
-        b[:, a, :, a] = gradients[:, :, a]
-    for row, (a, c) in enumerate(SHEAR_PAIRS, start=3):
-        b[:, row, :, a] = gradients[:, :, c]
-        b[:, row, :, c] = gradients[:, :, a]
-    return b.reshape(-1, 6, 30)
 
 
 def element_stiffness(coords: np.ndarray, c: np.ndarray) -> np.ndarray:
