@@ -66,7 +66,7 @@ def test_the_supplied_field_is_the_reference_and_names_it():
     assert reference_label(fpm.load_problem(small(integration="full")).spec) == "fem-linear-full"
     nh = small()
     nh["material"]["model"] = "neo-hookean"
-    assert reference_label(fpm.load_problem(nh).spec) == "fem-neo-hookean"
+    assert reference_label(fpm.load_problem(nh).spec) == "fem-neo-hookean-selective"
     # a supplied reference is its own stored reference
     dumps = [
         fpm.load_problem(s).spec.model_dump(mode="json")

@@ -46,14 +46,7 @@ from .linear_solver import (
     factorize,
     rigid_body_modes,
 )
-from .neo_hookean import (
-    ReferenceGradients,
-    element_tangents,
-    first_piola,
-    internal_forces,
-    kinematics,
-    reference_gradients,
-)
+from .neo_hookean import NeoHookeanLaw, ReferenceGradients, kinematics, reference_gradients
 from .reference import FemError
 
 NEWTON_TOLERANCE = 1e-10
@@ -125,7 +118,7 @@ class NeoHookeanSolid:
     Args:
         nodes: (N, 3) rest positions, m.
         hexahedra: (H, 8) node indices, :mod:`fpm.model.hexahedron` order, det J > 0.
-        mu, lam: Lame constants, Pa.
+        law: the material and its integration (:func:`fpm.fem.neo_hookean.neo_hookean_law`).
         free: (N, 3) or (3N,) bool, the unknowns that may move (the others stay at zero).
         method: ``"direct"`` (sparse LU) or ``"amg"`` (multigrid-preconditioned CG).
     """
@@ -134,15 +127,14 @@ class NeoHookeanSolid:
         self,
         nodes: np.ndarray,
         hexahedra: np.ndarray,
-        mu: float,
-        lam: float,
+        law: NeoHookeanLaw,
         free: np.ndarray,
         method: str,
     ):
         if method not in ("direct", "amg"):
             raise ValueError(f"unknown method {method!r} (use 'direct' or 'amg')")
         self.nodes = nodes
-        self.mu, self.lam = mu, lam
+        self.law = law
         self.free = np.asarray(free, dtype=bool).reshape(-1)
         self.method = method
         self.size = float(np.linalg.norm(np.ptp(nodes, axis=0)))
@@ -188,7 +180,7 @@ class NeoHookeanSolid:
         """dR/du over the free unknowns at nodal displacements ``u`` (N, 3), N/m."""
         data = np.zeros((len(self._indices), 9))
         for _, ref, summing in self._runs:
-            blocks = element_tangents(ref, kinematics(ref, u), self.mu, self.lam)
+            blocks = self.law.tangents(ref, kinematics(ref, u))
             data += summing @ blocks.reshape(-1, 9)
         k = sp.bsr_matrix(
             (data.reshape(-1, 3, 3), self._indices, self._indptr), shape=(self._size,) * 2
@@ -212,7 +204,7 @@ class NeoHookeanSolid:
             worst = int(np.argmin(smallest))
             if not smallest[worst] > 0:
                 return np.empty(0), (start + worst, float(smallest[worst]))
-            forces = forces + internal_forces(ref, first_piola(kin, self.mu, self.lam), len(u))
+            forces = forces + self.law.forces(ref, kin, len(u))
         return forces.reshape(-1)[self.free], None
 
     # --- linear solves ----------------------------------------------------------------------
@@ -374,8 +366,7 @@ def load_path(
 def solve_hyperelastic(
     nodes: np.ndarray,
     hexahedra: np.ndarray,
-    mu: float,
-    lam: float,
+    law: NeoHookeanLaw,
     forces: np.ndarray,
     free: np.ndarray,
     method: str,
@@ -387,7 +378,7 @@ def solve_hyperelastic(
     Args:
         nodes: (N, 3) rest positions, m.
         hexahedra: (H, 8) node indices, :mod:`fpm.model.hexahedron` order, det J > 0.
-        mu, lam: Lame constants, Pa (:func:`fpm.fem.neo_hookean.lame_constants`).
+        law: the material and its integration (:func:`fpm.fem.neo_hookean.neo_hookean_law`).
         forces: (L, N, 3) nodal dead loads, N.
         free: (N, 3) or (3N,) bool, unknowns that may move (the rest stay at zero).
         method: ``"direct"`` or ``"amg"`` for the Newton steps' linear solves.
@@ -400,7 +391,7 @@ def solve_hyperelastic(
     Raises:
         NewtonError: a load case whose equilibrium was not found (names it and the load step).
     """
-    solid = NeoHookeanSolid(nodes, hexahedra, mu, lam, free, method)
+    solid = NeoHookeanSolid(nodes, hexahedra, law, free, method)
     names = names or [str(j) for j in range(len(forces))]
     out, paths = np.zeros_like(forces, dtype=float), []
     for j, f in enumerate(forces):

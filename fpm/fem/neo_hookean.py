@@ -1,6 +1,7 @@
-"""Compressible neo-Hookean hexahedra, total Lagrangian: stress, nodal forces and tangent.
+"""Neo-Hookean hexahedra, total Lagrangian: energy, nodal forces and tangent, two integrations.
 
-Strain energy per unit reference volume, Pa (J/m^3)::
+``"full"`` (:class:`CompressibleNeoHookean`): strain energy per unit reference volume, Pa
+(J/m^3), at the 2x2x2 Gauss points::
 
     W(F) = mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2,    I1 = tr(F^T F),  J = det F
 
@@ -11,12 +12,23 @@ of that stress (the material tangent), Pa::
     P = mu (F - F^-T) + lambda ln J F^-T
     dP_iJ/dF_kL = mu d_ik d_JL + (mu - lambda ln J) Finv_Li Finv_Jk + lambda Finv_Ji Finv_Lk
 
-At F = I the tangent is the isotropic elasticity tensor of
-:func:`fpm.fem.elasticity.constitutive_matrix`, so small loads reproduce the linear FEM. The
-elements are the linear FEM's: 8-node trilinear hexahedra (:mod:`fpm.model.hexahedron` order), 2x2x2
-Gauss points, quantities of the reference (undeformed) configuration fixed once
-(:func:`reference_gradients`). Everything is vectorised over elements and Gauss points: H
-hexahedra, G = 8 Gauss points, 8 local nodes a, b; indices i, k spatial, J, L material axes.
+``"selective"`` (:class:`MeanDilatationNeoHookean`, the default): the decoupled neo-Hookean
+solid with its volume change taken on the element's mean dilatation (Simo, Taylor and Pister
+1985), the large-deformation form of the linear FEM's B-bar: per hexahedron::
+
+    E_e = sum_g w_g mu/2 (J_g^(-2/3) I1_g - 3) + V0_e K/2 (ln Jbar_e)^2,    Jbar_e = V_e / V0_e
+
+``K = lambda + 2 mu / 3`` the bulk modulus, ``V_e = sum_g w_g J_g`` the deformed volume (exact:
+2x2x2 points integrate the trilinear element's det F), ``V0_e`` the rest volume. The
+isochoric part cannot lock; the volume is held once per element, not at every Gauss point.
+
+At F = I both tangents are the linear elements' (``"full"``: the isotropic C of
+:func:`fpm.fem.elasticity.constitutive_matrix` at 2x2x2 points; ``"selective"``: B-bar), so
+small loads reproduce the linear FEM of the same integration. The elements are the linear
+FEM's: 8-node trilinear hexahedra (:mod:`fpm.model.hexahedron` order), 2x2x2 Gauss points,
+quantities of the reference (undeformed) configuration fixed once (:func:`reference_gradients`).
+Everything is vectorised over elements and Gauss points: H hexahedra, G = 8 Gauss points, 8
+local nodes a, b; indices i, k spatial, J, L material axes.
 """
 
 from __future__ import annotations
@@ -143,9 +155,7 @@ def internal_forces(ref: ReferenceGradients, stress: np.ndarray, n_nodes: int) -
     """(N, 3) nodal internal forces f_ai = sum_g w P_iJ dN_a/dX_J, N, of P (H, G, 3, 3), Pa."""
     per_point = np.matmul(ref.gradients, np.swapaxes(stress, -1, -2))  # (H, G, 8, 3)
     per_element = np.einsum("hg,hgai->hai", ref.weights, per_point)
-    index = ref.hexahedra.ravel()
-    flat = per_element.reshape(-1, 3)
-    return np.stack([np.bincount(index, flat[:, i], n_nodes) for i in range(3)], axis=1)
+    return _scatter(per_element, ref.hexahedra, n_nodes)
 
 
 def element_tangents(ref: ReferenceGradients, kin: Kinematics, mu: float, lam: float) -> np.ndarray:
@@ -174,3 +184,145 @@ def element_tangents(ref: ReferenceGradients, kin: Kinematics, mu: float, lam: f
     k = k.transpose(0, 1, 3, 2, 4)  # (H, a, b, i, k)
     k[..., [0, 1, 2], [0, 1, 2]] += mu * ref.laplacian[..., None]
     return k
+
+
+def _blocks(h: int, direct: np.ndarray, crossed: np.ndarray, diagonal: np.ndarray) -> np.ndarray:
+    """(H, 8, 8, 3, 3) K[h, a, b, i, k] of three (H, ...) parts: ``direct`` (H, 24, 24) indexed
+    [(a, i), (b, k)], ``crossed`` (H, 24, 24) indexed [(a, k), (b, i)], and ``diagonal``
+    (H, 8, 8) times d_ik."""
+    k = direct.reshape(h, 8, 3, 8, 3) + crossed.reshape(h, 8, 3, 8, 3).swapaxes(2, 4)
+    k = k.transpose(0, 1, 3, 2, 4)  # (H, a, b, i, k)
+    k[..., [0, 1, 2], [0, 1, 2]] += diagonal[..., None]
+    return k
+
+
+def _outer(x: np.ndarray, y: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(H, 24, 24) sum over Gauss points of c x_(a,i) y_(b,k), of x, y (H, G, 8, 3), c (H, G)."""
+    h = len(c)
+    return np.matmul(
+        np.swapaxes((x * c[..., None, None]).reshape(h, 8, 24), 1, 2), y.reshape(h, 8, 24)
+    )
+
+
+def _scatter(per_element: np.ndarray, hexahedra: np.ndarray, n_nodes: int) -> np.ndarray:
+    """(N, 3) sums of per-element nodal vectors (H, 8, 3) at their nodes."""
+    index = hexahedra.ravel()
+    flat = per_element.reshape(-1, 3)
+    return np.stack([np.bincount(index, flat[:, i], n_nodes) for i in range(3)], axis=1)
+
+
+def spatial_gradients(ref: ReferenceGradients, kin: Kinematics) -> np.ndarray:
+    """(H, G, 8, 3) g_a = F^-T dN_a/dX, 1/m."""
+    return np.einsum("hgji,hgaj->hgai", kin.inverse, ref.gradients, optimize=True)
+
+
+@dataclass(frozen=True)
+class CompressibleNeoHookean:
+    """``"full"`` integration: W at every Gauss point (module docstring). mu, lam: Pa."""
+
+    mu: float
+    lam: float
+
+    def energy(self, ref: ReferenceGradients, kin: Kinematics) -> np.ndarray:
+        """(H,) strain energy of each hexahedron, J."""
+        return np.einsum("hg,hg->h", ref.weights, strain_energy(kin, self.mu, self.lam))
+
+    def forces(self, ref: ReferenceGradients, kin: Kinematics, n_nodes: int) -> np.ndarray:
+        """(N, 3) internal nodal forces dE/du, N."""
+        return internal_forces(ref, first_piola(kin, self.mu, self.lam), n_nodes)
+
+    def tangents(self, ref: ReferenceGradients, kin: Kinematics) -> np.ndarray:
+        """(H, 8, 8, 3, 3) element blocks d f_ai / d u_bk, N/m."""
+        return element_tangents(ref, kin, self.mu, self.lam)
+
+
+@dataclass(frozen=True)
+class MeanDilatationNeoHookean:
+    """``"selective"`` integration: isochoric energy at the Gauss points, volume energy on each
+    element's mean dilatation (module docstring). mu, bulk (K): Pa."""
+
+    mu: float
+    bulk: float
+
+    def _isochoric(self, kin: Kinematics) -> tuple[np.ndarray, np.ndarray]:
+        """(H, G) J^(-2/3) and I1 - 3, from H without cancellation."""
+        h = kin.displacement_gradient
+        i1_minus_3 = 2 * np.einsum("...ii->...", h) + np.einsum("...ij,...ij->...", h, h)
+        return np.exp(-2 / 3 * kin.log_j), i1_minus_3
+
+    def _dilatation(self, ref: ReferenceGradients, kin: Kinematics) -> tuple[np.ndarray, ...]:
+        """(H,) rest volume V0, m^3, and ln Jbar of each hexahedron."""
+        v0 = ref.weights.sum(axis=1)
+        with np.errstate(invalid="ignore"):
+            log_jbar = np.log1p(np.einsum("hg,hg->h", ref.weights, np.expm1(kin.log_j)) / v0)
+        return v0, log_jbar
+
+    def energy(self, ref: ReferenceGradients, kin: Kinematics) -> np.ndarray:
+        """(H,) strain energy of each hexahedron, J: mu/2 (J^(-2/3) I1 - 3) at the Gauss points,
+        with J^(-2/3) I1 - 3 = J^(-2/3) (I1 - 3) + 3 (J^(-2/3) - 1), plus V0 K/2 (ln Jbar)^2."""
+        a, i1_minus_3 = self._isochoric(kin)
+        w_iso = self.mu / 2 * (a * i1_minus_3 + 3 * np.expm1(-2 / 3 * kin.log_j))
+        v0, log_jbar = self._dilatation(ref, kin)
+        return np.einsum("hg,hg->h", ref.weights, w_iso) + v0 * self.bulk / 2 * log_jbar**2
+
+    def forces(self, ref: ReferenceGradients, kin: Kinematics, n_nodes: int) -> np.ndarray:
+        """(N, 3) internal nodal forces dE/du, N: the isochoric stress
+        ``P = mu J^(-2/3) (F - I1/3 F^-T)`` at the Gauss points, and ``K ln Jbar / Jbar dV/du``
+        with ``dV/du_a = sum_g w J g_a``."""
+        a, i1_minus_3 = self._isochoric(kin)
+        inverse_t = np.swapaxes(kin.inverse, -1, -2)
+        h = kin.displacement_gradient
+        f_minus_inverse_t = h + np.swapaxes(kin.inverse @ h, -1, -2)  # F - F^-T
+        stress = (self.mu * a)[..., None, None] * (
+            f_minus_inverse_t - (i1_minus_3 / 3)[..., None, None] * inverse_t
+        )
+        v0, log_jbar = self._dilatation(ref, kin)
+        g = spatial_gradients(ref, kin)
+        dv = np.einsum("hg,hgai->hai", ref.weights * kin.det, g)
+        pressure = self.bulk * log_jbar / np.exp(log_jbar)  # K ln Jbar / Jbar, Pa
+        return internal_forces(ref, stress, n_nodes) + _scatter(
+            pressure[:, None, None] * dv, ref.hexahedra, n_nodes
+        )
+
+    def tangents(self, ref: ReferenceGradients, kin: Kinematics) -> np.ndarray:
+        """(H, 8, 8, 3, 3) element blocks d f_ai / d u_bk, N/m.
+
+        Isochoric, per Gauss point, with c = w mu J^(-2/3), q_a = F dN_a/dX, g_a = F^-T dN_a/dX::
+
+            c [ d_ik dN_a.dN_b - 2/3 (q_ai g_bk + g_ai q_bk) + 2/9 I1 g_ai g_bk + I1/3 g_ak g_bi ]
+
+        Volumetric, per element: ``K (1 - ln Jbar) / (Jbar^2 V0) dV_ai dV_bk`` plus
+        ``K ln Jbar / Jbar sum_g w J (g_ai g_bk - g_ak g_bi)``.
+        """
+        n = len(ref.weights)
+        a, i1_minus_3 = self._isochoric(kin)
+        c = self.mu * a * ref.weights
+        g = spatial_gradients(ref, kin)
+        q = ref.gradients + np.einsum("hgij,hgaj->hgai", kin.displacement_gradient, ref.gradients)
+        mixed = _outer(q, g, c)
+        both = _outer(g, g, c * (3 + i1_minus_3))
+        laplacian = np.einsum("hg,hgaj,hgbj->hab", c, ref.gradients, ref.gradients)
+        v0, log_jbar = self._dilatation(ref, kin)
+        jbar = np.exp(log_jbar)
+        dv = np.einsum("hg,hgai->hai", ref.weights * kin.det, g).reshape(n, 24)
+        curvature = self.bulk * (1 - log_jbar) / (jbar**2 * v0)
+        volume = curvature[:, None, None] * dv[:, :, None] * dv[:, None, :]
+        jacobian = _outer(g, g, ref.weights * kin.det)
+        pressure = (self.bulk * log_jbar / jbar)[:, None, None]
+        direct = -2 / 3 * (mixed + np.swapaxes(mixed, 1, 2)) + 2 / 9 * both + volume
+        direct += pressure * jacobian
+        crossed = both / 3 - pressure * jacobian
+        return _blocks(n, direct, crossed, laplacian)
+
+
+NeoHookeanLaw = CompressibleNeoHookean | MeanDilatationNeoHookean
+
+
+def neo_hookean_law(mu: float, lam: float, integration: str) -> NeoHookeanLaw:
+    """The neo-Hookean solid of Lame constants ``mu``, ``lam`` (Pa) integrated as
+    ``integration`` says: ``"selective"`` (mean dilatation) or ``"full"`` (2x2x2)."""
+    if integration == "selective":
+        return MeanDilatationNeoHookean(mu, lam + 2 * mu / 3)
+    if integration == "full":
+        return CompressibleNeoHookean(mu, lam)
+    raise ValueError(f"unknown integration {integration!r} (use 'selective' or 'full')")

@@ -107,15 +107,16 @@ class FemResult:
 
 def reference_label(spec: Any) -> str:
     """Which reference a calibration of ``spec`` (a :class:`fpm.model.spec.ProblemSpec`) is fitted
-    to: ``"supplied"`` (``reference.displacements``), ``"fem-neo-hookean"``, or
-    ``"fem-linear-selective"`` / ``"fem-linear-full"`` (the integration), or
+    to: ``"supplied"`` (``reference.displacements``), ``"fem-neo-hookean-selective"`` /
+    ``"fem-neo-hookean-full"`` or ``"fem-linear-selective"`` / ``"fem-linear-full"`` (model and
+    integration), or
     ``"fem-linear-tet10"`` (``reference.mesh`` or ``reference.mesh_id``: 10-node tetrahedra)."""
     if spec.reference.displacements is not None:
         return "supplied"
     if spec.reference.mesh is not None or spec.reference.mesh_id is not None:
         return "fem-linear-tet10"
     if spec.material.model == "neo-hookean":
-        return "fem-neo-hookean"
+        return f"fem-neo-hookean-{spec.reference.integration}"
     return f"fem-linear-{spec.reference.integration}"
 
 
@@ -228,10 +229,12 @@ def solve_fem(
     if material.model == "neo-hookean":
         from ..model.spec import lame_constants
         from .hyperelastic import solve_hyperelastic
+        from .neo_hookean import neo_hookean_law
 
         mu, lam = lame_constants(material.youngs_modulus, material.poisson_ratio)
+        law = neo_hookean_law(mu, lam, problem.spec.reference.integration)
         u, paths = solve_hyperelastic(
-            nodes, hexahedra, mu, lam, forces, free, method, names, load_steps
+            nodes, hexahedra, law, forces, free, method, names, load_steps
         )
         return FemResult(
             nodes.copy(),

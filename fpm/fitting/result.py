@@ -36,7 +36,8 @@ class CalibrationResult(BaseModel):
         "fem",
         description="what the fit was measured against: 'fem-linear-selective', "
         "'fem-linear-full', 'fem-linear-tet10' (10-node tetrahedra on reference.mesh), "
-        "'fem-neo-hookean' or 'supplied' (the spec's reference.displacements); "
+        "'fem-neo-hookean-selective', 'fem-neo-hookean-full' or 'supplied' (the spec's "
+        "reference.displacements); "
         "'fem' in results stored before the field existed",
     )
     k: float = Field(description="stiffness of the axis family (the one k for 'single'), N/m")

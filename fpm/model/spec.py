@@ -15,11 +15,11 @@ from typing import Annotated, Any, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-MODEL_VERSION = "2026.12.05"
+MODEL_VERSION = "2026.12.07"
 """Version of the numerics behind a result; bump it whenever a change alters fitted values.
 It is part of a calibration's identity, so a resubmitted spec is not answered from results
 that older numerics computed."""
-FEM_VERSION = "2026.12.06"
+FEM_VERSION = "2026.12.07"
 """Version of the FEM reference's numerics; bump it whenever a change alters FEM displacements.
 It is part of a stored reference's identity (references are kept without expiry), so new
 calibrations are never served a reference that older FEM numerics computed."""
@@ -424,7 +424,7 @@ MESH_ID_PATTERN = r"^[0-9a-f]{64}$"
 class ReferenceSettings(_Strict):
     """The FEM reference's discretisation (docs/physics.md, *The FEM reference*).
 
-    ``integration``: how the linear FEM's 8-node hexahedra are integrated.
+    ``integration``: how the FEM's 8-node hexahedra are integrated (linear and neo-Hookean).
 
     - ``"selective"`` (default): selective reduced integration, free of volumetric locking
       near nu = 1/2: the deviatoric (shear) part of C at the 2x2x2 Gauss points, the
@@ -435,8 +435,10 @@ class ReferenceSettings(_Strict):
       approaches 1/2: 10% too stiff at nu 0.45 on the paper's cube). The paper's examples
       name it, so Table 1 is reproduced exactly.
 
-    The neo-Hookean reference always uses 2x2x2 points (its locking is measured in
-    docs/physics.md).
+    The neo-Hookean reference follows the same choice: ``"selective"`` is the decoupled
+    neo-Hookean solid with its volume term on each element's mean dilatation (the large-strain
+    B-bar, :class:`fpm.fem.neo_hookean.MeanDilatationNeoHookean`), ``"full"`` the compressible
+    one at 2x2x2 points (it locks as the linear ``"full"`` does).
 
     ``mesh`` / ``mesh_id``: the solid's own tetrahedral mesh (inline, or the id of one uploaded
     to the service): the linear reference is then solved on it with 10-node tetrahedra and read
@@ -452,8 +454,9 @@ class ReferenceSettings(_Strict):
 
     integration: Integration = Field(
         "selective",
-        description="linear hexahedra: 'selective' (shear at 2x2x2 Gauss points, volume on the "
-        "mean dilatation: B-bar, no volumetric locking) or 'full' (2x2x2 for all, the paper's)",
+        description="hexahedra (linear and neo-Hookean): 'selective' (shear at 2x2x2 Gauss "
+        "points, volume on the mean dilatation: B-bar, no volumetric locking) or 'full' (2x2x2 "
+        "for all, the paper's)",
     )
     displacements: list[list[Vector3]] | None = Field(
         None,
