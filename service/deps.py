@@ -1,4 +1,9 @@
-"""FastAPI dependencies: settings, the Redis client, the API-key check, ids in paths."""
+"""FastAPI dependencies: settings, the Redis client, the API-key check, ids in paths.
+
+Each is ``async def`` although none awaits: they only compute, and FastAPI runs a plain
+``def`` dependency on its thread pool, one hop per dependency per request (five on a status
+poll), which under CPU contention adds to every request's latency. The routes that block on
+Redis stay plain functions, on the pool."""
 
 from __future__ import annotations
 
@@ -18,7 +23,13 @@ from store import keys, quotas
 from .errors import ProblemError
 from .settings import Settings, get_settings
 
-SettingsDep = Annotated[Settings, Depends(get_settings)]
+
+async def settings() -> Settings:
+    """The service's settings (:func:`get_settings`; tests override this dependency)."""
+    return get_settings()
+
+
+SettingsDep = Annotated[Settings, Depends(settings)]
 
 
 @lru_cache(maxsize=8)
@@ -37,7 +48,7 @@ def redis_client(url: str, timeout: float) -> Redis:
     )
 
 
-def get_redis(settings: SettingsDep) -> Redis:
+async def get_redis(settings: SettingsDep) -> Redis:
     return redis_client(settings.redis_url, settings.redis_timeout)
 
 
@@ -46,7 +57,7 @@ RedisDep = Annotated[Redis, Depends(get_redis)]
 api_key_header = APIKeyHeader(name="X-API-Key", auto_error=False)
 
 
-def require_api_key(
+async def require_api_key(
     settings: SettingsDep, key: Annotated[str | None, Security(api_key_header)]
 ) -> None:
     """When API keys are configured, every /v1 route needs one of them in X-API-Key.
@@ -67,7 +78,7 @@ def require_api_key(
         )
 
 
-def owner(settings: SettingsDep, key: Annotated[str | None, Security(api_key_header)]) -> str:
+async def owner(settings: SettingsDep, key: Annotated[str | None, Security(api_key_header)]) -> str:
     """Who a request counts against for the per-key quotas: a hash of its API key (never the
     key), or "anonymous" when the service has no keys."""
     return quotas.owner_of(key if settings.api_keys else None)
@@ -87,19 +98,21 @@ def _known_form(value: str, pattern: re.Pattern[str], what: str) -> str:
     return value
 
 
-def calibration_id(
+async def calibration_id(
     calibration_id: Annotated[str, Path(description="16 lowercase hex digits")],
 ) -> str:
     """The path's calibration id, checked against :data:`store.keys.CALIBRATION_ID`."""
     return _known_form(calibration_id, keys.CALIBRATION_ID, "calibration")
 
 
-def fem_id(fem_id: Annotated[str, Path(description="64 lowercase hex digits (sha256)")]) -> str:
+async def fem_id(
+    fem_id: Annotated[str, Path(description="64 lowercase hex digits (sha256)")],
+) -> str:
     """The path's FEM reference id, checked against :data:`store.keys.FEM_ID`."""
     return _known_form(fem_id, keys.FEM_ID, "FEM reference")
 
 
-def parameter_set_id(
+async def parameter_set_id(
     parameter_set_id: Annotated[str, Path(description="'ps-' and 16 lowercase hex digits")],
 ) -> str:
     """The path's parameter set id, checked against :data:`store.keys.PARAMETER_SET_ID`."""

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from fastapi import Depends, FastAPI
 
-from . import docs, errors, metrics, openapi, web
+from . import deps, docs, errors, metrics, openapi, web
 from .deps import redis_client, require_api_key
 from .limits import BodySizeLimit
 from .routers import calibrations, exports, fem_references, health, meshes, parameter_sets
@@ -19,7 +19,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     """The app: routers under /v1 (API-key protected when keys are set), problem+json errors,
     offline docs, metrics.
 
-    ``settings`` (tests) replaces :func:`get_settings` for every route and the middleware.
+    ``settings`` (tests) replaces the settings for every route and the middleware.
     """
     app = FastAPI(
         title="FPM calibration service",
@@ -32,7 +32,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     config = settings or get_settings()
     if settings is not None:
-        app.dependency_overrides[get_settings] = lambda: settings
+        app.dependency_overrides[deps.settings] = lambda: settings
     protected = [Depends(require_api_key)]
     documented = errors.problem_responses(401, 500, 503)  # the rest route by route
     for module in (calibrations, fem_references, meshes, parameter_sets, exports, health):

@@ -1,7 +1,7 @@
 """Service settings from the environment (prefix ``FPM_``; ``REDIS_URL`` too).
 
 Examples: ``FPM_MAX_NODES=20000``, ``FPM_API_KEYS=key1,key2``, ``REDIS_URL=redis://redis:6379/0``.
-Tests override :func:`get_settings` through FastAPI's dependency overrides.
+Tests override the dependency :func:`service.deps.settings` through FastAPI's dependency overrides.
 """
 
 from __future__ import annotations
