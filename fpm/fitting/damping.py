@@ -184,7 +184,10 @@ class _Runs:
         ]
         self.count += self.cases
         # Each free thread takes a piece of the case that has taken the fewest steps (so 3
-        # cases keep 2 threads busy), until every case is done or a milestone decides.
+        # cases keep 2 threads busy), until every case is done or a milestone decides. No case
+        # runs more than a piece past the milestone still to be decided: a case slowed down by
+        # a busy machine holds the others there, so a d that loses costs the same work however
+        # the threads are scheduled.
         running: dict[Future[int], DynamicRun] = {}
         milestone = CHUNK
         verdict = Verdict("running")
@@ -199,7 +202,7 @@ class _Runs:
                 milestone += CHUNK
             waiting = [
                 (r, c) for r, c, e in zip(runs, caps, stopped, strict=True)
-                if not e and r not in running.values()
+                if not e and r not in running.values() and r.steps < milestone + CHUNK
             ]  # fmt: skip
             while waiting and verdict.outcome == "running" and len(running) < self.threads:
                 r, c = min(waiting, key=lambda rc: rc[0].steps)
