@@ -16,9 +16,10 @@ and between the two (1.3x above the second) on a soft organ. The search
 (each step 1.6x longer) until the fewest total steps are bracketed, refines by a few
 golden-section steps between the best d and its neighbours (which needs only "faster or not",
 so every d slower than the best can be stopped early), and then looks for the smallest d that
-still settles every load case within MARGIN_CAP times its fastest steps, walking down from the
-smallest settling d (the stability margin: the fastest d sits near that edge, and below it runs
-diverge or creep).
+still settles every load case within MARGIN_CAP times its fastest steps, from the d already
+tried (their steps, or the predictions they were dropped on) and then by walking down and
+bisecting (the stability margin: the fastest d sits near that edge, and below it runs diverge
+or creep).
 
 Runs advance in pieces of CHUNK steps (:class:`fpm.dynamics.simulation.DynamicRun`), all load cases
 together, and a d is dropped as soon as its load cases have taken as many steps between them as
@@ -226,10 +227,12 @@ class Verdict:
     """How a d's runs ended: ``done`` (every case settled, diverged or reached its cap),
     ``failed`` (a case diverged or reached its cap unsettled), ``lost`` (it cannot win;
     ``total``: the steps it would take at least, from its steps and predictions at the
-    deciding milestone) or ``settles`` (every case predicted within its cap)."""
+    deciding milestone) or ``settles`` (every case predicted within its cap). ``predicted``:
+    each case's predicted steps (:func:`predicted_steps`) when the decision came from them."""
 
     outcome: str
     total: float = 0.0
+    predicted: tuple[float, ...] = ()
 
 
 def predicted_steps(run: DynamicRun, at: int | None = None) -> float:
@@ -273,14 +276,14 @@ def verdict_at(
         return Verdict("lost", float(taken))
     if at < PREDICT_AFTER:
         return Verdict("running")
-    predicted = [predicted_steps(r, at) for r in runs]
+    predicted = tuple(predicted_steps(r, at) for r in runs)
     total = float(sum(predicted))
     if any(p > PRUNE * c for p, c in zip(predicted, caps, strict=True)):
-        return Verdict("lost", total)
+        return Verdict("lost", total, predicted)
     if budget is not None and total > PRUNE * budget:
-        return Verdict("lost", total)
+        return Verdict("lost", total, predicted)
     if estimate and all(p <= c for p, c in zip(predicted, caps, strict=True)):
-        return Verdict("settles", total)
+        return Verdict("settles", total, predicted)
     return Verdict("running")
 
 
@@ -328,6 +331,8 @@ def _search(
     max_steps = runs.problem.spec.fpm.max_steps
     steps: dict[float, list[int] | None] = {}  # log d -> steps per case (None: not settled)
     slower: dict[float, int] = {}  # log d -> steps taken when stopped (at least the best total)
+    forecast: dict[float, tuple[float, ...]] = {}  # log d -> predicted steps per case, if stopped
+    # on a prediction
     best: list[Any] = []  # [log d, displacements (L, N, 3)] of the fewest total steps so far
 
     def total(y: float) -> float:
@@ -340,6 +345,8 @@ def _search(
             results, verdict = runs(math.exp(y), [max_steps] * runs.cases, budget)
             if verdict.outcome == "lost" and budget is not None:  # it cannot win
                 slower[y] = int(min(max(budget, verdict.total), 1 << 62))
+                if verdict.predicted:
+                    forecast[y] = verdict.predicted
             elif verdict.outcome == "done" and all(r.state == SETTLED for r in results):
                 settled = [r.steps for r in results]
                 steps[y] = settled
@@ -395,7 +402,7 @@ def _search(
         steps=list(steps[y_best] or []),
         displacements=displacements,
         d_min=math.exp(
-            _smallest_settling(runs, steps, y_best, lo, max_steps, math.log(BRACKET_STEP))
+            _smallest_settling(runs, steps, forecast, y_best, lo, max_steps, math.log(BRACKET_STEP))
         ),
         guess=math.exp(y0),
         runs=runs.count,
@@ -442,35 +449,59 @@ def _next_point(tried: list[float], y_best: float) -> float | None:
 def _smallest_settling(
     runs: _Runs,
     steps: dict[float, list[int] | None],
+    forecast: dict[float, tuple[float, ...]],
     y_best: float,
     lo: float,
     max_steps: int,
     step: float,
 ) -> float:
     """log d of the smallest d whose runs all settle within MARGIN_CAP times their steps at the
-    fastest d: from the smallest settling d tried, down by ``step`` (log) while it settles, then
-    one bisection (the fastest d sits near the edge, so this takes few runs). A probe stops
-    once its decay predicts the answer (past PREDICT_AFTER steps): d_min is an estimate where
-    runs are long, exact where they settle sooner."""
+    fastest d. The d tried by the search answer first, from their settled steps or from the
+    predictions they were stopped on (``forecast``): from the smallest that settles, the
+    largest below it that does not brackets the edge, which bisection narrows to ``step / 2``
+    (log); with none below, the walk goes down by ``step`` while d settles, then bisects. A
+    probe stops once its decay predicts the answer (past PREDICT_AFTER steps): d_min is an
+    estimate where runs are long, exact where they settle sooner."""
     fastest = steps[y_best] or []
     caps = [min(max_steps, MARGIN_CAP * s) for s in fastest]
 
-    def settles(y: float) -> bool:
+    def known(y: float) -> bool | None:
+        """Whether the search's own runs at y settle within the caps (None: not known)."""
         if steps.get(y) is not None:
             return all(s <= c for s, c in zip(steps[y] or [], caps, strict=True))
+        if y in forecast:
+            return all(p <= c for p, c in zip(forecast[y], caps, strict=True))
+        return None
+
+    def settles(y: float) -> bool:
+        answer = known(y)
+        if answer is not None:
+            return answer
         results, verdict = runs(math.exp(y), caps, estimate=True)
         return verdict.outcome == "settles" or (
             verdict.outcome == "done"
             and all(r.state == SETTLED and r.steps <= c for r, c in zip(results, caps, strict=True))
         )
 
-    y_ok = min(y for y, s in steps.items() if s is not None and settles(y))
-    while y_ok > lo:
-        y = max(y_ok - step, lo)
-        if not settles(y):
-            middle = (y + y_ok) / 2
-            return middle if settles(middle) else y_ok
-        y_ok = y
+    answers = {y: known(y) for y in [*steps, *forecast] if y <= y_best}
+    y_ok = min(y for y, ok in answers.items() if ok)
+    failing = [y for y, ok in answers.items() if ok is False and y < y_ok]
+    if failing:
+        y_fail = max(failing)
+    else:
+        y_fail = None
+        while y_ok > lo:
+            y = max(y_ok - step, lo)
+            if not settles(y):
+                y_fail = y
+                break
+            y_ok = y
+    while y_fail is not None and y_ok - y_fail > step / 2 + 1e-12:
+        middle = (y_fail + y_ok) / 2
+        if settles(middle):
+            y_ok = middle
+        else:
+            y_fail = middle
     return y_ok
 
 
