@@ -174,16 +174,10 @@ def element_tangents(ref: ReferenceGradients, kin: Kinematics, mu: float, lam: f
         kin: the deformation (det F > 0 everywhere).
         mu, lam: Lame constants, Pa.
     """
-    h = len(ref.weights)
-    g = np.einsum("hgji,hgaj->hgai", kin.inverse, ref.gradients, optimize=True)
-    g = g.reshape(h, 8, 24)
-    lam_part = np.matmul(np.swapaxes(g * (lam * ref.weights)[..., None], 1, 2), g)
-    c = (mu - lam * kin.log_j) * ref.weights
-    cross = np.matmul(np.swapaxes(g * c[..., None], 1, 2), g)  # [(a, k), (b, i)]
-    k = lam_part.reshape(h, 8, 3, 8, 3) + cross.reshape(h, 8, 3, 8, 3).swapaxes(2, 4)
-    k = k.transpose(0, 1, 3, 2, 4)  # (H, a, b, i, k)
-    k[..., [0, 1, 2], [0, 1, 2]] += mu * ref.laplacian[..., None]
-    return k
+    g = spatial_gradients(ref, kin)
+    direct = _outer(g, g, lam * ref.weights)
+    crossed = _outer(g, g, (mu - lam * kin.log_j) * ref.weights)
+    return _blocks(len(ref.weights), direct, crossed, mu * ref.laplacian)
 
 
 def _blocks(h: int, direct: np.ndarray, crossed: np.ndarray, diagonal: np.ndarray) -> np.ndarray:
