@@ -14,10 +14,11 @@ job has cached the bytes (:data:`store.scratch.EXPORT_TTL`), the answer is 200 w
 from __future__ import annotations
 
 import gzip
+from collections.abc import AsyncIterator
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request
-from fastapi.responses import JSONResponse, Response
+from fastapi.responses import JSONResponse, Response, StreamingResponse
 from pydantic import BaseModel, Field
 
 from store import graph, records, scratch
@@ -145,9 +146,22 @@ def export(
     # The cache holds the export gzip-compressed: sent as it is to a client that accepts gzip
     # (httpx, browsers, curl --compressed), unpacked here for one that does not.
     headers = {"Content-Disposition": f'attachment; filename="{parameter_set_id}{SUFFIXES[fmt]}"'}
-    if "gzip" in request.headers.get("accept-encoding", ""):
-        headers["Content-Encoding"] = "gzip"
-    else:
-        body = gzip.decompress(body)
     headers["Vary"] = "Accept-Encoding"
-    return Response(content=body, media_type=MEDIA_TYPES[fmt], headers=headers)
+    if "gzip" not in request.headers.get("accept-encoding", ""):
+        return Response(gzip.decompress(body), media_type=MEDIA_TYPES[fmt], headers=headers)
+    headers["Content-Encoding"] = "gzip"
+    headers["Content-Length"] = str(len(body))
+    return StreamingResponse(_pieces(body), media_type=MEDIA_TYPES[fmt], headers=headers)
+
+
+PIECE_BYTES = 1 << 18
+"""An export goes out in pieces of this size (256 KiB), each written once the last has
+drained: one 20 MB write would be copied whole into the event loop's send buffer, holding up
+every other request for milliseconds (measured as the API's p99 while exports download)."""
+
+
+async def _pieces(body: bytes) -> AsyncIterator[memoryview]:
+    """``body`` in :data:`PIECE_BYTES` slices (views, not copies)."""
+    view = memoryview(body)
+    for start in range(0, len(view), PIECE_BYTES):
+        yield view[start : start + PIECE_BYTES]
