@@ -330,29 +330,32 @@ def test_every_job_name_is_a_function_rq_can_import():
         assert callable(getattr(importlib.import_module(module), function)), name
 
 
-def _niceness_after_lowering(environment: dict[str, str], out: Any) -> None:
-    """In a child process: lower_priority() under ``environment``; put the niceness gained."""
+def _priority_after_lowering(environment: dict[str, str], out: Any) -> None:
+    """In a child process: lower_priority() under ``environment``; put (scheduling policy,
+    niceness gained)."""
     from worker.__main__ import lower_priority
 
     os.environ.update(environment)
     before = os.nice(0)
     lower_priority()
-    out.put(os.nice(0) - before)
+    out.put((os.sched_getscheduler(0), os.nice(0) - before))
 
 
 @pytest.mark.parametrize(
-    ("environment", "gained"),
-    [({}, 10), ({"FPM_WORKER_NICE": "3"}, 3), ({"FPM_WORKER_NICE": "0"}, 0),
-     ({"FPM_WORKER_NICE": "high"}, 0)],
+    ("environment", "policy", "gained"),
+    [({}, os.SCHED_IDLE, 0), ({"FPM_WORKER_PRIORITY": "idle"}, os.SCHED_IDLE, 0),
+     ({"FPM_WORKER_PRIORITY": "3"}, os.SCHED_OTHER, 3),
+     ({"FPM_WORKER_PRIORITY": "0"}, os.SCHED_OTHER, 0),
+     ({"FPM_WORKER_PRIORITY": "high"}, os.SCHED_OTHER, 0)],
 )  # fmt: skip
-def test_work_horses_run_at_a_lower_cpu_priority_than_the_api(environment, gained):
-    """A job is all computation: its horse gives way to the API on a shared machine (by
-    default 10 steps of niceness; FPM_WORKER_NICE sets it, a bad value changes nothing)."""
+def test_work_horses_take_the_cpu_the_api_leaves(environment, policy, gained):
+    """A job is all computation: its horse runs under SCHED_IDLE by default, or at a niceness
+    FPM_WORKER_PRIORITY gives; a value it cannot read changes nothing."""
     import multiprocessing
 
     context = multiprocessing.get_context("fork")
     out = context.Queue()
-    child = context.Process(target=_niceness_after_lowering, args=(environment, out))
+    child = context.Process(target=_priority_after_lowering, args=(environment, out))
     child.start()
     child.join(30)
-    assert out.get(timeout=5) == gained
+    assert out.get(timeout=5) == (policy, gained)
