@@ -384,8 +384,9 @@ def test_a_units_slip_fails_fast_instead_of_following_the_solid_away(integration
     mean-dilatation elements fail earlier (about 5% of the load: no decrease along the step)."""
     spec = {**small_box(), "reference": {"integration": integration}}
     spec["material"]["youngs_modulus"] = 10.0
-    with pytest.raises(NewtonError, match=why + r".*check the units"):
+    with pytest.raises(NewtonError, match=why + r".*check the units") as caught:
         solve_fem(fpm.load_problem(spec))
+    assert (hyperelastic.SELECTIVE_HINT in str(caught.value)) == (integration == "selective")
 
 
 def test_check_reference_drops_the_small_strain_warning_but_keeps_the_units_error(

@@ -46,7 +46,13 @@ from .linear_solver import (
     factorize,
     rigid_body_modes,
 )
-from .neo_hookean import NeoHookeanLaw, ReferenceGradients, kinematics, reference_gradients
+from .neo_hookean import (
+    MeanDilatationNeoHookean,
+    NeoHookeanLaw,
+    ReferenceGradients,
+    kinematics,
+    reference_gradients,
+)
 from .reference import FemError
 
 NEWTON_TOLERANCE = 1e-10
@@ -77,6 +83,13 @@ MAX_CG_ITERATIONS = 500
 
 CHUNK = 1024
 """Hexahedra whose element matrices are formed at once (bounds the memory of an assembly)."""
+
+
+SELECTIVE_HINT = (
+    "; the selective (mean-dilatation) hexahedra give way sooner under a load on few nodes: "
+    "reference.integration 'full' follows such a load further, but locks as nu nears 0.5"
+)
+"""Added to a failure of the selective neo-Hookean solid (docs/physics.md, *Limits*)."""
 
 
 class NewtonError(FemError):
@@ -350,6 +363,7 @@ def load_path(
                     f"the step already halved {MAX_STEP_HALVINGS} times): {failure.args[0]}; a "
                     "load this large for the mesh cannot be followed: lower the forces, spread "
                     f"them over more nodes, or check the units ({UNITS_HINT})"
+                    + (SELECTIVE_HINT if isinstance(solid.law, MeanDilatationNeoHookean) else "")
                 ) from None
             step /= 2
             continue
