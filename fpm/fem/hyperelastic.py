@@ -89,7 +89,8 @@ SELECTIVE_HINT = (
     "; the selective (mean-dilatation) hexahedra give way sooner under a load on few nodes: "
     "reference.integration 'full' follows such a load further, but locks as nu nears 0.5"
 )
-"""Added to a failure of the selective neo-Hookean solid (docs/physics.md, *Limits*)."""
+"""Added to a failure of the selective neo-Hookean solid (docs/physics.md, *Large deformation
+reference*, its limit)."""
 
 
 class NewtonError(FemError):
