@@ -331,8 +331,8 @@ def _search(
     max_steps = runs.problem.spec.fpm.max_steps
     steps: dict[float, list[int] | None] = {}  # log d -> steps per case (None: not settled)
     slower: dict[float, int] = {}  # log d -> steps taken when stopped (at least the best total)
-    forecast: dict[float, tuple[float, ...]] = {}  # log d -> predicted steps per case, if stopped
-    # on a prediction
+    # log d -> predicted steps per case, for a d stopped on its prediction
+    forecast: dict[float, tuple[float, ...]] = {}
     best: list[Any] = []  # [log d, displacements (L, N, 3)] of the fewest total steps so far
 
     def total(y: float) -> float:
