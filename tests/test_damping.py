@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import numpy as np
 import pytest
@@ -19,6 +20,7 @@ from fpm.fitting.damping import (
     PREDICT_AFTER,
     _Runs,
     _search,
+    _smallest_settling,
     critical_damping,
     fastest_damping,
     predicted_steps,
@@ -170,3 +172,41 @@ def test_the_decay_predicts_the_settle_steps(bar: fpm.Problem, d):
         assert taken == run.steps
     finally:
         runs.close()
+
+
+class _Edge:
+    """Stands in for _Runs in the margin search: every d >= ``edge`` settles within the caps;
+    records the d probed."""
+
+    def __init__(self, edge: float):
+        self.edge = edge
+        self.probed: list[float] = []
+
+    def __call__(self, d: float, caps: list[int], *, estimate: bool = False) -> tuple[list, Any]:
+        from fpm.fitting.damping import Verdict
+
+        self.probed.append(d)
+        return [], Verdict("settles" if d >= self.edge else "failed")
+
+
+@pytest.mark.parametrize("edge", [0.31, 0.52, 0.9])
+def test_the_margin_uses_the_searchs_own_runs_and_finds_the_edge(edge):
+    """The fastest d at 1.0; the search also dropped d = 0.4 and 0.7 on predictions (one
+    within the caps or not, as the edge says) and settled 1.6. The margin lands within the
+    walk's resolution (step / 2, log) above the edge, and never probes more d than a walk from
+    1.0 that knows nothing of them: fewer once the tried d reach past its first step."""
+    step = math.log(1.25)
+    y_best = 0.0
+    steps = {y_best: [100, 100], math.log(1.6): [150, 150]}
+    forecast = {math.log(d): (150.0, 150.0) if d >= edge else (500.0, 500.0) for d in (0.4, 0.7)}
+    with_runs, blind = _Edge(edge), _Edge(edge)
+    d_min = math.exp(
+        _smallest_settling(with_runs, steps, forecast, y_best, math.log(0.01), 1000, step)
+    )
+    d_blind = math.exp(_smallest_settling(blind, steps, {}, y_best, math.log(0.01), 1000, step))
+    for found in (d_min, d_blind):
+        assert edge <= found <= edge * math.exp(step / 2) * (1 + 1e-9)
+    assert len(with_runs.probed) <= len(blind.probed)
+    if edge < 0.7:  # the tried d reach further down than a walk's first step (1.25x)
+        assert len(with_runs.probed) < len(blind.probed)
+    assert all(d < 1.0 for d in with_runs.probed)  # the fastest d itself is never run again
