@@ -166,13 +166,17 @@
     }
   }
 
-  async function api(method, path) {
+  async function jsonBody(response) {
+    try { return await response.json(); } catch (e) { return null; }
+  }
+
+  // One request with the API key (a 401 asks for the key and tries again); the response when
+  // its status is below 400 (202 included), else an ApiError.
+  async function request(method, path, accept) {
     for (let attempt = 0; attempt < 5; attempt++) {
-      const headers = { Accept: "application/json" };
+      const headers = { Accept: accept };
       if (apiKey) headers["X-API-Key"] = apiKey;
       const response = await fetch(path, { method, headers });
-      let body = null;
-      try { body = await response.json(); } catch (e) { body = null; }
       if (response.status === 401) {
         const why = apiKey ? "That API key was refused: give another."
           : method === "DELETE" ? "Cancelling needs the service's API key (X-API-Key)."
@@ -180,14 +184,23 @@
         await askKey(why);
         continue;
       }
-      if (!response.ok) throw new ApiError(response.status, body);
-      return { status: response.status, body };
+      if (!response.ok) throw new ApiError(response.status, await jsonBody(response));
+      return response;
     }
     throw new ApiError(401, { detail: "no accepted API key" });
   }
 
+  async function api(method, path) {
+    const response = await request(method, path, "application/json");
+    return { status: response.status, body: await jsonBody(response) };
+  }
+
+  function errorText(error) {
+    return error instanceof ApiError ? error.message : `cannot reach the service (${error.message || error})`;
+  }
+
   function errorPanel(error, what) {
-    const text = error instanceof ApiError ? error.message : `cannot reach the service (${error.message || error})`;
+    const text = errorText(error);
     return el("div", { class: "panel" }, el("p", { class: "error" }, what ? `${what}: ${text}` : text));
   }
 
@@ -673,19 +686,12 @@
     const started = Date.now();
     try {
       for (;;) {
-        const headers = {};
-        if (apiKey) headers["X-API-Key"] = apiKey;
-        const response = await fetch(`v1/parameter-sets/${enc(id)}/export?format=${fmt}`, { headers });
+        const response = await request("GET", `v1/parameter-sets/${enc(id)}/export?format=${fmt}`, "*/*");
         if (response.status === 202) {
           const wait = Number(response.headers.get("Retry-After") || "1");
           status.textContent = `preparing ${fmt}: a worker makes it (${Math.round((Date.now() - started) / 1000)} s)`;
           await new Promise((resolve) => setTimeout(resolve, 1000 * Math.max(wait, 1)));
           continue;
-        }
-        if (!response.ok) {
-          let body = null;
-          try { body = await response.json(); } catch (e) { body = null; }
-          throw new ApiError(response.status, body);
         }
         const blob = await response.blob();
         const name = (/filename="([^"]+)"/.exec(response.headers.get("Content-Disposition") || "") || [])[1]
@@ -699,7 +705,7 @@
         return;
       }
     } catch (error) {
-      status.textContent = error instanceof ApiError ? error.message : `cannot reach the service (${error.message || error})`;
+      status.textContent = errorText(error);
     }
   }
 
