@@ -99,12 +99,22 @@ class Kinematics:
     det: np.ndarray
     log_j: np.ndarray
 
+    def i1_minus_3(self) -> np.ndarray:
+        """(H, G) I1 - 3 = 2 tr H + H:H, formed from H (no digits lost at small strain)."""
+        h = self.displacement_gradient
+        return 2 * np.einsum("...ii->...", h) + np.einsum("...ij,...ij->...", h, h)
+
+    def f_minus_inverse_t(self) -> np.ndarray:
+        """(H, G, 3, 3) F - F^-T = H + (F^-1 H)^T, formed from H."""
+        h = self.displacement_gradient
+        return h + np.swapaxes(self.inverse @ h, -1, -2)
+
 
 def kinematics(ref: ReferenceGradients, u: np.ndarray) -> Kinematics:
     """:class:`Kinematics` of nodal displacements ``u`` (N, 3), m.
 
-    Small strains lose no digits: ``J - 1 = tr H + (tr^2 H - tr H^2) / 2 + det H`` and (in
-    :func:`first_piola`) ``F - F^-T = H + (F^-1 H)^T`` are formed from H, not from F - I.
+    Small strains lose no digits: ``J - 1 = tr H + (tr^2 H - tr H^2) / 2 + det H`` here, and
+    ``F - F^-T`` and ``I1 - 3`` in :class:`Kinematics`, are formed from H, not from F - I.
     """
     grad_u = np.einsum("hai,hgaj->hgij", u[ref.hexahedra], ref.gradients, optimize=True)
     f = grad_u.copy()
@@ -137,18 +147,12 @@ def inverse_and_determinant(f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def first_piola(kin: Kinematics, mu: float, lam: float) -> np.ndarray:
     """(H, G, 3, 3) P = mu (F - F^-T) + lambda ln J F^-T, Pa."""
     inverse_t = np.swapaxes(kin.inverse, -1, -2)
-    h = kin.displacement_gradient
-    return (
-        mu * (h + np.swapaxes(kin.inverse @ h, -1, -2))
-        + (lam * kin.log_j)[..., None, None] * inverse_t
-    )
+    return mu * kin.f_minus_inverse_t() + (lam * kin.log_j)[..., None, None] * inverse_t
 
 
 def strain_energy(kin: Kinematics, mu: float, lam: float) -> np.ndarray:
-    """(H, G) W, J/m^3: I1 - 3 = 2 tr H + H:H."""
-    h = kin.displacement_gradient
-    i1_minus_3 = 2 * np.einsum("...ii->...", h) + np.einsum("...ij,...ij->...", h, h)
-    return mu / 2 * i1_minus_3 - mu * kin.log_j + lam / 2 * kin.log_j**2
+    """(H, G) W, J/m^3."""
+    return mu / 2 * kin.i1_minus_3() - mu * kin.log_j + lam / 2 * kin.log_j**2
 
 
 def internal_forces(ref: ReferenceGradients, stress: np.ndarray, n_nodes: int) -> np.ndarray:
@@ -240,9 +244,7 @@ class MeanDilatationNeoHookean:
 
     def _isochoric(self, kin: Kinematics) -> tuple[np.ndarray, np.ndarray]:
         """(H, G) J^(-2/3) and I1 - 3, from H without cancellation."""
-        h = kin.displacement_gradient
-        i1_minus_3 = 2 * np.einsum("...ii->...", h) + np.einsum("...ij,...ij->...", h, h)
-        return np.exp(-2 / 3 * kin.log_j), i1_minus_3
+        return np.exp(-2 / 3 * kin.log_j), kin.i1_minus_3()
 
     def _dilatation(self, ref: ReferenceGradients, kin: Kinematics) -> tuple[np.ndarray, ...]:
         """(H,) rest volume V0, m^3, and ln Jbar of each hexahedron."""
@@ -265,10 +267,8 @@ class MeanDilatationNeoHookean:
         with ``dV/du_a = sum_g w J g_a``."""
         a, i1_minus_3 = self._isochoric(kin)
         inverse_t = np.swapaxes(kin.inverse, -1, -2)
-        h = kin.displacement_gradient
-        f_minus_inverse_t = h + np.swapaxes(kin.inverse @ h, -1, -2)  # F - F^-T
         stress = (self.mu * a)[..., None, None] * (
-            f_minus_inverse_t - (i1_minus_3 / 3)[..., None, None] * inverse_t
+            kin.f_minus_inverse_t() - (i1_minus_3 / 3)[..., None, None] * inverse_t
         )
         v0, log_jbar = self._dilatation(ref, kin)
         g = spatial_gradients(ref, kin)
