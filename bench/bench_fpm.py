@@ -13,6 +13,11 @@
 4. Scale: a 100^3 ``full`` lattice (1M nodes, 12.7M springs), face z- fixed, one force at the
    centre of the top face (z+), a few steps at full depth, in its own subprocess so that its peak
    RSS is its own (it includes the ~100 MB of the interpreter and libraries). Goal: under 2 GB.
+5. The volume term's step against the springs alone at 10^5 nodes. Goal: at most 1.5x.
+6. The list's own numbering (:class:`fpm.model.perturbed_list.ListLayout`) against the solid's,
+   on the organ at h = 1.75 mm (93,705 nodes, families+volume at the continuum start, the press
+   at the top, full depth): the same kernel on the same arithmetic, positions compared bit for
+   bit. No goal; the ratio is what the layout buys.
 
 Timings are the best of several repeats (the machine is shared and noisy): the best is the
 closest to the code's own cost. Run: ``python -m bench fpm`` or ``python -m bench.bench_fpm``.
@@ -533,6 +538,63 @@ def volume_step(failures: list[str]) -> None:
         failures.append(f"volume step: {ratio:.2f}x the spring-only step > {VOLUME_RATIO_GOAL}x")
 
 
+LAYOUT_H = 0.00175
+"""Part 6's organ spacing, m (93,705 nodes)."""
+LAYOUT_STEPS = 20
+
+
+def layout_step(failures: list[str]) -> None:
+    """Part 6: a step on the perturbed list's own numbering against the solid's numbering."""
+    import fpm
+    from bench.organ import ellipsoid_spec
+    from fpm.dynamics.simulation import FpmModel
+    from fpm.dynamics.voigt import run_steps
+    from fpm.model.stiffness import continuum_start, model_stiffness
+
+    problem = fpm.load_problem(ellipsoid_spec(LAYOUT_H, fpm={"stiffness": "families+volume"}))
+    model = FpmModel(problem)
+    stiffness = model_stiffness(problem, continuum_start(problem))
+    a, plist = model.adjacency, model.perturbed_list(0, None)
+    cells, which = model.active_cells(plist)
+    kappa = np.ascontiguousarray(stiffness.volume[which])
+    factor = stiffness.springs[a.spring]
+    external = problem.load_cases[0].dense(problem.n_nodes)
+    x, v, force = problem.nodes.copy(), np.zeros_like(problem.nodes), np.zeros_like(problem.nodes)
+    dt, d = 1e-5, 1e-3
+
+    def solid_numbering(steps: int) -> None:
+        x[:], v[:] = problem.nodes, 0.0
+        run_steps(
+            plist.order, a.ptr, a.neighbour, a.rest_length, factor, problem.nodes, x, v,
+            external, problem.solid.masses, 1.0, d, dt, steps, 0.0, problem.size,
+            cells.corners, cells.rest, cells.volume, kappa, force,
+        )  # fmt: skip
+
+    def own_numbering(steps: int) -> np.ndarray:
+        run = model.start(0, k=stiffness, d=d, depth=None, dt=dt, settle_tolerance=0.0)
+        run.advance(steps)
+        return run.result().displacements
+
+    solid_numbering(1)  # compiled kernel loaded, layout and cells built
+    own_numbering(1)
+    solid = best_of(lambda: solid_numbering(LAYOUT_STEPS), 3) / LAYOUT_STEPS
+    own = best_of(lambda: own_numbering(LAYOUT_STEPS), 3) / LAYOUT_STEPS
+    same = np.array_equal(own_numbering(LAYOUT_STEPS), x - problem.nodes)
+    print(
+        f"\n6. The list's own numbering: the organ at h = {1e3 * LAYOUT_H:g} mm, "
+        f"{problem.n_nodes:,} nodes ({len(plist.order):,} listed), families+volume, "
+        f"best of 3 x {LAYOUT_STEPS} steps"
+    )
+    print(f"{'solid numbering ms/step':>24} {'own numbering ms/step':>22} {'speed-up':>9} "
+          f"{'positions':>10}")  # fmt: skip
+    print(
+        f"{1e3 * solid:>24.2f} {1e3 * own:>22.2f} {solid / own:>8.2f}x "
+        f"{'identical' if same else 'DIFFER':>10}"
+    )
+    if not same:
+        failures.append("layout: positions differ from the solid numbering's")
+
+
 def main() -> None:
     failures: list[str] = []
     model, kernel = fig7(failures)
@@ -540,6 +602,7 @@ def main() -> None:
     lookup(model, failures)
     scale(failures)
     volume_step(failures)
+    layout_step(failures)
     print("\ngoals: " + ("all met" if not failures else "MISSED " + "; ".join(failures)))
 
 

@@ -243,6 +243,57 @@ def test_only_the_perturbed_list_moves_and_fixed_nodes_never_do():
         assert result.perturbed == listed.sum()
 
 
+def test_a_list_layout_is_the_same_lattice_renumbered():
+    """The layout lists the perturbed list's nodes first in visiting order, is a permutation,
+    and every list node keeps exactly its springs (neighbour, rest length, spring) renamed."""
+    problem = block_problem()
+    model = fpm_model(problem)
+    a = model.adjacency
+    for depth in (0, 1, None):
+        plist = model.perturbed_list(0, depth)
+        layout = model.layout(plist)
+        m = len(plist.order)
+        assert np.array_equal(layout.nodes[:m], plist.order)
+        assert np.array_equal(np.sort(layout.nodes), np.arange(problem.n_nodes))
+        assert np.array_equal(layout.local[layout.nodes], np.arange(problem.n_nodes))
+        assert np.array_equal(layout.order, np.arange(m))
+        for i, node in enumerate(plist.order):
+            mine = slice(layout.ptr[i], layout.ptr[i + 1])
+            theirs = slice(a.ptr[node], a.ptr[node + 1])
+            assert np.array_equal(layout.nodes[layout.neighbour[mine]], a.neighbour[theirs])
+            assert np.array_equal(layout.rest_length[mine], a.rest_length[theirs])
+            assert np.array_equal(layout.spring[mine], a.spring[theirs])
+
+
+def test_the_layout_changes_no_bit_of_a_run():
+    """A run on the list's own numbering equals, bit for bit, the kernel run on the solid's
+    numbering (same arithmetic in the same order), with the volume term and per-spring k."""
+    from fpm.dynamics.voigt import run_steps
+    from fpm.model.stiffness import continuum_start, model_stiffness
+
+    spec = box_spec(
+        (4, 5, 6), 0.01, connectivity="full",
+        forces=[{"at": [0.01, 0.02, 0.05], "vector": [0.05, -0.02, 0.1]}],
+        fpm_settings={"stiffness": "families+volume", "dt": 2e-4},
+    )  # fmt: skip
+    problem = fpm.load_problem(spec)
+    stiffness = model_stiffness(problem, continuum_start(problem))
+    result = fpm.simulate(problem, k=continuum_start(problem), d=0.05, settle_tolerance=0,
+                          max_steps=400)  # fmt: skip
+    model = fpm_model(problem)
+    a, plist = model.adjacency, model.perturbed_list(0, None)
+    cells, which = model.active_cells(plist)
+    x, v = problem.nodes.copy(), np.zeros_like(problem.nodes)
+    taken, *_ = run_steps(
+        plist.order, a.ptr, a.neighbour, a.rest_length, stiffness.springs[a.spring],
+        problem.nodes, x, v, problem.load_cases[0].dense(problem.n_nodes), problem.solid.masses,
+        1.0, 0.05, 2e-4, 400, 0.0, problem.size, cells.corners, cells.rest, cells.volume,
+        np.ascontiguousarray(stiffness.volume[which]), np.zeros_like(x),
+    )  # fmt: skip
+    assert taken == result.steps == 400
+    assert np.array_equal(x - problem.nodes, result.displacements)
+
+
 def test_zero_settle_tolerance_never_settles():
     problem = fpm.load_problem(chain_spec(1, 0.01, (1, 0, 0), tip_force=[0.01, 0, 0]))
     result = fpm.simulate(problem, k=10.0, d=0.6, settle_tolerance=0, max_steps=5000)

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from ..model.forces import Stiffness, cells
-from ..model.perturbed_list import Adjacency, PerturbedList, PerturbedListCache
+from ..model.perturbed_list import Adjacency, ListLayout, PerturbedList, PerturbedListCache
 from ..model.problem import Problem
 from ..model.spec import FpmSettings
 from ..model.stiffness import axis_factors, has_volume, model_stiffness
@@ -72,7 +72,8 @@ class SimulationResult:
 
 
 class FpmModel:
-    """A problem's FPM arrays, built once: neighbours, perturbed lists, work buffers.
+    """A problem's FPM arrays, built once: neighbours, perturbed lists and their layouts
+    (:class:`~fpm.model.perturbed_list.ListLayout`), work buffers.
 
     Attributes:
         problem: the problem.
@@ -90,6 +91,8 @@ class FpmModel:
         self._x = np.empty_like(solid.nodes)
         self._v = np.empty_like(solid.nodes)
         self._cells: dict[bytes, tuple[Cells, np.ndarray]] = {}
+        self._layouts: dict[bytes, ListLayout] = {}
+        self._local_cells: dict[bytes, Cells] = {}
         gravity = np.asarray(problem.spec.fpm.gravity, dtype=float)
         self._weight = solid.masses[:, None] * gravity[None, :] if np.any(gravity) else None
 
@@ -108,6 +111,24 @@ class FpmModel:
             listed[plist.order] = True
             which = np.flatnonzero(listed[every.corners].any(axis=1))
             found = self._cells[key] = (every.subset(which), which)
+        return found
+
+    def layout(self, plist: PerturbedList) -> ListLayout:
+        """``plist``'s own numbering of the nodes; kept per list."""
+        key = plist.order.tobytes()
+        found = self._layouts.get(key)
+        if found is None:
+            found = self._layouts[key] = ListLayout.of(self.adjacency, plist)
+        return found
+
+    def local_cells(self, plist: PerturbedList) -> Cells:
+        """:meth:`active_cells` with their corners in ``plist``'s own numbering; kept per list."""
+        key = plist.order.tobytes()
+        found = self._local_cells.get(key)
+        if found is None:
+            active, _ = self.active_cells(plist)
+            corners = np.ascontiguousarray(self.layout(plist).local[active.corners])
+            found = self._local_cells[key] = Cells(corners, active.rest, active.volume)
         return found
 
     def run(
@@ -148,23 +169,24 @@ class FpmModel:
         external = p.load_cases[load_case].dense(p.n_nodes)
         if self._weight is not None:
             external += self._weight
-        a = self.adjacency
-        factor = a.stiffness_factor
+        layout = self.layout(plist)
+        factor = layout.stiffness_factor
         kappa: np.ndarray | None = None
         if isinstance(k, Stiffness):
             kappa = k.volume
             k = k.springs
         if np.ndim(k):  # per-spring stiffness: the kernel's factor carries it, with k = 1
-            factor, k = np.asarray(k, dtype=float)[a.spring], 1.0
+            factor, k = np.asarray(k, dtype=float)[layout.spring], 1.0
         if kappa is not None:
-            active, which = self.active_cells(plist)
-            volume = (active, np.ascontiguousarray(kappa[which], dtype=float))
+            which = self.active_cells(plist)[1]
+            volume = (self.local_cells(plist), np.ascontiguousarray(kappa[which], dtype=float))
         else:
             volume = (_NO_CELLS, np.zeros(0))
         return DynamicRun(
             model=self,
             load_case=load_case,
             plist=plist,
+            layout=layout,
             external=external,
             factor=factor,
             k=float(k),
@@ -184,6 +206,9 @@ class DynamicRun:
     where the last piece stopped (the state is x and v), so a caller can stop runs that can no
     longer matter (the damping search stops a d once its steps exceed the best total).
 
+    The kernel runs on the list's own numbering (``layout``): x and v, and the rest positions,
+    masses and forces it reads, are kept in it; :meth:`result` gives them back in the solid's.
+
     Attributes:
         steps: time steps taken so far.
         state: voigt.RUNNING, SETTLED or DIVERGED.
@@ -197,6 +222,7 @@ class DynamicRun:
         model: FpmModel,
         load_case: int,
         plist: PerturbedList,
+        layout: ListLayout,
         external: np.ndarray,
         factor: np.ndarray,
         k: float,
@@ -208,14 +234,15 @@ class DynamicRun:
         p = model.problem
         self.cells, self.kappa = volume
         self.inverted_cell: int | None = None
-        self.model, self.load_case, self.plist = model, load_case, plist
-        self.external, self.factor = external, factor
+        self.model, self.load_case, self.plist, self.layout = model, load_case, plist, layout
+        self.external, self.factor = np.ascontiguousarray(external[layout.nodes]), factor
         self.k, self.d, self.dt, self.settle_force = k, d, dt, settle_force
         self.x: np.ndarray | None = None  # own buffers, made on the first piece
         self.v: np.ndarray | None = None
         self.steps, self.state, self.residual = 0, RUNNING, 0.0
         self.history: list[tuple[int, float]] = []
-        self._rest = p.nodes
+        self._rest = np.ascontiguousarray(p.nodes[layout.nodes])
+        self._mass = np.ascontiguousarray(p.solid.masses[layout.nodes])
         self._force: np.ndarray | None = None  # volume forces (N, 3), made on the first piece
 
     @property
@@ -230,19 +257,20 @@ class DynamicRun:
 
     def advance(self, steps: int, *, buffers: tuple[np.ndarray, np.ndarray] | None = None) -> bool:
         """Up to ``steps`` more time steps (fewer once settled or diverged); True once finished.
-        ``buffers``: (N, 3) x and v arrays to use (from rest) instead of new ones."""
+        ``buffers``: (N, 3) x and v arrays to use (from rest) instead of new ones (their
+        content is in the list's numbering)."""
         if self.finished or steps < 1:
             return self.finished
         if self.x is None or self.v is None:
             self.x, self.v = buffers or (np.empty_like(self._rest), np.empty_like(self._rest))
             self.x[:] = self._rest
             self.v[:] = 0.0
-        a, p, c = self.model.adjacency, self.model.problem, self.cells
+        a, p, c = self.layout, self.model.problem, self.cells
         if self._force is None:
             self._force = np.zeros_like(self._rest) if len(c.volume) else np.zeros((0, 3))
         taken, self.state, self.residual, inverted = run_steps(
-            self.plist.order, a.ptr, a.neighbour, a.rest_length, self.factor, p.nodes,
-            self.x, self.v, self.external, p.solid.masses, self.k, self.d, self.dt,
+            a.order, a.ptr, a.neighbour, a.rest_length, self.factor, self._rest,
+            self.x, self.v, self.external, self._mass, self.k, self.d, self.dt,
             int(steps), self.settle_force, p.size,
             c.corners, c.rest, c.volume, self.kappa, self._force,
         )  # fmt: skip
@@ -255,7 +283,7 @@ class DynamicRun:
     def result(self) -> SimulationResult:
         """Where the run stands, as a :class:`SimulationResult` (displacements copied)."""
         p = self.model.problem
-        x = self._rest if self.x is None else self.x
+        x = p.nodes if self.x is None else self.x[self.layout.local]
         return SimulationResult(
             nodes=p.nodes,
             displacements=x - p.nodes,

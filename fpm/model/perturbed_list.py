@@ -45,14 +45,18 @@ class Adjacency:
         np.cumsum(np.bincount(ends, minlength=n_nodes), out=ptr[1:])
         return cls(ptr, neighbour, rest, fac, order % len(springs))
 
-    def neighbours_of(self, nodes: np.ndarray) -> np.ndarray:
-        """All neighbours (with repeats) of ``nodes`` (K,), as one flat int array."""
+    def entries_of(self, nodes: np.ndarray) -> np.ndarray:
+        """(E,) int64 indices of the entries of ``nodes`` (K,), row after row in their order."""
         start = self.ptr[nodes]
         count = self.ptr[nodes + 1] - start
         if not len(nodes) or not count.sum():
-            return np.zeros(0, dtype=np.int32)
+            return np.zeros(0, dtype=np.int64)
         first = np.repeat(start - np.concatenate([[0], np.cumsum(count)[:-1]]), count)
-        return self.neighbour[first + np.arange(count.sum())]
+        return first + np.arange(count.sum())
+
+    def neighbours_of(self, nodes: np.ndarray) -> np.ndarray:
+        """All neighbours (with repeats) of ``nodes`` (K,), as one flat int array."""
+        return self.neighbour[self.entries_of(nodes)]
 
 
 @dataclass(frozen=True)
@@ -74,6 +78,66 @@ class PerturbedList:
 
     def layer(self, i: int) -> np.ndarray:
         return self.order[self.layer_start[i] : self.layer_start[i + 1]]
+
+
+@dataclass(frozen=True)
+class ListLayout:
+    """A perturbed list's own numbering of the nodes, for the dynamic kernel's memory access.
+
+    The list's nodes come first, in visiting order (local 0..M-1), then every other node. The
+    kernel then walks its arrays front to back, and a node's neighbours, in the layers beside
+    its own, sit near it in memory instead of anywhere in the solid's numbering. The same
+    arithmetic in the same order: every result is the same to the bit (tested), a step is
+    1.5x faster at 10^5 nodes (``bench fpm``).
+
+    Attributes:
+        order: (M,) local indices of the list's nodes in visiting order (0..M-1), the dtype
+            of :attr:`PerturbedList.order`.
+        nodes: (N,) int64 the solid's index of each local node (local -> solid).
+        local: (N,) int64 the local index of each of the solid's nodes (solid -> local).
+        ptr: (M+1,) int64; list node i's entries are ``ptr[i]:ptr[i+1]`` (rows of the list's
+            nodes only: the others never move).
+        neighbour: (E,) int32 local index of each entry's neighbour.
+        rest_length: (E,) the entry's spring's rest length, m.
+        stiffness_factor: (E,) its per-spring factor, or (0,) if all 1 (as :class:`Adjacency`).
+        spring: (E,) the entry's spring (a row of the solid's (S, 2) pairs); int32 when the
+            springs are fewer than 2^31 (a 10^6-node lattice has 1.3e7).
+    """
+
+    order: np.ndarray
+    nodes: np.ndarray
+    local: np.ndarray
+    ptr: np.ndarray
+    neighbour: np.ndarray
+    rest_length: np.ndarray
+    stiffness_factor: np.ndarray
+    spring: np.ndarray
+
+    @classmethod
+    def of(cls, adjacency: Adjacency, plist: PerturbedList) -> ListLayout:
+        """The layout of ``plist`` over the solid of ``adjacency``."""
+        n = len(adjacency.ptr) - 1
+        listed = np.zeros(n, dtype=bool)
+        listed[plist.order] = True
+        nodes = np.concatenate([plist.order, np.flatnonzero(~listed)]).astype(np.int64)
+        local = np.empty(n, dtype=np.int64)
+        local[nodes] = np.arange(n)
+        entries = adjacency.entries_of(plist.order)
+        ptr = np.zeros(len(plist.order) + 1, dtype=np.int64)
+        np.cumsum(adjacency.ptr[plist.order + 1] - adjacency.ptr[plist.order], out=ptr[1:])
+        factor = adjacency.stiffness_factor
+        return cls(
+            order=np.arange(len(plist.order), dtype=plist.order.dtype),
+            nodes=nodes,
+            local=local,
+            ptr=ptr,
+            neighbour=local[adjacency.neighbour[entries]].astype(np.int32),
+            rest_length=adjacency.rest_length[entries],
+            stiffness_factor=factor[entries] if len(factor) else factor,
+            spring=adjacency.spring[entries].astype(
+                np.int32 if len(adjacency.spring) < 2**31 else np.int64
+            ),
+        )
 
 
 def perturbed_list(
