@@ -494,3 +494,38 @@ def test_one_cached_solver_per_thread(paper: fpm.Problem):
     thread.start()
     thread.join()
     assert theirs[0] is not mine and theirs[0].problem is paper
+
+
+def test_solvers_on_threads_share_one_system_and_agree_with_a_solver_alone():
+    """Two solvers of one problem, each on its own thread, hold the same (read-only) spring
+    system and each its own tangent buffer; their answers equal a lone solver's to the bit;
+    the shared system goes once no solver keeps it."""
+    import gc
+
+    problem = paper_problem(depth="auto")
+    k = [spring_stiffness(problem, f * K_A) for f in (1.0, 1.2)]
+    expected = [
+        StaticSolver(paper_problem(depth="auto"), amg_from=0).solve(2, k[i], None).displacements
+        for i in range(2)
+    ]
+    solvers = [StaticSolver(problem, amg_from=0) for _ in range(2)]
+    answers: list[np.ndarray | None] = [None, None]
+
+    def run(i: int, solver: StaticSolver) -> None:
+        answers[i] = solver.solve(2, k[i], None).displacements
+
+    threads = [threading.Thread(target=run, args=(i, s)) for i, s in enumerate(solvers)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for i in range(2):
+        assert np.array_equal(answers[i], expected[i])
+    first, second = (s.system(2, None)[0] for s in solvers)
+    assert first is second
+    assert solvers[0]._buffers.keys() == solvers[1]._buffers.keys()
+    key = next(iter(solvers[0]._buffers))
+    assert solvers[0]._buffers[key] is not solvers[1]._buffers[key]
+    del first, second, solvers, threads
+    gc.collect()
+    assert len(problem.cache["spring_systems"]) == 0

@@ -47,6 +47,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -125,6 +126,13 @@ there as diverged)."""
 SHIFT = 1e-8
 """Diagonal shift, relative to the largest diagonal entry, of the last-resort tangent (a
 singular one: a mechanism)."""
+
+_MULTIGRID_SETUP = threading.Lock()
+"""One multigrid setup at a time in a process: the solvers of chains running at once on threads
+would otherwise hold two setups' transients together (a tangent and smoothed aggregation's
+intermediates, about 0.5 GB each on the 93,705-node organ), the peak of the calibration."""
+
+_SHARED_SYSTEMS = threading.Lock()
 
 MAX_SYSTEMS = 6
 """Spring systems (distinct perturbed lists) a solver keeps, with their multigrid hierarchies
@@ -227,7 +235,6 @@ class SpringSystem:
             self.cell_ids = np.flatnonzero((corner_ends >= 0).any(axis=1))
             self.cells = every.subset(self.cell_ids)
             self.cell_ends = np.ascontiguousarray(corner_ends[self.cell_ids])
-        self._scratch: np.ndarray | None = None
         self._tangent_pattern()
 
     @property
@@ -273,6 +280,10 @@ class SpringSystem:
         cell_position = np.full(len(ca), -1, dtype=np.int64)
         cell_position[cell_pair] = where[m + 2 * nb :]
         self._cell_position = cell_position.reshape(-1, 8, 8)
+
+    def blocks(self) -> np.ndarray:
+        """(B, 3, 3) zeros: the values of a tangent on this system's block pattern."""
+        return np.zeros((self._n_blocks, 3, 3))
 
     def stretch(self, u: np.ndarray) -> np.ndarray:
         """(A,) spring elongations |r| - L at displacements u (M, 3), m."""
@@ -321,7 +332,7 @@ class SpringSystem:
         *,
         modified: bool = True,
         shift: float = 0.0,
-        scratch: bool = False,
+        out: np.ndarray | None = None,
     ) -> sp.bsr_matrix:
         """Hessian of E at u, (3M, 3M) N/m in 3x3 node blocks.
 
@@ -329,17 +340,15 @@ class SpringSystem:
         (kappa / V0) g g^T + p d^2V/dx^2 (g = dV/dx, p = kappa (V - V0) / V0). ``modified``
         clamps c at 0 and drops the cells' p term (a positive semi-definite tangent; exact
         wherever no spring is compressed and no cell has changed volume). ``shift`` adds
-        shift * (largest diagonal entry) to the diagonal. ``scratch``: fill this system's one
-        reusable buffer (the matrix is valid until the next scratch tangent) rather than new
-        memory (at 20k nodes 34 MB, whose first touch costs more than the assembly).
+        shift * (largest diagonal entry) to the diagonal. ``out``: a (B, 3, 3) buffer
+        (:meth:`blocks`) to fill rather than new memory (the matrix is then valid until the
+        buffer's next use; at 20k nodes 34 MB, whose first touch costs more than the assembly).
         """
-        if scratch:
-            if self._scratch is None:
-                self._scratch = np.zeros((self._n_blocks, 3, 3))
-            data = self._scratch
+        if out is not None:
+            data = out
             data.fill(0.0)
         else:
-            data = np.zeros((self._n_blocks, 3, 3))
+            data = self.blocks()
         _tangent_blocks(
             self.rest_vector, self.ends, self.rest_length, k.springs, u, modified, self._position,
             data,
@@ -788,6 +797,21 @@ class _Stats:
     start: str = "rest"
 
 
+def shared_system(problem: Problem, free: np.ndarray) -> SpringSystem:
+    """The problem's :class:`SpringSystem` on the free nodes ``free`` (ascending), built once
+    and shared by every solver of the problem that holds it (a system is read only: each
+    solver keeps its own tangent buffer, hierarchy and warm starts). Kept in ``problem.cache``
+    by weak reference, so it lives as long as some solver keeps it: the chains running at once
+    on threads hold one copy (on the 93,705-node organ about 0.2 GB) instead of one each."""
+    key = free.tobytes()
+    with _SHARED_SYSTEMS:
+        systems = problem.cache.setdefault("spring_systems", weakref.WeakValueDictionary())
+        system = systems.get(key)
+        if system is None:
+            system = systems[key] = SpringSystem(problem, free)
+        return system
+
+
 class StaticSolver:
     """Static equilibria of one problem's load cases, with everything worth keeping between
     calls: perturbed lists, spring systems, multigrid hierarchies and warm starts.
@@ -816,6 +840,7 @@ class StaticSolver:
         self._weight = solid.masses[:, None] * gravity[None, :] if np.any(gravity) else None
         self._lists: dict[tuple[int, int | None], tuple[bytes, np.ndarray, int]] = {}
         self._systems: dict[bytes, SpringSystem] = {}
+        self._buffers: dict[bytes, np.ndarray] = {}  # per system: the Newton tangent's values
         self._multigrid: dict[bytes, ReusedHierarchy] = {}
         self._predictors: dict[tuple[int, int | None], _Predictor] = {}
         self.hierarchies_built = 0
@@ -841,11 +866,12 @@ class StaticSolver:
         key, free, layers = found
         system = self._systems.pop(key, None)
         if system is None:
-            system = SpringSystem(self.problem, free)
+            system = shared_system(self.problem, free)
         self._systems[key] = system  # the most recently used last
         while len(self._systems) > MAX_SYSTEMS:
             oldest = next(iter(self._systems))
             del self._systems[oldest]
+            self._buffers.pop(oldest, None)
             self._multigrid.pop(oldest, None)
             for other, (other_key, _, _) in list(self._lists.items()):
                 if other_key == oldest:
@@ -1058,7 +1084,11 @@ class StaticSolver:
         with a small diagonal shift (Levenberg-Marquardt).
         """
         for modified, shift in ((False, 0.0), (True, 0.0), (True, SHIFT)):
-            tangent = system.tangent(u, k, modified=modified, shift=shift, scratch=True)
+            key = system.free.tobytes()
+            buffer = self._buffers.get(key)
+            if buffer is None:
+                buffer = self._buffers[key] = system.blocks()
+            tangent = system.tangent(u, k, modified=modified, shift=shift, out=buffer)
             try:
                 x = self._linear_solve(system, u, k, tangent, -gradient.ravel(), eta, nodal_stop)
             except NegativeCurvature as e:
@@ -1114,10 +1144,10 @@ class StaticSolver:
         mg = self._multigrid.get(key)
         if mg is None:
             nodes = self.problem.nodes[system.free]
-            blocks = sp.bsr_matrix(tangent, blocksize=(3, 3))
-            mg = self._multigrid[key] = ReusedHierarchy(
-                amg_hierarchy(blocks, rigid_body_modes(nodes))
-            )
+            with _MULTIGRID_SETUP:
+                blocks = sp.bsr_matrix(tangent, blocksize=(3, 3))
+                mg = ReusedHierarchy(amg_hierarchy(blocks, rigid_body_modes(nodes)))
+            self._multigrid[key] = mg
             self.hierarchies_built += 1
         return mg
 
@@ -1127,9 +1157,12 @@ class StaticSolver:
         key = system.free.tobytes()
         mg = self._multigrid.get(key)
         if mg is None or mg.stale:
-            reference = system.tangent(u, k, modified=True, shift=SHIFT * 1e-3)
+            self._multigrid.pop(key, None)  # the stale one goes before the new one is built
+            mg = None
             nodes = self.problem.nodes[system.free]
-            mg = ReusedHierarchy(amg_hierarchy(reference, rigid_body_modes(nodes)))
+            with _MULTIGRID_SETUP:
+                reference = system.tangent(u, k, modified=True, shift=SHIFT * 1e-3)
+                mg = ReusedHierarchy(amg_hierarchy(reference, rigid_body_modes(nodes)))
             self._multigrid[key] = mg
             self.hierarchies_built += 1
         return mg
