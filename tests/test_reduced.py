@@ -40,7 +40,15 @@ def test_the_stiffness_at_rest_is_linear_in_the_parameters():
     combined = model.cases[0].unit.at(theta)
     scale = np.abs(direct.toarray()).max()
     assert np.abs((combined - direct).toarray()).max() < 1e-12 * scale
-    assert len(model.cases[0].unit) == len(family_names(problem))
+    units = model.cases[0].unit
+    assert len(units) == len(family_names(problem))
+    for p, e in enumerate(np.eye(len(units))):  # each K_p alone, on its own nonzero blocks
+        alone = system.tangent(np.zeros((system.n_free, 3)), system.parameters(
+            model_stiffness(problem, e)), modified=True)  # fmt: skip
+        assert np.array_equal(units.matrix(p).toarray(), alone.toarray())
+    # a family's springs touch fewer blocks than the cells, which touch all of the pattern
+    assert [len(u.positions) for u in units.units][-1] == units.n_blocks
+    assert all(len(u.positions) < units.n_blocks for u in units.units[:-1])
 
 
 def test_the_reduced_model_is_exact_where_its_basis_holds_the_response():

@@ -25,6 +25,7 @@ on static solves would need a hundred.
 from __future__ import annotations
 
 import threading
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -105,38 +106,79 @@ class _Case:
 
 
 @dataclass(frozen=True)
-class UnitMatrices:
-    """The K_p of one perturbed list, (3M, 3M) N/m each (M the list's free nodes), in 3x3 node
-    blocks on the one block pattern every parameter shares (the list's springs and cells), so
-    that K(theta) = sum_p theta_p K_p is one weighted sum of their block values, not a sum of
-    sparse matrices (on the 93,705-node organ: 0.68 GB for the four K_p, which as CSR matrices
-    took 1.03 GB, and 0.17 GB for K(theta), which the sum of scaled copies built from several
-    0.26 GB intermediates).
+class _Unit:
+    """One K_p: its nonzero 3x3 blocks, where they sit in the list's block pattern, and their
+    own pattern (``scipy.sparse.bsr_matrix``'s indices and indptr)."""
 
-    Attributes:
-        data: (P, B, 3, 3) block values of each K_p.
-        indices, indptr: the block pattern (``scipy.sparse.bsr_matrix``'s).
-    """
-
-    data: np.ndarray
+    values: np.ndarray  # (b, 3, 3)
+    positions: np.ndarray  # (b,) indices into the list's blocks
     indices: np.ndarray
     indptr: np.ndarray
 
-    def __len__(self) -> int:
-        return len(self.data)
 
-    def _bsr(self, data: np.ndarray) -> sp.bsr_matrix:
-        n = 3 * (len(self.indptr) - 1)
-        return sp.bsr_matrix((data, self.indices, self.indptr), shape=(n, n), copy=False)
+@dataclass(frozen=True)
+class UnitMatrices:
+    """The K_p of one perturbed list, (3M, 3M) N/m each (M the list's free nodes), each kept as
+    its nonzero 3x3 blocks only (a family's springs touch 7, 13 or 9 of the 27 blocks of a row,
+    the cells all 27), and K(theta) = sum_p theta_p K_p formed as block values on the list's
+    one block pattern (the springs' and cells'), not as a sum of sparse matrices. On the
+    93,705-node organ the four K_p take 0.36 GB (1.03 GB as CSR matrices, 0.68 GB on the full
+    pattern each) and K(theta) 0.17 GB, where the sum of scaled copies built several 0.26 GB
+    intermediates.
+
+    Attributes:
+        units: the K_p.
+        n_blocks: blocks of the list's pattern; indices, indptr: that pattern.
+    """
+
+    units: tuple[_Unit, ...]
+    n_blocks: int
+    indices: np.ndarray
+    indptr: np.ndarray
+
+    @classmethod
+    def of(cls, tangents: Iterable[sp.bsr_matrix]) -> UnitMatrices:
+        """From the K_p assembled on one block pattern, taken one at a time (their zero blocks
+        are dropped before the next is assembled)."""
+        units: list[_Unit] = []
+        indices = indptr = row = np.zeros(0, dtype=np.int32)
+        n_blocks = 0
+        for tangent in tangents:
+            if not units:
+                indices, indptr, n_blocks = tangent.indices, tangent.indptr, len(tangent.data)
+                row = np.repeat(np.arange(len(indptr) - 1), np.diff(indptr))
+            assert np.array_equal(tangent.indices, indices)  # one block pattern
+            positions = np.flatnonzero(np.any(tangent.data != 0.0, axis=(1, 2)))
+            own = np.zeros_like(indptr)
+            np.cumsum(np.bincount(row[positions], minlength=len(indptr) - 1), out=own[1:])
+            units.append(
+                _Unit(
+                    values=np.ascontiguousarray(tangent.data[positions]),
+                    positions=positions.astype(np.int32),
+                    indices=np.ascontiguousarray(indices[positions]),
+                    indptr=own,
+                )
+            )
+        return cls(tuple(units), n_blocks, indices, indptr)
+
+    def __len__(self) -> int:
+        return len(self.units)
+
+    def _bsr(self, data: np.ndarray, indices: np.ndarray, indptr: np.ndarray) -> sp.bsr_matrix:
+        n = 3 * (len(indptr) - 1)
+        return sp.bsr_matrix((data, indices, indptr), shape=(n, n), copy=False)
 
     def matrix(self, p: int) -> sp.bsr_matrix:
-        """K_p (a view of the shared values: read only)."""
-        return self._bsr(self.data[p])
+        """K_p on its own blocks (a view of the shared values: read only)."""
+        u = self.units[p]
+        return self._bsr(u.values, u.indices, u.indptr)
 
     def at(self, theta: np.ndarray) -> sp.bsr_matrix:
-        """K(theta) = sum_p theta_p K_p (new values, the shared pattern)."""
-        values = np.tensordot(np.asarray(theta, dtype=float), self.data, axes=1)
-        return self._bsr(values)
+        """K(theta) = sum_p theta_p K_p (new values on the list's block pattern)."""
+        values = np.zeros((self.n_blocks, 3, 3))
+        for t, u in zip(np.asarray(theta, dtype=float), self.units, strict=True):
+            values[u.positions] += t * u.values
+        return self._bsr(values, self.indices, self.indptr)
 
 
 _UNITS = threading.Lock()
@@ -153,14 +195,9 @@ def unit_matrices(
         cache = problem.cache.setdefault("reduced_units", {})
         if key not in cache:
             rest = np.zeros((system.n_free, 3))
-            first = system.tangent(rest, system.parameters(units[0]), modified=True)
-            data = np.empty((len(units), *first.data.shape))
-            data[0] = first.data
-            for p, s in enumerate(units[1:], start=1):
-                tangent = system.tangent(rest, system.parameters(s), modified=True)
-                assert np.array_equal(tangent.indices, first.indices)  # one block pattern
-                data[p] = tangent.data
-            cache[key] = UnitMatrices(data, first.indices, first.indptr)
+            cache[key] = UnitMatrices.of(
+                system.tangent(rest, system.parameters(s), modified=True) for s in units
+            )
         return cache[key]
 
 
