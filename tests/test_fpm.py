@@ -258,11 +258,12 @@ def test_a_list_layout_is_the_same_lattice_renumbered():
         assert np.array_equal(layout.local[layout.nodes], np.arange(problem.n_nodes))
         assert np.array_equal(layout.order, np.arange(m))
         for i, node in enumerate(plist.order):
-            mine = slice(layout.ptr[i], layout.ptr[i + 1])
+            rows = layout.rows
+            mine = slice(rows.ptr[i], rows.ptr[i + 1])
             theirs = slice(a.ptr[node], a.ptr[node + 1])
-            assert np.array_equal(layout.nodes[layout.neighbour[mine]], a.neighbour[theirs])
-            assert np.array_equal(layout.rest_length[mine], a.rest_length[theirs])
-            assert np.array_equal(layout.spring[mine], a.spring[theirs])
+            assert np.array_equal(layout.nodes[rows.neighbour[mine]], a.neighbour[theirs])
+            assert np.array_equal(rows.rest_length[mine], a.rest_length[theirs])
+            assert np.array_equal(rows.spring[mine], a.spring[theirs])
 
 
 def test_the_layout_changes_no_bit_of_a_run():

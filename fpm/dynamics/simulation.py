@@ -170,13 +170,13 @@ class FpmModel:
         if self._weight is not None:
             external += self._weight
         layout = self.layout(plist)
-        factor = layout.stiffness_factor
+        factor = layout.rows.stiffness_factor
         kappa: np.ndarray | None = None
         if isinstance(k, Stiffness):
             kappa = k.volume
             k = k.springs
         if np.ndim(k):  # per-spring stiffness: the kernel's factor carries it, with k = 1
-            factor, k = np.asarray(k, dtype=float)[layout.spring], 1.0
+            factor, k = np.asarray(k, dtype=float)[layout.rows.spring], 1.0
         if kappa is not None:
             which = self.active_cells(plist)[1]
             volume = (self.local_cells(plist), np.ascontiguousarray(kappa[which], dtype=float))
@@ -265,11 +265,11 @@ class DynamicRun:
             self.x, self.v = buffers or (np.empty_like(self._rest), np.empty_like(self._rest))
             self.x[:] = self._rest
             self.v[:] = 0.0
-        a, p, c = self.layout, self.model.problem, self.cells
+        a, p, c = self.layout.rows, self.model.problem, self.cells
         if self._force is None:
             self._force = np.zeros_like(self._rest) if len(c.volume) else np.zeros((0, 3))
         taken, self.state, self.residual, inverted = run_steps(
-            a.order, a.ptr, a.neighbour, a.rest_length, self.factor, self._rest,
+            self.layout.order, a.ptr, a.neighbour, a.rest_length, self.factor, self._rest,
             self.x, self.v, self.external, self._mass, self.k, self.d, self.dt,
             int(steps), self.settle_force, p.size,
             c.corners, c.rest, c.volume, self.kappa, self._force,

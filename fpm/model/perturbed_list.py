@@ -95,23 +95,15 @@ class ListLayout:
             of :attr:`PerturbedList.order`.
         nodes: (N,) int64 the solid's index of each local node (local -> solid).
         local: (N,) int64 the local index of each of the solid's nodes (solid -> local).
-        ptr: (M+1,) int64; list node i's entries are ``ptr[i]:ptr[i+1]`` (rows of the list's
-            nodes only: the others never move).
-        neighbour: (E,) int32 local index of each entry's neighbour.
-        rest_length: (E,) the entry's spring's rest length, m.
-        stiffness_factor: (E,) its per-spring factor, or (0,) if all 1 (as :class:`Adjacency`).
-        spring: (E,) the entry's spring (a row of the solid's (S, 2) pairs); int32 when the
-            springs are fewer than 2^31 (a 10^6-node lattice has 1.3e7).
+        rows: the list's nodes' rows of the solid's :class:`Adjacency`, in local indices (M
+            rows: the other nodes never move); its ``spring`` is int32 when the springs are
+            fewer than 2^31 (a 10^6-node lattice has 1.3e7).
     """
 
     order: np.ndarray
     nodes: np.ndarray
     local: np.ndarray
-    ptr: np.ndarray
-    neighbour: np.ndarray
-    rest_length: np.ndarray
-    stiffness_factor: np.ndarray
-    spring: np.ndarray
+    rows: Adjacency
 
     @classmethod
     def of(cls, adjacency: Adjacency, plist: PerturbedList) -> ListLayout:
@@ -126,10 +118,7 @@ class ListLayout:
         ptr = np.zeros(len(plist.order) + 1, dtype=np.int64)
         np.cumsum(adjacency.ptr[plist.order + 1] - adjacency.ptr[plist.order], out=ptr[1:])
         factor = adjacency.stiffness_factor
-        return cls(
-            order=np.arange(len(plist.order), dtype=plist.order.dtype),
-            nodes=nodes,
-            local=local,
+        rows = Adjacency(
             ptr=ptr,
             neighbour=local[adjacency.neighbour[entries]].astype(np.int32),
             rest_length=adjacency.rest_length[entries],
@@ -138,6 +127,7 @@ class ListLayout:
                 np.int32 if len(adjacency.spring) < 2**31 else np.int64
             ),
         )
+        return cls(np.arange(len(plist.order), dtype=plist.order.dtype), nodes, local, rows)
 
 
 def perturbed_list(
