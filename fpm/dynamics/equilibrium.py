@@ -38,8 +38,10 @@ the largest applied nodal force (the settle criterion of the dynamic run, with a
 tolerance by default, so the static answer is at least as converged as a settled run).
 
 Thread-safety: a :class:`StaticSolver` keeps mutable caches (warm starts, multigrid
-hierarchies) and is not thread-safe; use one per thread. :func:`static_equilibrium` does so: it
-keeps one solver per thread on the problem.
+hierarchies, its tangent buffers) and is not thread-safe; use one per thread.
+:func:`static_equilibrium` does so: it keeps one solver per thread on the problem. What only
+depends on the problem, its perturbed lists and spring systems, is read only and shared by its
+solvers (:func:`spring_lists`, :func:`shared_system`).
 """
 
 from __future__ import annotations
@@ -133,6 +135,7 @@ would otherwise hold two setups' transients together (a tangent and smoothed agg
 intermediates, about 0.5 GB each on the 93,705-node organ), the peak of the calibration."""
 
 _SHARED_SYSTEMS = threading.Lock()
+"""Guards the problem's shared lists and spring systems while one is looked up or built."""
 
 MAX_SYSTEMS = 6
 """Spring systems (distinct perturbed lists) a solver keeps, with their multigrid hierarchies
@@ -1097,11 +1100,11 @@ class StaticSolver:
         where that is singular (a mechanism, e.g. an `axis` lattice at rest) the clamped one
         with a small diagonal shift (Levenberg-Marquardt).
         """
+        key = system.free.tobytes()
+        buffer = self._buffers.get(key)
+        if buffer is None:
+            buffer = self._buffers[key] = system.blocks()
         for modified, shift in ((False, 0.0), (True, 0.0), (True, SHIFT)):
-            key = system.free.tobytes()
-            buffer = self._buffers.get(key)
-            if buffer is None:
-                buffer = self._buffers[key] = system.blocks()
             tangent = system.tangent(u, k, modified=modified, shift=shift, out=buffer)
             try:
                 x = self._linear_solve(system, u, k, tangent, -gradient.ravel(), eta, nodal_stop)
@@ -1172,7 +1175,6 @@ class StaticSolver:
         mg = self._multigrid.get(key)
         if mg is None or mg.stale:
             self._multigrid.pop(key, None)  # the stale one goes before the new one is built
-            mg = None
             nodes = self.problem.nodes[system.free]
             with _MULTIGRID_SETUP:
                 reference = system.tangent(u, k, modified=True, shift=SHIFT * 1e-3)
