@@ -164,3 +164,88 @@ def test_the_readme_layout_matches_the_tree():
         }
         missing = [m for m in sorted(modules) if not re.search(rf"\b{m}\b", blocks[package])]
         assert missing == [], f"README layout, {package}/: {missing}"
+
+
+# The numerical core's plan (issue 28, docs/physics.md "Layout"): each subpackage of fpm imports
+# only from the layers below it; fitting and io sit side by side and never import each other;
+# no module imports, even lazily, a module that imports it back.
+LAYERS = {"model": 0, "fem": 1, "dynamics": 2, "fitting": 3, "io": 3}
+
+
+def module_graph(package: str = "fpm") -> dict[str, set[str]]:
+    """Module -> the modules of ``package`` it imports (lazy ones too), names resolved to the
+    module that holds them (``from .x import name`` is an arrow to ``x``, or to ``x.name``
+    where that is a module). Package ``__init__`` modules are left out: they only document,
+    and fpm's loads its public names on first use."""
+    modules = {
+        ".".join(p.relative_to(ROOT).with_suffix("").parts)
+        for p in (ROOT / package).rglob("*.py")
+        if p.stem != "__init__"
+    }
+    return {
+        module: {n for n in names if n in modules and n != module}
+        for module, names in imports_of(package).items()
+        if module in modules
+    }
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components with more than one module (Tarjan), sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return sorted(found)
+
+
+def test_cycles_finds_a_loop_and_only_loops():
+    """The checker itself: a loop through three modules is one component; a chain is none."""
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a", "d"}, "d": set()}
+    assert cycles(graph) == [["a", "b", "c"]]
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": set()}) == []
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_no_import_loops(package):
+    assert cycles(module_graph(package)) == []
+
+
+def test_fpm_imports_only_downward():
+    """model < fem < dynamics < fitting, io (the last two not into each other)."""
+    wrong = []
+    for module, names in module_graph("fpm").items():
+        here = module.split(".")[1]
+        for name in names:
+            there = name.split(".")[1]
+            if here in LAYERS and there in LAYERS and there != here:
+                if LAYERS[there] >= LAYERS[here]:
+                    wrong.append(f"{module} -> {name}")
+    assert wrong == []
+
+
+def test_every_fpm_subpackage_has_a_layer():
+    subpackages = {p.parent.name for p in (ROOT / "fpm").glob("*/__init__.py")}
+    assert subpackages <= set(LAYERS), subpackages - set(LAYERS)

@@ -18,6 +18,7 @@ from rq import get_current_job
 
 from fpm import load_problem, simulate
 from fpm.io.plot import profile_line
+from fpm.model.stiffness import fitted_theta
 from store import records, scratch
 from store.status import CalibrationStatus
 
@@ -37,10 +38,7 @@ def profile_data(problem: Any, reference: Any, result: dict[str, Any]) -> list[d
         discrepancy_h, %) and the run's steps and settled flag.
     """
     reference = np.asarray(reference, dtype=float)
-    stiffness = result.get("stiffness")
-    theta: float | list[float] = float(result["k"])
-    if problem.spec.fpm.stiffness == "families" and isinstance(stiffness, dict):
-        theta = [float(v) for v in stiffness.values()]
+    theta = fitted_theta(problem, result)
     out = []
     for j, case in enumerate(problem.load_cases):
         line, along, direction = profile_line(problem, j)

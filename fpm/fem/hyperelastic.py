@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from ..fitting.diagnosis import UNITS_HINT
+from ..model.spec import UNITS_HINT
 from .assembly import keep_nodes, unique_inverse
 from .linear_solver import (
     COMPILED_SMOOTHER_FROM,
@@ -53,7 +53,7 @@ from .neo_hookean import (
     kinematics,
     reference_gradients,
 )
-from .reference import FemError
+from .solution import FemError
 
 NEWTON_TOLERANCE = 1e-10
 """Converged at ||R|| <= this times ||f|| over the free unknowns (R the unbalanced force)."""

@@ -14,7 +14,7 @@ answer at the lattice's nodes, which is what the fit compares.
   4-point Gauss rule (degree 2) integrates exactly. Body force: ``int N_a rho g dV`` (exact:
   ``-V/20`` per corner and ``V/5`` per mid-edge node, times ``rho g``).
 - **Assembly.** Element matrices are computed vectorised over chunks of elements and summed into
-  3x3 node blocks (BSR), the unknowns node-major, so :func:`fpm.fem.reference.solve_dirichlet`
+  3x3 node blocks (BSR), the unknowns node-major, so :func:`fpm.fem.solution.solve_dirichlet`
   solves it as it solves the hexahedra (sparse LU when small, AMG-preconditioned CG above).
 - **Reading at points** (:func:`locate`). Each point is found in a tetrahedron by its barycentric
   coordinates (all >= -1e-9), candidates the tetrahedra whose centroids are nearest and then,
@@ -56,8 +56,8 @@ from .linear_solver import (
     rigid_body_modes,
     v_cycle,
 )
-from .reference import RESIDUAL_LIMIT, FemError, FemResult
-from .reference import solve_dirichlet as _solve_direct
+from .solution import RESIDUAL_LIMIT, FemError, FemResult
+from .solution import solve_dirichlet as _solve_direct
 
 FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
 """(4, 3) corners of the face opposite each corner, numbered outward for a positive tetrahedron."""
@@ -476,7 +476,7 @@ def tet10_reference(
 def solve_direct(
     k: sp.bsr_matrix, forces: np.ndarray, free: np.ndarray, mesh: Tet10Mesh, method: str
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Sparse LU, as :func:`fpm.fem.reference.solve_dirichlet` (arguments as
+    """Sparse LU, as :func:`fpm.fem.solution.solve_dirichlet` (arguments as
     :func:`solve_p_multigrid`)."""
     return _solve_direct(k, forces, free, mesh.nodes, method)
 

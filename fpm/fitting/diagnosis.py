@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 
 from ..model.problem import Problem
+from ..model.spec import UNITS_HINT
 
-UNITS_HINT = "E is in Pa (5 kPa = 5000), lengths in m, forces in N"
 SMALL_STRAIN = 0.1
 """A reference displacement above this fraction of the solid's smallest extent is flagged."""
 

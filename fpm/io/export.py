@@ -36,7 +36,8 @@ import numpy as np
 
 from ..model.hexahedron import FAMILIES
 from ..model.problem import Problem
-from ..model.stiffness import family_names, has_volume, model_stiffness, theta_of
+from ..model.stiffness import fitted_theta, has_volume, model_stiffness
+from .errors import ExportError
 
 FORMATS = ("json", "vtu", "sofa")
 MEDIA_TYPES = {"json": "application/json", "vtu": "application/xml", "sofa": "application/xml"}
@@ -72,10 +73,6 @@ SOFA_NO_VOLUME = (
     "the fitted model; add the term with a custom ForceField (the JSON export carries kappa "
     "per hexahedron), or use another engine"
 )
-
-
-class ExportError(ValueError):
-    """Parameters that do not fit the spec's lattice, or an unknown format."""
 
 
 @dataclass
@@ -138,17 +135,10 @@ class Parameters:
         return params
 
     def theta(self, problem: Problem) -> list[float]:
-        """The stiffness parameters as the solvers take them (:func:`theta_of`)."""
-        if family_names(problem) == ("k",):
-            values = set(self.stiffness.values())
-            if len(values) > 1:
-                raise ExportError(
-                    "the parameters hold one k per family but the spec fits one k "
-                    "(fpm.stiffness 'single'): export with the spec they were fitted on"
-                )
-            return [values.pop()]
+        """The stiffness parameters as the solvers take them (:func:`fitted_theta`)."""
+        record = {"stiffness": self.stiffness, "volume_stiffness": self.volume_stiffness}
         try:
-            return theta_of(problem, 0.0, self.stiffness, self.volume_stiffness)
+            return fitted_theta(problem, record)
         except ValueError as e:
             raise ExportError(str(e)) from None
 

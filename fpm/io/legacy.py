@@ -1,7 +1,7 @@
 """Mesh formats users have that meshio does not read: Gmsh legacy v1 (``$NOD``/``$ELM``) and
 legacy VTK POLYDATA surfaces (ASCII). Both become a ``meshio.Mesh`` for
 :func:`fpm.io.meshes.geometry_from_mesh`; a file that breaks the format is a
-:class:`fpm.io.meshes.MeshError` naming the line.
+:class:`fpm.io.errors.MeshError` naming the line.
 """
 
 from __future__ import annotations
@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from .errors import MeshError
+
 GMSH1_TYPES = {2: ("triangle", 3), 3: ("quad", 4), 4: ("tetra", 4), 5: ("hexahedron", 8),
                6: ("wedge", 6), 7: ("pyramid", 5)}  # fmt: skip
 """Gmsh v1 element types read (lines and points, types 1 and 15, are skipped)."""
@@ -18,8 +20,6 @@ GMSH1_TYPES = {2: ("triangle", 3), 3: ("quad", 4), 4: ("tetra", 4), 5: ("hexahed
 
 def read_legacy(path: Path, kind: str) -> Any:
     """The mesh in ``path`` of legacy ``kind`` (``"gmsh1"`` or ``"polydata"``)."""
-    from .meshes import MeshError
-
     try:
         tokens = path.read_text(encoding="latin-1").split()
         return read_gmsh1(tokens) if kind == "gmsh1" else read_polydata(tokens)

@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from ..model.spec import FACES
+from .errors import MeshError
 
 TOLERANCE = 1e-9
 """A cell centre within this (relative) barycentric margin of a tetrahedron counts as inside it:
@@ -64,10 +65,6 @@ _SPLIT = {
 }
 _MIRROR = np.array([0, 3, 2, 1, 4, 7, 6, 5])
 """Renumbering that turns an inside-out hexahedron right side out."""
-
-
-class MeshError(ValueError):
-    """A mesh file that cannot become a solid (unreadable, open surface, no cells, ...)."""
 
 
 @dataclass

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..dynamics.simulation import simulate
 from ..model.problem import Problem
-from ..model.stiffness import theta_of
+from ..model.stiffness import fitted_theta
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -71,7 +71,7 @@ def calibration_figure(problem: Problem, reference: np.ndarray, result: Any) -> 
     import matplotlib.pyplot as plt
 
     reference = np.asarray(reference, dtype=float)
-    theta = _stiffness(problem, result)
+    theta = fitted_theta(problem, result)
     relative = _field(result, "relative_discrepancy")
     h_percent = _field(result, "discrepancy_h", "discrepancy")
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
@@ -128,14 +128,6 @@ def plot_calibration(problem: Problem, reference: np.ndarray, result: Any, out: 
     fig = calibration_figure(problem, reference, result)
     fig.savefig(out, dpi=110)
     plt.close(fig)
-
-
-def _stiffness(problem: Problem, result: Any) -> float | list[float]:
-    """What :func:`fpm.simulate` takes as k: one value, or the fitted parameters."""
-    stiffness = getattr(result, "stiffness", None)
-    if problem.spec.fpm.stiffness == "single" or not isinstance(stiffness, dict):
-        return float(result.k)
-    return theta_of(problem, result.k, stiffness, getattr(result, "volume_stiffness", None))
 
 
 def _stiffness_label(result: Any) -> str:

@@ -33,6 +33,8 @@ Connectivity = Literal["axis", "axis+face", "full"]
 Face = Literal["x-", "x+", "y-", "y+", "z-", "z+"]
 FACES: tuple[str, ...] = get_args(Face)
 """The box faces a selector can name (e.g. {"face": "z-"})."""
+UNITS_HINT = "E is in Pa (5 kPa = 5000), lengths in m, forces in N"
+"""The units a spec is written in, as error messages remind a user who mixed them up."""
 
 
 class _Strict(BaseModel):

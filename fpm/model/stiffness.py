@@ -24,7 +24,8 @@ into the :class:`fpm.model.forces.Stiffness` every solver (dynamic and static) w
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -205,6 +206,38 @@ def theta_of(
     return theta
 
 
+def fitted_theta(problem: Problem, record: Any) -> list[float]:
+    """The parameters :func:`fpm.simulate` and :func:`model_stiffness` take (theta), from a fit's
+    record: a calibration result or a parameter set, as a dict or an object with attributes
+    (``k``, N/m; ``stiffness``, {family: k}, N/m; ``volume_stiffness``, Pa). The one place a
+    stored fit becomes solver input (the plot, the exports and the worker's views all call it).
+
+    ``single``: ``[k]`` (``k`` or the one value every family holds); the other modes:
+    :func:`theta_of`.
+
+    Raises:
+        ValueError: the record lacks what the spec's mode needs, or holds one k per family for a
+            spec that fits one k.
+    """
+    if isinstance(record, Mapping):
+        k, stiffness, kappa = (record.get(n) for n in ("k", "stiffness", "volume_stiffness"))
+    else:
+        k, stiffness, kappa = (
+            getattr(record, n, None) for n in ("k", "stiffness", "volume_stiffness")
+        )
+    if family_names(problem) != ("k",):
+        return theta_of(problem, 0.0 if k is None else float(k), stiffness, kappa)
+    values = {float(v) for v in stiffness.values()} if isinstance(stiffness, Mapping) else set()
+    if len(values) > 1:
+        raise ValueError(
+            "the parameters hold one k per family but the spec fits one k (fpm.stiffness "
+            "'single'): use the spec they were fitted on"
+        )
+    if k is None and not values:
+        raise ValueError("the parameters lack the stiffness k")
+    return [float(k) if k is not None else values.pop()]
+
+
 def volume_stiffness(problem: Problem, theta: Sequence[float]) -> float | None:
     """kappa, Pa, for families+volume (theta's last value); None for the other modes."""
     return float(theta[-1]) if has_volume(problem) else None
@@ -217,6 +250,7 @@ __all__ = [
     "axis_factors",
     "continuum_start",
     "family_names",
+    "fitted_theta",
     "has_volume",
     "model_stiffness",
     "spring_stiffness",
