@@ -11,7 +11,7 @@ the warm solve. Per mesh spacing h, with k0 = 0.35 E h and full depth:
   then solves at k0 * factor (single k) or at family stiffnesses changed by (+5, -5, +5)%;
 - annealing-like: a seeded random walk (log-normal 5% moves, half accepted) over the three
   load cases, as the annealer calls it; the solver remembers its last solutions
-  (:class:`fpm.dynamics.equilibrium._Predictor`). Mean and median per solve after the first 10
+  (:class:`fpm.dynamics.predictor._Predictor`). Mean and median per solve after the first 10
   moves, and the projected time of 300 moves x 3 load cases; with families also at a relative
   tolerance of 1e-4 instead of the default 1e-6 (settle_tolerance / 10).
 

@@ -36,6 +36,7 @@ from fpm.dynamics.equilibrium import (
     static_equilibrium,
     static_solver,
 )
+from fpm.dynamics.spring_system import Params, SpringSystem
 from fpm.fem.linear_solver import ReusedHierarchy
 from fpm.model.forces import Stiffness
 from fpm.model.stiffness import spring_stiffness
@@ -244,7 +245,7 @@ def test_depth_zero_moves_only_the_stimulated_nodes(paper: fpm.Problem):
 @pytest.fixture(scope="module", params=["single", "families+volume"])
 def strained_block(
     request,
-) -> tuple[equilibrium.SpringSystem, np.ndarray, equilibrium.Params, np.ndarray]:
+) -> tuple[SpringSystem, np.ndarray, Params, np.ndarray]:
     """A 3x3x4 `full` block's system at a random state with stretched and compressed springs,
     random stiffnesses and forces: springs only (the paper's model), or with the volume term
     (random kappa per cell, cells grown and shrunk)."""

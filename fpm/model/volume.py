@@ -21,8 +21,8 @@ power vanishes, and what remains is
 [a, b, c] = a . (b x c); a0 and a7 drop out. V is linear in each corner's position (its
 gradient with respect to x_n does not depend on x_n), which the tests check with finite
 differences. The functions here are compiled (numba) and work on one cell's (6, 3) array of
-a1..a6 (``a``); the dynamic kernel (:mod:`fpm.dynamics.voigt`) and the static solver
-(:mod:`fpm.dynamics.equilibrium`) call them per cell.
+a1..a6 (``a``); the dynamic kernel (:mod:`fpm.dynamics.voigt`) and the static solver's cell
+kernels (:mod:`fpm.dynamics.cell_terms`) call them per cell.
 """
 
 from __future__ import annotations
