@@ -9,7 +9,7 @@ average is printed beside each part):
    compiled kernels loaded before it. Goals: paper / two-stage wall time >= 10x; two-stage k
    within 0.5% of paper's; mean relative discrepancy no worse than paper's + 0.05 points.
 2. d: the two-stage fit's total settle steps over the load cases against the fewest found on a
-   30-point log grid of d across :func:`fpm.fitting.calibration.damping_bounds` (same k, depth, dt).
+   30-point log grid of d across :func:`fpm.fitting.bounds.damping_bounds` (same k, depth, dt).
    Goal: ratio <= 1.05.
 3. The organ (``bench/organ.py``) at h = 5 mm (goal <= 30 s wall) and h = 3 mm (goal <= 180 s
    wall and <= 2 GB peak RSS), depth "auto", each in a fresh subprocess (peak RSS = that
@@ -329,7 +329,7 @@ def material_a() -> dict[str, Any]:
 
 def damping_grid(a: dict[str, Any]) -> list[tuple[str, bool, str]]:
     import fpm
-    from fpm.fitting.calibration import damping_bounds
+    from fpm.fitting.bounds import damping_bounds
     from fpm.fitting.cost import CostFunction
 
     r = a["results"]["two-stage"]

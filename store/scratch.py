@@ -3,9 +3,9 @@
 
 - chain checkpoints (:class:`fpm.fitting.annealing.Checkpoint` as JSON), so that a retried
   chain resumes;
-- chain results (:class:`fpm.fitting.calibration.ChainResult` as JSON), read by the damping
+- chain results (:class:`fpm.fitting.stiffness_stage.ChainResult` as JSON), read by the damping
   stage and finalize;
-- the damping stage's result (:class:`fpm.fitting.calibration.DampingStage` as JSON);
+- the damping stage's result (:class:`fpm.fitting.damping_stage.DampingStage` as JSON);
 - progress reports, one field per chain and one for the damping stage;
 - the FPM-vs-FEM profile data of a succeeded calibration (the web view's plot);
 - the exports of parameter sets (bytes, by :func:`store.hashing.export_hash`; kept

@@ -12,17 +12,11 @@ import pytest
 import fpm
 from fpm.dynamics.equilibrium import static_equilibrium
 from fpm.fitting.annealing import AnnealingError, Checkpoint, Schedule, State, anneal, metropolis
-from fpm.fitting.calibration import (
-    ChainResult,
-    calibrate,
-    constrained_cost,
-    damping_bounds,
-    finalize,
-    pick_paper_state,
-    resolve_depth,
-    run_chain,
-)
+from fpm.fitting.bounds import damping_bounds
+from fpm.fitting.calibration import ChainResult, calibrate, finalize, pick_paper_state, run_chain
 from fpm.fitting.cost import CostFunction, Evaluation, StaticCost, discrepancies
+from fpm.fitting.damping_stage import resolve_depth
+from fpm.fitting.stiffness_stage import constrained_cost
 from fpm.model.spec import lundy_mees_moves
 from fpm.model.stiffness import theta_of
 

@@ -21,6 +21,7 @@ import numpy as np
 from ..dynamics.simulation import FpmModel
 from ..model.problem import Problem
 from ..model.stiffness import model_stiffness
+from .bounds import stiffness_bounds
 
 Theta = float | Sequence[float] | np.ndarray
 """Stiffness parameters: k, or one k per spring family (N/m), then kappa (Pa) for
@@ -100,7 +101,6 @@ def dynamic_time_step(problem: Problem) -> float:
     """The paper method's dt, s: the spec's, or for 'auto' the auto dt at the top of the
     stiffness bounds (one dt for every candidate of the joint (k, d) search, stable for all)."""
     from ..dynamics.stability import time_step
-    from .calibration import stiffness_bounds
 
     return time_step(problem, model_stiffness(problem, stiffness_bounds(problem)[1]))
 

@@ -319,7 +319,7 @@ class FpmSettings(_Strict):
 
 
 class Bounds(_Strict):
-    """Search box for the annealer; None = derived (see :mod:`fpm.fitting.calibration`)."""
+    """Search box for the annealer; None = derived (see :mod:`fpm.fitting.bounds`)."""
 
     k: tuple[float, float] | None = Field(None, description="spring stiffness range, N/m")
     d: tuple[float, float] | None = Field(None, description="nodal damping range, N s/m")

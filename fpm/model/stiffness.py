@@ -93,7 +93,7 @@ def continuum_start(problem: Problem) -> list[float]:
     material's isotropic solid: k1 = k2 = mu h, k3 = 0, kappa = lambda - mu (N/m, Pa).
 
     For nu < 1/4, lambda - mu < 0: a negative volume stiffness could make cells collapse, so
-    kappa starts (and stays, see :func:`fpm.fitting.calibration.stiffness_bounds`) at its
+    kappa starts (and stays, see :func:`fpm.fitting.bounds.stiffness_bounds`) at its
     floor, and the lattice cannot go below nu = 1/4 (the families' limit). k3 = 0 cannot be a
     point of a log-space search: it starts at the floor :data:`FLOOR` times mu h.
     """

@@ -1,0 +1,227 @@
+"""Stage 2 of the two-stage calibration, after the chains: polished stiffness, depth, then d.
+
+:func:`fit_damping` (the service's damping job) polishes the chains' best stiffness theta (N/m;
+kappa in Pa) on static equilibria (:func:`fpm.fitting.stiffness_stage.polish`; with families,
+from the better of the chains' best and the best single k), resolves depth 'auto'
+(:func:`resolve_depth`, galloping down from full depth on static solves; the paper method's
+finalize uses it too), and finds the fastest-settling nodal damping d (N s/m) at the dt of theta:
+:func:`fpm.fitting.damping.fastest_damping`, from two critical-damping estimates
+(:func:`damping_guesses`). Its result, :class:`DampingStage`, is JSON-able and carries the final
+check (:class:`fpm.fitting.validation.FinalRun`): the runs of the fastest d are the calibration's
+last dynamic run.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from ..dynamics.equilibrium import StaticSolver
+from ..dynamics.stability import time_step
+from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
+from ..model.forces import Stiffness
+from ..model.problem import Problem
+from ..model.stiffness import has_volume, model_stiffness
+from .bounds import damping_bounds, fit_depth, full_depth, stiffness_bounds
+from .cost import StaticCost
+from .damping import critical_damping, fastest_damping
+from .stiffness_stage import (
+    POLISH_SPAN,
+    UNIFORM_SPAN,
+    ChainResult,
+    Progress,
+    constrained_cost,
+    polish,
+)
+from .validation import FinalRun, final_run, reference_displacements
+
+
+@dataclass
+class DampingStage:
+    """Two-stage calibration after the chains: polished stiffness, depth and d (JSON-able).
+
+    Attributes:
+        theta: polished stiffness parameters, N/m.
+        static_cost: their normalised static cost at full depth.
+        polish_evaluations: static cost evaluations of the polish.
+        depth: resolved penetration depth; full_depth the deepest reachable.
+        d: fastest-settling nodal damping, N s/m; d_min the smallest that settles;
+            d_guess the critical-damping estimate the search started from.
+        dt: the time step d was fitted at, s (the spec's, or 'auto' resolved at theta).
+        damping_runs: dynamic runs of the d search.
+        damping_tried: [d, total steps or None] for every d tried.
+        final: the check at (theta, d, depth): the d search's runs at d, which are the last
+            dynamic run, against the static equilibria.
+        seconds: wall time of this stage.
+    """
+
+    theta: list[float]
+    static_cost: float
+    polish_evaluations: int
+    depth: int
+    full_depth: int
+    d: float
+    d_min: float
+    d_guess: float
+    dt: float
+    damping_runs: int
+    damping_tried: list[tuple[float, int | None]]
+    final: FinalRun
+    seconds: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> DampingStage:
+        return cls(**{**data, "final": FinalRun(**data["final"])})
+
+
+def resolve_depth(
+    cost: StaticCost, theta: list[float], tolerance: float, progress: Progress | None = None
+) -> tuple[int, int, dict[int, list[float]]]:
+    """Depth 'auto': the smallest depth whose static cost, in every load case, is within
+    ``tolerance`` (relative) of full depth's, at the stiffness ``theta`` fitted at full depth.
+
+    Galloping down from full depth (full - 1, full - 2, full - 4, ...) until a depth fails, then
+    bisection between it and the last that passed; each probe is a static solve per load case,
+    and the returned depth always passes the test. The answer is usually close to full depth
+    (32 of 33 layers on the organ at h = 3 mm: 2 probes where bisection from 0 takes 6, each of
+    the deepest, costliest lists). Returns (depth, full depth, {depth probed: case costs, m}).
+    """
+    full = cost(theta, None)
+    deepest = full_depth(cost.problem)
+    probed = {deepest: full.case_costs}
+
+    def passes(depth: int) -> bool:
+        if progress is not None:
+            progress({"phase": "depth", "depth": depth})
+        ev = cost(theta, depth)
+        probed[depth] = ev.case_costs
+        return math.isfinite(ev.cost) and all(
+            c <= f * (1 + tolerance) for c, f in zip(ev.case_costs, full.case_costs, strict=True)
+        )
+
+    fail, ok, gap = -1, deepest, 1
+    while ok - gap > fail:
+        if not passes(ok - gap):
+            fail = ok - gap
+            break
+        ok, gap = ok - gap, 2 * gap
+    while ok - fail > 1:
+        mid = (fail + ok) // 2
+        if passes(mid):
+            ok = mid
+        else:
+            fail = mid
+    return ok, deepest, probed
+
+
+def fit_damping(
+    problem: Problem,
+    reference: Any,
+    chains: list[ChainResult],
+    *,
+    progress: Progress | None = None,
+) -> DampingStage:
+    """Two-stage, after the chains: polish the best stiffness (at the depth the chains fitted
+    at), resolve the depth, find d.
+
+    With families, the polish starts from the better of the chains' best and the best single
+    k (every family at one k, a 1-D search): one k is a point of the families' space, so a
+    family fit never ends worse than the single-k fit of the same problem.
+    """
+    t0 = time.perf_counter()
+    disp = reference_displacements(reference, problem)
+    best = min(chains, key=lambda c: c.cost)
+    cost = StaticCost(problem, disp, fit_depth(problem))
+    if progress is not None:
+        progress({"phase": "polish"})
+    bounds = stiffness_bounds(problem)
+    start, ceilings = best.x, None
+    if len(start) > 1 and not has_volume(problem):
+        uniform, _ = polish(
+            cost, [float(np.exp(np.mean(np.log(start))))], (bounds[0][:1], bounds[1][:1]),
+            progress, span=UNIFORM_SPAN, uniform=len(start),
+        )  # fmt: skip
+        ceilings = cost(uniform * len(start)).case_costs
+        chains_best = constrained_cost(cost(start), cost.reference_cost, ceilings)
+        if constrained_cost(cost(uniform * len(start)), cost.reference_cost, None) < chains_best:
+            start = uniform * len(start)
+    span = UNIFORM_SPAN if len(start) > 1 else POLISH_SPAN
+    if has_volume(problem):  # the chains' defect-corrected fit is the polish
+        theta = list(start)
+    else:
+        theta, _ = polish(cost, start, bounds, progress, span=span, ceilings=ceilings)
+    static_cost = cost(theta).cost / cost.reference_cost
+    evaluations = cost.evaluations
+    depth = fit_depth(problem)
+    if progress is not None:
+        progress({"phase": "depth"})
+    if depth is None:
+        depth, deepest, _ = resolve_depth(
+            cost, theta, problem.spec.fpm.auto_depth_tolerance, progress
+        )
+    else:
+        deepest = full_depth(problem)
+    static = np.stack(
+        [cost.displacements(theta, j, depth).displacements for j in range(len(problem.load_cases))]
+    )
+    if progress is not None:
+        progress({"phase": "damping"})
+    stiffness = model_stiffness(problem, theta)
+    dt = time_step(problem, stiffness)
+    fit = fastest_damping(
+        problem,
+        stiffness,
+        depth,
+        damping_bounds(problem),
+        damping_guesses(problem, cost.solver, stiffness, depth, static),
+        dt=dt,
+        progress=None if progress is None else (lambda i: progress({"phase": "damping", **i})),
+    )
+    final = final_run(cost, theta, depth, fit.displacements, fit.steps, settled=True)
+    return DampingStage(
+        theta=[float(t) for t in theta],
+        static_cost=float(static_cost),
+        polish_evaluations=evaluations,
+        depth=int(depth),
+        full_depth=int(deepest),
+        d=fit.d,
+        d_min=fit.d_min,
+        d_guess=fit.guess,
+        dt=dt,
+        damping_runs=fit.runs,
+        damping_tried=fit.tried,
+        final=final,
+        seconds=time.perf_counter() - t0,
+    )
+
+
+def damping_guesses(
+    problem: Problem,
+    solver: StaticSolver,
+    stiffness: Stiffness,
+    depth: int,
+    static: np.ndarray,
+) -> tuple[float, float]:
+    """Two critical-damping estimates, N s/m (:mod:`fpm.fitting.damping`): from the static shapes
+    ``static`` (L, N, 3), and from the shapes their inertia deflects the linear lattice into
+    (one inverse iteration); the first twice when the lattice at rest is not held (an 'axis'
+    lattice is a mechanism there)."""
+    upper = critical_damping(problem, static)
+    masses = problem.solid.masses[None, :, None]
+    try:
+        inertia = np.stack(
+            [
+                solver.linear_response(j, stiffness, depth, masses[0] * static[j])
+                for j in range(len(problem.load_cases))
+            ]
+        )
+        return critical_damping(problem, inertia, masses * static), upper
+    except (SingularStiffnessError, NegativeCurvature):
+        return upper, upper

@@ -1,0 +1,146 @@
+"""The fit checked against its FEM reference, outside the cost (docs/physics.md).
+
+The reference (a :class:`fpm.fem.reference.FemResult` or an array of displacements, m) holds the
+load cases' displacements, (L, N, 3) in spec order, then the validation cases', (V, N, 3), when
+it was solved for them (:func:`reference_displacements`, :func:`validation_reference`).
+
+- :func:`check_reference`: its units, before any annealing (:mod:`fpm.fitting.diagnosis`);
+- :func:`final_run`: the last dynamic run at (stiffness, d, depth) against the reference and the
+  static equilibria at (stiffness, depth), giving the reported cost, discrepancies and settle
+  steps (:class:`FinalRun`), and a warning when the dynamic and static costs disagree by more
+  than STATIC_AGREEMENT;
+- :func:`validate`: the validation cases (never in the cost) at the fitted stiffness, by their
+  static equilibria (:class:`Validation`: relative discrepancy and % of h per case).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..model.problem import Problem
+from .cost import StaticCost, discrepancies
+
+STATIC_AGREEMENT = 1e-3
+"""The last dynamic run must reproduce the static cost to this fraction, else a warning ..."""
+SETTLE_RESOLUTION = 1e-4
+"""... or to this fraction of the reference cost, for a fit so close (cost near 0) that the
+settle tolerance's own error dominates."""
+
+
+def reference_displacements(reference: Any, problem: Problem | None = None) -> np.ndarray:
+    """(L, N, 3) from a FemResult (``.displacements``) or an array: the load cases' part
+    (the reference also holds the validation cases after them, :func:`validation_reference`)."""
+    every = np.asarray(getattr(reference, "displacements", reference), dtype=float)
+    return every if problem is None else every[: len(problem.load_cases)]
+
+
+def validation_reference(reference: Any, problem: Problem) -> np.ndarray | None:
+    """(V, N, 3) the reference of the validation cases, or None if it holds none (a reference
+    of the load cases only)."""
+    every = np.asarray(getattr(reference, "displacements", reference), dtype=float)
+    n, v = len(problem.load_cases), len(problem.validation_cases)
+    if not v or len(every) < n + v:
+        return None
+    return every[n : n + v]
+
+
+def check_reference(problem: Problem, reference: Any) -> list[str]:
+    """Units sanity of the FEM reference (:func:`fpm.fitting.diagnosis.check_reference`): raises
+    on a reference no small-strain solid gives, returns warnings."""
+    from .diagnosis import check_reference as check
+
+    return check(problem, reference_displacements(reference, problem))
+
+
+@dataclass
+class FinalRun:
+    """The last dynamic run at (stiffness, d, depth) against the reference and the statics.
+
+    Attributes:
+        cost: Eq. (2) of the dynamic run, m; static_cost: of the static equilibria, m.
+        settle_steps: (L,) steps to settle; settled: every load case settled.
+        relative, loaded, h_percent: the discrepancies (:class:`fpm.fitting.cost.Discrepancies`).
+        notes: warnings (did not settle; dynamic and static costs disagree).
+    """
+
+    cost: float
+    static_cost: float
+    settle_steps: list[int]
+    settled: bool
+    relative: list[float]
+    loaded: list[float]
+    h_percent: list[float]
+    notes: list[str]
+
+
+def final_run(
+    static: StaticCost,
+    theta: list[float],
+    depth: int,
+    displacements: np.ndarray,
+    steps: list[int],
+    settled: bool,
+) -> FinalRun:
+    """Check dynamic displacements (L, N, 3) at (theta, d, depth) against the reference and
+    the static equilibria at (theta, depth): they must agree within 0.1% of the cost."""
+    problem = static.problem
+    static_ev = static(theta, depth)
+    cost = float(sum(static.case_cost(j, u) for j, u in enumerate(displacements)))
+    figures = discrepancies(problem, displacements, static.reference)
+    notes = []
+    if not settled:
+        notes.append("the last dynamic run did not settle every load case within max_steps")
+    elif abs(cost - static_ev.cost) > max(
+        STATIC_AGREEMENT * static_ev.cost, SETTLE_RESOLUTION * static.reference_cost
+    ):
+        notes.append(
+            f"the settled dynamic cost {cost:.6g} m differs from the static cost "
+            f"{static_ev.cost:.6g} m by more than {STATIC_AGREEMENT:.1%}: the settle "
+            "tolerance stops runs short of equilibrium; a smaller fpm.settle_tolerance helps"
+        )
+    return FinalRun(
+        cost=cost,
+        static_cost=float(static_ev.cost),
+        settle_steps=[int(s) for s in steps],
+        settled=settled,
+        relative=figures.relative,
+        loaded=figures.loaded,
+        h_percent=figures.h_percent,
+        notes=notes,
+    )
+
+
+@dataclass
+class Validation:
+    """The validation cases at the fitted parameters: relative and % of h per case, and notes."""
+
+    relative: list[float]
+    h_percent: list[float]
+    notes: list[str]
+
+
+def validate(problem: Problem, reference: Any, theta: list[float], depth: int | None) -> Validation:
+    """The validation cases (never in the cost) at the fitted stiffness ``theta`` and ``depth``
+    (None: every layer), against their reference: their static equilibria, the state a settled
+    run reaches (d and dt decide only how fast)."""
+    if not problem.validation_cases:
+        return Validation([], [], [])
+    truth = validation_reference(reference, problem)
+    if truth is None:
+        return Validation(
+            [], [], ["the reference holds no validation cases: they were not evaluated"]
+        )
+    checked = problem.validation_problem()
+    cost = StaticCost(checked, truth, depth)
+    solved = [cost.displacements(theta, j) for j in range(len(checked.load_cases))]
+    figures = discrepancies(checked, np.stack([e.displacements for e in solved]), truth)
+    notes = [
+        f"validation case '{checked.load_cases[e.load_case].name}': no static equilibrium "
+        f"({e.message}): its figure is of an unconverged state"
+        for e in solved
+        if not e.converged
+    ]
+    return Validation(figures.relative, figures.h_percent, notes)
