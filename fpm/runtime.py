@@ -1,0 +1,262 @@
+"""The fitted model as an engine runs it: the JSON export stepped with forces that change each step.
+
+:class:`Runtime` needs nothing but the export (``fpmcal export --format json`` or the service's
+``/v1/parameter-sets/{id}/export``): no spec, no calibration, no compiled kernel; NumPy only, so
+that it is the recipe another engine ports (the web view's live model does, in JavaScript).
+
+One step, every node at once (positions x, velocities v, both (N, 3); masses m (N,); the fixed
+nodes never move)::
+
+    F = F_ext + m g + F_springs(x) + F_volume(x)              (N, 3), N
+    v <- (v + dt F / m) / (1 + dt d / m)                        damping taken implicitly
+    x <- x + dt v
+
+with, from the export's energy (its ``energy`` field),
+
+- springs s = (i, j, L, k): ``f = k (|r| - L) r / |r|`` on i and ``-f`` on j, r = x_j - x_i;
+- the volume term, per hexahedron c with corners in :data:`NATURAL` order: ``f_n = -kappa_c
+  (V_c - V0_c) / V0_c dV_c/dx_n``, V_c the volume of the trilinear hexahedron in closed form,
+  ``V = 8 [a1, a2, a3] + 8/3 ([a1, a4, a5] + [a4, a2, a6] + [a5, a6, a3])`` with
+  ``a_k = sum_n C_kn x_n`` (:data:`COEFFICIENTS`) and [a, b, c] = a . (b x c).
+
+The calibration's own kernel (:mod:`fpm.dynamics.voigt`) visits the perturbed list node by node,
+each node seeing its predecessors' new positions, and moves only the list; an engine moves every
+node at once. Both rest at the same static equilibrium (dE/dx = 0 over the free nodes), which
+the tests check against :func:`fpm.simulate` to 1e-9; at the fitted dt the all-at-once step is
+the more stable of the two (docs/physics.md, *Engines*).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+NATURAL = np.array(
+    [[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1],
+     [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]],
+    dtype=float,
+)  # fmt: skip
+"""(8, 3) the natural coordinates (r, s, t) of a hexahedron's corners, in the export's order."""
+
+COEFFICIENTS = (
+    np.stack(
+        [
+            NATURAL[:, 0],
+            NATURAL[:, 1],
+            NATURAL[:, 2],
+            NATURAL[:, 0] * NATURAL[:, 1],
+            NATURAL[:, 0] * NATURAL[:, 2],
+            NATURAL[:, 1] * NATURAL[:, 2],
+        ]
+    )
+    / 8.0
+)
+"""(6, 8) C_kn: a_k = sum_n C_kn x_n, the coefficients of r, s, t, rs, rt, st in the trilinear
+map x(r, s, t) of a hexahedron."""
+
+TRIPLES = ((0, 1, 2, 8.0), (0, 3, 4, 8.0 / 3.0), (3, 1, 5, 8.0 / 3.0), (4, 5, 2, 8.0 / 3.0))
+"""The volume as weighted triple products of a1..a6 (0-based): (p, q, r, weight)."""
+
+
+class ExportFormatError(ValueError):
+    """The document is not an FPM lattice export this runtime can step."""
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise a x b of (3, C) arrays (components first: plain arithmetic, no np.cross)."""
+    return np.stack(
+        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    )
+
+
+def hexahedron_volumes(x: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Volumes (C,) m^3 of the trilinear hexahedra ``corners`` (C, 8) at positions ``x`` (N, 3),
+    and their gradients dV/dx (C, 8, 3), m^2 (exact: V is linear in each corner)."""
+    a = np.matmul(COEFFICIENTS, x[corners]).transpose(1, 2, 0)  # (6, 3, C): a_k, component, cell
+    volume = np.zeros(len(corners))
+    grad_a = np.zeros_like(a)
+    for p, q, r, w in TRIPLES:
+        qr = _cross(a[q], a[r])
+        volume += w * (a[p] * qr).sum(axis=0)
+        grad_a[p] += w * qr
+        grad_a[q] += w * _cross(a[r], a[p])
+        grad_a[r] += w * _cross(a[p], a[q])
+    grad = np.tensordot(COEFFICIENTS, grad_a, axes=(0, 0))  # (8, 3, C)
+    return volume, grad.transpose(2, 0, 1)
+
+
+@dataclass
+class Runtime:
+    """An exported FPM lattice, stepped in time.
+
+    Attributes:
+        rest: (N, 3) rest positions, m.
+        masses: (N,) lumped masses, kg.
+        fixed: (N,) bool, the nodes that never move.
+        springs: (S, 2) node indices i, j.
+        rest_lengths: (S,) m.
+        stiffness: (S,) N/m, each spring's own.
+        hexahedra: (H, 8) corner indices (NATURAL order), or (0, 8) without the volume term.
+        kappa: (H,) volume stiffness per hexahedron, Pa.
+        rest_volumes: (H,) m^3.
+        d: nodal damping, N s/m.
+        dt: time step, s.
+        settle_tolerance: settled when the largest unbalanced nodal force is below this times
+            the largest applied nodal force (of the step, or of the last loaded step when the
+            forces are zero).
+        gravity: (3,) m/s^2 (the weight m g joins the applied forces).
+        x, v: (N, 3) positions (m) and velocities (m/s), the state :meth:`step` advances.
+        steps: steps taken since the last :meth:`reset`.
+        unbalanced: the largest |F_i| over the free nodes at the start of the last step, N.
+        settled: whether ``unbalanced`` was under the settle tolerance.
+    """
+
+    rest: np.ndarray
+    masses: np.ndarray
+    fixed: np.ndarray
+    springs: np.ndarray
+    rest_lengths: np.ndarray
+    stiffness: np.ndarray
+    hexahedra: np.ndarray
+    kappa: np.ndarray
+    rest_volumes: np.ndarray
+    d: float
+    dt: float
+    settle_tolerance: float
+    gravity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    x: np.ndarray = field(init=False)
+    v: np.ndarray = field(init=False)
+    steps: int = field(init=False, default=0)
+    unbalanced: float = field(init=False, default=float("inf"))
+    settled: bool = field(init=False, default=False)
+    _load_scale: float = field(init=False, default=0.0, repr=False)
+
+    def __post_init__(self) -> None:
+        n, s = self.n_nodes, len(self.springs)
+        # Gathering the forces onto the nodes as sparse products: (N, S) with +1 at (i, s) and
+        # -1 at (j, s) for the springs, (N, 8 H) with 1 at (corner, slot) for the hexahedra.
+        rows = np.concatenate([self.springs[:, 0], self.springs[:, 1]])
+        signs = np.concatenate([np.ones(s), -np.ones(s)])
+        self._spring_scatter = sp.csr_matrix((signs, (rows, np.tile(np.arange(s), 2))), (n, s))
+        flat = self.hexahedra.ravel()
+        self._corner_scatter = sp.csr_matrix(
+            (np.ones(len(flat)), (flat, np.arange(len(flat)))), (n, len(flat))
+        )
+        self.reset()
+
+    @classmethod
+    def from_export(cls, export: dict[str, Any] | str | Path) -> Runtime:
+        """The runtime of a JSON export (the parsed dict, or the path of the file)."""
+        doc = export if isinstance(export, dict) else json.loads(Path(export).read_text())
+        if doc.get("format") != "fpm-lattice":
+            raise ExportFormatError("not an FPM lattice export (its format is not 'fpm-lattice')")
+        p = doc["parameters"]
+        nodes = np.asarray(doc["nodes"], dtype=float).reshape(-1, 3)
+        springs = np.asarray(doc["springs"], dtype=float).reshape(-1, 4)
+        fixed = np.zeros(len(nodes), dtype=bool)
+        fixed[np.asarray(doc["fixed"], dtype=np.int64)] = True
+        if doc.get("volume_stiffness") is not None:
+            hexahedra = np.asarray(doc["hexahedra"], dtype=np.int64).reshape(-1, 8)
+            kappa = np.asarray(doc["volume_stiffness"], dtype=float)
+            rest_volumes = np.asarray(doc["rest_volumes"], dtype=float)
+        else:
+            hexahedra, kappa, rest_volumes = np.zeros((0, 8), np.int64), np.zeros(0), np.zeros(0)
+        return cls(
+            rest=nodes,
+            masses=np.asarray(doc["masses"], dtype=float),
+            fixed=fixed,
+            springs=springs[:, :2].astype(np.int64),
+            rest_lengths=springs[:, 2].copy(),
+            stiffness=springs[:, 3].copy(),
+            hexahedra=hexahedra,
+            kappa=kappa,
+            rest_volumes=rest_volumes,
+            d=float(p["d"]),
+            dt=float(p["dt"]),
+            settle_tolerance=float(p["settle_tolerance"]),
+            gravity=np.asarray(p.get("gravity", (0.0, 0.0, 0.0)), dtype=float),
+        )
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.rest)
+
+    def reset(self) -> None:
+        """Back to rest: x = the rest positions, v = 0."""
+        self.x = self.rest.copy()
+        self.v = np.zeros_like(self.rest)
+        self.steps, self.unbalanced, self.settled, self._load_scale = 0, float("inf"), False, 0.0
+
+    def load_case_forces(self, export: dict[str, Any], case: int) -> np.ndarray:
+        """(N, 3) the nodal forces of the export's load case ``case``, N."""
+        c = export["load_cases"][case]
+        forces = np.zeros_like(self.rest)
+        forces[np.asarray(c["nodes"], dtype=np.int64)] = np.asarray(c["forces"], dtype=float)
+        return forces
+
+    def internal_forces(self, x: np.ndarray) -> np.ndarray:
+        """(N, 3) spring and volume forces at positions ``x`` (N, 3), N: -dE/dx of the model's
+        energy without the applied forces."""
+        i, j = self.springs[:, 0], self.springs[:, 1]
+        r = x[j] - x[i]
+        length = np.sqrt(np.einsum("sd,sd->s", r, r))
+        f = (self.stiffness * (length - self.rest_lengths) / length)[:, None] * r
+        out = self._spring_scatter @ f
+        if len(self.hexahedra):
+            volume, grad = hexahedron_volumes(x, self.hexahedra)
+            pressure = self.kappa * (volume - self.rest_volumes) / self.rest_volumes
+            corner_forces = -pressure[:, None, None] * grad  # (H, 8, 3)
+            out += self._corner_scatter @ corner_forces.reshape(-1, 3)
+        return np.asarray(out)
+
+    def energy(self, x: np.ndarray, forces: np.ndarray | None = None) -> float:
+        """The model's energy at positions ``x``, J (the export's ``energy``): springs, volume
+        term, minus the work of ``forces`` (N, 3) and of gravity."""
+        r = x[self.springs[:, 1]] - x[self.springs[:, 0]]
+        stretch = np.linalg.norm(r, axis=1) - self.rest_lengths
+        e = 0.5 * float(np.sum(self.stiffness * stretch**2))
+        if len(self.hexahedra):
+            volume, _ = hexahedron_volumes(x, self.hexahedra)
+            change = volume - self.rest_volumes
+            e += 0.5 * float(np.sum(self.kappa * change**2 / self.rest_volumes))
+        applied = self.masses[:, None] * self.gravity[None, :]
+        if forces is not None:
+            applied = applied + forces
+        return e - float(np.sum(applied * (x - self.rest)))
+
+    def step(self, forces: np.ndarray | None = None) -> np.ndarray:
+        """Advance one step under the external nodal ``forces`` (N, 3), N (None: none).
+
+        Returns:
+            (N, 3) the positions after the step, m (the runtime's own array: read, don't write).
+        """
+        applied = self.masses[:, None] * self.gravity[None, :]
+        if forces is not None:
+            applied = applied + np.asarray(forces, dtype=float).reshape(self.rest.shape)
+        total = applied + self.internal_forces(self.x)
+        total[self.fixed] = 0.0
+        magnitude = np.sqrt(np.einsum("nd,nd->n", total, total))
+        self.unbalanced = float(magnitude.max(initial=0.0))
+        load = float(np.sqrt(np.einsum("nd,nd->n", applied, applied))[~self.fixed].max(initial=0))
+        if load > 0:
+            self._load_scale = load
+        self.settled = self.unbalanced < self.settle_tolerance * self._load_scale
+        a = (self.dt / self.masses)[:, None]
+        self.v = (self.v + a * total) / (1.0 + a * self.d)
+        self.v[self.fixed] = 0.0
+        self.x += self.dt * self.v
+        self.steps += 1
+        return self.x
+
+    def run(self, forces: np.ndarray | None = None, max_steps: int = 100_000) -> int:
+        """Step under constant ``forces`` until settled or ``max_steps``; the steps taken."""
+        for n in range(1, max_steps + 1):
+            self.step(forces)
+            if self.settled:
+                return n
+        return max_steps

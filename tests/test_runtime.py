@@ -1,0 +1,148 @@
+"""fpm.runtime: the JSON export stepped as an engine steps it (every node at once, springs,
+volume term, nodal damping at the exported dt), against the project's own kernels."""
+
+import ast
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fpm import load_problem, simulate
+from fpm.dynamics.equilibrium import static_equilibrium
+from fpm.io.export import export
+from fpm.model.forces import cells
+from fpm.model.hexahedron import NATURAL
+from fpm.model.stiffness import continuum_start, stiffness_dict, volume_stiffness
+from fpm.model.volume import volume_forces
+from fpm.runtime import ExportFormatError, Runtime, hexahedron_volumes
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def exported(spec: dict, theta=None, d_factor: float = 0.5):
+    """(problem, theta, d, the parsed JSON export) at the continuum start (or ``theta``)."""
+    problem = load_problem(spec)
+    theta = continuum_start(problem) if theta is None else theta
+    e, h = problem.spec.material.youngs_modulus, problem.h
+    d = d_factor * float(np.sqrt(e * h * problem.solid.masses.mean()))
+    record = {
+        "stiffness": stiffness_dict(problem, theta),
+        "volume_stiffness": volume_stiffness(problem, theta),
+        "d": d,
+        "depth": 30,
+    }
+    return problem, theta, d, json.loads(export(problem, record, "json"))
+
+
+@pytest.fixture(scope="module")
+def cube():
+    """The paper's cube (10^3 nodes, full connectivity) with the default model, settling tight."""
+    spec = json.loads((ROOT / "examples/paper-material-a.json").read_text())
+    spec["fpm"] = {"stiffness": "families+volume", "dt": "auto", "settle_tolerance": 1e-12}
+    return exported(spec)
+
+
+def test_the_runtime_is_standalone():
+    """The recipe an engine ports: NumPy and SciPy only, nothing else of ours."""
+    tree = ast.parse((ROOT / "fpm/runtime.py").read_text())
+    names = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    names |= {n.module or "." for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
+    assert {n.split(".")[0] for n in names} <= {"__future__", "json", "dataclasses", "pathlib",
+                                                 "typing", "numpy", "scipy"}  # fmt: skip
+
+
+def test_the_export_order_of_corners_is_the_model_s():
+    from fpm.runtime import NATURAL as RUNTIME_NATURAL
+
+    assert np.array_equal(RUNTIME_NATURAL, NATURAL)
+
+
+def test_forces_are_minus_the_energy_gradient(cube):
+    """Central differences of the export's energy (springs, volume term, work of the loads)."""
+    _, _, _, doc = cube
+    rt = Runtime.from_export(doc)
+    rng = np.random.default_rng(3)
+    x = rt.rest + 0.05 * doc["h"] * rng.standard_normal(rt.rest.shape)
+    forces = rt.load_case_forces(doc, 0)
+    total = rt.internal_forces(x) + forces
+    eps = 1e-7 * doc["h"]
+    for node, axis in [(0, 0), (555, 1), (999, 2), (444, 2)]:
+        plus, minus = x.copy(), x.copy()
+        plus[node, axis] += eps
+        minus[node, axis] -= eps
+        numeric = -(rt.energy(plus, forces) - rt.energy(minus, forces)) / (2 * eps)
+        assert numeric == pytest.approx(total[node, axis], rel=1e-5, abs=1e-9)
+
+
+def test_volume_forces_equal_the_model_s(cube):
+    problem, theta, _, doc = cube
+    rt = Runtime.from_export(doc)
+    rng = np.random.default_rng(4)
+    u = 0.03 * problem.h * rng.standard_normal(problem.nodes.shape)
+    rt.stiffness[:] = 0.0  # springs off: what is left is the volume term
+    only_volume = rt.internal_forces(problem.nodes + u)
+    kappa = np.asarray(doc["volume_stiffness"])
+    expected = volume_forces(cells(problem), kappa, u)
+    assert np.abs(only_volume - expected).max() <= 1e-12 * np.abs(expected).max()
+    volume, _ = hexahedron_volumes(problem.nodes, rt.hexahedra)
+    assert volume == pytest.approx(np.asarray(doc["rest_volumes"]), rel=1e-13)
+
+
+def test_the_static_equilibrium_is_at_rest_in_the_runtime(cube):
+    """The static solver's answer leaves no unbalanced force in the runtime's model."""
+    problem, theta, _, doc = cube
+    rt = Runtime.from_export(doc)
+    eq = static_equilibrium(problem, k=theta, depth=None, load_case=1, tolerance=1e-12)
+    forces = rt.load_case_forces(doc, 1)
+    residual = rt.internal_forces(problem.nodes + eq.displacements) + forces
+    residual[rt.fixed] = 0.0
+    assert np.abs(residual).max() <= 1e-9 * np.abs(forces).max()
+
+
+def test_the_runtime_settles_where_simulate_settles(cube):
+    """Every node at once vs the kernel's list order: the same settled state to 1e-9."""
+    problem, theta, d, doc = cube
+    rt = Runtime.from_export(doc)
+    forces = rt.load_case_forces(doc, 0)
+    steps = rt.run(forces, max_steps=20_000)
+    assert rt.settled and steps < 20_000
+    run = simulate(problem, k=theta, d=d, depth=None, load_case=0, dt=rt.dt, max_steps=40_000)
+    assert run.settled
+    u = run.displacements
+    assert np.abs((rt.x - rt.rest) - u).max() <= 1e-9 * np.abs(u).max()
+
+
+def test_forces_may_change_every_step(cube):
+    """A push that comes and goes: the model returns to rest; fixed nodes never move."""
+    _, _, _, doc = cube
+    rt = Runtime.from_export(doc)
+    push = rt.load_case_forces(doc, 2)
+    for n in range(400):
+        x = rt.step(push * np.sin(np.pi * n / 400))
+        assert np.array_equal(x[rt.fixed], rt.rest[rt.fixed])
+    moved = np.abs(rt.x - rt.rest).max()
+    assert moved > 0
+    rt.run(None, max_steps=20_000)
+    assert np.abs(rt.x - rt.rest).max() < 1e-6 * moved
+
+
+def test_a_spring_only_export_and_a_file(tmp_path):
+    spec = json.loads((ROOT / "examples/small-box.json").read_text())
+    spec["fpm"] = {"stiffness": "single", "settle_tolerance": 1e-12}
+    problem = load_problem(spec)
+    k = problem.spec.material.youngs_modulus * problem.h / 3
+    problem, theta, d, doc = exported(spec, theta=[k])
+    assert doc["volume_stiffness"] is None
+    path = tmp_path / "lattice.json"
+    path.write_text(json.dumps(doc))
+    rt = Runtime.from_export(path)
+    assert len(rt.hexahedra) == 0
+    rt.run(rt.load_case_forces(doc, 0), max_steps=50_000)
+    eq = static_equilibrium(problem, k=theta, depth=None, load_case=0, tolerance=1e-12)
+    assert np.abs(rt.x - rt.rest - eq.displacements).max() <= 1e-8 * np.abs(eq.displacements).max()
+
+
+def test_not_an_export():
+    with pytest.raises(ExportFormatError, match="fpm-lattice"):
+        Runtime.from_export({"format": "something else"})
