@@ -233,9 +233,11 @@ class Client:
 
         ``format``: ``json`` (returned as a dict: nodes, springs ``[i, j, rest length,
         stiffness]``, masses, fixed nodes, d, dt, depth, perturbed layers per load case, units),
-        ``vtu`` (ParaView: FPM and FEM displacements and their error per load case) or
-        ``sofa`` (a SOFA scene), both returned as text. With ``path`` the answer is written
-        there and the path returned. Waits while the service makes it (:meth:`export_bytes`).
+        ``vtu`` (ParaView: FPM and FEM displacements and their error per load case), ``sofa``
+        (a SOFA XML scene, springs only) or ``sofa-python`` (a SofaPython3 scene with the volume
+        term as a Python ForceField), all three returned as text. With ``path`` the answer is
+        written there and the path returned. Waits while the service makes it
+        (:meth:`export_bytes`).
         """
         body = self.export_bytes(parameter_set_id, format, timeout=timeout, progress=progress)
         if path is not None:

@@ -510,14 +510,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "export",
-        help="a fitted parameter set with its lattice: json, vtu (ParaView) or sofa (.scn)",
+        help="a fitted parameter set with its lattice: json, vtu (ParaView), sofa (.scn, springs "
+        "only) or sofa-python (SofaPython3 scene with the volume term)",
         description="From SPEC and PARAMS (the result of fpmcal calibrate --json on SPEC, or a "
         "parameter set of the service), or from the service's stored parameter set "
         "(--parameter-set ID).",
     )
     p.add_argument("spec", nargs="?", help="problem spec JSON file the parameters were fitted on")
     p.add_argument("params", nargs="?", help="calibration result or parameter set (JSON)")
-    p.add_argument("--format", choices=["json", "vtu", "sofa"], default="json")
+    p.add_argument("--format", choices=["json", "vtu", "sofa", "sofa-python"], default="json")
     p.add_argument("--parameter-set", default=None, metavar="ID", help="a stored parameter set")
     p.add_argument(
         "--url", default=os.environ.get("FPM_URL", "http://127.0.0.1:8000"),

@@ -313,6 +313,7 @@ def test_export_endpoint_in_process(api, redis, run_workers, small_spec):
     for fmt, media, suffix in (
         ("vtu", "application/xml", "vtu"),
         ("sofa", "application/xml", "scn"),
+        ("sofa-python", "text/x-python; charset=utf-8", "py"),
     ):
         assert api.get(path, params={"format": fmt}).status_code == 202
         run_workers()
@@ -612,7 +613,7 @@ def test_a_sofa_scene_of_the_volume_model_says_it_lacks_the_volume_term(capsys):
     record = {"stiffness": {"axis": 30.0, "face": 20.0, "body": 4.0}, "volume_stiffness": 2e4,
               "d": 0.05, "depth": 10, "dt": 1e-4}  # fmt: skip
     scene = export(problem, record, "sofa").decode()
-    assert "no component for this model's volume term" in scene
+    assert "no XML component for this model's volume term" in scene and "sofa-python" in scene
     assert export_warnings(problem, "sofa") and not export_warnings(problem, "json")
     vtu = meshio.read(_write(export(problem, record, "vtu"), ".vtu"))
     kappa = vtu.cell_data["volume_stiffness"]

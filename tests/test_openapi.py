@@ -117,7 +117,11 @@ def test_the_export_documents_its_202_and_retry_after(api):
         "$ref": "#/components/schemas/ExportPending"
     }
     assert {"Retry-After", "Location"} <= set(pending["headers"])
-    assert set(responses["200"]["content"]) == {"application/json", "application/xml"}
+    assert set(responses["200"]["content"]) == {
+        "application/json",
+        "application/xml",
+        "text/x-python",
+    }
     assert "export job failed" in responses["503"]["description"]
     assert "Retry-After" in responses["503"]["headers"]
 

@@ -31,16 +31,22 @@ from .parameter_sets import stored_parameter_set
 
 router = APIRouter(prefix="/v1/parameter-sets", tags=["parameter-sets"])
 
-ExportFormat = Literal["json", "vtu", "sofa"]
+ExportFormat = Literal["json", "vtu", "sofa", "sofa-python"]
 
-MEDIA_TYPES = {"json": "application/json", "vtu": "application/xml", "sofa": "application/xml"}
+MEDIA_TYPES = {
+    "json": "application/json",
+    "vtu": "application/xml",
+    "sofa": "application/xml",
+    "sofa-python": "text/x-python",
+}
 """Each format's media type (those of :mod:`fpm.io.export`, which this process does not load)."""
-SUFFIXES = {"json": ".json", "vtu": ".vtu", "sofa": ".scn"}
+SUFFIXES = {"json": ".json", "vtu": ".vtu", "sofa": ".scn", "sofa-python": ".py"}
 """Each format's file name suffix (:mod:`fpm.io.export`'s)."""
 
 CONTENT = {
     "application/json": {"schema": {"type": "object"}},
     "application/xml": {"schema": {"type": "string"}},
+    "text/x-python": {"schema": {"type": "string"}},
 }
 
 
@@ -68,7 +74,8 @@ RETRY_HEADERS = {
             "description": "json: nodes, springs [i, j, rest length, stiffness], masses, fixed "
             "nodes, d, dt, depth, perturbed layers per load case, with units; vtu: the lattice "
             "with FPM and FEM displacements and their error per load case (ParaView); sofa: a "
-            "SOFA scene (.scn)",
+            "SOFA scene (.scn, springs only); sofa-python: a SofaPython3 scene (.py) with the "
+            "volume term as a Python ForceField",
             "content": CONTENT,
         },
         202: {
@@ -94,7 +101,9 @@ def export(
     redis: RedisDep,
     settings: SettingsDep,
     request: Request,
-    fmt: Annotated[ExportFormat, Query(alias="format", description="json | vtu | sofa")] = "json",
+    fmt: Annotated[
+        ExportFormat, Query(alias="format", description="json | vtu | sofa | sofa-python")
+    ] = "json",
 ) -> Response:
     """A stored parameter set with its lattice: ``json`` (any engine), ``vtu`` (ParaView) or
     ``sofa`` (a SOFA scene). A worker makes it: the first request answers 202 (``pending``,
