@@ -146,3 +146,33 @@ def test_a_spring_only_export_and_a_file(tmp_path):
 def test_not_an_export():
     with pytest.raises(ExportFormatError, match="fpm-lattice"):
         Runtime.from_export({"format": "something else"})
+
+
+def readme_step() -> str:
+    """The README's "FPM step in NumPy" code block."""
+    readme = (ROOT / "README.md").read_text()
+    section = readme.split("**The FPM step in NumPy**", 1)[1]
+    return section.split("```python\n", 1)[1].split("```", 1)[0]
+
+
+@pytest.mark.parametrize("mode", ["families+volume", "single"])
+def test_the_readme_numpy_step_is_the_runtime(tmp_path, monkeypatch, mode):
+    """The recipe in the README, run as printed on an export of the small box, settles where
+    the runtime does (the same arithmetic) and at the static solver's equilibrium."""
+    spec = json.loads((ROOT / "examples/small-box.json").read_text())
+    spec["fpm"] = {"stiffness": mode, "settle_tolerance": 1e-10}
+    problem = load_problem(spec)
+    theta = continuum_start(problem) if mode != "single" else [problem.h * 3000.0]
+    problem, theta, _, doc = exported(spec, theta=theta)
+    (tmp_path / "lobe-lattice.json").write_text(json.dumps(doc))
+    monkeypatch.chdir(tmp_path)
+    scope: dict = {}
+    exec(compile(readme_step(), "README.md", "exec"), scope)
+    displacement = scope["displacement"]
+    rt = Runtime.from_export(doc)
+    steps = rt.run(rt.load_case_forces(doc, 0), max_steps=doc["parameters"]["max_steps"])
+    assert scope["step"] == steps < doc["parameters"]["max_steps"]
+    scale = np.abs(displacement).max()
+    assert np.abs(rt.x - rt.rest - displacement).max() <= 1e-10 * scale
+    eq = static_equilibrium(problem, k=theta, depth=None, load_case=0, tolerance=1e-12)
+    assert np.abs(eq.displacements - displacement).max() <= 1e-6 * scale

@@ -112,6 +112,7 @@ def test_the_scene_carries_the_whole_model(scene):
     assert np.array_equal(springs[:, [0, 1, 4, 2]], expected)  # i j ks kd L against i j L k
     assert np.all(springs[:, 3] == 0)
     assert objects["DiagonalMass"]["vertexMass"] == doc["masses"]
+    assert objects["MeshTopology"]["hexahedra"] == doc["hexahedra"]
     assert objects["FixedProjectiveConstraint"]["indices"] == doc["fixed"]
     assert objects["ConstantForceField"]["forces"] == doc["load_cases"][0]["forces"]
     assert objects["UniformVelocityDampingForceField"]["dampingCoefficient"] == 0.05

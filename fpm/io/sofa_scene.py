@@ -5,7 +5,8 @@ lattice in ``MODEL`` (the JSON export's numbers); run the result with ``runSofa 
 ``python scene.py`` where SofaPython3 is installed. fpm itself never imports this module (it
 needs SOFA); the tests load it with a stand-in ``Sofa.Core.ForceField``.
 
-The scene: positions (``MechanicalObject``), lumped masses (``DiagonalMass``), every spring
+The scene: positions (``MechanicalObject``), the hexahedra (``MeshTopology``), lumped masses
+(``DiagonalMass``), every spring
 (``SpringForceField``, kd = 0), the nodal damping d (``UniformVelocityDampingForceField``), the
 fixed nodes (``FixedProjectiveConstraint``), load case 1 (``ConstantForceField``), and the volume
 term, which SOFA has no component for, as :class:`VolumeForceField`: per trilinear hexahedron c
@@ -169,6 +170,7 @@ def createScene(root: Any) -> Any:  # noqa: N802 (the name SOFA looks for)
         "RequiredPlugin",
         pluginName=[
             "Sofa.Component.StateContainer",
+            "Sofa.Component.Topology.Container.Constant",
             "Sofa.Component.Mass",
             "Sofa.Component.SolidMechanics.Spring",
             "Sofa.Component.MechanicalLoad",
@@ -182,6 +184,9 @@ def createScene(root: Any) -> Any:  # noqa: N802 (the name SOFA looks for)
     body.addObject("EulerImplicitSolver", rayleighStiffness=0, rayleighMass=0)
     body.addObject("CGLinearSolver", iterations=1000, tolerance=1e-12, threshold=1e-20)
     body.addObject("MechanicalObject", name="dofs", template="Vec3d", position=MODEL["nodes"])
+    body.addObject(  # DiagonalMass keeps vertexMass once it has a topology of as many points
+        "MeshTopology", name="topology", position="@dofs.position", hexahedra=MODEL["hexahedra"]
+    )
     body.addObject("DiagonalMass", name="mass", vertexMass=numbers(MODEL["masses"]))
     springs = [
         [int(i), int(j), float(k), 0.0, float(length)] for i, j, length, k in MODEL["springs"]
