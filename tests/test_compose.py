@@ -76,3 +76,13 @@ def test_dockerfile_ships_every_package_and_runs_the_api():
     cmd = re.search(r"^CMD (.+)$", dockerfile, re.M).group(1)
     compose_api = yaml.safe_load((ROOT / "docker-compose.yml").read_text())["services"]["api"]
     assert shlex.split(cmd.replace('"', "").strip("[]").replace(",", " ")) == compose_api["command"]
+
+
+def test_limits_are_stated_once(compose):
+    """The node limit is the service's default (service/settings.py), not a second number here
+    (it once capped specs at 20,000 nodes while the service allowed 100,000)."""
+    api = compose["services"]["api"]["environment"]
+    assert "FPM_MAX_NODES" not in api
+    assert Settings.model_fields["max_nodes"].default == 100_000
+    worker = compose["services"]["worker"]["environment"]
+    assert set(worker) == {"FPM_WORKER_MEMORY"}

@@ -40,6 +40,8 @@ from store import keys, records, scratch
 from store.hashing import export_hash
 from store.status import CalibrationStatus, FemStatus, Phase
 
+from . import memory
+
 PROGRESS_INTERVAL = 0.5
 """Seconds between progress writes of a job (each also checks for a cancel)."""
 
@@ -71,7 +73,9 @@ def fem_reference(fem_hash: str) -> dict[str, Any]:
         mesh = records.get_mesh(redis, mesh_id) if mesh_id else None
         if mesh_id and mesh is None:
             raise FemError(f"reference.mesh_id: no uploaded mesh {mesh_id}")
-        result = solve_fem(load_problem(spec), mesh=mesh)
+        problem = load_problem(spec)
+        memory.check(problem.n_nodes)  # refused before it starts, not killed halfway
+        result = solve_fem(problem, mesh=mesh)
     except FemError as e:
         # The problem cannot be solved (e.g. the solid is not held): a retry would fail the
         # same way, so the reference fails now and the chains waiting on it say why.
@@ -119,6 +123,7 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
         },
     )
     problem = load_problem(record.spec)
+    memory.check(problem.n_nodes)
     fem = FemResult.from_dict(reference)
     try:
         check_reference(problem, fem)
@@ -266,6 +271,7 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
         return {"failed": True}
     chains, reference = found
     problem = load_problem(record.spec)
+    memory.check(problem.n_nodes)
     reporter = _DampingProgress(job, calibration_id)
     try:
         stage = fit_damping(problem, reference, chains, progress=reporter)
@@ -301,6 +307,7 @@ def finalize_calibration(calibration_id: str) -> dict[str, Any]:
             return {"failed": True}
         damping = DampingStage.from_dict(saved)
     problem = load_problem(record.spec)
+    memory.check(problem.n_nodes)
     warnings = check_reference(problem, reference)
     result = finalize(problem, reference, chains, damping, warnings=warnings).to_dict()
     parameter_set = _parameter_set(record, result, problem.n_nodes)
