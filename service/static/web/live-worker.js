@@ -1,0 +1,253 @@
+// The live model in a Web Worker: fpm-step.js's FpmModel stepped in a loop, pushed by the page.
+//
+// A module worker: new Worker(new URL("./live-worker.js", import.meta.url), {type: "module"}).
+//
+// Messages in (postMessage objects, by `type`):
+//   load     {model: <parsed JSON export>} | {text: <its JSON text>} | {url, headers}: build the
+//            model (a URL is fetched here; a 202 is asked again after its Retry-After) and start.
+//   push     {node, force: [fx, fy, fz]}: a constant force on a node, N, until changed
+//            (force null or [0, 0, 0] takes it away).
+//   drag     {node, target: [x, y, z], stiffness?, maxForce?}: a spring-like force toward the
+//            target, k (target - x_node), each step from the node's current position; k defaults
+//            to the sum of the node's spring stiffnesses; target null lets go.
+//   release  {}: every push and drag let go.
+//   reset    {}: back to rest (forces kept).
+//   pause / resume {}: stop / start stepping.
+//   config   {budgetMs?, frameMs?, realtime?}: per frame, step until budgetMs has passed
+//            (default 12 ms of a 16 ms frame); realtime caps the steps at frameMs / dt.
+//   step     {count}: exactly `count` steps now, then one frame posted (for tests and benches).
+//   recycle  {buffer}: a positions buffer the page is done with, to be filled again.
+// Messages out:
+//   ready    {nodes, springs, hexahedra, dt, d, rest: Float32Array(3 N)}
+//   frame    {positions: Float32Array(3 N) (transferred), steps (in all), stepsThisFrame,
+//            stepsPerSecond, unbalanced, settled, ms (stepping time of the frame)}
+//   error    {message}
+// Stepping stops by itself once the model is at rest with no push or drag on it (settled, or not
+// loaded since the last reset), after one last frame, and starts again with the next message.
+import { FpmModel } from "./fpm-step.js";
+
+let model = null;
+let forces = null; // Float64Array(3 N): what the pushes put on the nodes this step
+let handleStiffness = null; // per node: the default drag stiffness
+const pushes = new Map(); // node -> [fx, fy, fz]
+const drags = new Map(); // node -> {target, stiffness, maxForce}
+const pool = []; // positions buffers handed back by the page
+let budgetMs = 12;
+let frameMs = 16;
+let realtime = false;
+let paused = false;
+let timer = null;
+let lastRate = 0;
+
+function post(message, transfer) {
+  self.postMessage(message, transfer || []);
+}
+
+function fail(error) {
+  post({ type: "error", message: String(error && error.message ? error.message : error) });
+}
+
+async function fetchExport(url, headers) {
+  for (;;) {
+    const response = await fetch(url, { headers: headers || {} });
+    if (response.status === 202) {
+      const wait = Number(response.headers.get("Retry-After")) || 1;
+      await new Promise((resolve) => setTimeout(resolve, 1000 * wait));
+      continue;
+    }
+    if (!response.ok) throw new Error(`${url}: ${response.status} ${response.statusText}`);
+    return response.json();
+  }
+}
+
+function load(doc) {
+  model = FpmModel.fromExport(doc);
+  forces = new Float64Array(3 * model.nNodes);
+  handleStiffness = model.nodeStiffness();
+  pushes.clear();
+  drags.clear();
+  pool.length = 0;
+  const rest = Float32Array.from(model.rest);
+  post(
+    {
+      type: "ready",
+      nodes: model.nNodes,
+      springs: model.nSprings,
+      hexahedra: model.nHexahedra,
+      dt: model.dt,
+      d: model.d,
+      rest,
+    },
+    [rest.buffer],
+  );
+}
+
+// The forces of this step: the pushes, and each drag's pull from the node's current position.
+function applyForces() {
+  const x = model.x;
+  for (const [node, d] of drags) {
+    const k = 3 * node;
+    let f0 = d.stiffness * (d.target[0] - x[k]);
+    let f1 = d.stiffness * (d.target[1] - x[k + 1]);
+    let f2 = d.stiffness * (d.target[2] - x[k + 2]);
+    const size = Math.sqrt(f0 * f0 + f1 * f1 + f2 * f2);
+    if (d.maxForce > 0 && size > d.maxForce) {
+      const s = d.maxForce / size;
+      f0 *= s;
+      f1 *= s;
+      f2 *= s;
+    }
+    const p = pushes.get(node);
+    forces[k] = f0 + (p ? p[0] : 0);
+    forces[k + 1] = f1 + (p ? p[1] : 0);
+    forces[k + 2] = f2 + (p ? p[2] : 0);
+  }
+}
+
+function active() {
+  return pushes.size > 0 || drags.size > 0;
+}
+
+function setForce(node, vector) {
+  const k = 3 * node;
+  forces[k] = vector ? vector[0] : 0;
+  forces[k + 1] = vector ? vector[1] : 0;
+  forces[k + 2] = vector ? vector[2] : 0;
+}
+
+function checkNode(node) {
+  if (!Number.isInteger(node) || node < 0 || node >= model.nNodes) {
+    throw new Error(`no node ${node} (the model has ${model.nNodes})`);
+  }
+}
+
+function postFrame(stepsThisFrame, ms) {
+  const n3 = 3 * model.nNodes;
+  let positions = null;
+  while (pool.length && !positions) {
+    const buffer = pool.pop();
+    if (buffer.byteLength === 4 * n3) positions = new Float32Array(buffer);
+  }
+  if (!positions) positions = new Float32Array(n3);
+  positions.set(model.x);
+  if (ms > 0 && stepsThisFrame > 0) lastRate = (1000 * stepsThisFrame) / ms;
+  post(
+    {
+      type: "frame",
+      positions,
+      steps: model.steps,
+      stepsThisFrame,
+      stepsPerSecond: lastRate,
+      unbalanced: model.unbalanced,
+      settled: model.settled,
+      ms,
+    },
+    [positions.buffer],
+  );
+}
+
+// At rest with nothing on it: settled since the last load, or never loaded since the reset
+// (and no gravity), so at rest.
+function idle() {
+  if (active()) return false;
+  if (model.settled) return true;
+  const g = model.gravity;
+  return model.loadScale === 0 && g[0] === 0 && g[1] === 0 && g[2] === 0;
+}
+
+function frame() {
+  timer = null;
+  if (!model || paused) return;
+  if (idle()) return postFrame(0, 0); // the state as it is, once
+  const start = performance.now();
+  const cap = realtime ? Math.max(1, Math.round(frameMs / 1000 / model.dt)) : Infinity;
+  let count = 0;
+  do {
+    applyForces();
+    model.step(forces);
+    count += 1;
+  } while (count < cap && performance.now() - start < budgetMs);
+  const ms = performance.now() - start;
+  postFrame(count, ms);
+  if (idle()) return; // at rest: wait for the next message
+  schedule(Math.max(0, frameMs - ms));
+}
+
+function schedule(delay = 0) {
+  if (timer === null && model && !paused) timer = setTimeout(frame, delay);
+}
+
+const handlers = {
+  async load(m) {
+    if (m.model) load(m.model);
+    else if (typeof m.text === "string") load(JSON.parse(m.text));
+    else if (m.url) load(await fetchExport(m.url, m.headers));
+    else throw new Error("load: give model, text or url");
+  },
+  push(m) {
+    checkNode(m.node);
+    const zero = !m.force || m.force.every((c) => c === 0);
+    if (zero) pushes.delete(m.node);
+    else pushes.set(m.node, m.force.map(Number));
+    setForce(m.node, zero ? null : pushes.get(m.node));
+  },
+  drag(m) {
+    checkNode(m.node);
+    if (!m.target) {
+      drags.delete(m.node);
+      setForce(m.node, pushes.get(m.node) || null);
+      return;
+    }
+    drags.set(m.node, {
+      target: m.target.map(Number),
+      stiffness: m.stiffness > 0 ? m.stiffness : handleStiffness[m.node],
+      maxForce: m.maxForce > 0 ? m.maxForce : 0,
+    });
+  },
+  release() {
+    pushes.clear();
+    drags.clear();
+    forces.fill(0);
+  },
+  reset() {
+    model.reset();
+  },
+  pause() {
+    paused = true;
+    if (timer !== null) clearTimeout(timer);
+    timer = null;
+  },
+  resume() {
+    paused = false;
+  },
+  config(m) {
+    if (m.budgetMs > 0) budgetMs = m.budgetMs;
+    if (m.frameMs > 0) frameMs = m.frameMs;
+    if (typeof m.realtime === "boolean") realtime = m.realtime;
+  },
+  step(m) {
+    const start = performance.now();
+    const count = Math.max(0, Math.floor(m.count || 1));
+    for (let n = 0; n < count; n++) {
+      applyForces();
+      model.step(forces);
+    }
+    postFrame(count, performance.now() - start);
+  },
+  recycle(m) {
+    if (m.buffer instanceof ArrayBuffer) pool.push(m.buffer);
+  },
+};
+
+self.onmessage = async (event) => {
+  const m = event.data || {};
+  const handler = handlers[m.type];
+  if (!handler) return fail(`unknown message type ${m.type}`);
+  if (m.type !== "load" && m.type !== "config" && !model) return fail("no model loaded yet");
+  try {
+    await handler(m);
+  } catch (error) {
+    return fail(error);
+  }
+  if (m.type !== "recycle" && m.type !== "step") schedule();
+};
