@@ -11,7 +11,7 @@ from fastapi import Depends, FastAPI
 from . import deps, docs, errors, metrics, openapi, web
 from .deps import redis_client, require_api_key
 from .limits import BodySizeLimit
-from .routers import calibrations, exports, fem_references, health, meshes, parameter_sets
+from .routers import calibrations, exports, fem_references, health, meshes, parameter_sets, views
 from .settings import Settings, get_settings
 
 
@@ -35,7 +35,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.dependency_overrides[deps.settings] = lambda: settings
     protected = [Depends(require_api_key)]
     documented = errors.problem_responses(401, 500, 503)  # the rest route by route
-    for module in (calibrations, fem_references, meshes, parameter_sets, exports, health):
+    for module in (calibrations, fem_references, meshes, parameter_sets, exports, views, health):
         app.include_router(module.router, dependencies=protected, responses=documented)
     web.install(app, documented)  # the web view at /, its assets, the profile plot's JSON
     errors.install(app)

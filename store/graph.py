@@ -31,7 +31,7 @@ from rq.job import Dependency, Job, JobStatus
 from rq.serializers import JSONSerializer
 
 from . import keys, records, scratch
-from .hashing import export_hash, fem_hash, fem_spec, spec_hash
+from .hashing import export_hash, fem_hash, fem_spec, spec_hash, view_hash
 from .status import CalibrationStatus, FemStatus
 from .text import escape
 
@@ -399,6 +399,36 @@ def request_export(
     is then its cool-down.
     """
     digest = export_hash(parameter_set_id, fmt)
+    job = _CachedJob(keys.EXPORT_JOB, keys.export_job_id(digest), (parameter_set_id, fmt), "export")
+    return _request_cached(redis, digest, job, spec, timeout, f" of {parameter_set_id} as {fmt}")
+
+
+def request_view(
+    redis: Redis, parameter_set_id: str, spec: dict[str, Any], timeout: int
+) -> ExportState:
+    """The 3D view data of a stored parameter set (``worker.view``), made and cached exactly as
+    an export is (:func:`request_export`; under its own :func:`store.hashing.view_hash`)."""
+    digest = view_hash(parameter_set_id)
+    job = _CachedJob(keys.VIEW_JOB, keys.view_job_id(digest), (parameter_set_id,), "3D view")
+    return _request_cached(redis, digest, job, spec, timeout, f" of {parameter_set_id}")
+
+
+@dataclass(frozen=True)
+class _CachedJob:
+    """The job that makes bytes cached like an export: its dotted path, id, arguments and what
+    it makes (``export``, ``3D view``)."""
+
+    function: str
+    job_id: str
+    args: tuple[str, ...]
+    kind: str
+
+
+def _request_cached(
+    redis: Redis, digest: str, job: _CachedJob, spec: dict[str, Any], timeout: int, of: str
+) -> ExportState:
+    """:func:`request_export`'s steps for the bytes cached under ``digest``, made by ``job``
+    (``of`` completes its description: " of <parameter set> ...")."""
     body = scratch.get_export(redis, digest)
     if body is not None:
         return ExportState(body=body)
@@ -406,15 +436,14 @@ def request_export(
     if failure is not None:
         data, left = failure
         return ExportState(error=data["error"], invalid=bool(data["invalid"]), retry_after=left)
-    job_id = keys.export_job_id(digest)
-    job, job_status = _fetch(redis, job_id)
+    found, job_status = _fetch(redis, job.job_id)
     if job_status in PENDING:
         return ExportState(retry_after=EXPORT_POLL)
-    if job is not None and job_status == JobStatus.FAILED:
-        left = int(redis.ttl(job.key))
+    if found is not None and job_status == JobStatus.FAILED:
+        left = int(redis.ttl(found.key))
         return ExportState(
-            error="the export job stopped before it finished (its worker died or it ran past "
-            f"its timeout of {timeout} s)",
+            error=f"the {job.kind} job stopped before it finished (its worker died or it ran "
+            f"past its timeout of {timeout} s)",
             retry_after=max(left, 1),
         )
     if scratch.claim_export(redis, digest):
@@ -423,13 +452,13 @@ def request_export(
             return ExportState(body=body)
         q = priority_queue(redis) if fem_nodes(spec) <= SMALL_FEM_NODES else queue(redis)
         q.enqueue_call(
-            keys.EXPORT_JOB,
-            args=(parameter_set_id, fmt),
-            job_id=job_id,
+            job.function,
+            args=job.args,
+            job_id=job.job_id,
             timeout=timeout,
             result_ttl=60,
             failure_ttl=scratch.EXPORT_FAILED_TTL,
-            description=f"export of parameter set {parameter_set_id} as {fmt}",
+            description=f"{job.kind} of parameter set{of}",
         )
     return ExportState(retry_after=EXPORT_POLL)
 

@@ -73,6 +73,18 @@ def export_hash(parameter_set_id: str, fmt: str) -> str:
     return hashlib.sha256(canonical(identity)).hexdigest()
 
 
+VIEW_VERSION = 1
+"""Layout of a parameter set's 3D view data (``worker/view.py``): bump it when a change there
+alters the bytes, so that cached views of the older layout are not handed out."""
+
+
+def view_hash(parameter_set_id: str) -> str:
+    """sha256 of a parameter set id and :data:`VIEW_VERSION`: the identity of its cached 3D view
+    data (the id stands for the content, as in :func:`export_hash`)."""
+    identity = {"parameter_set": parameter_set_id, "view": VIEW_VERSION}
+    return hashlib.sha256(canonical(identity)).hexdigest()
+
+
 def canonical_mesh(nodes: Any, tetrahedra: Any) -> dict[str, Any]:
     """A tetrahedral mesh in one spelling: nodes as lists of floats (m), tetrahedra as lists of
     ints, so that ``0`` and ``0.0`` name the same mesh."""

@@ -32,6 +32,7 @@ FINALIZE_JOB = "worker.jobs.finalize_calibration"
 FAILURE_CALLBACK = "worker.jobs.on_failure"
 PROFILE_JOB = "worker.profile.calibration_profile"
 EXPORT_JOB = "worker.jobs.export_parameter_set"
+VIEW_JOB = "worker.view.parameter_set_view"
 
 
 CALIBRATION_ID = re.compile(r"[0-9a-f]{16}")
@@ -174,6 +175,12 @@ def export_claim(export_hash: str) -> str:
 def export_job_id(export_hash: str) -> str:
     """RQ job id of the export job of one (parameter set, format, export version)."""
     return f"export-{export_hash[:40]}"
+
+
+def view_job_id(view_hash: str) -> str:
+    """RQ job id of the job that makes a parameter set's 3D view data (cached like an export,
+    under :func:`export` of its :func:`store.hashing.view_hash`)."""
+    return f"view-{view_hash[:40]}"
 
 
 def owner_calibrations(owner: str) -> str:
