@@ -30,6 +30,22 @@ from .deps import CalibrationId, RedisDep, SettingsDep, require_api_key
 STATIC = Path(__file__).resolve().parent / "static" / "web"
 """The page, script and style sheet."""
 
+CONTENT_SECURITY_POLICY = "; ".join(
+    [
+        "default-src 'none'",
+        "script-src 'self'",  # app.js, and the 3D view's modules (view3d.js, vendor/three)
+        "worker-src 'self'",
+        "style-src 'self'",
+        "img-src 'self'",
+        "connect-src 'self'",
+        "base-uri 'none'",
+        "form-action 'self'",
+        "frame-ancestors 'none'",
+    ]
+)
+"""The page's Content-Security-Policy: everything from this origin only (scripts, modules and
+workers; no inline script or style, no eval), so the page can load nothing from another host."""
+
 PROFILE_FAILED_HINT = "the profile job failed; it is tried again in a few minutes"
 
 page = APIRouter(include_in_schema=False)
@@ -39,7 +55,8 @@ api = APIRouter(prefix="/v1/calibrations", tags=["calibrations"])
 @page.get("/")
 def index() -> FileResponse:
     """The web view (a single page; its routes live in the URL's fragment)."""
-    return FileResponse(STATIC / "index.html", media_type="text/html")
+    headers = {"Content-Security-Policy": CONTENT_SECURITY_POLICY}
+    return FileResponse(STATIC / "index.html", media_type="text/html", headers=headers)
 
 
 class ProfileCase(BaseModel):

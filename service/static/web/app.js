@@ -1,7 +1,8 @@
 // The web view of the FPM calibration service: plain JavaScript, no library, no CDN.
 //
 // Routes live in the URL's fragment: #/ (calibrations), #/calibrations/<id> (one calibration),
-// #/parameter-sets and #/parameter-sets/<id>. Everything shown comes from the /v1 endpoints,
+// #/parameter-sets, #/parameter-sets/<id> and #/parameter-sets/<id>/3d (its 3D view: the module
+// view3d.js with three.js, loaded only there). Everything shown comes from the /v1 endpoints,
 // polled while something runs; charts are inline SVG drawn here. When the service answers 401
 // (API keys are set) the page asks for a key, keeps it in this tab's session storage and sends
 // it as X-API-Key. Text from the service is always inserted as text, never as HTML.
@@ -34,6 +35,7 @@
     for (const [name, value] of Object.entries(attrs || {})) {
       if (value === null || value === undefined || value === false) continue;
       if (name.startsWith("on")) node.addEventListener(name.slice(2), value);
+      else if (name === "style") node.style.cssText = String(value); // CSP: no style attributes
       else node.setAttribute(name, value === true ? "" : String(value));
     }
     return node;
@@ -212,6 +214,7 @@
   function route() {
     viewToken += 1;
     clearTimeout(timer);
+    if (view3d) { view3d.dispose(); view3d = null; }
     const token = viewToken;
     const parts = location.hash.replace(/^#\/?/, "").split("/").map(decodeURIComponent);
     const section = parts[0] === "parameter-sets" ? "parameter-sets" : "calibrations";
@@ -219,6 +222,7 @@
       link.classList.toggle("current", link.dataset.nav === section);
     }
     if (parts[0] === "calibrations" && parts[1]) calibrationView(parts[1], token);
+    else if (parts[0] === "parameter-sets" && parts[1] && parts[2] === "3d") view3dPage(parts[1], token);
     else if (parts[0] === "parameter-sets" && parts[1]) parameterSetView(parts[1], token);
     else if (parts[0] === "parameter-sets") parameterSetsView(token);
     else listView(token);
@@ -476,7 +480,8 @@
       el("h3", null, "Fitted parameters"),
       el("dl", { class: "facts" }, facts.map(([k, v]) => [el("dt", null, k), el("dd", null, v)])),
       c.parameter_set_id ? el("p", null, "Parameter set ",
-        el("a", { href: `#/parameter-sets/${enc(c.parameter_set_id)}` }, c.parameter_set_id)) : null,
+        el("a", { href: `#/parameter-sets/${enc(c.parameter_set_id)}` }, c.parameter_set_id), " · ",
+        view3dLink(c.parameter_set_id)) : null,
       r.warnings && r.warnings.length ? el("ul", { class: "warnings" }, r.warnings.map((w) => el("li", null, w))) : null);
   }
 
@@ -596,7 +601,8 @@
   function parameterSetRow(ps) {
     const prov = ps.provenance || {};
     return el("tr", { "data-id": ps.id },
-      el("td", null, el("a", { href: `#/parameter-sets/${enc(ps.id)}` }, ps.name), el("div", { class: "muted nowrap" }, ps.id)),
+      el("td", null, el("a", { href: `#/parameter-sets/${enc(ps.id)}` }, ps.name), el("div", { class: "muted nowrap" }, ps.id),
+        el("div", null, view3dLink(ps.id))),
       el("td", null, materialCell(ps.material)),
       el("td", null, geometryText(ps.geometry)),
       el("td", { class: "num" }, mm(ps.geometry.h)),
@@ -667,6 +673,7 @@
         el("p", null, "From calibration ", el("a", { href: `#/calibrations/${enc(prov.calibration_id)}` }, prov.calibration_id),
           ` (${prov.method}, seed ${prov.seed}, ${prov.chains} chains, ${prov.evaluations} evaluations)`),
         ps.warnings && ps.warnings.length ? el("ul", { class: "warnings" }, ps.warnings.map((w) => el("li", null, w))) : null,
+        el("p", null, view3dLink(ps.id), ": the FEM and the FPM shapes per load case, coloured by their discrepancy"),
         exportButtons(ps.id)));
   }
 
@@ -706,6 +713,49 @@
       }
     } catch (error) {
       status.textContent = errorText(error);
+    }
+  }
+
+  // ---- 3D view -------------------------------------------------------------------------------
+  // The data comes from GET /v1/parameter-sets/{id}/view (202 while a worker makes it, then a
+  // binary body); view3d.js (an ES module, with three.js) decodes and draws it.
+
+  let view3d = null; // the open View3D, disposed when the route changes
+
+  function view3dLink(id) {
+    return el("a", { href: `#/parameter-sets/${enc(id)}/3d`, class: "view3d-link" }, "3D view");
+  }
+
+  async function view3dPage(id, token) {
+    const opened = performance.now();
+    const status = el("p", { class: "muted", id: "view3d-status" }, "Loading the 3D view…");
+    const panel = el("div", { class: "panel", id: "view3d" },
+      el("h2", null, "3D view of parameter set ", id), status);
+    show(el("p", null, el("a", { href: `#/parameter-sets/${enc(id)}` }, "← parameter set ", id)), panel);
+    const module = import("./view3d.js"); // loads three.js while the data is fetched
+    let buffer;
+    try {
+      for (;;) {
+        const response = await request("GET", `v1/parameter-sets/${enc(id)}/view`, "application/octet-stream");
+        if (!alive(token)) return;
+        if (response.status !== 202) { buffer = await response.arrayBuffer(); break; }
+        const wait = Number(response.headers.get("Retry-After") || "1");
+        status.textContent = `A worker is computing the FEM and FPM shapes (${Math.round((performance.now() - opened) / 1000)} s)…`;
+        await new Promise((resolve) => setTimeout(resolve, 1000 * Math.max(wait, 1)));
+        if (!alive(token)) return;
+      }
+      const { decodeView, mountView } = await module;
+      if (!alive(token)) return;
+      status.remove();
+      view3d = mountView(panel, decodeView(buffer));
+      await new Promise((resolve) => requestAnimationFrame(() => setTimeout(resolve, 0))); // painted
+      if (!alive(token)) return;
+      panel.dataset.bytes = String(buffer.byteLength);
+      panel.dataset.openMs = String(Math.round(performance.now() - opened)); // since the route
+      panel.dataset.shownAt = String(Math.round(performance.now())); // since navigation start
+      panel.dataset.ready = "1";
+    } catch (error) {
+      if (alive(token)) status.replaceChildren(errorPanel(error, "3D view"));
     }
   }
 
