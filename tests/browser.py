@@ -12,7 +12,13 @@ Two ways to drive it:
   run);
 - :class:`Browser`: the DevTools protocol over ``--remote-debugging-pipe`` (JSON messages ended
   by a NUL on file descriptors 3 and 4; no extra package), to type into a form, click and wait
-  for what the page shows.
+  for what the page shows, take a screenshot of the page as it is (:meth:`Browser.screenshot`)
+  and read what it wrote to its console (:meth:`Browser.console_errors`).
+
+WebGL (the web view's 3D view): headless Chromium has no GPU here, so it renders WebGL with
+SwiftShader, Chromium's software renderer, asked for explicitly (``--use-angle=swiftshader
+--enable-unsafe-swiftshader``): left to fall back to it on its own, Chromium 156 still draws,
+but newer versions warn about or refuse that implicit fallback.
 """
 
 from __future__ import annotations
@@ -44,6 +50,8 @@ FLAGS = (
     "--disable-dev-shm-usage",
     "--disable-extensions",
     "--mute-audio",
+    "--use-angle=swiftshader",  # WebGL in software (SwiftShader), no GPU needed
+    "--enable-unsafe-swiftshader",
 )
 
 
@@ -171,6 +179,8 @@ class Browser:
         self.buffer = b""
         self.next_id = 0
         self.session: str | None = None
+        self.events: list[dict[str, Any]] = []
+        """Every event the browser sent (``method``, ``params``), in order."""
 
     def call(self, method: str, params: dict[str, Any] | None = None, *, top: bool = False) -> Any:
         """Send one command (to the attached page unless ``top``) and return its result."""
@@ -196,6 +206,8 @@ class Browser:
                 if "error" in answer:
                     raise RuntimeError(f"{method}: {answer['error']}")
                 return answer.get("result", {})
+            if "method" in answer:
+                self.events.append(answer)
 
     def open(self, url: str) -> None:
         """Open ``url`` in a new page and attach to it."""
@@ -205,7 +217,42 @@ class Browser:
         )
         self.session = attached["sessionId"]
         self.call("Page.enable")
+        self.call("Runtime.enable")  # console messages and uncaught exceptions, as events
+        self.call("Log.enable")  # the browser's own: CSP violations, failed loads, WebGL
         self.call("Page.navigate", {"url": url})
+
+    def console_errors(self) -> list[str]:
+        """What the page reported as errors so far: console.error calls, uncaught exceptions
+        and the browser's error log entries (a refused resource, a CSP violation, ...)."""
+        self.js("0")  # reads the pipe up to now
+        found = []
+        for event in self.events:
+            params = event.get("params", {})
+            if event["method"] == "Runtime.consoleAPICalled" and params.get("type") == "error":
+                found.append(
+                    " ".join(str(a.get("value", a.get("description"))) for a in params["args"])
+                )
+            elif event["method"] == "Runtime.exceptionThrown":
+                details = params.get("exceptionDetails", {})
+                found.append(str(details.get("exception", {}).get("description") or details))
+            elif event["method"] == "Log.entryAdded" and params["entry"]["level"] == "error":
+                found.append(f"{params['entry'].get('source')}: {params['entry']['text']}")
+        return found
+
+    def screenshot(self, out: Path) -> Path:
+        """A PNG of the page's viewport as it is now (WebGL canvases included)."""
+        import base64
+
+        shot = self.call("Page.captureScreenshot", {"format": "png"})
+        out.write_bytes(base64.b64decode(shot["data"]))
+        return out
+
+    def viewport(self, width: int, height: int) -> None:
+        """Lay the page out at ``width`` x ``height`` CSS pixels (1 device pixel each)."""
+        self.call(
+            "Emulation.setDeviceMetricsOverride",
+            {"width": width, "height": height, "deviceScaleFactor": 1, "mobile": False},
+        )
 
     def js(self, expression: str) -> Any:
         """Evaluate ``expression`` in the page (promises awaited) and return its value."""
