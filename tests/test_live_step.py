@@ -205,7 +205,10 @@ WORKER = """(source) => new Promise((resolve, reject) => {
       reject(new Error(m.message));
     }
   };
-  w.postMessage({type: 'load', ...source});
+  if (source.bufferOf) {  // the export's bytes, fetched here and transferred
+    fetch(source.bufferOf).then(r => r.arrayBuffer())
+      .then(buffer => w.postMessage({type: 'load', buffer}, [buffer]));
+  } else w.postMessage({type: 'load', ...source});
 })"""
 """Starts live-worker.js in the page (window.live) and waits for its ``ready``."""
 
@@ -263,8 +266,8 @@ def test_the_worker_answers_a_push_and_a_drag(page, data):
 
 def test_the_worker_steps_as_the_model_does(page, data):
     """``step`` messages: the worker's positions are the model's (as float32), and a push held
-    over steps is the same constant force."""
-    call(page, WORKER, {"url": "/data/cube.json"})
+    over steps is the same constant force (the export handed over as bytes this time)."""
+    call(page, WORKER, {"bufferOf": "/data/cube.json"})
     got = page.js(
         """(async () => {
           const w = live.worker;

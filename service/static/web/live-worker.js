@@ -3,8 +3,9 @@
 // A module worker: new Worker(new URL("./live-worker.js", import.meta.url), {type: "module"}).
 //
 // Messages in (postMessage objects, by `type`):
-//   load     {model: <parsed JSON export>} | {text: <its JSON text>} | {url, headers}: build the
-//            model (a URL is fetched here; a 202 is asked again after its Retry-After) and start.
+//   load     {model: <parsed JSON export>} | {text: <its JSON text>} | {buffer: <its UTF-8 bytes,
+//            an ArrayBuffer (transfer it)>} | {url, headers}: build the model (a URL is fetched
+//            here; a 202 is asked again after its Retry-After) and start.
 //   push     {node, force: [fx, fy, fz]}: a constant force on a node, N, until changed
 //            (force null or [0, 0, 0] takes it away).
 //   drag     {node, target: [x, y, z], stiffness?, maxForce?}: a spring-like force toward the
@@ -20,7 +21,8 @@
 // Messages out:
 //   ready    {nodes, springs, hexahedra, dt, d, rest: Float32Array(3 N)}
 //   frame    {positions: Float32Array(3 N) (transferred), steps (in all), stepsThisFrame,
-//            stepsPerSecond, unbalanced, settled, ms (stepping time of the frame)}
+//            stepsPerSecond, unbalanced, settled, ms (stepping time of the frame), dragForce (the
+//            largest drag's pull in the last step, N)}
 //   error    {message}
 // Stepping stops by itself once the model is at rest with no push or drag on it (settled, or not
 // loaded since the last reset), after one last frame, and starts again with the next message.
@@ -38,6 +40,7 @@ let realtime = false;
 let paused = false;
 let timer = null;
 let lastRate = 0;
+let dragForce = 0; // the largest drag's |f| in the last step, N
 
 function post(message, transfer) {
   self.postMessage(message, transfer || []);
@@ -85,6 +88,7 @@ function load(doc) {
 // The forces of this step: the pushes, and each drag's pull from the node's current position.
 function applyForces() {
   const x = model.x;
+  dragForce = 0;
   for (const [node, d] of drags) {
     const k = 3 * node;
     let f0 = d.stiffness * (d.target[0] - x[k]);
@@ -97,6 +101,7 @@ function applyForces() {
       f1 *= s;
       f2 *= s;
     }
+    dragForce = Math.max(dragForce, Math.min(size, d.maxForce > 0 ? d.maxForce : size));
     const p = pushes.get(node);
     forces[k] = f0 + (p ? p[0] : 0);
     forces[k + 1] = f1 + (p ? p[1] : 0);
@@ -141,6 +146,7 @@ function postFrame(stepsThisFrame, ms) {
       unbalanced: model.unbalanced,
       settled: model.settled,
       ms,
+      dragForce,
     },
     [positions.buffer],
   );
@@ -181,6 +187,7 @@ const handlers = {
   async load(m) {
     if (m.model) load(m.model);
     else if (typeof m.text === "string") load(JSON.parse(m.text));
+    else if (m.buffer instanceof ArrayBuffer) load(JSON.parse(new TextDecoder().decode(m.buffer)));
     else if (m.url) load(await fetchExport(m.url, m.headers));
     else throw new Error("load: give model, text or url");
   },
