@@ -273,6 +273,19 @@ def test_unknown_gone_and_failed_views_are_problems_not_500s(api, redis, run_wor
     body = assert_problem(failed, 503)
     assert "no longer stored" in body["detail"] and 0 < int(failed.headers["Retry-After"]) <= 600
     assert graph.priority_queue(redis).count == 0
+    # Parameters that do not fit the spec's lattice: 422 (the job's finding, kept for the
+    # cool-down like any failure).
+    other = calibrated(api, run_workers, {**small_spec, "name": "another box"})
+    ps_key = keys.parameter_set(other["parameter_set_id"])
+    stored = json.loads(redis.get(ps_key))
+    stored["geometry"]["nodes"] = 65
+    redis.set(ps_key, json.dumps(stored))
+    other_path = f"/v1/parameter-sets/{other['parameter_set_id']}/view"
+    assert api.get(other_path).status_code == 202
+    run_workers()
+    body = assert_problem(api.get(other_path), 422)
+    assert [e["field"] for e in body["errors"]] == ["parameter_set_id"]
+    assert "fitted on 65 nodes; the spec builds 64" in body["detail"]
     # Its calibration record gone: 410.
     redis.delete(keys.calibration(done["id"]))
     redis.delete(keys.export_failure(view_hash(done["parameter_set_id"])))

@@ -732,6 +732,10 @@
     const panel = el("div", { class: "panel", id: "view3d" },
       el("h2", null, "3D view of parameter set ", id), status);
     show(el("p", null, el("a", { href: `#/parameter-sets/${enc(id)}` }, "← parameter set ", id)), panel);
+    for (const file of ["three.module.min.js", "OrbitControls.js"]) { // fetched beside view3d.js
+      const href = `web/vendor/three/${file}`;
+      if (!document.querySelector(`link[href="${href}"]`)) document.head.append(el("link", { rel: "modulepreload", href }));
+    }
     const module = import("./view3d.js"); // loads three.js while the data is fetched
     let buffer;
     try {
