@@ -24,8 +24,9 @@
 //            stepsPerSecond, unbalanced, settled, ms (stepping time of the frame), dragForce (the
 //            largest drag's pull in the last step, N)}
 //   error    {message}
-// Stepping stops by itself once the model is at rest with no push or drag on it (settled, or not
-// loaded since the last reset), after one last frame, and starts again with the next message.
+// Stepping stops by itself, after one last frame, once the model has settled under what is on it
+// (or has had no load since the last reset), and starts again with the next push, drag, release
+// or reset.
 import { FpmModel } from "./fpm-step.js";
 
 let model = null;
@@ -41,6 +42,7 @@ let paused = false;
 let timer = null;
 let lastRate = 0;
 let dragForce = 0; // the largest drag's |f| in the last step, N
+let changed = false; // a push, drag, release or reset since the last step (settled is stale)
 
 function post(message, transfer) {
   self.postMessage(message, transfer || []);
@@ -152,13 +154,14 @@ function postFrame(stepsThisFrame, ms) {
   );
 }
 
-// At rest with nothing on it: settled since the last load, or never loaded since the reset
-// (and no gravity), so at rest.
+// Nothing left to step: no force changed since the last step, and the model is settled (under
+// constant pushes, or a drag whose pull has settled too), or has had no load since its reset
+// (and no gravity), so it is at rest.
 function idle() {
-  if (active()) return false;
+  if (changed) return false;
   if (model.settled) return true;
   const g = model.gravity;
-  return model.loadScale === 0 && g[0] === 0 && g[1] === 0 && g[2] === 0;
+  return !active() && model.loadScale === 0 && g[0] === 0 && g[1] === 0 && g[2] === 0;
 }
 
 function frame() {
@@ -173,6 +176,7 @@ function frame() {
     model.step(forces);
     count += 1;
   } while (count < cap && performance.now() - start < budgetMs);
+  changed = false;
   const ms = performance.now() - start;
   postFrame(count, ms);
   if (idle()) return; // at rest: wait for the next message
@@ -193,6 +197,7 @@ const handlers = {
   },
   push(m) {
     checkNode(m.node);
+    changed = true;
     const zero = !m.force || m.force.every((c) => c === 0);
     if (zero) pushes.delete(m.node);
     else pushes.set(m.node, m.force.map(Number));
@@ -200,6 +205,7 @@ const handlers = {
   },
   drag(m) {
     checkNode(m.node);
+    changed = true;
     if (!m.target) {
       drags.delete(m.node);
       setForce(m.node, pushes.get(m.node) || null);
@@ -212,11 +218,13 @@ const handlers = {
     });
   },
   release() {
+    changed = true;
     pushes.clear();
     drags.clear();
     forces.fill(0);
   },
   reset() {
+    changed = true;
     model.reset();
   },
   pause() {
@@ -239,6 +247,7 @@ const handlers = {
       applyForces();
       model.step(forces);
     }
+    if (count > 0) changed = false;
     postFrame(count, performance.now() - start);
   },
   recycle(m) {
