@@ -751,7 +751,7 @@
       const { decodeView, mountView } = await module;
       if (!alive(token)) return;
       status.remove();
-      view3d = mountView(panel, decodeView(buffer));
+      view3d = mountView(panel, decodeView(buffer), { request: (path, accept) => request("GET", path, accept) });
       await new Promise((resolve) => requestAnimationFrame(() => setTimeout(resolve, 0))); // painted
       if (!alive(token)) return;
       panel.dataset.bytes = String(buffer.byteLength);

@@ -401,8 +401,9 @@ function caseFacts(view) {
 }
 
 // The 3D view with its controls into ``panel`` (an element): case, shapes, scale factor,
-// lattice lines, markers, the legend. Returns the View3D.
-export function mountView(panel, data) {
+// lattice lines, markers, the legend, and the push mode (live.js, loaded when pressed;
+// options.request(path, accept) is the page's fetch with its API key). Returns the View3D.
+export function mountView(panel, data, options = {}) {
   const canvasBox = el("div", { class: "view3d-canvas", id: "view3d-canvas" });
   const facts = el("div");
   const legendBox = el("div");
@@ -419,13 +420,14 @@ export function mountView(panel, data) {
   const lines = el("input", { type: "checkbox", checked: true, id: "view3d-lines" });
   const markers = el("input", { type: "checkbox", checked: true, id: "view3d-markers" });
   const reset = el("button", { type: "button", id: "view3d-reset" }, "Reset view");
+  const push = el("button", { type: "button", id: "view3d-push", "aria-pressed": "false" }, "Push (live)");
   const h = data.header;
   panel.append(
     el("div", { class: "toolbar view3d-toolbar" },
       el("label", null, "Load case ", caseSelect), modeBox,
       el("label", null, "Displacement scale ", scaleRange, " ", scaleNumber, " ×"),
       el("label", null, "Colours up to ", saturation),
-      el("label", null, lines, " lattice lines"), el("label", null, markers, " markers"), reset),
+      el("label", null, lines, " lattice lines"), el("label", null, markers, " markers"), reset, push),
     facts, canvasBox, legendBox,
     el("p", { class: "muted" },
       `${h.nodes} nodes, h = ${num(h.h * 1e3)} mm; the outer surface: ${h.surface_vertices} nodes, ${h.triangles} triangles. `,
@@ -455,6 +457,7 @@ export function mountView(panel, data) {
   lines.addEventListener("change", () => view.setLattice(lines.checked));
   markers.addEventListener("change", () => view.setMarkers(markers.checked));
   reset.addEventListener("click", () => view.resetCamera());
+  push.addEventListener("click", () => import("./live.js").then((live) => live.togglePush(view, push, options)));
   refresh();
   return view;
 }
