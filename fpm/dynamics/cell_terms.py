@@ -14,7 +14,9 @@ g = dV_c/dx (8 corners x 3, m^2) and the pressure p = kappa_c (V_c - V0_c) / V0_
 - tangent, 3x3 per pair of corners: (kappa_c / V0_c) g_n g_m^T + p d^2V/dx_n dx_m, N/m;
   "modified" drops the p term, leaving a positive semi-definite part
   (:func:`_cell_tangent_blocks`); on a basis Q (M, 3, m) the modified part only,
-  (kappa_c / V0_c) (Q^T g)(Q^T g)^T (:func:`_cell_reduced_tangent`).
+  (kappa_c / V0_c) (Q^T g)(Q^T g)^T (:func:`_cell_reduced_tangent`);
+- the gradient's derivative by kappa_c, (dV / V0) g, against a field w (M, 3):
+  (dV / V0) sum_n g_n . w_n (:func:`_cell_sensitivity`; a field fit's adjoint gradient).
 
 Arrays: ``rest`` (C, 6, 3) a1..a6 of each cell at rest, m (:class:`fpm.model.volume.Cells`);
 ``volume`` (C,) V0, m^3; ``ends`` (C, 8) local indices of each cell's corners among the free
@@ -193,3 +195,29 @@ def _cell_reduced_tangent(
         for p in range(m):
             for q in range(m):
                 out[p, q] += weight * w[p] * w[q]
+
+
+@njit(cache=True, nogil=True)
+def _cell_sensitivity(
+    rest: np.ndarray,
+    volume: np.ndarray,
+    ends: np.ndarray,
+    u: np.ndarray,
+    w: np.ndarray,
+    out: np.ndarray,
+) -> None:
+    """Fill ``out`` (C,) with w . d(dE/du)/d kappa_c = (V_c - V0_c) / V0_c sum_n g_n . w_n,
+    m, at displacements u (M, 3) for the field w (M, 3) (held corners contribute nothing)."""
+    a, da = np.empty((6, 3)), np.empty((6, 3))
+    grad_a, grad_x = np.empty((6, 3)), np.empty((8, 3))
+    for c in range(len(volume)):
+        _cell_state(rest, ends, u, c, a, da)
+        strain = volume_change(rest[c], da) / volume[c]
+        coefficient_gradient(a, grad_a)
+        corner_gradient(grad_a, grad_x)
+        total = 0.0
+        for n in range(8):
+            i = ends[c, n]
+            if i >= 0:
+                total += grad_x[n, 0] * w[i, 0] + grad_x[n, 1] * w[i, 1] + grad_x[n, 2] * w[i, 2]
+        out[c] = strain * total

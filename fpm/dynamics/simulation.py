@@ -309,7 +309,7 @@ def fpm_model(problem: Problem) -> FpmModel:
 def simulate(
     problem: Problem,
     *,
-    k: float | Sequence[float],
+    k: float | Sequence[float] | Stiffness,
     d: float,
     depth: int | None = None,
     load_case: int = 0,
@@ -322,7 +322,9 @@ def simulate(
     Args:
         problem: from :func:`fpm.load_problem`.
         k: the fitted stiffness parameters: one k for every spring (N/m), or one per spring
-            family, then kappa (Pa) for families+volume (:mod:`fpm.model.stiffness`).
+            family, then kappa (Pa) for families+volume (:mod:`fpm.model.stiffness`); or the
+            model's :class:`~fpm.model.forces.Stiffness` itself (a field fit's, every spring's
+            and cell's own).
         d: nodal damping, N s/m.
         depth: penetration depth in layers; None = the spec's (its 'auto' means all layers).
         load_case: index into the spec's load cases.
@@ -333,11 +335,12 @@ def simulate(
     s = problem.spec.fpm
     if not 0 <= load_case < len(problem.load_cases):
         raise ValueError(f"load_case must be in 0..{len(problem.load_cases) - 1}")
-    if not (np.all(np.asarray(k) > 0) and d >= 0):
+    springs = k.springs if isinstance(k, Stiffness) else np.asarray(k)
+    if not (np.all(springs > 0) and d >= 0):
         raise ValueError("need k > 0 and d >= 0")
     stiffness: float | Stiffness = (
         model_stiffness(problem, k)  # type: ignore[arg-type]
-        if np.ndim(k) or has_volume(problem)
+        if isinstance(k, Stiffness) or np.ndim(k) or has_volume(problem)
         else float(k)  # type: ignore[arg-type]
     )
     if depth is None and s.depth != "auto":

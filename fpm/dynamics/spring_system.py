@@ -19,7 +19,9 @@ F_i (N) the constant nodal forces; and its derivatives:
 - energy changes E(u + step) - E(u) computed without cancellation
   (:meth:`SpringSystem.energy_change`), for the line searches;
 - Q^T K Q on a basis Q (M, 3, m), for the warm starts' reduced model
-  (:mod:`fpm.dynamics.predictor`).
+  (:mod:`fpm.dynamics.predictor`);
+- the gradient's derivatives by each spring's k and each cell's kappa against a field w
+  (:meth:`SpringSystem.sensitivity`), for adjoint gradients (:mod:`fpm.fitting.field`).
 
 The loops over springs are compiled (numba: :func:`_spring_forces` and friends). A system
 depends only on the problem and its free nodes and is read only: :func:`shared_system` and
@@ -46,6 +48,7 @@ from .cell_terms import (
     _cell_energy_change,
     _cell_forces,
     _cell_reduced_tangent,
+    _cell_sensitivity,
     _cell_tangent_blocks,
 )
 
@@ -236,6 +239,25 @@ class SpringSystem:
             data[self._diagonal_block] = diagonal
         m = self.n_free
         return sp.bsr_matrix((data, self._indices, self._indptr), shape=(3 * m, 3 * m))
+
+    def sensitivity(self, u: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """How the gradient dE/du at u (M, 3) moves with each term's stiffness, against the
+        field w (M, 3): per active spring w . d(dE/du)/dk_s = (|r_s| - L_s) n_s . (w_j - w_i),
+        m, and per active cell w . d(dE/du)/dkappa_c = (V_c - V0_c) / V0_c sum_n g_n . w_n,
+        m^3 / Pa (held nodes: w = 0). With w the adjoint of a cost J, minus these are dJ/dk_s
+        and dJ/dkappa_c (:mod:`fpm.fitting.field`). Returns ((A,), (C,); empty without cells)."""
+        zero = np.zeros((1, 3))
+        padded_u, padded_w = np.vstack([u, zero]), np.vstack([w, zero])
+        i, j = self.ends[:, 0], self.ends[:, 1]
+        r = self.rest_vector + padded_u[j] - padded_u[i]
+        length = np.sqrt(np.einsum("ij,ij->i", r, r))
+        moved = np.einsum("ij,ij->i", r, padded_w[j] - padded_w[i]) / length
+        springs = (length - self.rest_length) * moved
+        cells = np.zeros(len(self.cell_ids))
+        if self.cells is not None:
+            c = self.cells
+            _cell_sensitivity(c.rest, c.volume, self.cell_ends, u, w, cells)
+        return springs, cells
 
     def reduced_tangent(self, u: np.ndarray, k: Params, basis: np.ndarray, modified: bool):
         """(m, m) Q^T K Q for the basis Q (M, 3, m) at u; the cells contribute their

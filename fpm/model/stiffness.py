@@ -15,11 +15,14 @@ The stiffness parameters of a fit are a vector ``theta``:
   ``C44 = (k2 + 4 k3 / 3) / h``, so :func:`continuum_start` (``k1 = k2 = mu h``, ``k3 = 0``,
   ``kappa = lambda - mu``) matches the material's Lame constants exactly in the lattice's
   interior; the fit corrects the boundary and the discretisation.
+- ``field``: the same theta, and on top a per-cell factor on what each cell gives its springs
+  and one on its kappa (:func:`field_stiffness`; fitted by :mod:`fpm.fitting.field`).
 
 On top of any mode, the spec's per-axis ``stiffness_scale`` (paper Fig. 5) multiplies a spring
 along unit vector e by ``sx ex^2 + sy ey^2 + sz ez^2``. :func:`model_stiffness` turns theta
-into the :class:`fpm.model.forces.Stiffness` every solver (dynamic and static) works with;
-:func:`spring_stiffness` is its (S,) spring part.
+into the :class:`fpm.model.forces.Stiffness` every solver (dynamic and static) works with
+(a Stiffness given in theta's place is taken as it is); :func:`spring_stiffness` is its (S,)
+spring part.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
+import scipy.sparse as sp
 
 from .forces import Stiffness
 from .hexahedron import FAMILIES, connectivity_families, local_families, local_pairs
@@ -46,26 +50,38 @@ CELL_SHARE = np.array([0.25, 0.5, 1.0])
 edge is in 4 cells, a face diagonal in 2, a body diagonal in 1)."""
 
 
+VOLUME_MODES = ("families+volume", "field")
+"""The stiffness modes with the volume term and springs assembled from cells (theta: the
+families, then kappa); ``field`` adds per-cell factors on top (:func:`field_stiffness`)."""
+
+
 def family_names(problem: Problem) -> tuple[str, ...]:
     """Names of the fitted stiffness parameters: ("k",) for single, the families present for
-    families, and then "kappa" for families+volume."""
+    families, and then "kappa" for families+volume (and field)."""
     mode = problem.spec.fpm.stiffness
     if mode == "single":
         return ("k",)
     g = problem.spec.geometry
     names = connectivity_families(getattr(g, "connectivity", "axis"))
-    return (*names, VOLUME) if mode == "families+volume" else names
+    return (*names, VOLUME) if mode in VOLUME_MODES else names
 
 
 def has_volume(problem: Problem) -> bool:
     """The spec's stiffness mode carries the volume term."""
-    return problem.spec.fpm.stiffness == "families+volume"
+    return problem.spec.fpm.stiffness in VOLUME_MODES
 
 
-def assembly_weights(problem: Problem) -> np.ndarray:
-    """(S,) per spring, the sum over the cells that contain it of :data:`CELL_SHARE` of its
-    family in that cell: 1 for an interior spring of a regular lattice, less on the surface."""
-    cached = problem.cache.get("assembly_weights")
+def is_field(problem: Problem) -> bool:
+    """The spec fits a per-cell stiffness field (``fpm.stiffness: "field"``)."""
+    return problem.spec.fpm.stiffness == "field"
+
+
+def cell_shares(problem: Problem) -> sp.csr_matrix:
+    """(S, H) sparse: entry (s, c) is the :data:`CELL_SHARE` of spring s's family that cell c
+    gives it (0 where s is not an edge or diagonal of c). Its row sums are
+    :func:`assembly_weights`; times per-cell factors, the field's springs
+    (:func:`field_stiffness`). Built once per problem."""
+    cached = problem.cache.get("cell_shares")
     if cached is None:
         solid = problem.solid
         hexahedra = solid.elements()
@@ -82,9 +98,21 @@ def assembly_weights(problem: Problem) -> np.ndarray:
         order = np.argsort(spring_keys)
         which = order[np.searchsorted(spring_keys, keys, sorter=order)]
         share = np.tile(CELL_SHARE[local_families(connectivity)], len(hexahedra))
-        cached = problem.cache["assembly_weights"] = np.bincount(
-            which, weights=share, minlength=len(springs)
+        cell = np.repeat(np.arange(len(hexahedra)), len(pairs))
+        cached = problem.cache["cell_shares"] = sp.csr_matrix(
+            (share, (which, cell)), shape=(len(springs), len(hexahedra))
         )
+    return cached
+
+
+def assembly_weights(problem: Problem) -> np.ndarray:
+    """(S,) per spring, the sum over the cells that contain it of :data:`CELL_SHARE` of its
+    family in that cell: 1 for an interior spring of a regular lattice, less on the surface."""
+    cached = problem.cache.get("assembly_weights")
+    if cached is None:
+        # Sums of 1/4, 1/2 and 1: exact in any order.
+        weights = np.asarray(cell_shares(problem).sum(axis=1)).ravel()
+        cached = problem.cache["assembly_weights"] = weights
     return cached
 
 
@@ -119,10 +147,15 @@ def axis_factors(problem: Problem) -> np.ndarray | None:
     return cached
 
 
-def model_stiffness(problem: Problem, theta: float | Sequence[float] | np.ndarray) -> Stiffness:
+def model_stiffness(
+    problem: Problem, theta: float | Sequence[float] | np.ndarray | Stiffness
+) -> Stiffness:
     """The model's :class:`~fpm.model.forces.Stiffness` from the fitted parameters ``theta``
     (as :func:`spring_stiffness` reads them; for families+volume the last value is kappa, Pa,
-    given to every cell)."""
+    given to every cell). A Stiffness (e.g. a field's, :func:`field_stiffness`) is returned
+    as it is."""
+    if isinstance(theta, Stiffness):
+        return theta
     if not has_volume(problem):
         return Stiffness(spring_stiffness(problem, theta))
     values = np.atleast_1d(np.asarray(theta, dtype=float))
@@ -138,6 +171,45 @@ def model_stiffness(problem: Problem, theta: float | Sequence[float] | np.ndarra
         springs = springs * factor
     n_cells = len(problem.solid.elements())  # type: ignore[arg-type]
     return Stiffness(springs, np.full(n_cells, values[-1]))
+
+
+def field_stiffness(
+    problem: Problem,
+    theta: Sequence[float] | np.ndarray,
+    spring_factor: Sequence[float] | np.ndarray,
+    kappa_factor: Sequence[float] | np.ndarray,
+) -> Stiffness:
+    """The ``field`` model's :class:`~fpm.model.forces.Stiffness`: theta as families+volume
+    reads it (the families' k, N/m, then kappa, Pa), each cell c giving its springs
+    ``spring_factor[c]`` times its share of their family's k and carrying
+    ``kappa_factor[c] * kappa`` (both (H,), aligned with the hexahedra). With every factor 1
+    it is :func:`model_stiffness` at theta.
+
+    Raises:
+        ValueError: theta or the factors do not fit the lattice, or a factor is not > 0.
+    """
+    values = np.atleast_1d(np.asarray(theta, dtype=float))
+    names = family_names(problem)
+    if not has_volume(problem) or len(values) != len(names):
+        raise ValueError(
+            f"a stiffness field needs the families and kappa ({', '.join(names)}) of a model "
+            "with the volume term"
+        )
+    shares = cell_shares(problem)
+    a = np.asarray(spring_factor, dtype=float)
+    b = np.asarray(kappa_factor, dtype=float)
+    if a.shape != (shares.shape[1],) or b.shape != (shares.shape[1],):
+        raise ValueError(
+            f"a stiffness field needs one spring factor and one kappa factor per cell "
+            f"({shares.shape[1]}), not {a.shape} and {b.shape}"
+        )
+    if not (np.all(a > 0) and np.all(b > 0)):
+        raise ValueError("every factor of a stiffness field must be > 0")
+    springs = values[:-1][problem.solid.families] * (shares @ a)
+    factor = axis_factors(problem)
+    if factor is not None:
+        springs = springs * factor
+    return Stiffness(springs, values[-1] * b)
 
 
 def spring_stiffness(problem: Problem, theta: float | Sequence[float] | np.ndarray) -> np.ndarray:
@@ -206,27 +278,38 @@ def theta_of(
     return theta
 
 
-def fitted_theta(problem: Problem, record: Any) -> list[float]:
+def fitted_theta(problem: Problem, record: Any) -> list[float] | Stiffness:
     """The parameters :func:`fpm.simulate` and :func:`model_stiffness` take (theta), from a fit's
     record: a calibration result or a parameter set, as a dict or an object with attributes
-    (``k``, N/m; ``stiffness``, {family: k}, N/m; ``volume_stiffness``, Pa). The one place a
-    stored fit becomes solver input (the plot, the exports and the worker's views all call it).
+    (``k``, N/m; ``stiffness``, {family: k}, N/m; ``volume_stiffness``, Pa; ``field``, a
+    field fit's per-cell factors). The one place a stored fit becomes solver input (the plot,
+    the exports and the worker's views all call it).
 
     ``single``: ``[k]`` (``k`` or the one value every family holds); the other modes:
-    :func:`theta_of`.
+    :func:`theta_of`; a record whose ``field`` was returned (``fpm.stiffness: "field"``): the
+    :class:`~fpm.model.forces.Stiffness` of :func:`field_stiffness`, every spring's and every
+    cell's own (a field the fit refused leaves the families+volume theta).
 
     Raises:
         ValueError: the record lacks what the spec's mode needs, or holds one k per family for a
-            spec that fits one k.
+            spec that fits one k, or a field that does not fit the lattice.
     """
+    names = ("k", "stiffness", "volume_stiffness", "field")
     if isinstance(record, Mapping):
-        k, stiffness, kappa = (record.get(n) for n in ("k", "stiffness", "volume_stiffness"))
+        k, stiffness, kappa, field = (record.get(n) for n in names)
     else:
-        k, stiffness, kappa = (
-            getattr(record, n, None) for n in ("k", "stiffness", "volume_stiffness")
-        )
+        k, stiffness, kappa, field = (getattr(record, n, None) for n in names)
     if family_names(problem) != ("k",):
-        return theta_of(problem, 0.0 if k is None else float(k), stiffness, kappa)
+        theta = theta_of(problem, 0.0 if k is None else float(k), stiffness, kappa)
+        factors = _returned_field(field)
+        if factors is None:
+            return theta
+        if not is_field(problem):
+            raise ValueError(
+                "the parameters hold a stiffness field but the spec's fpm.stiffness is "
+                f"{problem.spec.fpm.stiffness!r}: use the spec they were fitted on"
+            )
+        return field_stiffness(problem, theta, *factors)
     values = {float(v) for v in stiffness.values()} if isinstance(stiffness, Mapping) else set()
     if len(values) > 1:
         raise ValueError(
@@ -238,6 +321,20 @@ def fitted_theta(problem: Problem, record: Any) -> list[float]:
     return [float(k) if k is not None else values.pop()]
 
 
+def _returned_field(field: Any) -> tuple[Any, Any] | None:
+    """(spring factors, kappa factors) per cell of a record's field when the fit returned it,
+    else None (no field, or one refused in favour of the four-parameter fit)."""
+    if field is None:
+        return None
+    if not isinstance(field, Mapping):
+        field = {n: getattr(field, n, None) for n in ("returned", "spring_factor", "kappa_factor")}
+    if not field.get("returned"):
+        return None
+    if field.get("spring_factor") is None or field.get("kappa_factor") is None:
+        raise ValueError("the parameters' stiffness field lacks its per-cell factors")
+    return field["spring_factor"], field["kappa_factor"]
+
+
 def volume_stiffness(problem: Problem, theta: Sequence[float]) -> float | None:
     """kappa, Pa, for families+volume (theta's last value); None for the other modes."""
     return float(theta[-1]) if has_volume(problem) else None
@@ -246,12 +343,16 @@ def volume_stiffness(problem: Problem, theta: Sequence[float]) -> float | None:
 __all__ = [
     "FAMILIES",
     "VOLUME",
+    "VOLUME_MODES",
     "assembly_weights",
     "axis_factors",
+    "cell_shares",
     "continuum_start",
     "family_names",
+    "field_stiffness",
     "fitted_theta",
     "has_volume",
+    "is_field",
     "model_stiffness",
     "spring_stiffness",
     "stiffness_dict",
