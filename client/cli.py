@@ -107,6 +107,24 @@ def validation_rows(result: dict[str, Any]) -> list[list[Any]]:
     return rows
 
 
+def reference_line(result: dict[str, Any]) -> str | None:
+    """The reference's estimated error per load case (and validation case), % (None when the
+    result has none: not estimated, or stored before the estimate existed)."""
+    error = result.get("reference_error")
+    if error is None:
+        return None
+    text = " / ".join(f"{e:.2f}" for e in error)
+    validation = result.get("validation_reference_error") or []
+    if validation:
+        text += "; validation " + " / ".join(f"{e:.2f}" for e in validation)
+    refined = result.get("reference_refinements")
+    how = (
+        f"change from its last refinement ({refined} in all)" if refined else "one-refinement check"
+    )
+    flag = "  ABOVE 5%: not resolved" if max([*error, *validation]) > 5 else ""
+    return f"reference   estimated error {text} % ({how}){flag}"
+
+
 def show_calibration(c: dict[str, Any]) -> str:
     """A calibration as a short report: status and stage, then the fit with the relative
     discrepancy per load case first."""
@@ -149,6 +167,9 @@ def show_calibration(c: dict[str, Any]) -> str:
         validation = validation_rows(r)
         if validation:
             lines += ["", table(VALIDATION_HEADERS, validation)]
+        reference = reference_line(r)
+        if reference:
+            lines += ["", reference]
         lines += [f"warning     {w}" for w in r.get("warnings", [])]
     return "\n".join(lines)
 

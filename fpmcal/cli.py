@@ -154,6 +154,7 @@ def cmd_equilibrium(args: argparse.Namespace) -> None:
 def cmd_fem(args: argparse.Namespace) -> None:
     from fpm.fem.reference import solve_fem
     from fpm.fitting.diagnosis import UnitsError, check_reference
+    from fpm.fitting.validation import resolution_notes
 
     problem = _load(args.spec)
     result = solve_fem(problem)
@@ -169,6 +170,20 @@ def cmd_fem(args: argparse.Namespace) -> None:
         _warn(check_reference(problem, result.displacements))
     except UnitsError as e:
         _warn([str(e)])
+    if result.estimated_error is not None:
+        names = [case.name for case in problem.all_cases]
+        print(
+            f"{problem.spec.name}: the reference's estimated error per case, % ("
+            + (
+                f"change from its last refinement, {result.refinements} in all"
+                if result.refinements
+                else "its change under one refinement with the forces spread"
+            )
+            + "): "
+            + ", ".join(f"{n} {e:.2f}" for n, e in zip(names, result.estimated_error, strict=True)),
+            file=sys.stderr,
+        )
+    _warn(resolution_notes(problem, result))
     _emit(result.to_dict(), args.output)
 
 
@@ -396,6 +411,17 @@ def result_table(problem: Any, result: Any) -> str:
             f"{'mean':<16}{_mean(validation):>24.3f}{_mean(result.validation_discrepancy_h):>10.3f}"
             "  (never fitted: the honest figure)"
         )
+    error = getattr(result, "reference_error", None)
+    if error is not None:
+        every = list(error) + list(getattr(result, "validation_reference_error", None) or [])
+        refined = getattr(result, "reference_refinements", 0) or 0
+        lines += [
+            "",
+            "reference's estimated error %: "
+            + " / ".join(f"{e:.2f}" for e in every)
+            + (f" (change from its last refinement, {refined} in all" if refined else " (check")
+            + ("; ABOVE 5%: not resolved)" if max(every) > 5 else ")"),
+        ]
     seconds = result.seconds
     total = sum(seconds.values()) if isinstance(seconds, dict) else seconds
     lines.append("")

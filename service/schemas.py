@@ -205,6 +205,28 @@ class FemReference(BaseModel):
     newton_iterations: list[list[int]] | None = Field(
         None, description="(L, steps) Newton iterations of each load step (neo-hookean)"
     )
+    estimated_error: list[float] | None = Field(
+        None,
+        description="(L,) per load case (then validation case) the reference's estimated "
+        "error, %: the relative change at the lattice nodes from its last refinement to the "
+        "one before (reference.refine); null when not estimated",
+    )
+    refinements: int | None = Field(
+        None, description="uniform refinements of the mesh it was solved on (0: as given)"
+    )
+    loads: str | None = Field(
+        None,
+        description="'nodal' (point loads at the lattice nodes) or 'spread' (each over its "
+        "node's share of the solid)",
+    )
+    levels: list[dict[str, Any]] | None = Field(
+        None,
+        description="per level solved: refinements, fem_nodes, change (per case, %, from the "
+        "level before), seconds",
+    )
+    notes: list[str] | None = Field(
+        None, description="a refinement the node budget refused, an error not estimated"
+    )
     error: str | None = None
     nodes: list[list[float]] | None = Field(None, description="(N, 3) rest positions, m")
     displacements: list[list[list[float]]] | None = Field(

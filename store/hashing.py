@@ -36,7 +36,8 @@ def fem_spec(spec: dict[str, Any]) -> dict[str, Any]:
     """The part of ``spec`` the FEM reference depends on (itself a loadable spec): geometry,
     material, fixed nodes, load cases and validation cases (when there are any, so a spec
     without them keeps its identity), the reference's ``integration`` (and its supplied
-    ``displacements``, or its tetrahedral ``mesh`` or ``mesh_id``, if any), and ``fpm.gravity``
+    ``displacements``, or its tetrahedral ``mesh`` or ``mesh_id``, if any; its ``refine`` and
+    ``node_budget`` when given), and ``fpm.gravity``
     when it is set (the FEM then carries the solid's weight)."""
     out = {name: spec[name] for name in FEM_FIELDS}
     if spec.get("validation_cases"):  # solved with the load cases, after them
@@ -46,6 +47,9 @@ def fem_spec(spec: dict[str, Any]) -> dict[str, Any]:
     if reference.get("displacements") is not None:  # a supplied reference: its own identity
         out["reference"]["displacements"] = reference["displacements"]
     for name in ("mesh", "mesh_id"):  # the tetrahedral reference's mesh (the id is its sha256)
+        if reference.get(name) is not None:
+            out["reference"][name] = reference[name]
+    for name in ("refine", "node_budget"):  # the refinement asked for (fpm.fem.refine)
         if reference.get(name) is not None:
             out["reference"][name] = reference[name]
     gravity = (spec.get("fpm") or {}).get("gravity")

@@ -236,7 +236,8 @@ def test_point_loads_are_consistent_and_reactions_balance_them_and_the_weight():
 
 def cube_spec(n: int, n_tets: int | None = None, **more) -> dict:
     """The 0.1 m cube as a box lattice of n cells a side, the reference on a tetrahedral mesh
-    of n_tets (default n) cells a side; E 5 kPa, nu 0.45, bottom fixed, own weight."""
+    of n_tets (default n) cells a side (as given: ``refine`` 0, point loads); E 5 kPa,
+    nu 0.45, bottom fixed, own weight."""
     nodes, tets = cube_tetrahedra(n_tets or n, 0.1)
     return {
         "material": {"youngs_modulus": 5e3, "poisson_ratio": 0.45, "density": 1000.0},
@@ -244,7 +245,10 @@ def cube_spec(n: int, n_tets: int | None = None, **more) -> dict:
         "fixed": [{"face": "z-"}],
         "load_cases": [{"forces": [{"nearest": [0.05, 0.05, 0.1], "vector": [0, 0, -0.01]}]}],
         "fpm": {"gravity": [0.0, -5.0, -9.81]},
-        "reference": {"mesh": {"nodes": nodes.tolist(), "tetrahedra": tets.tolist()}},
+        "reference": {
+            "mesh": {"nodes": nodes.tolist(), "tetrahedra": tets.tolist()},
+            "refine": 0,
+        },
         **more,
     }
 
@@ -284,7 +288,7 @@ def test_solve_fem_uses_the_mesh_and_the_hash_covers_it():
     other = copy.deepcopy(dumped)
     other["reference"]["mesh"]["nodes"][0] = [0.0, 0.0, -1e-3]
     plain = copy.deepcopy(dumped)
-    del plain["reference"]["mesh"]
+    del plain["reference"]["mesh"], plain["reference"]["refine"]
     assert len({fem_hash(dumped), fem_hash(other), fem_hash(plain)}) == 3
     # a spec without a mesh dumps without the new fields (its identity is unchanged)
     assert set(fpm.load_problem(plain).spec.model_dump()["reference"]) == {
@@ -372,6 +376,7 @@ def test_organ_reference_at_the_lattice_nodes_matches_scikit_fem():
         youngs_modulus=5e3, poisson_ratio=0.45, density=1040.0, spacing=0.01,
     )  # fmt: skip
     spec["fpm"]["gravity"] = [0.0, 0.0, -9.81]
+    spec["reference"]["refine"] = 0  # the mesh as given, point loads: as scikit-fem has it
     problem = fpm.load_problem(spec)
     ours = fpm.solve_fem(problem).displacements[0]
 

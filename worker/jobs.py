@@ -93,6 +93,11 @@ def fem_reference(fem_hash: str) -> dict[str, Any]:
             "residuals": [float(r) for r in result.residuals],
             "load_steps": list(result.load_steps),
             "newton_iterations": [list(n) for n in result.newton_iterations],
+            "estimated_error": result.estimated_error,
+            "refinements": result.refinements,
+            "loads": result.loads,
+            "levels": result.levels,
+            "notes": result.notes,
         },
     }
     records.save_fem_reference(redis, fem_hash, result.to_dict(), fields)

@@ -103,6 +103,10 @@ def solve_fem(
     if method not in ("auto", "direct", "amg"):
         raise ValueError(f"unknown method {method!r} (use 'auto', 'direct' or 'amg')")
     settings = problem.spec.reference
+    from .refine import refined_hex_reference, refined_tet_reference, resolved_refine
+
+    refine = resolved_refine(problem.spec)  # 0: the mesh as given, point loads, no estimate
+    asked = method
     if settings.mesh is not None or settings.mesh_id is not None:
         from .tet10 import tet10_reference
 
@@ -113,7 +117,8 @@ def solve_fem(
                 f"reference.mesh_id {settings.mesh_id} names an uploaded mesh, which was not "
                 "given: submit the spec to the service, or put the mesh in reference.mesh"
             )
-        return tet10_reference(
+        solve_tets = tet10_reference if refine == 0 else refined_tet_reference
+        return solve_tets(
             problem,
             np.asarray(mesh["nodes"], dtype=float),
             np.asarray(mesh["tetrahedra"], dtype=np.int64),
@@ -146,6 +151,8 @@ def solve_fem(
     if len(stray):
         raise FemError(f"node {int(stray[0])} is loaded but belongs to no hexahedron")
     gravity = np.asarray(problem.spec.fpm.gravity, dtype=float)
+    if refine not in (0, "check"):  # refined hexahedra, the forces spread (fpm.fem.refine)
+        return refined_hex_reference(problem, hexahedra, asked, None)
     if np.any(gravity):  # the solid's own weight, in every load case
         forces = forces + body_forces(nodes, hexahedra, material.density, gravity)[None]
     free = np.repeat(in_solid & ~problem.fixed, 3)
@@ -178,4 +185,7 @@ def solve_fem(
         problem.spec.reference.integration,
     )
     u, residuals = solve_dirichlet(k, forces.reshape(len(forces), -1), free, nodes, method)
-    return FemResult(nodes.copy(), u.reshape(forces.shape), residuals.tolist(), names, method)
+    result = FemResult(nodes.copy(), u.reshape(forces.shape), residuals.tolist(), names, method)
+    if refine == "check":  # the same reference, its error estimated by one refinement
+        return refined_hex_reference(problem, hexahedra, asked, result)
+    return result

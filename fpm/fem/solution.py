@@ -44,6 +44,19 @@ class FemResult:
         element: the FEM's element: ``"hex8"`` (the lattice's hexahedra) or ``"tet10"`` (the
             spec's ``reference.mesh`` in 10-node tetrahedra, read at the lattice nodes:
             :mod:`fpm.fem.tet10`).
+        estimated_error: (L,) per load case (then validation case), the reference's estimated
+            error, %: the relative change at the lattice nodes from one refinement to the next
+            (:mod:`fpm.fem.refine`); None when not estimated (``reference.refine`` 0, a
+            supplied or neo-Hookean reference, a check over its budget, a stored reference
+            older than the estimate).
+        refinements: uniform refinements of the mesh the displacements were solved on (0: the
+            mesh as given).
+        loads: how the lattice's nodal forces were applied: ``"nodal"`` (point loads at the
+            nodes) or ``"spread"`` (over each node's share of the solid: :mod:`fpm.fem.loads`).
+        levels: per level solved: ``refinements``, ``fem_nodes``, ``change`` (per case, %, from
+            the level before) and ``seconds``; empty when the reference was solved once.
+        notes: what the user should know about the reference (a refinement the node budget
+            refused, an error not estimated).
     """
 
     nodes: np.ndarray
@@ -55,6 +68,11 @@ class FemResult:
     load_steps: list[int] = field(default_factory=list)
     newton_iterations: list[list[int]] = field(default_factory=list)
     element: str = "hex8"
+    estimated_error: list[float] | None = None
+    refinements: int = 0
+    loads: str = "nodal"
+    levels: list[dict[str, Any]] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
 
     @property
     def positions(self) -> np.ndarray:
@@ -73,11 +91,19 @@ class FemResult:
             "load_steps": list(self.load_steps),
             "newton_iterations": [list(steps) for steps in self.newton_iterations],
             "element": self.element,
+            "estimated_error": (
+                None if self.estimated_error is None else [float(e) for e in self.estimated_error]
+            ),
+            "refinements": int(self.refinements),
+            "loads": self.loads,
+            "levels": [dict(level) for level in self.levels],
+            "notes": list(self.notes),
         }
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> FemResult:
-        """Inverse of :meth:`to_dict` (a dict stored before the model fields reads as linear)."""
+        """Inverse of :meth:`to_dict` (a dict stored before the model fields reads as linear,
+        one stored before the estimate as unrefined, point loads, error not estimated)."""
         nodes = np.asarray(data["nodes"], dtype=float).reshape(-1, 3)
         displacements = np.asarray(data["displacements"], dtype=float).reshape(-1, len(nodes), 3)
         return cls(
@@ -90,6 +116,15 @@ class FemResult:
             [int(n) for n in data.get("load_steps", [])],
             [[int(n) for n in steps] for steps in data.get("newton_iterations", [])],
             data.get("element", "hex8"),
+            (
+                None
+                if data.get("estimated_error") is None
+                else [float(e) for e in data["estimated_error"]]
+            ),
+            int(data.get("refinements", 0)),
+            data.get("loads", "nodal"),
+            [dict(level) for level in data.get("levels", [])],
+            [str(note) for note in data.get("notes", [])],
         )
 
 

@@ -31,6 +31,7 @@ Units: m, N, Pa, kg/m^3. Shapes are given per function.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -416,7 +417,13 @@ def fixed_nodes(problem: Problem, mesh: Tet10Mesh) -> np.ndarray:
 
 
 def tet10_reference(
-    problem: Problem, nodes: np.ndarray, tets: np.ndarray, method: str = "auto"
+    problem: Problem,
+    nodes: np.ndarray,
+    tets: np.ndarray,
+    method: str = "auto",
+    *,
+    loads: Callable[[Tet10Mesh, Location], np.ndarray] | None = None,
+    supports: Callable[[Tet10Mesh], np.ndarray] | None = None,
 ) -> FemResult:
     """The linear-elastic reference of ``problem`` solved with 10-node tetrahedra on the mesh
     ``tets`` (T, 4) on ``nodes`` (N, 3), m, read at the lattice's nodes.
@@ -425,7 +432,10 @@ def tet10_reference(
     position in the mesh (:func:`point_loads`), with ``fpm.gravity`` the mesh's consistent
     weight; supports by :func:`fixed_nodes`. The displacements are read at every lattice node
     (:func:`locate`, :func:`interpolate`); a lattice node the spec fixes reads 0 (it is held in
-    the fit's model too).
+    the fit's model too). ``loads`` (mesh, where the lattice nodes lie) -> (L, M, 3) nodal
+    forces replaces the point loads (:mod:`fpm.fem.refine` spreads them: :mod:`fpm.fem.loads`),
+    ``supports`` (mesh) -> (M,) held nodes replaces :func:`fixed_nodes` (a refined mesh holds
+    what its coarsest level held).
 
     Returns:
         a :class:`FemResult` on the lattice: displacements (L, N_lattice, 3), m; ``element``
@@ -451,11 +461,14 @@ def tet10_reference(
     where = locate(mesh.nodes[: mesh.n_corners], mesh.corners, lattice)
     cases = problem.all_cases
     lattice_forces = np.stack([case.dense(len(lattice)) for case in cases])  # (L, N, 3)
-    forces = point_loads(mesh, lattice_forces, where)
+    if loads is None:
+        forces = point_loads(mesh, lattice_forces, where)
+    else:
+        forces = loads(mesh, where)
     gravity = np.asarray(problem.spec.fpm.gravity, dtype=float)
     if np.any(gravity):
         forces = forces + body_forces(mesh, material.density, gravity)[None]
-    fixed = fixed_nodes(problem, mesh)
+    fixed = fixed_nodes(problem, mesh) if supports is None else supports(mesh)
     if not fixed.any():
         raise FemError(
             "the tetrahedral mesh is not held: no node of it is near the spec's fixed nodes"

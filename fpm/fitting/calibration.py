@@ -147,8 +147,13 @@ def finalize(
     m = problem.solid.masses
     from ..fem.reference import reference_label
 
+    n_cases = len(problem.load_cases)
+    fem_error = getattr(reference, "estimated_error", None)
     return CalibrationResult(
         reference=reference_label(problem.spec),
+        reference_error=None if fem_error is None else fem_error[:n_cases],
+        validation_reference_error=None if fem_error is None else fem_error[n_cases:],
+        reference_refinements=getattr(reference, "refinements", None),
         method=method,
         stiffness_mode=problem.spec.fpm.stiffness,
         k=float(theta[0]),

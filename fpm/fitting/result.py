@@ -40,6 +40,21 @@ class CalibrationResult(BaseModel):
         "reference.displacements); "
         "'fem' in results stored before the field existed",
     )
+    reference_error: list[float] | None = Field(
+        None,
+        description="per load case, the reference's estimated error, %: the relative change "
+        "at the lattice nodes from its last refinement to the one before (reference.refine; "
+        "for hexahedra as given, from one refinement with the forces spread); above 5% a "
+        "warning says the reference does not resolve that load; null when not estimated",
+    )
+    validation_reference_error: list[float] | None = Field(
+        None, description="the same per validation case, %; null when not estimated"
+    )
+    reference_refinements: int | None = Field(
+        None,
+        description="uniform refinements of the reference's mesh the fit was measured against "
+        "(0: the mesh or hexahedra as given); null for a supplied reference",
+    )
     k: float = Field(description="stiffness of the axis family (the one k for 'single'), N/m")
     stiffness: dict[str, float] = Field(
         description="k per spring family present, N/m (all equal for 'single'); with "

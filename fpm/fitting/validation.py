@@ -52,7 +52,40 @@ def check_reference(problem: Problem, reference: Any) -> list[str]:
     on a reference no small-strain solid gives, returns warnings."""
     from .diagnosis import check_reference as check
 
-    return check(problem, reference_displacements(reference, problem))
+    return check(problem, reference_displacements(reference, problem)) + resolution_notes(
+        problem, reference
+    )
+
+
+def resolution_notes(problem: Problem, reference: Any) -> list[str]:
+    """Warnings on how far the reference is from converged (:mod:`fpm.fem.refine`): a load or
+    validation case whose estimated error is above WARN_ERROR, and the reference's own notes
+    (a refinement the node budget refused, an error not estimated)."""
+    from ..fem.refine import WARN_ERROR
+
+    error = getattr(reference, "estimated_error", None)
+    notes = [str(n) for n in getattr(reference, "notes", None) or []]
+    if error is None:
+        return notes
+    names = [c.name for c in problem.load_cases] + [
+        f"{c.name} (validation)" for c in problem.validation_cases
+    ]
+    refined = int(getattr(reference, "refinements", 0) or 0)
+    how = (
+        f"the change from its last refinement ({refined} in all)"
+        if refined
+        else "its change under one refinement with the force spread over the node's share of "
+        "the solid"
+    )
+    return [
+        f"load case '{name}': the reference's estimated error is {e:.1f}% ({how}), above "
+        f"{WARN_ERROR:g}%: the reference does not resolve this load (a force on a single node "
+        "of a coarse mesh, a press on one voxel); the fit inherits that error: use "
+        "reference.refine 'auto' (or a higher number, or a larger reference.node_budget), or "
+        'spread the force over more nodes ("distribute": true)'
+        for name, e in zip(names, error, strict=False)
+        if e > WARN_ERROR
+    ] + notes
 
 
 @dataclass

@@ -160,6 +160,7 @@ def build_problem(spec: ProblemSpec) -> Problem:
     validation = _load_cases(spec.validation_cases, "validation_cases", finder, fixed, errors)
     _check_stiffness_mode(spec, errors)
     _check_supplied_reference(spec, len(solid.nodes), errors)
+    _check_refine(spec, errors)
     if errors:
         raise SpecError(errors)
     return Problem(
@@ -242,6 +243,30 @@ def _check_stiffness_mode(spec: ProblemSpec, errors: list[tuple[Loc, str]]) -> N
                 "'families+volume' needs face diagonals for shear (geometry.connectivity "
                 "'axis+face' or 'full'; an 'axis' lattice has no shear stiffness): change the "
                 "connectivity, or use 'single' or 'families'",
+            )
+        )
+
+
+def _check_refine(spec: ProblemSpec, errors: list[tuple[Loc, str]]) -> None:
+    """reference.refine (n >= 1, 'auto', 'check') refines the linear FEM reference only."""
+    reference = spec.reference
+    if reference.refine in (None, 0):
+        return
+    loc: Loc = ("reference", "refine")
+    if reference.displacements is not None:
+        errors.append(
+            (
+                loc,
+                "a supplied reference (reference.displacements) is not solved, so it cannot be "
+                "refined: drop reference.refine",
+            )
+        )
+    elif spec.material.model != "linear":
+        errors.append(
+            (
+                loc,
+                "refinement applies to the linear reference: use material.model 'linear', or "
+                "drop reference.refine",
             )
         )
 

@@ -15,11 +15,11 @@ from typing import Annotated, Any, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-MODEL_VERSION = "2026.12.07"
+MODEL_VERSION = "2026.12.08"
 """Version of the numerics behind a result; bump it whenever a change alters fitted values.
 It is part of a calibration's identity, so a resubmitted spec is not answered from results
 that older numerics computed."""
-FEM_VERSION = "2026.12.07"
+FEM_VERSION = "2026.12.08"
 """Version of the FEM reference's numerics; bump it whenever a change alters FEM displacements.
 It is part of a stored reference's identity (references are kept without expiry), so new
 calibrations are never served a reference that older FEM numerics computed."""
@@ -419,6 +419,10 @@ class ReferenceMesh(_Strict):
     )
 
 
+MAX_REFINE = 6
+"""reference.refine: at most this many uniform refinements (8^6 = 262,144 times the elements)."""
+
+
 MESH_ID_PATTERN = r"^[0-9a-f]{64}$"
 """A mesh id: the sha256 hex digest the service's ``POST /v1/meshes`` returned."""
 
@@ -479,6 +483,25 @@ class ReferenceSettings(_Strict):
         "'mesh' is",
         exclude_if=lambda v: v is None,
     )
+    refine: Annotated[int, Field(ge=0, le=MAX_REFINE)] | Literal["auto", "check"] | None = Field(
+        None,
+        description="uniform refinements of the reference's mesh (each tetrahedron or "
+        "hexahedron into 8), the lattice's forces spread over each node's share of the solid: "
+        "n (the result's estimated error is the change from n - 1), 'auto' (refine until the "
+        "displacements at the lattice nodes change by less than 1% or the next level is over "
+        "node_budget), 'check' (the reference as given, its error estimated by one refinement) "
+        "or 0 (as given, point loads, no estimate); null = 'auto' for a tetrahedral mesh, "
+        "'check' for hexahedra (on lattices of at most about 7,500 nodes), 0 for a neo-Hookean "
+        "or supplied reference",
+        exclude_if=lambda v: v is None,
+    )
+    node_budget: int | None = Field(
+        None,
+        ge=1_000,
+        le=20_000_000,
+        description="refine: the most FEM nodes a refined level may have (null = 400,000)",
+        exclude_if=lambda v: v is None,
+    )
 
     @model_validator(mode="after")
     def _one_reference(self) -> ReferenceSettings:
@@ -488,6 +511,13 @@ class ReferenceSettings(_Strict):
         if len(given) > 1:
             raise ValueError(f"give at most one of displacements, mesh, mesh_id (got {given})")
         return self
+
+    @field_validator("refine", mode="before")
+    @classmethod
+    def _no_bool(cls, v: Any) -> Any:
+        if isinstance(v, bool):  # JSON true is not a number of refinements
+            raise ValueError("give a number of refinements (0-6), 'auto' or 'check'")
+        return v
 
 
 class ProblemSpec(_Strict):

@@ -439,7 +439,23 @@
       el("p", { class: "muted" }, "Relative: summed nodal error over the FEM's summed displacement (0% perfect, ",
         "100% no better than not moving). Loaded nodes: the same at the loaded nodes. % of h: mean nodal ",
         "error over the lattice spacing h (the paper's unit), read beside the relative figure."),
-      validationTable(r));
+      validationTable(r),
+      referenceError(r));
+  }
+
+  function referenceError(r) {
+    // The reference's own estimated error (reference.refine): the fit cannot be closer than it.
+    const e = r.reference_error;
+    if (!e) return null;
+    const v = r.validation_reference_error || [];
+    const high = [...e, ...v].some((x) => x > 5);
+    const text = `Reference's estimated error: ${e.map((x) => pct(x)).join(" / ")}`
+      + (v.length ? `; validation ${v.map((x) => pct(x)).join(" / ")}` : "")
+      + (r.reference_refinements ? ` (the change from its last refinement, ${r.reference_refinements} in all)`
+        : " (its change under one refinement, the forces spread)")
+      + (high ? ": above 5%, the reference does not resolve that load" : ".");
+    return high ? el("ul", { class: "warnings", id: "reference-error" }, el("li", null, text))
+      : el("p", { class: "muted", id: "reference-error" }, text);
   }
 
   function validationTable(r) {

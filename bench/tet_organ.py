@@ -1,0 +1,126 @@
+"""A tetrahedral organ of our own making, of any size, with well-shaped tetrahedra.
+
+The organ ellipsoid of :mod:`bench.organ` (semi-axes 7, 4.5, 3.5 cm), meshed by mapping a grid
+of ``cells`` cubes, each split into 6 tetrahedra around its diagonal (Kuhn), from the cube
+[-1, 1]^3 onto the unit ball (the cube-to-sphere map
+``x' = x sqrt(1 - y^2/2 - z^2/2 + y^2 z^2/3)`` and its cyclic permutations: smooth, one to one,
+the cube's faces onto the sphere) and scaling by the semi-axes. Unlike ``examples/lobe.vtu``
+(a Delaunay mesh of surface and jittered interior points, with slivers down to 2e-5 of a
+regular tetrahedron's volume-to-edge ratio) no tetrahedron is flat, so the 10-node reference's
+iterative solver needs few iterations on it and on its refinements. ``cells=(13, 9, 7)`` gives
+4,914 tetrahedra (the 5,000-tetrahedron organ of ``python -m bench refine``), ``(5, 4, 3)`` 360
+(a few hundred, as public organ meshes come).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+SEMI_AXES = np.array([0.07, 0.045, 0.035])
+"""Semi-axes of the organ ellipsoid, m (as bench/organ.py)."""
+KUHN = [[0, 1, 2, 6], [0, 2, 3, 6], [0, 3, 7, 6], [0, 7, 4, 6], [0, 4, 5, 6], [0, 5, 1, 6]]
+"""Six tetrahedra around the diagonal 0-6 of a hexahedron (fpm.model.hexahedron order)."""
+
+
+def cube_to_ball(p: np.ndarray) -> np.ndarray:
+    """(N, 3) points of [-1, 1]^3 mapped onto the unit ball (module docstring)."""
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    return np.stack(
+        [
+            x * np.sqrt(1 - y**2 / 2 - z**2 / 2 + y**2 * z**2 / 3),
+            y * np.sqrt(1 - z**2 / 2 - x**2 / 2 + z**2 * x**2 / 3),
+            z * np.sqrt(1 - x**2 / 2 - y**2 / 2 + x**2 * y**2 / 3),
+        ],
+        axis=1,
+    )
+
+
+def organ_mesh(
+    cells: tuple[int, int, int] = (13, 9, 7), semi_axes: np.ndarray = SEMI_AXES
+) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) nodes, m, and (T, 4) positive tetrahedra of the organ (6 per grid cell)."""
+    nx, ny, nz = cells
+    axes = [np.linspace(-1, 1, n + 1) for n in cells]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    nodes = cube_to_ball(grid) * np.asarray(semi_axes)
+    idx = np.arange(len(grid)).reshape(nx + 1, ny + 1, nz + 1)
+    i, j, k = (
+        a.ravel() for a in np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij")
+    )
+    corners = np.stack(
+        [
+            idx[i, j, k], idx[i + 1, j, k], idx[i + 1, j + 1, k], idx[i, j + 1, k],
+            idx[i, j, k + 1], idx[i + 1, j, k + 1], idx[i + 1, j + 1, k + 1], idx[i, j + 1, k + 1],
+        ],
+        axis=1,
+    )  # fmt: skip
+    tets = corners[:, KUHN].reshape(-1, 4)
+    c = nodes[tets]
+    volume = np.linalg.det(np.transpose(c[:, 1:] - c[:, :1], (0, 2, 1)))
+    tets[volume < 0] = tets[volume < 0][:, [0, 2, 1, 3]]
+    return nodes, tets
+
+
+def quality(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(T,) volume over longest edge cubed, relative to the regular tetrahedron's (1 = best)."""
+    c = nodes[tets]
+    volume = np.abs(np.linalg.det(np.transpose(c[:, 1:] - c[:, :1], (0, 2, 1)))) / 6
+    pairs = [(0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3)]
+    longest = np.stack([np.linalg.norm(c[:, a] - c[:, b], axis=1) for a, b in pairs], 1).max(1)
+    return volume / longest**3 / (1 / (6 * np.sqrt(2)))
+
+
+def organ_spec(
+    cells: tuple[int, int, int] = (13, 9, 7),
+    spacing: float = 0.01,
+    *,
+    validation: bool = True,
+    refine: int | str | None = "auto",
+) -> dict:
+    """The organ as ``fpmcal spec from-mesh`` would make it (a voxel lattice of ``spacing``, a
+    cell solid when its centre lies in a tetrahedron; the tetrahedra as the reference), E 5 kPa,
+    nu 0.45, held below z = -25 mm; fitted: a press on top (0.02 N) and a lateral pull at the
+    top (0.01 N); validation (``validation``): a press off centre, a pull along y at the front,
+    both presses at once. ``refine`` None leaves reference.refine out."""
+    from fpm.fem.tet10 import locate
+
+    nodes, tets = organ_mesh(cells)
+    lo, hi = nodes.min(axis=0), nodes.max(axis=0)
+    counts = np.ceil((hi - lo) / spacing - 1e-9).astype(int)
+    origin = (lo + hi) / 2 - counts * spacing / 2
+    grid = np.stack(np.meshgrid(*map(np.arange, counts), indexing="ij"), axis=-1)
+    centres = origin + spacing * (grid.reshape(-1, 3) + 0.5)
+    inside = locate(nodes, tets, centres).distance == 0
+    top = [0.0, 0.0, float(hi[2])]
+
+    def press(name: str, *points: list[float], vector: list[float]) -> dict:
+        return {
+            "name": name,
+            "forces": [{"nearest": p, "vector": vector} for p in points],
+        }
+
+    spec: dict = {
+        "name": f"tetrahedral organ, {len(tets)} tetrahedra",
+        "material": {"youngs_modulus": 5e3, "poisson_ratio": 0.45, "density": 1040.0},
+        "geometry": {
+            "type": "voxels",
+            "occupancy": inside.reshape(*counts).tolist(),
+            "spacing": [spacing] * 3,
+            "origin": origin.tolist(),
+        },
+        "fixed": [{"box": [[-1, -1, -1], [1, 1, -0.025]]}],
+        "load_cases": [
+            press("press top", top, vector=[0, 0, -0.02]),
+            press("lateral", top, vector=[0.01, 0, 0]),
+        ],
+        "reference": {"mesh": {"nodes": nodes.tolist(), "tetrahedra": tets.tolist()}},
+    }
+    if validation:
+        spec["validation_cases"] = [
+            press("press off centre", [0.03, 0.0, 0.03], vector=[0, 0, -0.02]),
+            press("lateral y", [0.0, 0.045, 0.0], vector=[0, 0.01, 0]),
+            press("two presses", top, [0.03, 0.0, 0.03], vector=[0, 0, -0.01]),
+        ]
+    if refine is not None:
+        spec["reference"]["refine"] = refine
+    return spec
