@@ -152,8 +152,11 @@ def hexahedron_volumes(nodes: np.ndarray, hexahedra: np.ndarray) -> np.ndarray:
     return np.sum([np.linalg.det(jacobians(x, p)) for p in GAUSS_POINTS], axis=0)
 
 
-def lumped_masses(nodes: np.ndarray, hexahedra: np.ndarray, density: float) -> np.ndarray:
-    """(N,) node masses: each hexahedron gives density * volume / 8 to each of its nodes."""
+def lumped_masses(
+    nodes: np.ndarray, hexahedra: np.ndarray, density: float | np.ndarray
+) -> np.ndarray:
+    """(N,) node masses: each hexahedron gives density * volume / 8 to each of its nodes
+    (``density`` one for all, kg/m^3, or (H,) one per hexahedron)."""
     share = density * np.abs(hexahedron_volumes(nodes, hexahedra)) / 8.0
     masses = np.zeros(len(nodes))
     np.add.at(masses, hexahedra.ravel(), np.repeat(share, 8))

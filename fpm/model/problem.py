@@ -15,7 +15,8 @@ import numpy as np
 from pydantic import ValidationError
 from pydantic_core import InitErrorDetails, PydanticCustomError
 
-from .geometry import Solid, build_solid, spring_lengths
+from .geometry import Solid, build_solid, lumped_masses, spring_lengths
+from .regions import RegionMap, check_material, lattice_regions
 from .spec import MeshGeometry, NetworkGeometry, ProblemSpec, Selector
 
 Loc = tuple[str | int, ...]
@@ -70,6 +71,8 @@ class Problem:
         validation_cases: the spec's validation cases (never fitted), as load cases.
         notes: what the spec left to interpretation, one line each, for the user to check
             (e.g. which node a ``nearest`` selector took and how far it is from the point).
+        regions: the material region of every lattice cell (:mod:`fpm.model.regions`); None
+            without ``material.regions``.
     """
 
     spec: ProblemSpec
@@ -82,6 +85,7 @@ class Problem:
     cache: dict[str, Any] = field(init=False, repr=False, default_factory=dict)
     notes: list[str] = field(default_factory=list)
     validation_cases: list[LoadCase] = field(default_factory=list)
+    regions: RegionMap | None = None
 
     def __post_init__(self) -> None:
         self.h = float(self.rest_lengths.min())
@@ -107,13 +111,23 @@ class Problem:
         found = self.cache.get("validation_problem")
         if found is None:
             found = self.cache["validation_problem"] = Problem(
-                self.spec, self.solid, self.fixed, self.validation_cases, self.rest_lengths
+                self.spec,
+                self.solid,
+                self.fixed,
+                self.validation_cases,
+                self.rest_lengths,
+                regions=self.regions,
             )
         return found
 
 
-def load_problem(spec: dict[str, Any] | str | Path | ProblemSpec) -> Problem:
+def load_problem(
+    spec: dict[str, Any] | str | Path | ProblemSpec, mesh: dict[str, Any] | None = None
+) -> Problem:
     """Validate ``spec`` (a dict, a JSON file path, a JSON string or a ProblemSpec) and build it.
+
+    ``mesh``: the tetrahedral mesh ``reference.mesh_id`` names (as the service stored it:
+    nodes, tetrahedra, tags), needed only when ``material.regions`` select by its tags.
 
     Raises:
         pydantic.ValidationError: for any bad spec; each error's ``loc`` names the field.
@@ -128,7 +142,7 @@ def load_problem(spec: dict[str, Any] | str | Path | ProblemSpec) -> Problem:
             text = Path(text).read_text()
         parsed = ProblemSpec.model_validate(json.loads(text))
     try:
-        return build_problem(parsed)
+        return build_problem(parsed, mesh)
     except SpecError as e:
         raise ValidationError.from_exception_data(
             "ProblemSpec",
@@ -139,8 +153,9 @@ def load_problem(spec: dict[str, Any] | str | Path | ProblemSpec) -> Problem:
         ) from None
 
 
-def build_problem(spec: ProblemSpec) -> Problem:
-    """Arrays for a schema-valid spec; raises :class:`SpecError` where it does not fit its solid."""
+def build_problem(spec: ProblemSpec, mesh: dict[str, Any] | None = None) -> Problem:
+    """Arrays for a schema-valid spec; raises :class:`SpecError` where it does not fit its solid
+    (``mesh`` as :func:`load_problem`'s)."""
     _check_indices(spec)
     solid = build_solid(spec.geometry, spec.material.density)
     errors: list[tuple[Loc, str]] = []
@@ -161,11 +176,40 @@ def build_problem(spec: ProblemSpec) -> Problem:
     _check_stiffness_mode(spec, errors)
     _check_supplied_reference(spec, len(solid.nodes), errors)
     _check_refine(spec, errors)
+    errors.extend(check_material(spec))
+    regions = _material_regions(spec, solid, mesh, errors, finder.notes)
     if errors:
         raise SpecError(errors)
     return Problem(
-        spec, solid, fixed, load_cases, lengths, notes=finder.notes, validation_cases=validation
+        spec,
+        solid,
+        fixed,
+        load_cases,
+        lengths,
+        notes=finder.notes,
+        validation_cases=validation,
+        regions=regions,
     )
+
+
+def _material_regions(
+    spec: ProblemSpec,
+    solid: Solid,
+    mesh: dict[str, Any] | None,
+    errors: list[tuple[Loc, str]],
+    notes: list[str],
+) -> RegionMap | None:
+    """The lattice cells' material regions (:func:`fpm.model.regions.lattice_regions`); a region
+    of another density changes the lumped masses of its cells' corners."""
+    hexahedra = solid.elements()
+    if not spec.material.regions or hexahedra is None:
+        return None
+    regions, found, more = lattice_regions(spec, solid.nodes, hexahedra, mesh)
+    errors.extend(found)
+    notes.extend(more)
+    if regions is not None and any(m[2] != spec.material.density for m in regions.materials):
+        solid.masses = lumped_masses(solid.nodes, hexahedra, regions.cell_densities())
+    return regions
 
 
 def select_nodes(problem: Problem, selector: Selector) -> np.ndarray:
