@@ -16,20 +16,33 @@ from .elasticity import element_stiffness
 
 
 def stiffness_matrix(
-    nodes: np.ndarray, hexahedra: np.ndarray, c: np.ndarray, integration: str = "full"
+    nodes: np.ndarray,
+    hexahedra: np.ndarray,
+    c: np.ndarray,
+    integration: str = "full",
+    materials: np.ndarray | None = None,
 ) -> sp.bsr_matrix:
     """(3N, 3N) global stiffness K, N/m, in 3x3 blocks.
 
     Args:
         nodes: (N, 3) rest positions, m.
         hexahedra: (H, 8) node indices, :mod:`fpm.model.hexahedron` order, det J > 0.
-        c: (6, 6) elasticity matrix, Pa.
+        c: (6, 6) elasticity matrix, Pa; or (M, 6, 6), one per material, with ``materials``.
         integration: ``"full"`` (2x2x2 Gauss points) or ``"selective"`` (B-bar, mean
             dilatation): :func:`fpm.fem.elasticity.element_stiffness`.
+        materials: (H,) each hexahedron's index into ``c`` (M, 6, 6) (:mod:`fpm.fem.materials`).
     """
     n = len(nodes)
     shapes, which = identical_elements(nodes[hexahedra])
-    ke = element_stiffness(shapes, c, integration)  # (U, 24, 24)
+    if materials is None:
+        ke = element_stiffness(shapes, c, integration)  # (U, 24, 24)
+    else:  # one element matrix per (shape, material) present
+        pairs, which = np.unique(which * len(c) + materials, return_inverse=True)
+        which = which.ravel()
+        ke = np.empty((len(pairs), 24, 24))
+        for m in np.unique(pairs % len(c)):
+            here = np.flatnonzero(pairs % len(c) == m)
+            ke[here] = element_stiffness(shapes[pairs[here] // len(c)], c[m], integration)
     blocks = ke.reshape(-1, 8, 3, 8, 3).transpose(0, 1, 3, 2, 4).reshape(-1, 64, 9)
     hexahedra = hexahedra.astype(np.int64)
     keys = (np.repeat(hexahedra, 8, axis=1) * n + np.tile(hexahedra, (1, 8))).ravel()
@@ -42,7 +55,7 @@ def stiffness_matrix(
 
 
 def body_forces(
-    nodes: np.ndarray, hexahedra: np.ndarray, density: float, gravity: np.ndarray
+    nodes: np.ndarray, hexahedra: np.ndarray, density: float | np.ndarray, gravity: np.ndarray
 ) -> np.ndarray:
     """(N, 3) consistent nodal body forces f_a = int N_a rho g dV, N, summed over hexahedra.
 
@@ -54,7 +67,7 @@ def body_forces(
     Args:
         nodes: (N, 3) rest positions, m.
         hexahedra: (H, 8) node indices, det J > 0.
-        density: rho, kg/m^3.
+        density: rho, kg/m^3, or (H,) one per hexahedron.
         gravity: (3,) acceleration g, m/s^2.
     """
     coords = nodes[hexahedra]
@@ -62,6 +75,9 @@ def body_forces(
     for point in GAUSS_POINTS:
         share += shape_functions(point)[None, :] * np.linalg.det(jacobians(coords, point))[:, None]
     out = np.zeros((len(nodes), 3))
+    if np.ndim(density):  # per hexahedron
+        share = share * np.asarray(density, dtype=float)[:, None]
+        density = 1.0
     weight = density * np.asarray(gravity, dtype=float)
     for i in range(3):
         out[:, i] = np.bincount(hexahedra.ravel(), (share * weight[i]).ravel(), len(nodes))

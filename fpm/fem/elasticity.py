@@ -76,6 +76,8 @@ def element_stiffness(coords: np.ndarray, c: np.ndarray, integration: str = "ful
     """
     if integration not in INTEGRATIONS:
         raise ValueError(f"unknown integration {integration!r} (use 'selective' or 'full')")
+    if integration == "selective" and not is_isotropic(c):
+        return mean_dilatation_stiffness(coords, c)
     ke = np.zeros((len(coords), 24, 24))
     if integration == "full":
         for point in GAUSS_POINTS:
@@ -94,6 +96,37 @@ def element_stiffness(coords: np.ndarray, c: np.ndarray, integration: str = "ful
         divergence += grad.reshape(len(coords), 24) * det[:, None]
         volume += det
     ke += kappa * np.einsum("ha,hb->hab", divergence, divergence) / volume[:, None, None]
+    return ke
+
+
+def is_isotropic(c: np.ndarray) -> bool:
+    """``c`` (6, 6) has the isotropic form of :func:`constitutive_matrix` (to 1e-12 of its
+    largest entry): equal normal and equal off-diagonal entries, shear ``(C11 - C12) / 2``,
+    no coupling between normal and shear rows."""
+    c = np.asarray(c, dtype=float)
+    c11, c12 = c[0, 0], c[0, 1]
+    iso = np.zeros((6, 6))
+    iso[:3, :3] = c12
+    iso[np.arange(3), np.arange(3)] = c11
+    iso[np.arange(3, 6), np.arange(3, 6)] = (c11 - c12) / 2
+    return bool(np.abs(c - iso).max() <= 1e-12 * np.abs(c).max())
+
+
+def mean_dilatation_stiffness(coords: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(H, 24, 24) K_e, N/m, of the B-bar element with the mean dilatation for any (6, 6) C
+    (an anisotropic one, :mod:`fpm.fem.materials`): ``sum_g B_bar^T C B_bar det J`` over the
+    2x2x2 Gauss points, ``B_bar = B + m (b_bar - m^T B) / 3``, ``b_bar = (1/V) int m^T B dV``.
+    For an isotropic C it equals the split form of :func:`element_stiffness`; uniform strains
+    are reproduced exactly (patch test)."""
+    points = [physical_gradients(coords, point) for point in GAUSS_POINTS]
+    volume = np.sum([det for _, det in points], axis=0)
+    mean = np.sum([grad.reshape(len(coords), 24) * det[:, None] for grad, det in points], axis=0)
+    mean /= volume[:, None]
+    ke = np.zeros((len(coords), 24, 24))
+    for grad, det in points:
+        b = strain_displacement(grad)
+        b += VOLUMETRIC[None, :, None] * (mean - grad.reshape(len(coords), 24))[:, None, :] / 3
+        ke += np.einsum("hpa,pq,hqb->hab", b, c, b, optimize=True) * det[:, None, None]
     return ke
 
 

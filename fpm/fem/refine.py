@@ -64,6 +64,7 @@ from .loads import (
     tetrahedron_surface_samples,
     tetrahedron_volume_samples,
 )
+from .materials import has_materials, hexahedron_densities, hexahedron_stiffness
 from .solution import FemError, FemResult, solve_dirichlet
 from .tet10 import (
     Location,
@@ -548,17 +549,25 @@ def _solve_hex(
     material = problem.spec.material
     gravity = np.asarray(problem.spec.fpm.gravity, dtype=float)
     if np.any(gravity):
-        f = f + body_forces(nodes, hexahedra, material.density, gravity)[None]
+        density = (
+            hexahedron_densities(problem, nodes, hexahedra)
+            if has_materials(problem.spec)
+            else material.density
+        )
+        f = f + body_forces(nodes, hexahedra, density, gravity)[None]
     in_solid = np.zeros(len(nodes), dtype=bool)
     in_solid[hexahedra] = True
     free = np.repeat(in_solid & ~fixed, 3)
     how = choose_method(int(free.sum())) if method == "auto" else method
-    k = stiffness_matrix(
-        nodes,
-        hexahedra,
-        constitutive_matrix(material.youngs_modulus, material.poisson_ratio),
-        problem.spec.reference.integration,
-    )
+    if has_materials(problem.spec):  # regions, transversely isotropic: fpm.fem.materials
+        k = hexahedron_stiffness(problem, nodes, hexahedra)
+    else:
+        k = stiffness_matrix(
+            nodes,
+            hexahedra,
+            constitutive_matrix(material.youngs_modulus, material.poisson_ratio),
+            problem.spec.reference.integration,
+        )
     u, residuals = solve_dirichlet(k, f.reshape(len(f), -1), free, nodes, how)
     u = u.reshape(len(f), -1, 3)[:, :n]
     names = [case.name for case in problem.all_cases]

@@ -57,6 +57,7 @@ from .linear_solver import (
     rigid_body_modes,
     v_cycle,
 )
+from .materials import has_materials, tetrahedron_elasticity
 from .solution import RESIDUAL_LIMIT, FemError, FemResult
 from .solution import solve_dirichlet as _solve_direct
 
@@ -151,7 +152,8 @@ def stiffness_matrix(mesh: Tet10Mesh, c: np.ndarray) -> sp.bsr_matrix:
 
     Args:
         mesh: the 10-node mesh (M nodes).
-        c: (6, 6) elasticity matrix, Pa (:func:`fpm.fem.elasticity.constitutive_matrix`).
+        c: (6, 6) elasticity matrix, Pa (:func:`fpm.fem.elasticity.constitutive_matrix`), or
+            (T, 6, 6) one per tetrahedron (:mod:`fpm.fem.materials`).
     """
     m = len(mesh.nodes)
     elements = mesh.elements.astype(np.int64)
@@ -162,7 +164,7 @@ def stiffness_matrix(mesh: Tet10Mesh, c: np.ndarray) -> sp.bsr_matrix:
     coords = mesh.nodes[mesh.corners]
     for start in range(0, len(elements), CHUNK):
         stop = min(start + CHUNK, len(elements))
-        ke = element_stiffness(coords[start:stop], c)
+        ke = element_stiffness(coords[start:stop], c if c.ndim == 2 else c[start:stop])
         blocks = ke.reshape(-1, 10, 3, 10, 3).transpose(0, 1, 3, 2, 4).reshape(-1, 9)
         where = slot[start * 100 : stop * 100]
         for entry in range(9):
@@ -171,11 +173,15 @@ def stiffness_matrix(mesh: Tet10Mesh, c: np.ndarray) -> sp.bsr_matrix:
     return sp.bsr_matrix((data.reshape(-1, 3, 3), pairs % m, indptr), shape=(3 * m, 3 * m))
 
 
-def body_forces(mesh: Tet10Mesh, density: float, gravity: np.ndarray) -> np.ndarray:
+def body_forces(mesh: Tet10Mesh, density: float | np.ndarray, gravity: np.ndarray) -> np.ndarray:
     """(M, 3) consistent nodal body forces ``int N_a rho g dV``, N: each tetrahedron of volume
     V gives ``-V/20`` to its corners and ``V/5`` to its mid-edge nodes, times ``rho g``
-    (``density`` kg/m^3, ``gravity`` (3,) m/s^2); they sum to the weight ``rho g V``."""
+    (``density`` kg/m^3, or (T,) one per tetrahedron; ``gravity`` (3,) m/s^2); they sum to the
+    weight ``rho g V``."""
     volume = tetrahedron_volumes(mesh.nodes, mesh.corners)
+    if np.ndim(density):  # per tetrahedron
+        volume = volume * np.asarray(density, dtype=float)
+        density = 1.0
     share = np.concatenate(
         [np.repeat(-volume[:, None] / 20, 4, axis=1), np.repeat(volume[:, None] / 5, 6, axis=1)],
         axis=1,
@@ -465,9 +471,13 @@ def tet10_reference(
         forces = point_loads(mesh, lattice_forces, where)
     else:
         forces = loads(mesh, where)
+    c: np.ndarray = constitutive_matrix(material.youngs_modulus, material.poisson_ratio)
+    density: float | np.ndarray = material.density
+    if has_materials(problem.spec):  # regions, transversely isotropic: per tetrahedron
+        c, density = tetrahedron_elasticity(problem, mesh.nodes, mesh.corners)
     gravity = np.asarray(problem.spec.fpm.gravity, dtype=float)
     if np.any(gravity):
-        forces = forces + body_forces(mesh, material.density, gravity)[None]
+        forces = forces + body_forces(mesh, density, gravity)[None]
     fixed = fixed_nodes(problem, mesh) if supports is None else supports(mesh)
     if not fixed.any():
         raise FemError(
@@ -477,7 +487,7 @@ def tet10_reference(
     used[mesh.elements] = True  # a node in no tetrahedron has no stiffness: it stays at rest
     free = np.repeat(~fixed & used, 3)
     method = choose_method(int(free.sum())) if method == "auto" else method
-    k = stiffness_matrix(mesh, constitutive_matrix(material.youngs_modulus, material.poisson_ratio))
+    k = stiffness_matrix(mesh, c)
     solve = solve_direct if method == "direct" else solve_p_multigrid
     u, residuals = solve(k, forces.reshape(len(cases), -1), free, mesh, method)
     u_lattice = interpolate(mesh, u.reshape(len(cases), -1, 3), where)
