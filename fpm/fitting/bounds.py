@@ -22,9 +22,10 @@ from __future__ import annotations
 import numpy as np
 
 from ..dynamics.simulation import fpm_model
+from ..model import materials
 from ..model.problem import Problem
 from ..model.spec import lame_constants
-from ..model.stiffness import FLOOR, family_names, has_volume
+from ..model.stiffness import FLOOR, family_names, has_volume, is_extended
 
 
 def stiffness_bounds(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
@@ -33,6 +34,8 @@ def stiffness_bounds(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
     FLOOR mu h (its 'zero') to the top of the k bounds, and kappa in [FLOOR mu, 10 (lambda +
     2 mu)] Pa (kappa >= 0: for nu < 1/4 it stays at its floor, see
     :func:`fpm.model.stiffness.continuum_start`)."""
+    if is_extended(problem):  # per material region, or the transversely isotropic lattice's
+        return materials.bounds(problem, problem.spec.annealing.bounds.k, FLOOR)
     eh = problem.spec.material.youngs_modulus * problem.h
     k = problem.spec.annealing.bounds.k or (eh / 100, 10 * eh)
     n = len(family_names(problem))
@@ -68,6 +71,8 @@ def full_depth(problem: Problem) -> int:
 
 def mode_notes(problem: Problem) -> list[str]:
     """What the user should know about the stiffness mode (families+volume below nu 1/4)."""
+    if is_extended(problem):
+        return materials.notes(problem)
     m = problem.spec.material
     mu, lam = lame_constants(m.youngs_modulus, m.poisson_ratio)
     if has_volume(problem) and lam < mu:

@@ -47,6 +47,7 @@ from typing import Any
 
 import numpy as np
 
+from ..model import materials
 from ..model.problem import Problem
 from ..model.stiffness import stiffness_dict, volume_stiffness
 from .bounds import damping_bounds, fit_depth, full_depth, mode_notes, stiffness_bounds
@@ -159,6 +160,7 @@ def finalize(
         k=float(theta[0]),
         stiffness=stiffness,
         volume_stiffness=volume_stiffness(problem, theta),
+        regions=materials.report(problem, theta),
         dt=dt,
         validation_cases=[c.name for c in problem.validation_cases],
         validation_relative_discrepancy=validation.relative,

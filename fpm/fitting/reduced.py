@@ -34,7 +34,7 @@ import scipy.sparse as sp
 from scipy.optimize import minimize
 
 from ..model.problem import Problem
-from ..model.stiffness import family_names, model_stiffness
+from ..model.stiffness import linear_parts
 from .cost import StaticCost
 
 CONVERGED = 2e-3
@@ -222,8 +222,9 @@ class ReducedLinearModel:
         self.cost = cost
         self.problem: Problem = cost.problem
         self.solves = 0
-        n = len(family_names(self.problem))
-        units = [model_stiffness(self.problem, np.eye(n)[p]) for p in range(n)]
+        # K(theta) = sum_p c_p(theta) K_p: c = theta but for a transversely isotropic lattice
+        units, self.coefficients = linear_parts(self.problem)
+        n = len(units)
         solver = cost.solver
         self.cases: list[_Case] = []
         for j in range(len(self.problem.load_cases)):
@@ -252,7 +253,7 @@ class ReducedLinearModel:
         # one multigrid V-cycle on K_p u (a direction for the basis; exact solves come later).
         for j, case in enumerate(self.cases):
             assert case.last is not None
-            matrix = case.unit.at(theta)
+            matrix = case.unit.at(self.coefficients(theta))
             for p in range(len(case.unit)):
                 loads = np.zeros((self.problem.n_nodes, 3))
                 loads[case.free] = (case.unit.matrix(p) @ case.last).reshape(-1, 3)
@@ -266,8 +267,8 @@ class ReducedLinearModel:
             guess = None
             if case.basis.shape[1]:  # start CG from the reduced model's answer
                 guess = np.zeros((self.problem.n_nodes, 3))
-                guess[case.free] = case.linear(theta).reshape(-1, 3)
-            matrix = case.unit.at(theta)  # K(theta)
+                guess[case.free] = case.linear(self.coefficients(theta)).reshape(-1, 3)
+            matrix = case.unit.at(self.coefficients(theta))  # K(theta)
             response = solver.linear_solve(
                 j, self.cost.depth, matrix, solver.loads(j), guess=guess, rtol=RTOL
             )
@@ -276,7 +277,8 @@ class ReducedLinearModel:
 
     def __call__(self, theta: np.ndarray) -> float:
         """Eq. (2) of the reduced linear model over every load case, m."""
-        return float(sum(case.cost(theta) for case in self.cases))
+        c = self.coefficients(theta)
+        return float(sum(case.cost(c) for case in self.cases))
 
 
 DEFECT_ROUNDS = 8

@@ -59,12 +59,21 @@ class CalibrationResult(BaseModel):
     stiffness: dict[str, float] = Field(
         description="k per spring family present, N/m (all equal for 'single'); with "
         "'families+volume' a spring gets its family's k times its cells' shares (an interior "
-        "spring k, a surface one less)"
+        "spring k, a surface one less). With material.regions also each other region's "
+        "families and kappa by name ('axis[name]', ..., 'kappa[name]', Pa); with a "
+        "transversely isotropic material its fitted 'axial_scale'"
     )
     volume_stiffness: float | None = Field(
         None,
         description="kappa, Pa: the volume stiffness of every cell ('families+volume'; None "
-        "for the spring-only models)",
+        "for the spring-only models); with material.regions the base region's",
+    )
+    regions: list[dict[str, Any]] | None = Field(
+        None,
+        description="material.regions: per region present, base (the cells of no region) "
+        "first: name, cells, youngs_modulus (Pa), poisson_ratio, density (kg/m^3), the fitted "
+        "stiffness ({family: k}, N/m) and volume_stiffness (kappa, Pa); absent without regions",
+        exclude_if=lambda v: v is None,
     )
     dt: float | None = Field(
         None, description="the time step d was fitted at and settle_steps count, s"

@@ -27,14 +27,16 @@ spring part.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 
+from . import materials
 from .forces import Stiffness
 from .hexahedron import FAMILIES, connectivity_families, local_families, local_pairs
+from .materials import is_extended
 from .problem import Problem
 from .spec import lame_constants
 
@@ -61,6 +63,8 @@ def family_names(problem: Problem) -> tuple[str, ...]:
     mode = problem.spec.fpm.stiffness
     if mode == "single":
         return ("k",)
+    if is_extended(problem):  # material regions, transversely isotropic (fpm.model.materials)
+        return materials.parameter_names(problem)
     g = problem.spec.geometry
     names = connectivity_families(getattr(g, "connectivity", "axis"))
     return (*names, VOLUME) if mode in VOLUME_MODES else names
@@ -124,7 +128,12 @@ def continuum_start(problem: Problem) -> list[float]:
     kappa starts (and stays, see :func:`fpm.fitting.bounds.stiffness_bounds`) at its
     floor, and the lattice cannot go below nu = 1/4 (the families' limit). k3 = 0 cannot be a
     point of a log-space search: it starts at the floor :data:`FLOOR` times mu h.
+
+    Material regions: each region's own; transversely isotropic: the closed form nearest the
+    stiffness tensor, with its axial scale (:func:`fpm.model.materials.start`).
     """
+    if is_extended(problem):
+        return materials.start(problem, FLOOR)
     m = problem.spec.material
     mu, lam = lame_constants(m.youngs_modulus, m.poisson_ratio)
     h = problem.h
@@ -165,6 +174,8 @@ def model_stiffness(
             f"this spec fits {', '.join(names)} (fpm.stiffness 'families+volume'): give "
             f"{len(names)} values, not {len(values)}"
         )
+    if is_extended(problem):
+        return materials.stiffness(problem, values, CELL_SHARE, axis_factors(problem))
     springs = values[:-1][problem.solid.families] * assembly_weights(problem)
     factor = axis_factors(problem)
     if factor is not None:
@@ -246,7 +257,10 @@ def spring_stiffness(problem: Problem, theta: float | Sequence[float] | np.ndarr
 def stiffness_dict(problem: Problem, theta: Sequence[float]) -> dict[str, float]:
     """Theta as {family: k, N/m} for every family present (single: each family gets k); the
     volume stiffness (families+volume) is not a spring's and is left out (see
-    :func:`volume_stiffness`)."""
+    :func:`volume_stiffness`). Material regions and a transversely isotropic material: every
+    parameter by name but the base's kappa (:func:`fpm.model.materials.stiffness_values`)."""
+    if is_extended(problem):
+        return materials.stiffness_values(problem, theta)
     g = problem.spec.geometry
     present = connectivity_families(getattr(g, "connectivity", "axis"))
     values = list(theta)[: len(present)] if has_volume(problem) else list(theta)
@@ -264,6 +278,8 @@ def theta_of(
     Raises:
         ValueError: the record lacks what the spec's mode needs (a family, or kappa).
     """
+    if is_extended(problem):  # every parameter by name (fpm.model.materials.theta_from)
+        return materials.theta_from(problem, stiffness, kappa)
     names = family_names(problem)
     if names == ("k",):
         return [float(k)]
@@ -336,8 +352,26 @@ def _returned_field(field: Any) -> tuple[Any, Any] | None:
 
 
 def volume_stiffness(problem: Problem, theta: Sequence[float]) -> float | None:
-    """kappa, Pa, for families+volume (theta's last value); None for the other modes."""
+    """kappa, Pa, for families+volume (theta's last value; with material regions the base's);
+    None for the other modes."""
+    if is_extended(problem):
+        return materials.base_kappa(problem, theta)
     return float(theta[-1]) if has_volume(problem) else None
+
+
+def linear_parts(
+    problem: Problem,
+) -> tuple[list[Stiffness], Callable[[np.ndarray], np.ndarray]]:
+    """The model at rest as ``sum_p c_p(theta) part_p`` (what stage 1's reduced linear model
+    assembles, :mod:`fpm.fitting.reduced`): the parts and the coefficients c(theta). For the
+    modes here one part per parameter, ``model_stiffness`` at its unit vector, and c = theta;
+    a transversely isotropic lattice, whose axial scale multiplies the families, has more
+    (:func:`fpm.model.materials.linear_parts`)."""
+    if is_extended(problem):
+        return materials.linear_parts(problem, CELL_SHARE, axis_factors(problem))
+    n = len(family_names(problem))
+    eye = np.eye(n)
+    return [model_stiffness(problem, eye[p]) for p in range(n)], lambda theta: theta
 
 
 __all__ = [
@@ -352,7 +386,9 @@ __all__ = [
     "field_stiffness",
     "fitted_theta",
     "has_volume",
+    "is_extended",
     "is_field",
+    "linear_parts",
     "model_stiffness",
     "spring_stiffness",
     "stiffness_dict",
