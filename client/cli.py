@@ -192,8 +192,9 @@ def parameter_set_rows(sets: list[dict[str, Any]]) -> list[list[Any]]:
         [
             p["id"],
             p["name"],
-            p["material"]["youngs_modulus"],
-            p["material"]["poisson_ratio"],
+            # a transversely isotropic set: its in-plane constants
+            p["material"].get("youngs_modulus", p["material"].get("youngs_modulus_transverse")),
+            p["material"].get("poisson_ratio", p["material"].get("poisson_ratio_transverse")),
             geometry_text(p["geometry"]),
             p["geometry"]["h"],
             stiffness_text(p["stiffness"], p.get("stiffness_mode")),

@@ -372,13 +372,27 @@ def result_table(problem: Any, result: Any) -> str:
     """The calibration result as a readable table (the relative discrepancy beside % of h)."""
     stiffness = getattr(result, "stiffness", None)
     lines = [f"model  {getattr(result, 'stiffness_mode', 'single'):>12}"]
-    if isinstance(stiffness, dict) and len(set(stiffness.values())) > 1:
+    regions = getattr(result, "regions", None)
+    if isinstance(stiffness, dict) and ("axial_scale" in stiffness or regions):
+        # material regions, transversely isotropic: the base's families here, the rest below
+        lines += [
+            f"k {name:<5}{value:12.5g} N/m" for name, value in stiffness.items() if "[" not in name
+        ]
+        lines = [line.replace(" N/m", "") if "axial_scale" in line else line for line in lines]
+        for r in [r for r in regions or [] if r["name"] != "base"]:
+            ks = ", ".join(f"{n} {v:.5g}" for n, v in r["stiffness"].items())
+            lines.append(
+                f"region {r['name']} ({r['cells']} cells, E {r['youngs_modulus']:.4g} Pa): k "
+                f"{ks} N/m, kappa {r['volume_stiffness']:.5g} Pa"
+            )
+    elif isinstance(stiffness, dict) and len(set(stiffness.values())) > 1:
         lines += [f"k {name:<5}{value:12.5g} N/m" for name, value in stiffness.items()]
     else:
         lines += [f"k      {result.k:12.5g} N/m"]
     kappa = getattr(result, "volume_stiffness", None)
     if kappa is not None:
-        lines.append(f"kappa  {kappa:12.5g} Pa (volume stiffness of every cell)")
+        whose = "of the base's cells" if regions else "of every cell"
+        lines.append(f"kappa  {kappa:12.5g} Pa (volume stiffness {whose})")
     lines.append(f"d      {result.d:12.5g} N s/m")
     dt = getattr(result, "dt", None)
     if dt is not None:

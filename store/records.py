@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from redis import Redis
 from redis.client import Pipeline
 
-from fpm.model.spec import Material, StiffnessMode
+from fpm.model.spec import Material, StiffnessMode, TransverselyIsotropicMaterial
 
 from . import keys
 from .status import TERMINAL, CalibrationStatus, FemStatus, Phase
@@ -345,7 +345,9 @@ class ParameterSetRecord(BaseModel):
     depth: int
     dt: float = Field(description="the time step the set was fitted at, s")
     stiffness_scale: list[float] = Field(description="per-axis stiffness factors (sx, sy, sz)")
-    material: Material = Field(description="the spec's material (its model only if not linear)")
+    material: Material | TransverselyIsotropicMaterial = Field(
+        description="the spec's material (its model only if not linear)"
+    )
     geometry: GeometrySummary
     relative_discrepancy: list[float] = Field(
         description="per load case, % (scale-free; the headline figure)"

@@ -83,7 +83,9 @@ class MeshGeometry:
     tetrahedra: dict[str, Any] | None = None
     """For tetrahedra: the mesh as the spec's ``reference.mesh`` carries it,
     ``{"nodes": [[x, y, z], ...], "tetrahedra": [[i, j, k, l], ...]}`` (m, after ``scale``;
-    0-based; only the nodes the tetrahedra use; every tetrahedron of positive volume)."""
+    0-based; only the nodes the tetrahedra use; every tetrahedron of positive volume), with
+    ``"tags"`` (one integer per tetrahedron) when the mesh has integer cell data
+    (:func:`cell_tags`)."""
 
 
 def mesh_suffix(path: str | Path) -> str | None:
@@ -168,8 +170,14 @@ def geometry_from_mesh(
         raise MeshError("the mesh has non-finite coordinates")
     points = points * float(scale)
     blocks = [(c.type, np.asarray(c.data, dtype=np.int64)) for c in mesh.cells]
+    tag_name, found_tags = cell_tags(mesh)
+    block_tags: list[np.ndarray | None] = list(found_tags) or [None] * len(blocks)
     hexes = [d[:, :8] for t, d in blocks if t in HEXAHEDRA and len(d)]
+    hex_tags = [
+        g for (t, d), g in zip(blocks, block_tags, strict=True) if t in HEXAHEDRA and len(d)
+    ]
     volumes = [(VOLUME_CELLS[t], d[:, : VOLUME_CELLS[t]]) for t, d in blocks if t in VOLUME_CELLS]
+    volume_tags = [g for (t, _), g in zip(blocks, block_tags, strict=True) if t in VOLUME_CELLS]
     surfaces = [
         (SURFACE_CELLS[t], d[:, : SURFACE_CELLS[t]]) for t, d in blocks if t in SURFACE_CELLS
     ]
@@ -187,8 +195,18 @@ def geometry_from_mesh(
             "(--spacing), e.g. a tenth of the solid's smallest extent"
         )
     volumes += [(8, h) for h in hexes]
+    volume_tags += hex_tags
+    tet_tags = None
     if any(len(d) for _, d in volumes):
         tets = np.concatenate([d[:, _SPLIT[n]].reshape(-1, 4) for n, d in volumes if len(d)])
+        if tag_name is not None:  # each tetrahedron keeps the tag of the cell it came from
+            tet_tags = np.concatenate(
+                [
+                    np.repeat(np.zeros(len(d), np.int64) if g is None else g, len(_SPLIT[n]))
+                    for (n, d), g in zip(volumes, volume_tags, strict=True)
+                    if len(d)
+                ]
+            )
         occupancy, origin = voxelise_tetrahedra(points, tets, spacing)
         kind, what = "tetrahedra", f"{len(tets)} tetrahedra"
     elif any(len(d) for _, d in surfaces):
@@ -223,13 +241,52 @@ def geometry_from_mesh(
         "origin": origin.tolist(),
         "connectivity": connectivity,
     }
-    reference = _reference_mesh(points, tets) if kind == "tetrahedra" else None
+    reference = _reference_mesh(points, tets, tet_tags) if kind == "tetrahedra" else None
+    if reference is not None and "tags" in reference:
+        found = sorted(set(reference["tags"]))
+        shown = ", ".join(map(str, found[:12])) + (", ..." if len(found) > 12 else "")
+        notes.append(
+            f"reference.mesh.tags: the cell data '{tag_name}' of each tetrahedron ({shown}): "
+            'material.regions may select by it, {"selector": {"tag": t}}'
+        )
     return MeshGeometry(geometry, kind, notes, reference)
 
 
-def _reference_mesh(points: np.ndarray, tets: np.ndarray) -> dict[str, Any]:
+TAG_NAMES = ("gmsh:physical", "medit:ref", "CellEntityIds", "region", "regions", "tag", "tags")
+"""Cell data read as tags, in this order of preference (then any integer cell data)."""
+
+
+def cell_tags(mesh: Any) -> tuple[str | None, list[np.ndarray]]:
+    """The mesh's integer cell data to keep as tags (``reference.mesh.tags``, which
+    ``material.regions`` selectors name): its name and one (n,) array per cell block; (None,
+    []) when the mesh has none. Preferred names: :data:`TAG_NAMES`; else the first cell data
+    whose values are all integers."""
+    data = getattr(mesh, "cell_data", None) or {}
+    names = [n for n in TAG_NAMES if n in data] + sorted(n for n in data if n not in TAG_NAMES)
+    for name in names:
+        arrays = data[name]
+        if len(arrays) != len(mesh.cells):
+            continue
+        try:
+            values = [
+                np.asarray(a, dtype=float).reshape(len(c.data), -1)
+                for a, c in zip(arrays, mesh.cells, strict=True)
+            ]
+        except (TypeError, ValueError):
+            continue
+        if all(
+            v.shape[1] == 1 and np.all(np.isfinite(v)) and np.all(v == np.round(v)) for v in values
+        ):
+            return name, [v[:, 0].astype(np.int64) for v in values]
+    return None, []
+
+
+def _reference_mesh(
+    points: np.ndarray, tets: np.ndarray, tags: np.ndarray | None = None
+) -> dict[str, Any]:
     """``reference.mesh`` of the tetrahedra: used nodes only, inside-out tetrahedra renumbered,
-    flat ones (no volume: e.g. from a split wedge) dropped."""
+    flat ones (no volume: e.g. from a split wedge) dropped; ``tags`` (one per tetrahedron)
+    kept as its ``tags``."""
     from ..model.tetrahedra import DEGENERATE, EDGES, tetrahedron_volumes
 
     used, inverse = np.unique(tets, return_inverse=True)
@@ -237,11 +294,18 @@ def _reference_mesh(points: np.ndarray, tets: np.ndarray) -> dict[str, Any]:
     volume = tetrahedron_volumes(nodes, tets)
     v = nodes[tets]
     longest = np.linalg.norm(v[:, EDGES[:, 1]] - v[:, EDGES[:, 0]], axis=2).max(axis=1)
-    tets = tets[np.abs(volume) > DEGENERATE * longest**3]
+    solid = np.abs(volume) > DEGENERATE * longest**3
+    tets = tets[solid]
     volume = tetrahedron_volumes(nodes, tets)
     tets[volume < 0] = tets[volume < 0][:, [0, 2, 1, 3]]
     used, inverse = np.unique(tets, return_inverse=True)
-    return {"nodes": nodes[used].tolist(), "tetrahedra": inverse.reshape(-1, 4).tolist()}
+    out: dict[str, Any] = {
+        "nodes": nodes[used].tolist(),
+        "tetrahedra": inverse.reshape(-1, 4).tolist(),
+    }
+    if tags is not None:
+        out["tags"] = [int(t) for t in tags[solid]]
+    return out
 
 
 def _hexahedral(

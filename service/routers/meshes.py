@@ -43,7 +43,8 @@ def upload(
     """Store a tetrahedral mesh ``{"nodes": [[x, y, z], ...], "tetrahedra": [[i, j, k, l],
     ...]}`` (m, 0-based, positive volumes) for the FEM reference of specs that name it in
     ``reference.mesh_id``: the reference is then solved on it with 10-node tetrahedra and
-    read at the lattice nodes.
+    read at the lattice nodes. ``"tags"``, one integer per tetrahedron (cell data), are kept
+    with it and are part of its id.
 
     Content-addressed and kept without expiry: 201 with the id when new, 200 with the same id
     when it was uploaded before. A mesh with an index out of range, a repeated corner, an
@@ -55,6 +56,8 @@ def upload(
     if refused:
         raise mesh_rejection(refused)
     data = canonical_mesh(mesh.nodes, mesh.tetrahedra)
+    if mesh.tags is not None:  # cell data for material.regions selectors: part of the identity
+        data["tags"] = [int(t) for t in mesh.tags]
     digest = mesh_hash(data)
     if not records.save_mesh(redis, digest, data):
         response.status_code = status.HTTP_200_OK

@@ -58,8 +58,9 @@ def listing(
 
     def matches(ps: dict[str, Any]) -> bool:
         for key, value in wanted.items():
-            if value is not None and not math.isclose(
-                ps["material"][key], value, rel_tol=RELATIVE_TOLERANCE
+            if value is not None and not (
+                ps["material"].get(key) is not None  # a transversely isotropic set has no E
+                and math.isclose(ps["material"][key], value, rel_tol=RELATIVE_TOLERANCE)
             ):
                 return False
         if connectivity is not None and ps["geometry"].get("connectivity") != connectivity:
