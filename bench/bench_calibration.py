@@ -88,7 +88,7 @@ def organ_settings(h: float, stiffness: str = "single") -> tuple[dict[str, Any],
     from fpm.dynamics.stability import stable_time_step
     from fpm.model.stiffness import spring_stiffness
 
-    if stiffness == "families+volume":  # the default model: dt auto, validation cases
+    if stiffness in ("families+volume", "field"):  # the default model (and the field on it)
         settings = {"max_steps": 20_000, "settle_tolerance": 1e-6, "stiffness": stiffness}
         return ellipsoid_spec(h, validation=True, fpm=settings), float("nan")
     problem = fpm.load_problem(ellipsoid_spec(h, fpm={"stiffness": "single"}))
@@ -157,6 +157,9 @@ def organ_child(h: float, stiffness: str, out: Path, progress_file: Path | None)
         "evaluations": result.evaluations,
         "damping_runs": result.damping_runs,
         "cases": [c.name for c in problem.spec.load_cases],
+        "field": None  # fpm.stiffness 'field': the side-by-side figures (not the factors)
+        if result.field is None
+        else result.field.model_dump(exclude={"spring_factor", "kappa_factor"}),
         "self_maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
     out.write_text(json.dumps(data))

@@ -425,6 +425,7 @@ def result_table(problem: Any, result: Any) -> str:
             f"{'mean':<16}{_mean(validation):>24.3f}{_mean(result.validation_discrepancy_h):>10.3f}"
             "  (never fitted: the honest figure)"
         )
+    lines += _field_lines(getattr(result, "field", None))
     error = getattr(result, "reference_error", None)
     if error is not None:
         every = list(error) + list(getattr(result, "validation_reference_error", None) or [])
@@ -444,6 +445,31 @@ def result_table(problem: Any, result: Any) -> str:
         f"in {total:.1f} s"
     )
     return "\n".join(lines)
+
+
+def _field_lines(field: Any) -> list[str]:
+    """fpm.stiffness 'field': the four parameters and the field side by side (fitted, never
+    fitted, left out) and the smoothness weights tried."""
+    if field is None:
+        return []
+
+    def figures(values: list[float]) -> str:
+        return " / ".join(f"{v:.2f}" for v in values) or "-"
+
+    lines = ["", f"{'model, relative %':<18}{'fit':>24}{'validation':>22}{'left out':>10}"]
+    for name, m, returned in (
+        ("four parameters", field.four_parameter, not field.returned),
+        ("field", field.field, field.returned),
+    ):
+        lines.append(
+            f"{name + (' *' if returned else ''):<18}{figures(m.relative_discrepancy):>24}"
+            f"{figures(m.validation_relative_discrepancy):>22}{m.cv_error:>10.2f}"
+        )
+    tried = ", ".join(
+        f"{w:g}: {e:.2f}%" for w, e in zip(field.cv_weights, field.cv_error, strict=True)
+    )
+    lines.append(f"(* returned) smoothness weight {field.smoothness_weight:g}; left out: {tried}")
+    return lines
 
 
 def _mean(values: Any) -> float:

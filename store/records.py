@@ -340,6 +340,12 @@ class ParameterSetRecord(BaseModel):
         description="kappa, Pa: every cell's volume stiffness ('families+volume'; None for the "
         "spring-only models)",
     )
+    field: dict[str, Any] | None = Field(
+        None,
+        description="fpm.stiffness 'field': the per-cell stiffness field and its figures beside "
+        "the four-parameter fit's (the calibration result's field; the export applies it when "
+        "returned)",
+    )
     d: float = Field(description="nodal damping, N s/m (meaningful only with dt)")
     d_min: float | None = Field(description="smallest d that still settles (two-stage), N s/m")
     depth: int

@@ -353,6 +353,7 @@ def _parameter_set(
         stiffness=result["stiffness"],
         stiffness_mode=spec["fpm"]["stiffness"],
         volume_stiffness=result.get("volume_stiffness"),
+        field=result.get("field"),
         d=result["d"],
         d_min=result["d_min"],
         depth=result["depth"],

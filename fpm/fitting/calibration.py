@@ -53,6 +53,7 @@ from ..model.stiffness import stiffness_dict, volume_stiffness
 from .bounds import damping_bounds, fit_depth, full_depth, mode_notes, stiffness_bounds
 from .cost import CostFunction, StaticCost, dynamic_time_step
 from .damping_stage import DampingStage, fit_damping, resolve_depth
+from .field import field_parts
 from .result import CalibrationResult, ChainSummary
 from .stiffness_stage import ChainResult, Progress, constrained_cost, run_chain
 from .validation import check_reference, final_run, reference_displacements, validate
@@ -144,7 +145,9 @@ def finalize(
     stiffness = stiffness_dict(problem, theta)
     dt = damping.dt if damping is not None else dynamic_time_step(problem)
     # Full depth reaches every node from any load (a validation load elsewhere needs it).
-    validation = validate(problem, reference, theta, None if depth >= deepest else depth)
+    checked = None if depth >= deepest else depth
+    field, model, field_notes = field_parts(problem, reference, damping, theta, checked)
+    validation = validate(problem, reference, model, checked)
     m = problem.solid.masses
     from ..fem.reference import reference_label
 
@@ -192,11 +195,16 @@ def finalize(
             "mean": float(m.mean()),
             "total": float(m.sum()),
         },
-        warnings=list(warnings or []) + final.notes + validation.notes + mode_notes(problem),
+        warnings=list(warnings or [])
+        + final.notes
+        + validation.notes
+        + mode_notes(problem)
+        + field_notes,
         chains=[
             ChainSummary(chain=c.chain, x=c.x, cost=c.cost, evaluations=c.evaluations)
             for c in chains
         ],
+        field=field,
     )
 
 

@@ -19,13 +19,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..dynamics.simulation import FpmModel
+from ..model.forces import Stiffness
 from ..model.problem import Problem
 from ..model.stiffness import model_stiffness
 from .bounds import stiffness_bounds
 
-Theta = float | Sequence[float] | np.ndarray
+Theta = float | Sequence[float] | np.ndarray | Stiffness
 """Stiffness parameters: k, or one k per spring family (N/m), then kappa (Pa) for
-families+volume (:mod:`fpm.model.stiffness`)."""
+families+volume (:mod:`fpm.model.stiffness`); or the model's Stiffness itself (a field's)."""
 
 
 @dataclass

@@ -1,10 +1,13 @@
-"""Stage 2 of the two-stage calibration, after the chains: polished stiffness, depth, then d.
+"""Stage 2 of the two-stage calibration, after the chains: polished stiffness, depth, (the
+stiffness field,) then d.
 
 :func:`fit_damping` (the service's damping job) polishes the chains' best stiffness theta (N/m;
 kappa in Pa) on static equilibria (:func:`fpm.fitting.stiffness_stage.polish`; with families,
 from the better of the chains' best and the best single k), resolves depth 'auto'
 (:func:`resolve_depth`, galloping down from full depth on static solves; the paper method's
-finalize uses it too), and finds the fastest-settling nodal damping d (N s/m) at the dt of theta:
+finalize uses it too), with ``fpm.stiffness: "field"`` fits the per-cell field at that depth
+(:func:`fpm.fitting.field.fit_field`), and finds the fastest-settling nodal damping d (N s/m)
+at the dt of theta (or of the field):
 :func:`fpm.fitting.damping.fastest_damping`, from two critical-damping estimates
 (:func:`damping_guesses`). Its result, :class:`DampingStage`, is JSON-able and carries the final
 check (:class:`fpm.fitting.validation.FinalRun`): the runs of the fastest d are the calibration's
@@ -25,10 +28,11 @@ from ..dynamics.stability import stable_time_step, time_step
 from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
 from ..model.forces import Stiffness
 from ..model.problem import Problem
-from ..model.stiffness import has_volume, is_extended, model_stiffness
+from ..model.stiffness import has_volume, is_extended, is_field, model_stiffness
 from .bounds import damping_bounds, fit_depth, full_depth, stiffness_bounds
 from .cost import StaticCost
 from .damping import critical_damping, fastest_damping
+from .field import fit_field
 from .stiffness_stage import (
     POLISH_SPAN,
     UNIFORM_SPAN,
@@ -57,6 +61,9 @@ class DampingStage:
         final: the check at (theta, d, depth): the d search's runs at d, which are the last
             dynamic run, against the static equilibria.
         seconds: wall time of this stage.
+        field: ``fpm.stiffness: "field"``: the field fit
+            (:meth:`fpm.fitting.field.FieldStage.to_dict`), fitted at depth on the polished
+            theta before d; d, dt and ``final`` are then those of the model it returns.
     """
 
     theta: list[float]
@@ -72,6 +79,7 @@ class DampingStage:
     damping_tried: list[tuple[float, int | None]]
     final: FinalRun
     seconds: float
+    field: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -187,12 +195,19 @@ def fit_damping(
         )
     else:
         deepest = full_depth(problem)
+    stiffness = model_stiffness(problem, theta)
+    field = None
+    if is_field(problem):  # the per-cell field on theta (the four parameters if it is refused)
+        field = fit_field(problem, disp, cost.solver, theta, depth, progress=progress)
+        stiffness = field.stiffness(problem)
     static = np.stack(
-        [cost.displacements(theta, j, depth).displacements for j in range(len(problem.load_cases))]
+        [
+            cost.displacements(stiffness, j, depth).displacements
+            for j in range(len(problem.load_cases))
+        ]
     )
     if progress is not None:
         progress({"phase": "damping"})
-    stiffness = model_stiffness(problem, theta)
     dt = time_step(problem, stiffness)
     fit = fastest_damping(
         problem,
@@ -203,7 +218,7 @@ def fit_damping(
         dt=dt,
         progress=None if progress is None else (lambda i: progress({"phase": "damping", **i})),
     )
-    final = final_run(cost, theta, depth, fit.displacements, fit.steps, settled=True)
+    final = final_run(cost, stiffness, depth, fit.displacements, fit.steps, settled=True)
     return DampingStage(
         theta=[float(t) for t in theta],
         static_cost=float(static_cost),
@@ -218,6 +233,7 @@ def fit_damping(
         damping_tried=fit.tried,
         final=final,
         seconds=time.perf_counter() - t0,
+        field=None if field is None else field.to_dict(),
     )
 
 

@@ -22,6 +22,53 @@ class ChainSummary(BaseModel):
     evaluations: int
 
 
+class ModelFigures(BaseModel):
+    """One model's figures in a field fit's side-by-side comparison (static equilibria)."""
+
+    relative_discrepancy: list[float] = Field(
+        description="per load case, the relative discrepancy of its static equilibrium, %"
+    )
+    validation_relative_discrepancy: list[float] = Field(
+        [], description="per validation case (never fitted), %"
+    )
+    cv_error: float = Field(
+        description="cross-validation: the mean relative discrepancy, %, of the load cases "
+        "left out (a force pattern at a time), each refitted without them"
+    )
+    cv_cases: list[float] = Field(description="per load case, its figure when left out, %")
+
+
+class FieldFit(BaseModel):
+    """fpm.stiffness 'field': the per-cell stiffness field, its smoothness weight and how it
+    compares with the four-parameter (families+volume) fit (fpm.fitting.field)."""
+
+    returned: bool = Field(
+        description="the field is the returned model; false: it cross-validated no better "
+        "than the four parameters (or could not be cross-validated), which are returned"
+    )
+    spring_factor: list[float] = Field(
+        description="per hexahedron: the factor on the share of its family's k each cell gives "
+        "its springs"
+    )
+    kappa_factor: list[float] = Field(description="per hexahedron: the factor on kappa")
+    smoothness_weight: float = Field(description="the weight chosen by cross-validation")
+    cv_weights: list[float] = Field(description="the smoothness weights tried, strongest first")
+    cv_error: list[float] = Field(
+        description="per weight tried, the field's mean left-out relative discrepancy, %"
+    )
+    cv_cases: list[list[float]] = Field(description="per weight, per load case left out, %")
+    patterns: list[list[int]] = Field(
+        description="the load cases grouped by force pattern (scaled copies together): the "
+        "cross-validation's folds"
+    )
+    four_parameter: ModelFigures = Field(description="the families+volume fit's figures")
+    field: ModelFigures = Field(description="the field's figures")
+    edges: int = Field(description="neighbouring cell pairs the smoothness penalty runs over")
+    iterations: int = Field(description="L-BFGS-B iterations of the final field fit")
+    evaluations: int = Field(description="adjoint evaluations, cross-validation included")
+    seconds: float = Field(description="wall time of the field fit, s")
+
+
 class CalibrationResult(BaseModel):
     """The fitted parameters and how well they fit (units in each field's description)."""
 
@@ -123,6 +170,12 @@ class CalibrationResult(BaseModel):
         [], description="what the user should know (outside small strain, static/dynamic mismatch)"
     )
     chains: list[ChainSummary] = []
+    field: FieldFit | None = Field(
+        None,
+        description="fpm.stiffness 'field': the per-cell field and the side-by-side figures; "
+        "absent for the other modes",
+        exclude_if=lambda v: v is None,
+    )
 
     @property
     def mean_relative_discrepancy(self) -> float:

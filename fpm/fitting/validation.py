@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from ..model.problem import Problem
-from .cost import StaticCost, discrepancies
+from .cost import StaticCost, Theta, discrepancies
 
 STATIC_AGREEMENT = 1e-3
 """The last dynamic run must reproduce the static cost to this fraction, else a warning ..."""
@@ -111,7 +111,7 @@ class FinalRun:
 
 def final_run(
     static: StaticCost,
-    theta: list[float],
+    theta: Theta,
     depth: int,
     displacements: np.ndarray,
     steps: list[int],
@@ -155,7 +155,7 @@ class Validation:
     notes: list[str]
 
 
-def validate(problem: Problem, reference: Any, theta: list[float], depth: int | None) -> Validation:
+def validate(problem: Problem, reference: Any, theta: Theta, depth: int | None) -> Validation:
     """The validation cases (never in the cost) at the fitted stiffness ``theta`` and ``depth``
     (None: every layer), against their reference: their static equilibria, the state a settled
     run reaches (d and dt decide only how fast)."""

@@ -5,7 +5,8 @@ calibration result (``fpmcal calibrate --json``) or a stored parameter set (the 
 lattice is rebuilt from the spec they were fitted on. Formats:
 
 - ``json``: every number an engine needs, with units: nodes, springs ``[i, j, rest length,
-  stiffness]`` (each spring's assembled stiffness), the hexahedra with their volume stiffness
+  stiffness]`` (each spring's assembled stiffness; a field fit's per-cell factors included,
+  ``fpm.stiffness: "field"``), the hexahedra with their volume stiffness
   kappa and rest volume (the volume term; null in the spring-only models), lumped masses, fixed
   nodes, the model's energy in words, d, dt, depth, and per load case the nodal forces and the
   perturbed list's layers (the paper's lookup table): from it alone another program rebuilds
@@ -37,6 +38,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from ..model.forces import Stiffness
 from ..model.hexahedron import FAMILIES
 from ..model.problem import Problem
 from ..model.stiffness import fitted_theta, has_volume, model_stiffness
@@ -86,14 +88,16 @@ SOFA_NO_VOLUME = (
 @dataclass
 class Parameters:
     """What a fit hands over: k per spring family present (N/m), d (N s/m), the depth
-    (layers), the time step d was fitted at (s), and the volume stiffness kappa (Pa; None for
-    the spring-only models)."""
+    (layers), the time step d was fitted at (s), the volume stiffness kappa (Pa; None for
+    the spring-only models) and, for ``fpm.stiffness: "field"``, the field (its per-cell
+    factors: every spring's and cell's stiffness is then its own)."""
 
     stiffness: dict[str, float]
     d: float
     depth: int
     dt: float
     volume_stiffness: float | None = None
+    field: dict[str, Any] | None = None
 
     @classmethod
     def from_record(cls, problem: Problem, record: dict[str, Any]) -> Parameters:
@@ -133,6 +137,7 @@ class Parameters:
             depth,
             0.0,
             None if kappa is None else float(kappa),
+            record.get("field"),
         )
         dt = record.get("dt") or problem.spec.fpm.dt
         if dt == "auto":  # a record from before the fit reported its dt: resolve it the same way
@@ -142,9 +147,14 @@ class Parameters:
         params.dt = float(dt)
         return params
 
-    def theta(self, problem: Problem) -> list[float]:
-        """The stiffness parameters as the solvers take them (:func:`fitted_theta`)."""
-        record = {"stiffness": self.stiffness, "volume_stiffness": self.volume_stiffness}
+    def theta(self, problem: Problem) -> list[float] | Stiffness:
+        """The stiffness parameters as the solvers take them (:func:`fitted_theta`: a returned
+        field's Stiffness, every spring's and cell's own)."""
+        record = {
+            "stiffness": self.stiffness,
+            "volume_stiffness": self.volume_stiffness,
+            "field": self.field,
+        }
         try:
             return fitted_theta(problem, record)
         except ValueError as e:
@@ -236,6 +246,7 @@ def to_json(lattice: Lattice, fit: dict[str, Any] | None = None) -> dict[str, An
             "stiffness": p.stiffness,
             "volume_stiffness": p.volume_stiffness,
             "stiffness_mode": spec.fpm.stiffness,
+            "stiffness_field": bool((p.field or {}).get("returned")),
             "stiffness_scale": list(spec.fpm.stiffness_scale),
             "d": p.d,
             "dt": p.dt,

@@ -268,15 +268,37 @@ def _load_cases(
 
 
 def _check_stiffness_mode(spec: ProblemSpec, errors: list[tuple[Loc, str]]) -> None:
-    """families+volume needs cells (hexahedra) with face diagonals."""
-    if spec.fpm.stiffness != "families+volume":
+    """families+volume (and field, built on it) needs cells (hexahedra) with face diagonals; a
+    field needs two load cases or more (its smoothness is chosen by leaving one out) and the
+    two-stage method."""
+    mode = spec.fpm.stiffness
+    if mode == "field":
+        if len(spec.load_cases) < 2:
+            errors.append(
+                (
+                    ("load_cases",),
+                    f"fpm.stiffness 'field' needs at least two load cases, not "
+                    f"{len(spec.load_cases)}: its smoothness weight is chosen by leaving one "
+                    "load case out at a time (nothing to cross-validate with one); add a load "
+                    "case, or use 'families+volume'",
+                )
+            )
+        if spec.annealing.method != "two-stage":
+            errors.append(
+                (
+                    ("annealing", "method"),
+                    "fpm.stiffness 'field' is fitted on static equilibria after the two-stage "
+                    "method's stiffness stage: use annealing.method 'two-stage'",
+                )
+            )
+    if mode not in ("families+volume", "field"):
         return
     g = spec.geometry
     if isinstance(g, NetworkGeometry):
         errors.append(
             (
                 ("fpm", "stiffness"),
-                "a network geometry has no cells for the volume term of 'families+volume': "
+                f"a network geometry has no cells for the volume term of {mode!r}: "
                 "use 'single' or 'families'",
             )
         )
@@ -284,7 +306,7 @@ def _check_stiffness_mode(spec: ProblemSpec, errors: list[tuple[Loc, str]]) -> N
         errors.append(
             (
                 ("fpm", "stiffness"),
-                "'families+volume' needs face diagonals for shear (geometry.connectivity "
+                f"{mode!r} needs face diagonals for shear (geometry.connectivity "
                 "'axis+face' or 'full'; an 'axis' lattice has no shear stiffness): change the "
                 "connectivity, or use 'single' or 'families'",
             )

@@ -53,7 +53,7 @@ class _Strict(BaseModel):
 
 
 MaterialModel = Literal["linear", "neo-hookean"]
-StiffnessMode = Literal["families+volume", "single", "families"]
+StiffnessMode = Literal["families+volume", "single", "families", "field"]
 STIFFNESS_MODES: tuple[str, ...] = get_args(StiffnessMode)
 MAX_DT = 1e-3
 """dt 'auto' is at most this, s (a haptic 1 kHz loop)."""
@@ -484,7 +484,11 @@ class FpmSettings(_Strict):
         "diagonals, else 'single'): one k per spring family, springs assembled from cells, and "
         "a volume stiffness kappa per cell (Pa): can be any isotropic solid with nu >= 1/4; "
         "'single': one k for every spring (the paper's model); 'families': one k per spring "
-        "family present (axis, face diagonal, body diagonal)",
+        "family present (axis, face diagonal, body diagonal); 'field': families+volume, then a "
+        "per-cell factor on the springs and on kappa fitted by adjoint gradients, smoothed "
+        "between neighbouring cells by a weight chosen by cross-validation (one force pattern "
+        "left out at a time), returned only where it predicts the left-out loads better than "
+        "the four numbers (needs two or more load_cases; two-stage method)",
     )
     dt: float | Literal["auto"] = Field(
         "auto",

@@ -443,6 +443,33 @@
       referenceError(r));
   }
 
+  function fieldPanel(r) {
+    // fpm.stiffness "field": the four parameters and the per-cell field side by side (fitted,
+    // never fitted, left out), and the cross-validation error at each smoothness weight tried.
+    const f = r.field;
+    if (!f) return null;
+    const joined = (xs) => (xs || []).length ? xs.map((x) => pct(x)).join(" / ") : "–";
+    const row = (label, m, returned) => el("tr", { "data-model": label },
+      el("td", null, label, returned ? " (returned)" : ""),
+      el("td", { class: "num" }, joined(m.relative_discrepancy)),
+      el("td", { class: "num headline" }, joined(m.validation_relative_discrepancy)),
+      el("td", { class: "num" }, pct(m.cv_error)));
+    return el("div", { class: "panel", id: "field" },
+      el("h3", null, "Stiffness field against the four parameters"),
+      el("table", null,
+        el("thead", null, el("tr", null, ["Model", "Fit", "Validation (never fitted)", "Left out (CV)"]
+          .map((h, i) => el("th", { class: i ? "num" : null }, h)))),
+        el("tbody", null, row("four parameters", f.four_parameter, !f.returned), row("field", f.field, f.returned))),
+      el("table", { id: "field-cv" },
+        el("thead", null, el("tr", null, ["Smoothness weight", "Left-out relative discrepancy"]
+          .map((h, i) => el("th", { class: i ? "num" : null }, h)))),
+        el("tbody", null, f.cv_weights.map((w, i) => el("tr", { class: w === f.smoothness_weight ? "chosen" : null },
+          el("td", null, num(w, 3), w === f.smoothness_weight ? " (chosen)" : ""),
+          el("td", { class: "num" }, pct(f.cv_error[i])))))),
+      el("p", { class: "muted" }, "Left out: each force pattern's relative discrepancy when fitted without it, ",
+        "averaged; the field is returned only when it beats the four parameters there."));
+  }
+
   function referenceError(r) {
     // The reference's own estimated error (reference.refine): the fit cannot be closer than it.
     const e = r.reference_error;
@@ -592,7 +619,7 @@
     const panels = [el("p", null, el("a", { href: "#/" }, "← all calibrations")), head, progressPanel(c)];
     if (c.result) {
       panels.push(el("div", { class: "grid" }, fitPanel(c, names), parametersPanel(c)),
-        el("div", { class: "grid" }, profilePanel(c, token), historyPanel(c)));
+        el("div", { class: "grid" }, profilePanel(c, token), historyPanel(c)), fieldPanel(c.result));
     }
     show(panels);
     if (ACTIVE.has(c.status)) later(token, POLL_ACTIVE_MS, () => calibrationView(id, token));

@@ -1,0 +1,259 @@
+"""fpm.stiffness 'field' (fpm.fitting.field): the adjoint gradient against central differences,
+the cross-validated smoothness weight and the refusal of a field that cannot be shown to beat
+the four parameters, the spec check (422 naming load_cases), and the JSON export of a field
+reproduced by an independent solve."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+import fpm
+from fpm.dynamics.equilibrium import StaticSolver
+from fpm.fitting import field as F
+from fpm.io.export import export
+from fpm.model.stiffness import continuum_start, field_stiffness, fitted_theta, model_stiffness
+from tests.test_export import independent_linear_solve
+
+FAST = (4, 4, 6)
+"""L-BFGS-B iterations (four-parameter refit, per weight, final) that keep these tests fast."""
+
+
+def block_spec(scale: float = 1.0, **fpm_settings: Any) -> dict[str, Any]:
+    """A 4x4x4-node block (27 cells), three loads of different patterns and one validation
+    case; small forces (the linear and the nonlinear lattice agree to well under 0.1%), times
+    ``scale``."""
+    spec = {
+        "name": "field block",
+        "material": {"youngs_modulus": 10000.0, "poisson_ratio": 0.45, "density": 1040.0},
+        "geometry": {"type": "box", "size": [0.03, 0.03, 0.03], "nodes": [4, 4, 4]},
+        "fixed": [{"face": "z-"}],
+        "load_cases": [
+            {"name": "up", "forces": [{"at": [0.01, 0.01, 0.03], "vector": [0, 0, 0.003]}]},
+            {"name": "side", "forces": [{"at": [0.02, 0.01, 0.03], "vector": [0.003, 0.001, 0]}]},
+            {"name": "press", "forces": [{"at": [0.02, 0.02, 0.03], "vector": [0, 0, -0.003]}]},
+        ],
+        "validation_cases": [
+            {"name": "corner", "forces": [{"at": [0.03, 0.03, 0.03], "vector": [0, 0.002, 0]}]}
+        ],
+        "fpm": {"stiffness": "field", **fpm_settings},
+    }
+    for case in spec["load_cases"] + spec["validation_cases"]:  # type: ignore[operator]
+        for force in case["forces"]:
+            force["vector"] = [scale * v for v in force["vector"]]
+    return spec
+
+
+@pytest.fixture(scope="module")
+def block() -> tuple[fpm.Problem, np.ndarray]:
+    problem = fpm.load_problem(block_spec())
+    return problem, fpm.solve_fem(problem).displacements
+
+
+def test_cell_adjacency_is_the_face_graph_and_drops_edges_between_regions():
+    problem = fpm.load_problem(block_spec())
+    hexahedra = problem.solid.elements()
+    edges = F.cell_adjacency(hexahedra)
+    assert len(edges) == 3 * 3 * 3 * 2  # 3 x 3 x 3 cells: 3 axes x 3 x 3 lines of 2 edges
+    shared = [len(set(hexahedra[a]) & set(hexahedra[b])) for a, b in edges]
+    assert shared == [4] * len(edges)
+    regions = (problem.nodes[hexahedra].mean(axis=1)[:, 0] > 0.015).astype(int)
+    kept = F.cell_adjacency(hexahedra, regions)
+    assert len(kept) == len(edges) - 9  # the 9 face pairs across x = 0.015 are dropped
+    assert np.all(regions[kept[:, 0]] == regions[kept[:, 1]])
+
+
+def test_field_stiffness_with_unit_factors_is_the_four_parameter_model(block):
+    problem, _ = block
+    theta = continuum_start(problem)
+    ones = np.ones(len(problem.solid.elements()))
+    unit, four = field_stiffness(problem, theta, ones, ones), model_stiffness(problem, theta)
+    assert np.array_equal(unit.springs, four.springs)
+    assert np.array_equal(unit.volume, four.volume)
+
+
+@pytest.fixture(scope="module")
+def pulled() -> tuple[fpm.Problem, np.ndarray]:
+    """The block under 100 times its forces: the lattice's nonlinearity matters."""
+    problem = fpm.load_problem(block_spec(100.0))
+    return problem, fpm.solve_fem(problem).displacements
+
+
+@pytest.mark.parametrize("load_case", [0, 1, 2])
+def test_the_adjoint_gradient_equals_central_differences(pulled, load_case):
+    """Every spring factor and every kappa factor of the 27 cells, at a random field, for
+    each load case: the adjoint against central differences of the static equilibria's cost
+    (forces large enough for the nonlinear terms to count)."""
+    problem, reference = pulled
+    solver = StaticSolver(problem, warm=False)
+    assert 3 * 48 < solver.amg_from  # LU: exact linear solves
+    edges = F.cell_adjacency(problem.solid.elements())
+    field = F.FieldMap(problem, continuum_start(problem), edges)
+    x = 0.3 * np.random.default_rng(load_case).standard_normal(field.size)
+
+    def case(x: np.ndarray) -> F.CaseGradient:
+        return F.case_gradient(
+            solver, load_case, reference[load_case], field.stiffness(x), None, tolerance=1e-13
+        )
+
+    at = case(x)
+    grad = field.pull_back(x, at.springs, at.kappa)
+    step = 1e-5
+    central = np.empty(field.size)
+    for i in range(field.size):
+        e = np.zeros(field.size)
+        e[i] = step
+        central[i] = (case(x + e).cost - case(x - e).cost) / (2 * step)
+    scale = np.abs(central).max()
+    assert scale > 0
+    cells = field.cells
+    for part in (slice(0, cells), slice(cells, 2 * cells)):  # spring factors, kappa factors
+        assert np.abs(grad[part] - central[part]).max() <= 1e-6 * scale
+        assert np.abs(central[part]).max() > 1e-3 * scale  # both factors matter
+
+
+def test_the_four_parameter_gradient_equals_central_differences(pulled):
+    problem, reference = pulled
+    solver = StaticSolver(problem, warm=False)
+    family = F.FamilyMap(problem)
+    objective = F.Objective(solver, reference, [0, 1, 2], None, family)
+    y = np.log(continuum_start(problem))
+    _, grad = objective(y)
+    for i in range(len(y)):
+        e = np.zeros(len(y))
+        e[i] = 1e-5
+        central = (objective(y + e)[0] - objective(y - e)[0]) / 2e-5
+        assert abs(grad[i] - central) <= 1e-5 * np.abs(grad).max()
+
+
+def test_the_smoothness_penalty_and_its_gradient(block):
+    problem, _ = block
+    edges = F.cell_adjacency(problem.solid.elements())
+    field = F.FieldMap(problem, continuum_start(problem), edges)
+    x = np.random.default_rng(1).standard_normal(field.size)
+    value, grad = field.smoothness(x)
+    a, b = x[: field.cells], x[field.cells :]
+    expected = sum((a[i] - a[j]) ** 2 + (b[i] - b[j]) ** 2 for i, j in edges) / len(edges)
+    assert value == pytest.approx(expected, rel=1e-12)
+    e = np.zeros(field.size)
+    e[5] = 1e-6
+    central = (field.smoothness(x + e)[0] - field.smoothness(x - e)[0]) / 2e-6
+    assert grad[5] == pytest.approx(central, rel=1e-6)
+    assert field.smoothness(np.full(field.size, 0.7))[0] == 0.0  # a uniform field is smooth
+
+
+def test_cross_validation_picks_a_weight_and_returns_a_field_only_if_it_predicts_better(block):
+    problem, reference = block
+    theta = continuum_start(problem)
+    weights = (1.0, 0.01)
+    stage = F.fit_field(
+        problem, reference, StaticSolver(problem), theta, None, weights=weights, iterations=FAST
+    )
+    assert stage.patterns == [[0], [1], [2]]
+    assert stage.weight in weights and len(stage.cv_error) == len(weights)
+    assert stage.cv_error[stage.weights.index(stage.weight)] == min(stage.cv_error)
+    assert np.all(np.isfinite(stage.cv_cases)) and np.all(np.isfinite(stage.four_cv_cases))
+    assert stage.returned == (min(stage.cv_error) < stage.four_cv_error)
+    assert (stage.warning == "") == stage.returned
+    assert len(stage.spring_factor) == len(stage.kappa_factor) == 27
+    # the fit on every load case is at least as good as the four parameters' where it started
+    assert sum(stage.field_relative) <= sum(stage.four_relative) + 1e-9
+
+
+def test_a_field_no_better_than_the_four_parameters_is_refused_with_a_warning(block, monkeypatch):
+    """The rule itself: the field's left-out figures made worse than the four parameters'."""
+    problem, reference = block
+    real = F.relative
+
+    def worse_for_fields(solver, reference, cases, stiffness, depth):
+        figures = real(solver, reference, cases, stiffness, depth)
+        varied = np.ptp(stiffness.volume) > 0  # a field (the four parameters give one kappa)
+        return [f + 50.0 for f in figures] if varied else figures
+
+    monkeypatch.setattr(F, "relative", worse_for_fields)
+    stage = F.fit_field(
+        problem, reference, StaticSolver(problem), continuum_start(problem), None,
+        weights=(1.0,), iterations=FAST,
+    )  # fmt: skip
+    assert not stage.returned
+    assert "not returned" in stage.warning and "overfitting" in stage.warning
+    assert "four parameters" in stage.warning
+    stiffness = stage.stiffness(problem)  # the four parameters
+    assert np.ptp(stiffness.volume) == 0.0
+
+
+def test_scaled_copies_of_one_load_cannot_validate_a_field():
+    spec = block_spec()
+    up = spec["load_cases"][0]
+    twice = {"name": "up x2", "forces": [{**up["forces"][0], "vector": [0, 0, 0.006]}]}
+    spec["load_cases"] = [up, twice]
+    problem = fpm.load_problem(spec)
+    reference = fpm.solve_fem(problem).displacements
+    assert F.load_patterns(problem) == [[0, 1]]
+    stage = F.fit_field(
+        problem, reference[:2], StaticSolver(problem), continuum_start(problem), None,
+        weights=(1.0,), iterations=FAST,
+    )  # fmt: skip
+    assert not stage.returned
+    assert "scaled copy" in stage.warning
+
+
+def test_a_field_with_fewer_than_two_load_cases_is_refused_naming_load_cases():
+    spec = block_spec()
+    spec["load_cases"] = spec["load_cases"][:1]
+    with pytest.raises(ValidationError) as e:
+        fpm.load_problem(spec)
+    assert ("load_cases",) in [err["loc"] for err in e.value.errors()]
+    assert "two load cases" in str(e.value)
+    spec = block_spec()
+    spec["annealing"] = {"method": "paper"}
+    with pytest.raises(ValidationError, match="two-stage"):
+        fpm.load_problem(spec)
+
+
+@pytest.mark.redis
+def test_the_service_answers_422_naming_load_cases(api, redis):
+    spec = block_spec()
+    spec["load_cases"] = spec["load_cases"][:1]
+    response = api.post("/v1/calibrations", json=spec)
+    assert response.status_code == 422, response.text
+    body = response.json()
+    assert "load_cases" in [e["field"] for e in body["errors"]]
+    assert redis.dbsize() == 0
+
+
+def test_an_independent_solve_of_the_json_export_reproduces_the_field(block):
+    """The field fit's figures from the export alone: every spring's stiffness and every
+    cell's kappa, solved linearly at rest by tests/test_export.py's own assembly."""
+    problem, reference = block
+    theta = continuum_start(problem)
+    stage = F.fit_field(
+        problem, reference, StaticSolver(problem), theta, None, weights=(0.01,), iterations=FAST
+    )
+    stage.returned = True  # the export path of a returned field (whatever the CV said)
+    fit = F.field_report(problem, fpm.solve_fem(problem), stage, None)
+    record = {
+        "stiffness": {"axis": theta[0], "face": theta[1], "body": theta[2]},
+        "volume_stiffness": theta[3],
+        "d": 0.05,
+        "depth": 3,
+        "dt": 1e-4,
+        "stiffness_mode": "field",
+        "field": fit.model_dump(),
+    }
+    stiffness = fitted_theta(problem, record)
+    assert not isinstance(stiffness, list)
+    assert np.ptp(stiffness.volume) > 0  # a field, not four numbers
+    model = json.loads(export(problem, record, "json"))
+    assert model["parameters"]["stiffness_field"] is True
+    assert np.allclose([s[3] for s in model["springs"]], stiffness.springs, rtol=1e-12)
+    assert np.allclose(model["volume_stiffness"], stiffness.volume, rtol=1e-12)
+    for j in range(3):
+        u = independent_linear_solve(model, j)
+        q = reference[j]
+        figure = 100 * np.linalg.norm(u - q, axis=1).sum() / np.linalg.norm(q, axis=1).sum()
+        assert figure == pytest.approx(stage.field_relative[j], abs=0.5)
