@@ -1,0 +1,797 @@
+"""The lattice's slowest modes, and what they predict for the FPM step: how many steps a run of
+a load case takes at a nodal damping d, and the d that settles fastest (docs/physics.md,
+*Calibration*, damping: *the prediction*).
+
+**The step near equilibrium.** A run of one load case moves the M nodes of its perturbed list;
+near the static equilibrium x* its error e = x - x*, (3M,) m, evolves linearly. With K the
+tangent at rest (3M, 3M), N/m (springs and cells; fixed nodes and nodes off the list held),
+M the lumped masses (kg, one per unknown) and the step of :mod:`fpm.dynamics.voigt`
+(``(m + dt d) v+ = m v + dt F``, ``x+ = x + dt v+``, node by node), eliminating v:
+
+    (M + dt d I + dt^2 L) e+ = (2 M + dt d I - dt^2 (K - L)) e - M e-                  (1)
+
+e+ and e- the errors one step on and one step back; L the strictly lower 3x3-block part of the
+springs' tangent K_s in list order (node i sees the new positions of the nodes visited before
+it; springs to held nodes sit on the diagonal); the cells' part of K acts at the positions at
+the step's start, all at once (:mod:`fpm.dynamics.stability`, step 4). A run starts at rest:
+e = e- = -u*, u* (3M,) the static displacement.
+
+**1. The slowest modes** (:func:`lowest_modes`): ``K phi = w^2 M phi``, the k lowest, as Phi
+(3M, k) M-orthonormal (Phi^T M Phi = I; kg^-1/2) and w^2 (k,) 1/s^2. Dense up to
+:data:`DENSE_UP_TO` unknowns; above, LOBPCG (Knyazev 2001) preconditioned by one V-cycle of the
+static solver's multigrid hierarchy (an approximation of K^-1, :mod:`fpm.fem.linear_solver`),
+started from the eigenvectors of a coarse level of that hierarchy carried up to the lattice.
+
+**2. One mode alone** (:func:`mode_damping`, the diagonal of (1) on phi). With h = dt w,
+c = dt d phi^T phi, g = dt^2 phi^T D phi (D: K_s's 3x3 diagonal blocks) and
+s^2 = dt^2 phi^T K_s phi, and since L + L^T = K_s - D, phi^T L phi = (phi^T K_s phi - phi^T D
+phi) / 2, the error along phi, e_n = z^n, obeys
+
+    (z - 1)^2 + z (z - 1) C + z h^2 = 0,       C = c + (s^2 - g) / 2,                  (2)
+
+i.e. z^2 (1 + C) - z (2 + C - h^2) + 1 = 0: two roots of modulus 1 / sqrt(1 + C) while they
+are complex, one of them slower once they are real. The mode settles fastest where they meet,
+C = 2 h + h^2, at
+
+    d* = (2 h + h^2 + (g - s^2) / 2) / (dt phi^T phi),   the roots then 1 / (1 + h).      (3)
+
+All nodes at once (L = 0) this is d* = (2 h + h^2) / (dt phi^T phi), the critical damping
+2 w / (phi^T phi) plus dt w^2 / (phi^T phi). The node-by-node order takes (g - s^2) / 2 off the
+damping: for a slow mode g >> s^2 (its springs barely stretch, but every node feels its
+neighbours' pull), so the fastest d sits 2-4 times above the lowest mode's critical damping,
+as the search had measured.
+
+**3. The reduced step** (:class:`StepModel`): (1) projected on the modes, e = Phi q, with
+P = Phi^T Phi (1/kg), Kr = Phi^T K Phi = diag(w^2) and Lr = Phi^T L Phi (1/s^2),
+
+    (I + dt d P + dt^2 Lr) q+ = (2 I + dt d P - dt^2 (Kr - Lr)) q - q-,   q = q- = -Phi^T M u*,
+
+a 2k x 2k iteration T(d). Unlike (2) it keeps the modes' couplings: Lr is not symmetric, so the
+step feeds motion into modes the load does not excite (on the paper's cube the symmetric pull
+excites one of the lowest four modes, yet the two lowest, sideways, set the fastest d). The
+residual of the settle test (largest |F_i + F_s| of a sweep, N) is ~ |(K Phi q)_i|, followed at
+the nodes where the modes' residuals peak and at the loaded nodes; the predicted steps are the
+first step it falls below the settle force. The fastest d (:func:`fastest_predicted`)
+minimises the predicted steps summed over the load cases.
+
+Measured (the modes and the reduced steps against the dynamic kernel): on the paper's cube
+(material A, k = 38.78 N/m, dt = 1 ms) the predicted total over a grid of d follows the runs'
+within 3-12% and the predicted fastest d is within 1-4% of the runs' best; on the soft organ at
+h = 5 mm (families+volume) within 5-10%, the predicted fastest d within 3% of the best
+(tests/test_spectrum.py checks the parts on lattices small enough for dense eigensolves and on
+a 1-D chain whose modes are known in closed form).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+from numba import njit
+
+from ..fem.linear_solver import SingularStiffnessError, v_cycle
+from ..model.forces import Stiffness
+from ..model.problem import Problem
+from .equilibrium import StaticSolver
+from .spring_system import Params, SpringSystem
+
+MODES = 16
+"""Lowest modes the prediction keeps (measured: 12-24 agree on the fastest d within 3%; 4-6
+miss couplings that set it on the paper's cube)."""
+EXTRA = 4
+"""LOBPCG iterates this many vectors more than it keeps (the last ones converge slowest)."""
+DENSE_UP_TO = 600
+"""Unknowns up to which the modes come from a dense generalised eigensolve."""
+COARSE_UP_TO = 600
+"""LOBPCG starts from the eigenvectors of the finest multigrid level with at most this many
+unknowns (a dense eigensolve there), carried up to the lattice."""
+TOLERANCE = 0.1
+"""LOBPCG stops once every kept mode's residual |K x - w^2 M x| is below this times |K x|
+(the eigenvalues are then good to about its square; measured: the predicted fastest d moves
+by 0.2-0.5% from 0.01 to 0.1, by 1% at 0.3)."""
+SETTLED_VALUES = 1e-3
+"""LOBPCG also stops once no kept eigenvalue moved by more than this (relative) in an
+iteration."""
+MAX_ITERATIONS = 3
+"""LOBPCG iterations at most on each level. The prediction needs the slow modes' span more
+than converged vectors (the reduced step is a Galerkin model on whatever basis it gets):
+measured, the predicted fastest d with 2, 3, 4 and 6 iterations on the lattice against
+converged ones (residuals below 0.1): 1.1%, 1.5%, 0%, 0% apart on the soft organ at h = 5 mm,
+0.3%, 0.7%, 1.0%, 0.3% at h = 3 mm (converging took 6-9 iterations there and 13 on the
+93,705-node organ, each one costing 20 V-cycles of the lattice)."""
+PEAK_NODES = 8
+"""Per mode, the nodes with the largest residual shape |(K phi)_i| whose residual the
+prediction follows (with the loaded nodes)."""
+CHECK_EVERY = 4
+"""The reduced step's residual is checked every this many steps (the predicted steps are a
+multiple of it)."""
+NEVER = math.inf
+"""Predicted steps of a run that does not settle."""
+AUTO_MARGIN = 3.0
+"""fpm.max_steps 'auto': this many times the predicted steps of the slowest load case (the
+reduced step predicts 0.8-1.0 times the steps the runs take)."""
+AUTO_MIN_STEPS = 1000
+"""fpm.max_steps 'auto' is at least this."""
+FALLBACK_STEPS = 20_000
+"""fpm.max_steps 'auto' where there is no prediction (the paper method's joint search, a
+lattice at rest that is a mechanism, a d that does not settle in the reduced step): the
+default before 'auto'."""
+SCHEMA_MAX_STEPS = 1_000_000
+"""The schema's largest fpm.max_steps."""
+
+
+_BLAS_LOCK = threading.Lock()
+_BLAS: list[tuple[Callable[[int], None], Callable[[], int]]] | None = None
+_BLAS_USERS = [0, 0]  # [threads inside single_threaded_blas, the thread count to restore]
+
+
+def _blas_controls() -> list[tuple[Callable[[int], None], Callable[[], int]]]:
+    """(set, get) of the number of threads of each OpenBLAS loaded in this process (found in
+    /proc/self/maps; none elsewhere)."""
+    found: list[tuple[Callable[[int], None], Callable[[], int]]] = []
+    try:
+        with open("/proc/self/maps") as f:
+            paths = sorted(
+                {
+                    line.split()[-1]
+                    for line in f
+                    if "openblas" in line.lower() and line.split()[-1].startswith("/")
+                }
+            )
+    except OSError:
+        return found
+    names = (
+        ("scipy_openblas_set_num_threads64_", "scipy_openblas_get_num_threads64_"),
+        ("scipy_openblas_set_num_threads", "scipy_openblas_get_num_threads"),
+        ("openblas_set_num_threads64_", "openblas_get_num_threads64_"),
+        ("openblas_set_num_threads", "openblas_get_num_threads"),
+    )
+    for path in paths:
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for setter, getter in names:
+            if hasattr(lib, setter) and hasattr(lib, getter):
+                set_threads, get_threads = getattr(lib, setter), getattr(lib, getter)
+                set_threads.argtypes, get_threads.restype = [ctypes.c_int], ctypes.c_int
+                found.append((set_threads, get_threads))
+                break
+    return found
+
+
+@contextmanager
+def single_threaded_blas() -> Iterator[None]:
+    """Run the block with OpenBLAS on one thread. Its threads wait on each other: on a busy
+    2-core machine a 600 x 600 generalised eigensolve took 3.2 s with two threads and 0.36 s
+    with one, a 60 x 60 one 29 ms and 0.6 ms (:func:`_gram` explains the tall products). The
+    dense algebra here is small or done in compiled loops, so one thread loses nothing."""
+    global _BLAS
+    with _BLAS_LOCK:
+        if _BLAS is None:
+            _BLAS = _blas_controls()
+        if _BLAS_USERS[0] == 0 and _BLAS:
+            _BLAS_USERS[1] = _BLAS[0][1]()
+            for set_threads, _ in _BLAS:
+                set_threads(1)
+        _BLAS_USERS[0] += 1
+    try:
+        yield
+    finally:
+        with _BLAS_LOCK:
+            _BLAS_USERS[0] -= 1
+            if _BLAS_USERS[0] == 0 and _BLAS:
+                for set_threads, _ in _BLAS:
+                    set_threads(_BLAS_USERS[1])
+
+
+def auto_max_steps(predicted: list[float] | float) -> int:
+    """fpm.max_steps 'auto' from predicted steps (one per load case, or one): AUTO_MARGIN
+    times the largest, at least AUTO_MIN_STEPS, at most SCHEMA_MAX_STEPS; FALLBACK_STEPS when
+    one does not settle."""
+    values = [float(p) for p in predicted] if isinstance(predicted, list) else [float(predicted)]
+    if not values or not all(math.isfinite(v) for v in values):
+        return FALLBACK_STEPS
+    return int(min(SCHEMA_MAX_STEPS, max(AUTO_MIN_STEPS, math.ceil(AUTO_MARGIN * max(values)))))
+
+
+@dataclass
+class Modes:
+    """The k lowest modes of a list's tangent at rest (see the module docstring).
+
+    Attributes:
+        free: (M,) the list's nodes (the static solver's system order: ascending).
+        w2: (k,) squared angular frequencies, 1/s^2, ascending.
+        shapes: (3M, k) M-orthonormal mode shapes (node-major unknowns), kg^-1/2.
+        kshapes: (3M, k) K times the shapes, N/m kg^-1/2 (the residual per unit amplitude).
+        iterations: LOBPCG iterations (0: dense).
+    """
+
+    free: np.ndarray
+    w2: np.ndarray
+    shapes: np.ndarray
+    kshapes: np.ndarray
+    iterations: int = 0
+
+    @property
+    def frequencies(self) -> np.ndarray:
+        """(k,) angular frequencies w, rad/s."""
+        return np.sqrt(np.maximum(self.w2, 0.0))
+
+
+def lowest_modes(
+    tangent: sp.spmatrix | sp.sparray,
+    masses: np.ndarray,
+    count: int = MODES,
+    *,
+    hierarchy: object | None = None,
+    free: np.ndarray | None = None,
+) -> Modes:
+    """The ``count`` lowest modes of ``tangent`` (3M, 3M) N/m, symmetric positive definite,
+    with lumped ``masses`` (M,) kg: K phi = w^2 M phi.
+
+    Dense up to :data:`DENSE_UP_TO` unknowns. Above, level by level up ``hierarchy`` (a
+    pyamg hierarchy of ``tangent``, required there; level l has the operator K_l = P^T K_{l-1}
+    P and the mass M_l = P^T M_{l-1} P): a dense solve on the finest level with at most
+    :data:`COARSE_UP_TO` unknowns, then on each finer level LOBPCG from the level below's
+    modes carried up, preconditioned by the V-cycle from that level down. The coarse levels
+    are cheap and their modes good starts, so the lattice itself needs few iterations
+    (``iterations`` counts those).
+    """
+    n = tangent.shape[0]
+    m = np.repeat(np.asarray(masses, float), 3)
+    count = min(count, n)
+    nodes = np.arange(n // 3) if free is None else np.asarray(free)
+    if n <= DENSE_UP_TO:
+        scale = 1.0 / np.sqrt(m)
+        a = tangent.toarray() * scale[:, None] * scale[None, :]
+        w2, v = sla.eigh(a, subset_by_index=[0, count - 1])
+        shapes = v * scale[:, None]
+        return Modes(nodes, w2, shapes, np.asarray(tangent @ shapes), 0)
+    if hierarchy is None:
+        raise ValueError(f"{n} unknowns: the modes need a multigrid hierarchy")
+    levels = hierarchy.levels  # type: ignore[attr-defined]
+    block = min(count + EXTRA, n)
+    masses_at = [sp.diags(m).tocsr()]
+    for lvl in levels[:-1]:
+        masses_at.append(sp.csr_matrix(lvl.P.T @ masses_at[-1] @ lvl.P))
+    bottom = next(
+        (i for i, lvl in enumerate(levels) if lvl.A.shape[0] <= COARSE_UP_TO), len(levels) - 1
+    )
+    take = min(block, levels[bottom].A.shape[0])
+    _, x = sla.eigh(
+        levels[bottom].A.toarray(), masses_at[bottom].toarray(), subset_by_index=[0, take - 1]
+    )
+    if take < block:  # a coarsest level too small: seeded random vectors fill the block
+        rng = np.random.default_rng(0)
+        x = np.hstack([x, rng.standard_normal((x.shape[0], block - take))])
+    w2, kx, iterations = np.zeros(0), x, 0
+    for level in range(bottom - 1, -1, -1):
+        a_l, m_l = levels[level].A, masses_at[level]
+
+        def precondition(r: np.ndarray, level: int = level) -> np.ndarray:
+            cycles = [v_cycle(hierarchy, np.ascontiguousarray(c), level) for c in r.T]  # type: ignore[arg-type]
+            return np.stack(cycles, axis=1)
+
+        def stiffness(y: np.ndarray, a_l: sp.spmatrix = a_l) -> np.ndarray:
+            return np.asarray(a_l @ y)
+
+        def mass(y: np.ndarray, m_l: sp.spmatrix = m_l) -> np.ndarray:
+            return np.asarray(m_l @ y)
+
+        w2, x, kx, iterations = _lobpcg(
+            stiffness,
+            mass,
+            precondition,
+            precondition(mass(np.asarray(levels[level].P @ x))),
+            count,
+            MAX_ITERATIONS,
+        )
+    return Modes(nodes, w2[:count], x[:, :count], kx[:, :count], iterations)
+
+
+@njit(cache=True, nogil=True)
+def _gram(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """x^T y for tall x (n, a), y (n, b): (a, b). Compiled rather than BLAS: a threaded BLAS
+    on a busy 2-core machine took 6 s for what one thread does in 0.1 s (n = 280,000, a = b =
+    48; :func:`fpm.fem.linear_solver.conjugate_gradients` avoids it for the same reason)."""
+    n, a = x.shape
+    b = y.shape[1]
+    out = np.zeros((a, b))
+    for i in range(n):
+        for p in range(a):
+            xp = x[i, p]
+            for q in range(b):
+                out[p, q] += xp * y[i, q]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _combine(x: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """x c for tall x (n, a) and small c (a, b): (n, b), compiled (see :func:`_gram`)."""
+    n, a = x.shape
+    b = c.shape[1]
+    out = np.zeros((n, b))
+    for i in range(n):
+        for p in range(a):
+            xp = x[i, p]
+            for q in range(b):
+                out[i, q] += xp * c[p, q]
+    return out
+
+
+def _lobpcg(
+    apply: Callable[[np.ndarray], np.ndarray],
+    mass: Callable[[np.ndarray], np.ndarray],
+    precondition: Callable[[np.ndarray], np.ndarray],
+    x: np.ndarray,
+    count: int,
+    iterations: int = MAX_ITERATIONS,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Block LOBPCG for K x = w^2 M x (``apply``: K, ``mass``: M, on blocks of vectors):
+    Rayleigh-Ritz on [X, T R, P] each iteration (R the residuals, T the preconditioner, P the
+    last change of X orthogonal to X; K applied to the new directions T R only), until the
+    first ``count`` residuals are below :data:`TOLERANCE` relative, or ``iterations``.
+    Returns (w^2, X, K X, iterations taken), ascending, X M-orthonormal."""
+    block = x.shape[1]
+
+    def orthonormal(s: np.ndarray, ks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """s and K s made M-orthonormal (SVQB: the Gram matrix's eigenvectors, directions
+        below 1e-10 of the largest dropped)."""
+        gram = _gram(s, np.ascontiguousarray(mass(s)))
+        d = np.sqrt(np.maximum(np.diag(gram), 1e-300))
+        e, v = np.linalg.eigh((gram + gram.T) / 2 / d[:, None] / d[None, :])
+        keep = e > 1e-10 * e.max()
+        c = np.ascontiguousarray((v[:, keep] / np.sqrt(e[keep])[None, :]) / d[:, None])
+        return _combine(s, c), _combine(ks, c)
+
+    def ritz(s: np.ndarray, ks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        a = _gram(s, ks)
+        w, c = np.linalg.eigh((a + a.T) / 2)
+        c = np.ascontiguousarray(c[:, :block])
+        return w[:block], _combine(s, c), _combine(ks, c)
+
+    x = np.ascontiguousarray(x)
+    w, x, kx = ritz(*orthonormal(x, np.ascontiguousarray(apply(x))))
+    p: np.ndarray | None = None
+    kp: np.ndarray | None = None
+    last: np.ndarray | None = None
+    taken = 0
+    for taken in range(1, iterations + 1):
+        r = kx - mass(x) * w[None, :]
+        relative = np.linalg.norm(r[:, :count], axis=0) / np.linalg.norm(kx[:, :count], axis=0)
+        settled = last is not None and np.all(np.abs(w[:count] / last - 1) <= SETTLED_VALUES)
+        if settled or np.all(relative <= TOLERANCE):
+            taken -= 1
+            break
+        last = w[:count].copy()
+        t = np.ascontiguousarray(precondition(r))
+        parts, kparts = [x, t], [kx, np.ascontiguousarray(apply(t))]
+        if p is not None and kp is not None:
+            parts.append(p)
+            kparts.append(kp)
+        new_w, new_x, new_kx = ritz(*orthonormal(np.hstack(parts), np.hstack(kparts)))
+        change = np.ascontiguousarray(_gram(x, np.ascontiguousarray(mass(new_x))))
+        p, kp = new_x - _combine(x, change), new_kx - _combine(kx, change)
+        w, x, kx = new_w, new_x, new_kx
+    return w, x, kx, taken
+
+
+@dataclass
+class ModeDamping:
+    """One mode alone in the node-by-node step (the module docstring's (2) and (3)).
+
+    Attributes:
+        h: dt w, the mode's phase per step.
+        g: dt^2 phi^T D phi (D the springs' diagonal blocks).
+        s2: dt^2 phi^T K_s phi (K_s the springs' tangent).
+        mobility: phi^T phi, 1/kg (with phi M-normalised).
+        dt: the time step, s.
+    """
+
+    h: float
+    g: float
+    s2: float
+    mobility: float
+    dt: float
+
+    @property
+    def fastest(self) -> float:
+        """d*, N s/m: where the mode's two roots meet (3)."""
+        c = 2 * self.h + self.h**2 + (self.g - self.s2) / 2
+        return c / (self.dt * self.mobility)
+
+    def radius(self, d: float) -> float:
+        """The mode's decay per step at d: the larger modulus of the roots of (2)."""
+        big_c = self.dt * d * self.mobility + (self.s2 - self.g) / 2
+        return float(np.abs(np.roots([1 + big_c, -(2 + big_c - self.h**2), 1.0])).max())
+
+
+def mode_damping(
+    w2: float, shape: np.ndarray, spring_tangent: sp.spmatrix | sp.sparray, dt: float
+) -> ModeDamping:
+    """:class:`ModeDamping` of one M-normalised mode ``shape`` (3M,) with squared frequency
+    ``w2`` (1/s^2) under the springs' tangent ``spring_tangent`` (3M, 3M) N/m at ``dt`` s."""
+    blocks = sp.bsr_matrix(spring_tangent, blocksize=(3, 3))
+    coo = sp.coo_matrix(blocks)
+    same = (coo.row // 3) == (coo.col // 3)
+    diagonal = sp.csr_matrix((coo.data[same], (coo.row[same], coo.col[same])), shape=coo.shape)
+    return ModeDamping(
+        h=dt * math.sqrt(max(w2, 0.0)),
+        g=dt**2 * float(shape @ (diagonal @ shape)),
+        s2=dt**2 * float(shape @ (spring_tangent @ shape)),
+        mobility=float(shape @ shape),
+        dt=dt,
+    )
+
+
+def lower_projection(
+    system: SpringSystem, k: Params, rank: np.ndarray, shapes: np.ndarray
+) -> np.ndarray:
+    """Phi^T L Phi (k, k), N/m kg^-1: L the strictly lower block part, in list order, of the
+    springs' tangent at rest (each spring k n n^T, n its unit vector at rest) over ``system``'s
+    free nodes; ``rank`` (M,) each free node's place in the list, ``shapes`` (3M, k).
+
+    A spring between free nodes a and b adds -k n n^T at (later, earlier) to L, so
+    Phi^T L Phi = -sum_s k_s (Phi_later^T n)(n^T Phi_earlier), summed in pieces."""
+    ends = system.ends
+    both = np.flatnonzero((ends[:, 0] >= 0) & (ends[:, 1] >= 0))
+    phi = shapes.reshape(-1, 3, shapes.shape[1])
+    out = np.zeros((shapes.shape[1], shapes.shape[1]))
+    for start in range(0, len(both), 200_000):
+        s = both[start : start + 200_000]
+        a, b = ends[s, 0], ends[s, 1]
+        later = np.where(rank[a] > rank[b], a, b)
+        earlier = np.where(rank[a] > rank[b], b, a)
+        n = system.rest_vector[s] / np.linalg.norm(system.rest_vector[s], axis=1)[:, None]
+        left = np.einsum("sd,sdk->sk", n, phi[later]) * k.springs[s][:, None]
+        right = np.einsum("sd,sdk->sk", n, phi[earlier])
+        out -= _gram(left, right)
+    return out
+
+
+@dataclass
+class StepModel:
+    """The FPM step of one load case reduced to the lowest modes (the module docstring's 3).
+
+    Attributes:
+        dt: time step, s.
+        mobility: (k, k) P = Phi^T Phi, 1/kg.
+        stiffness: (k, k) Kr = Phi^T K Phi, 1/s^2.
+        lower: (k, k) Lr = Phi^T L Phi, 1/s^2.
+        start: (k,) q at rest, -Phi^T M u* (kg^1/2 m).
+        residual: (c, 3, k) rows of K Phi at the followed nodes, N per unit q.
+        settle_force: the settle test's force, N (0: never settles).
+    """
+
+    dt: float
+    mobility: np.ndarray
+    stiffness: np.ndarray
+    lower: np.ndarray
+    start: np.ndarray
+    residual: np.ndarray
+    settle_force: float
+    _powers: dict[float, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
+
+    def iteration(self, d: float) -> np.ndarray:
+        """(2k, 2k) T(d): (q+, q) = T (q, q-)."""
+        k = len(self.start)
+        eye = np.eye(k)
+        a = eye + self.dt * d * self.mobility + self.dt**2 * self.lower
+        b = 2 * eye + self.dt * d * self.mobility - self.dt**2 * (self.stiffness - self.lower)
+        inverse = np.linalg.inv(a)
+        return np.block([[inverse @ b, -inverse], [eye, np.zeros((k, k))]])
+
+    def radius(self, d: float) -> float:
+        """Spectral radius of T(d): the slowest decay per step (>= 1: grows or never settles)."""
+        return float(np.abs(np.linalg.eigvals(self.iteration(d))).max())
+
+    def steps(self, d: float, cap: int) -> float:
+        """Predicted steps to settle at d, or :data:`NEVER` when the reduced step does not
+        decay or settle within ``cap``. The residual is checked every :data:`CHECK_EVERY`
+        steps; between the last check above the settle force and the first below, the
+        crossing is interpolated on its logarithm (so the steps vary continuously with d)."""
+        if self.settle_force <= 0:
+            return NEVER
+        t = self.iteration(d)
+        if np.abs(np.linalg.eigvals(t)).max() >= 1.0:
+            return NEVER
+        jump = np.linalg.matrix_power(t, CHECK_EVERY)
+        block = 64
+        # states after CHECK_EVERY * (1..block) steps from any state: one product per block
+        powers = [jump]
+        for _ in range(block - 1):
+            powers.append(jump @ powers[-1])
+        stacked = np.stack(powers)  # (block, 2k, 2k)
+        k = len(self.start)
+        state = np.concatenate([self.start, self.start])
+        last = float(self._level(state[None, :k])[0])
+        if last < self.settle_force:
+            return 0.0
+        taken = 0
+        while taken < cap:
+            states = stacked @ state  # (block, 2k)
+            levels = self._level(states[:, :k])
+            below = np.flatnonzero(levels < self.settle_force)
+            if len(below):
+                i = int(below[0])
+                above = last if i == 0 else float(levels[i - 1])
+                fall = math.log(above / max(float(levels[i]), 1e-300))
+                part = math.log(above / self.settle_force) / fall if fall > 0 else 1.0
+                return float(taken + CHECK_EVERY * (i + min(max(part, 0.0), 1.0)))
+            state = states[-1]
+            last = float(levels[-1])
+            taken += CHECK_EVERY * block
+        return NEVER
+
+    def _level(self, q: np.ndarray) -> np.ndarray:
+        """(n,) the largest nodal residual, N, of the reduced states q (n, k)."""
+        rows = self.residual.reshape(-1, self.residual.shape[2])  # (3c, k)
+        r = (q @ rows.T).reshape(len(q), -1, 3)
+        return np.sqrt((r * r).sum(axis=2)).max(axis=1)
+
+
+def step_model(
+    system: SpringSystem,
+    stiffness: Stiffness,
+    order: np.ndarray,
+    modes: Modes,
+    masses: np.ndarray,
+    dt: float,
+    loads: np.ndarray,
+    settle_force: float,
+    displacement: np.ndarray | None = None,
+) -> StepModel:
+    """The reduced step of one load case.
+
+    Args:
+        system: the list's spring system (its free nodes are ``modes.free``).
+        stiffness: the model's stiffness.
+        order: (M,) the list's nodes in visiting order.
+        modes: the list's lowest modes.
+        masses: (N,) lumped masses, kg.
+        dt: time step, s.
+        loads: (N, 3) constant nodal forces, N (gravity included).
+        settle_force: the settle test's force, N.
+        displacement: (N, 3) the static equilibrium u*, m; None: the modes' linear response
+            to ``loads`` (q = -Phi^T f / w^2).
+    """
+    k = system.parameters(stiffness)
+    rank = np.empty(system.n_free, dtype=np.int64)
+    rank[np.searchsorted(system.free, order)] = np.arange(len(order))
+    phi = modes.shapes
+    m = np.repeat(masses[system.free], 3)
+    f = loads[system.free].ravel()
+    if displacement is None:
+        start = -np.einsum("ik,i->k", phi, f) / modes.w2
+    else:
+        start = -np.einsum("ik,i->k", phi, m * displacement[system.free].ravel())
+    kphi = modes.kshapes.reshape(-1, 3, phi.shape[1])
+    size = np.sqrt(np.einsum("ndk,ndk->nk", kphi, kphi))
+    peaks = np.argsort(-size, axis=0)[:PEAK_NODES].ravel()
+    loaded = np.flatnonzero(np.abs(loads[system.free]).sum(axis=1) > 0)
+    followed = np.unique(np.concatenate([peaks, loaded]))
+    return StepModel(
+        dt=float(dt),
+        mobility=_gram(phi, phi),
+        stiffness=_gram(phi, np.ascontiguousarray(modes.kshapes)),
+        lower=lower_projection(system, k, rank, phi),
+        start=start,
+        residual=kphi[followed],
+        settle_force=float(settle_force),
+    )
+
+
+@dataclass
+class Prediction:
+    """The fastest-settling d predicted from the modes, before any run.
+
+    Attributes:
+        d: the predicted fastest d, N s/m.
+        steps: (L,) predicted steps per load case at d.
+        radius: (L,) spectral radius of each case's reduced step at d.
+        modes: modes per list (count, per distinct list).
+        seconds: wall time of the modes and the prediction, s.
+    """
+
+    d: float
+    steps: list[float]
+    radius: list[float]
+    modes: list[int]
+    seconds: float = 0.0
+
+    @property
+    def total(self) -> float:
+        return float(sum(self.steps))
+
+
+def total_steps(models: list[StepModel], d: float, cap: int, budget: float = NEVER) -> float:
+    """Predicted steps summed over the load cases at d; inf if one never settles, or once the
+    sum passes ``budget``."""
+    total = 0.0
+    for model in models:
+        total += model.steps(d, int(min(cap, budget - total + CHECK_EVERY)))
+        if not total <= budget:
+            return NEVER
+    return total
+
+
+def fastest_predicted(
+    models: list[StepModel], bounds: tuple[float, float], cap: int, *, points: int = 25
+) -> tuple[float, list[float]]:
+    """The d in ``bounds`` (N s/m) with the fewest predicted steps summed over ``models``: a
+    log grid of ``points`` (a point is given up once its sum passes twice the best so far),
+    then golden-section refinement around its best to 0.5%. Returns (d, predicted steps per
+    model). Raises ValueError if no d of the grid settles."""
+    lo, hi = math.log(bounds[0]), math.log(bounds[1])
+    grid = np.linspace(lo, hi, points)
+    totals: list[float] = []
+    for y in grid:
+        budget = 2 * min(totals, default=NEVER)
+        totals.append(total_steps(models, math.exp(y), cap, budget))
+    best = int(np.argmin(totals))
+    if not math.isfinite(totals[best]):
+        raise ValueError("no d in the bounds settles in the reduced step")
+    a, b = grid[max(best - 1, 0)], grid[min(best + 1, points - 1)]
+    golden = (math.sqrt(5) - 1) / 2
+    known = {float(grid[best]): totals[best]}
+
+    def value(y: float) -> float:
+        if y not in known:
+            known[y] = total_steps(models, math.exp(y), cap)
+        return known[y]
+
+    c, e = b - golden * (b - a), a + golden * (b - a)
+    while b - a > math.log(1.005):
+        if value(c) <= value(e):
+            b, e = e, c
+            c = b - golden * (b - a)
+        else:
+            a, c = c, e
+            e = a + golden * (b - a)
+    y = min(known, key=lambda v: (known[v], v))
+    d = math.exp(y)
+    return d, [m.steps(d, cap) for m in models]
+
+
+def predict_damping(
+    problem: Problem,
+    solver: StaticSolver,
+    stiffness: Stiffness,
+    depth: int | None,
+    dt: float,
+    bounds: tuple[float, float],
+    static: np.ndarray | None = None,
+    *,
+    cap: int = 1_000_000,
+    count: int = MODES,
+) -> tuple[Prediction, list[StepModel]]:
+    """The predicted fastest d of ``problem``'s load cases at ``stiffness``, ``depth`` and
+    ``dt``, within ``bounds`` (N s/m), and the reduced steps it came from.
+
+    ``solver``: the problem's static solver (its systems, perturbed lists and multigrid
+    hierarchies); ``static`` (L, N, 3): the static equilibria, m (None: the modes' linear
+    response). One set of modes per distinct list.
+
+    Raises:
+        ValueError: no d in the bounds settles in the reduced steps (e.g. a tolerance of 0).
+        SingularStiffnessError: the lattice at rest is not held (a mechanism).
+    """
+    t0 = time.perf_counter()
+    found: dict[bytes, Modes] = {}
+    with single_threaded_blas():
+        models = reduced_steps(
+            problem, solver, stiffness, depth, dt, static, count=count, modes=found
+        )
+        d, steps = fastest_predicted(models, bounds, cap)
+        radius = [m.radius(d) for m in models]
+    prediction = Prediction(
+        d=d,
+        steps=steps,
+        radius=radius,
+        modes=[len(v.w2) for v in found.values()],
+        seconds=time.perf_counter() - t0,
+    )
+    return prediction, models
+
+
+def reduced_steps(
+    problem: Problem,
+    solver: StaticSolver,
+    stiffness: Stiffness,
+    depth: int | None,
+    dt: float,
+    static: np.ndarray | None = None,
+    *,
+    count: int = MODES,
+    cases: list[int] | None = None,
+    modes: dict[bytes, Modes] | None = None,
+) -> list[StepModel]:
+    """:class:`StepModel` of each load case (``cases``: those only) at ``stiffness``,
+    ``depth``, ``dt``; the modes of each distinct list computed once and kept in ``modes``
+    (keyed by the list's nodes; pass the same dict again for the same stiffness).
+
+    Raises:
+        SingularStiffnessError: the lattice at rest has a mode without stiffness.
+    """
+    found = {} if modes is None else modes
+    tolerance = problem.spec.fpm.settle_tolerance
+    models = []
+    for j in range(len(problem.load_cases)) if cases is None else cases:
+        system, _ = solver.system(j, depth)
+        key = system.free.tobytes()
+        params = system.parameters(stiffness)
+        if key not in found:
+            tangent = system.tangent(np.zeros((system.n_free, 3)), params, modified=True)
+            hierarchy = None
+            if 3 * system.n_free > DENSE_UP_TO:
+                hierarchy = solver._linear_hierarchy(system, tangent).hierarchy
+            try:
+                lowest = lowest_modes(
+                    tangent, problem.solid.masses[system.free], count, hierarchy=hierarchy,
+                    free=system.free,
+                )  # fmt: skip
+            except np.linalg.LinAlgError as e:
+                raise SingularStiffnessError(f"the modes: {e}") from None
+            if not np.all(lowest.w2 > 1e-12 * max(float(lowest.w2.max()), 1e-300)):
+                raise SingularStiffnessError("the lattice at rest has a mode without stiffness")
+            found[key] = lowest
+        plist = solver.lists.get(problem.load_cases[j].nodes, depth)
+        loads = solver.loads(j)
+        force = tolerance * float(np.linalg.norm(loads[plist.order], axis=1).max())
+        models.append(
+            step_model(
+                system,
+                stiffness,
+                plist.order,
+                found[key],
+                problem.solid.masses,
+                dt,
+                loads,
+                force,
+                None if static is None else static[j],
+            )  # fmt: skip
+        )
+    return models
+
+
+def fixed_max_steps(value: int | str) -> int:
+    """fpm.max_steps where nothing predicts it: the number, or FALLBACK_STEPS for 'auto'."""
+    return FALLBACK_STEPS if value == "auto" else int(value)
+
+
+def predicted_max_steps(
+    problem: Problem,
+    stiffness: Stiffness,
+    d: float,
+    depth: int | None,
+    dt: float,
+    cases: list[int] | None = None,
+) -> int:
+    """fpm.max_steps 'auto' for runs at (``stiffness``, ``d`` N s/m, ``depth``, ``dt`` s) of
+    ``cases`` (None: every load case): :func:`auto_max_steps` of the reduced steps' prediction
+    at d, each starting from the modes' linear response; FALLBACK_STEPS where there is none
+    (the lattice at rest a mechanism, d not settling). The modes of the last stiffness asked
+    for are kept on the problem (``problem.cache["modes"]``)."""
+    from .equilibrium import static_solver
+
+    key = (stiffness.parameters().tobytes(), depth)
+    kept = problem.cache.get("modes")
+    if kept is None or kept[0] != key:
+        kept = problem.cache["modes"] = (key, {})
+    try:
+        with single_threaded_blas():
+            models = reduced_steps(
+                problem, static_solver(problem), stiffness, depth, dt, cases=cases, modes=kept[1]
+            )
+            return auto_max_steps([m.steps(d, SCHEMA_MAX_STEPS) for m in models])
+    except (SingularStiffnessError, ValueError, ArithmeticError):
+        return FALLBACK_STEPS
