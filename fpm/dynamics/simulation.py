@@ -329,7 +329,9 @@ def simulate(
         depth: penetration depth in layers; None = the spec's (its 'auto' means all layers).
         load_case: index into the spec's load cases.
         dt, max_steps, settle_tolerance: None = the spec's value (dt 'auto': half the
-            lattice's stability estimate at k, at most 1 ms); ``settle_tolerance=0`` never
+            lattice's stability estimate at k, at most 1 ms; max_steps 'auto': three times the
+            steps the lattice's slowest modes predict at k and d,
+            :func:`fpm.dynamics.modes.predicted_max_steps`); ``settle_tolerance=0`` never
             settles.
     """
     s = problem.spec.fpm
@@ -353,12 +355,18 @@ def simulate(
         s.model_dump() | {key: v for key, v in given.items() if v is not None}
     )
     step = auto_time_step(problem, stiffness) if settings.dt == "auto" else float(settings.dt)
+    cap = settings.max_steps
+    if cap == "auto":  # from the lattice's slowest modes (fpm.dynamics.modes)
+        from .modes import predicted_max_steps
+
+        model = stiffness if isinstance(stiffness, Stiffness) else model_stiffness(problem, k)
+        cap = predicted_max_steps(problem, model, d, depth, step, [load_case])
     return fpm_model(problem).run(
         load_case,
         k=stiffness,
         d=d,
         depth=depth,
         dt=step,
-        max_steps=settings.max_steps,
+        max_steps=int(cap),
         settle_tolerance=settings.settle_tolerance,
     )

@@ -47,6 +47,7 @@ from typing import Any
 
 import numpy as np
 
+from ..dynamics.modes import fixed_max_steps
 from ..model import materials
 from ..model.problem import Problem
 from ..model.stiffness import stiffness_dict, volume_stiffness
@@ -170,6 +171,10 @@ def finalize(
         validation_discrepancy_h=validation.h_percent,
         d=float(d),
         d_min=None if damping is None else damping.d_min,
+        d_predicted=None if damping is None else damping.d_predicted,
+        max_steps=fixed_max_steps(problem.spec.fpm.max_steps)
+        if damping is None or damping.max_steps is None
+        else damping.max_steps,
         depth=int(depth),
         full_depth=int(deepest),
         cost=final.cost,

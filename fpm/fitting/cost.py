@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..dynamics.modes import fixed_max_steps
 from ..dynamics.simulation import FpmModel
 from ..model.forces import Stiffness
 from ..model.problem import Problem
@@ -139,7 +140,7 @@ class CostFunction(_Reference):
             d=d,
             depth=self.depth if depth is None else depth,
             dt=self.dt,
-            max_steps=s.max_steps if max_steps is None else max_steps,
+            max_steps=fixed_max_steps(s.max_steps) if max_steps is None else max_steps,
             settle_tolerance=s.settle_tolerance,
         )
 

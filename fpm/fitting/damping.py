@@ -5,21 +5,26 @@ at the spec's dt. So once the stiffness is fitted, d is chosen for the real-time
 in the search bounds that settles every load case in the fewest total time steps, found with the
 real dynamic kernel (:class:`fpm.dynamics.simulation.FpmModel`).
 
-First guesses (:func:`critical_damping`): critical damping of a mode with nodal damping d I and
-lumped masses M is d = 2 omega (u^T M u) / (u^T u), and Rayleigh's quotient of a shape u that
-loads f hold, omega^2 = f.u / (u^T M u), estimates omega. Two shapes bracket the slow motion a
-load excites: the static deflection u0 = K^-1 f (an upper estimate: it mixes in faster modes)
-and the deflection under its own inertia, u1 = K^-1 M u0 (one step of inverse iteration, near
-the lowest mode the load excites). Measured: the fastest d sat at the first on the paper's cube
-and between the two (1.3x above the second) on a soft organ. The search
-(:func:`fastest_damping`) starts from the two and their geometric mean, walks on a log scale
-(each step 1.6x longer) until the fewest total steps are bracketed, refines by a few
-golden-section steps between the best d and its neighbours (which needs only "faster or not",
-so every d slower than the best can be stopped early), and then looks for the smallest d that
-still settles every load case within MARGIN_CAP times its fastest steps, from the d already
-tried (their steps, or the predictions they were dropped on) and then by walking down and
-bisecting (the stability margin: the fastest d sits near that edge, and below it runs diverge
-or creep).
+Where the search starts. Normally from the prediction of :mod:`fpm.dynamics.modes`: the
+lattice's slowest modes at the fitted stiffness, the FPM step reduced to them, and the d with
+the fewest predicted steps (on the paper's cube and the soft organ within 1-3% of the runs'
+fastest). The search (:func:`fastest_damping`) then confirms it with a run on either side,
+CONFIRM apart, each stopped as soon as its decay predicts it slower than the prediction's own
+runs (a few hundred steps), walks on only if one of them is faster (each step 1.6x longer,
+until the fewest total steps are bracketed) and refines by a few golden-section steps between
+the best d and its neighbours where they are still far apart. The margin (the smallest d that
+still settles every load case within MARGIN_CAP times its fastest steps: the stability margin,
+the fastest d sits near that edge and below it runs diverge or creep) starts from the reduced
+step's own estimate of that edge, confirmed by a probe on either side of it.
+
+Without a prediction (a lattice at rest that is a mechanism, e.g. 'axis' springs), from two
+critical-damping estimates (:func:`critical_damping`): critical damping of a mode with nodal
+damping d I and lumped masses M is d = 2 omega (u^T M u) / (u^T u), and Rayleigh's quotient of
+a shape u that loads f hold, omega^2 = f.u / (u^T M u), estimates omega. Two shapes bracket the
+slow motion a load excites: the static deflection u0 = K^-1 f and the deflection under its own
+inertia, u1 = K^-1 M u0 (one step of inverse iteration). The search starts from the two and
+their geometric mean and walks and refines as above; the margin comes from the d already tried
+(their steps, or the predictions they were dropped on) and then by walking down and bisecting.
 
 Runs advance in pieces of CHUNK steps (:class:`fpm.dynamics.simulation.DynamicRun`), all load cases
 together, and a d is dropped as soon as its load cases have taken as many steps between them as
@@ -44,6 +49,13 @@ from typing import Any
 
 import numpy as np
 
+from ..dynamics.modes import (
+    FALLBACK_STEPS,
+    SCHEMA_MAX_STEPS,
+    Prediction,
+    StepModel,
+    fixed_max_steps,
+)
 from ..dynamics.simulation import DynamicRun, FpmModel
 from ..dynamics.stability import auto_time_step, time_step
 from ..dynamics.voigt import SETTLED
@@ -77,6 +89,15 @@ PREDICT_AFTER = 3 * CHUNK
 PRUNE = 1.1
 """A d is dropped once its predicted total exceeds this times the best total (a margin probe:
 once a case's predicted steps exceed this times its cap); the slack absorbs prediction error."""
+CONFIRM = 1.04
+"""The runs that confirm a predicted d sit this factor below and above it."""
+CONFIRM_PRUNE = 1.0
+"""A confirming run is dropped once its predicted total exceeds the predicted d's total (it
+would at best tie; the predicted d is kept)."""
+RETRIES = 2
+"""With fpm.max_steps 'auto', a search in which nothing settles within the predicted cap is
+repeated this many times more with MAX_STEPS_GROWTH times the cap (up to the schema's 10^6)."""
+MAX_STEPS_GROWTH = 4
 
 
 @dataclass
@@ -89,11 +110,16 @@ class DampingFit:
         displacements: (L, N, 3) the settled displacements at d, m.
         d_min: smallest d found that settles every load case within MARGIN_CAP times its
             steps at d, N s/m (to a factor of about 1.12; the lower bound if that settles).
-        guess: the geometric mean of the two estimates the search started from, N s/m.
+        guess: where the search started, N s/m: the predicted d, or the geometric mean of the
+            two critical-damping estimates.
         runs: dynamic runs made (one per load case per d tried).
         tried: (d, total steps or None when some load case did not settle) for every d tried.
         work: time steps simulated by the whole search, every run and load case together
             (its cost in kernel steps, the final runs included).
+        predicted: the fastest d predicted from the modes before any run, N s/m (None: the
+            search started from the critical-damping estimates).
+        predicted_steps: (L,) the steps predicted per load case at ``predicted``.
+        max_steps: the cap on each run's steps (the spec's, or 'auto' resolved).
     """
 
     d: float
@@ -104,6 +130,9 @@ class DampingFit:
     runs: int
     tried: list[tuple[float, int | None]] = field(default_factory=list)
     work: int = 0
+    predicted: float | None = None
+    predicted_steps: list[float] = field(default_factory=list)
+    max_steps: int = 0
 
     @property
     def total_steps(self) -> int:
@@ -150,6 +179,7 @@ class _Runs:
         self.pool = ThreadPoolExecutor(self.threads)
         self.count = 0
         self.work = 0
+        self.max_steps = fixed_max_steps(problem.spec.fpm.max_steps)  # each run's cap on steps
 
     def _piece(self, run: DynamicRun, steps: int) -> int:
         """Advance ``run`` by ``steps``, in samples of SAMPLE steps (its residual history);
@@ -160,13 +190,21 @@ class _Runs:
         return run.steps - start
 
     def __call__(
-        self, d: float, caps: list[int], budget: int | None = None, *, estimate: bool = False
+        self,
+        d: float,
+        caps: list[int],
+        budget: int | None = None,
+        *,
+        estimate: bool = False,
+        prune: float = PRUNE,
+        to_cap: bool = False,
     ) -> tuple[list[DynamicRun], Verdict]:
         """Every load case at d, case j for at most ``caps[j]`` steps, until every case has
         settled, one has diverged or reached its cap unsettled, or a :class:`Verdict` of
         :func:`verdict_at` ends it: at each milestone (every CHUNK steps) that every case has
         passed, the d is ``lost`` once the steps taken up to there add up to ``budget`` (None:
-        no such limit), or once the predictions there exceed PRUNE times the budget or a cap;
+        no such limit), or once the predictions there exceed ``prune`` times the budget (PRUNE
+        times a cap; with ``to_cap`` a case runs on to its cap whatever its decay predicts);
         with ``estimate`` it ``settles`` once every case is predicted within its cap.
 
         Decisions are taken only from each case's own state at the milestone, so they do not
@@ -199,7 +237,9 @@ class _Runs:
                     break  # every case ended before this milestone
                 if not all(e or r.steps >= milestone for e, r in zip(stopped, runs, strict=True)):
                     break  # a case has not reached it yet
-                verdict = verdict_at(runs, caps, milestone, budget, estimate=estimate)
+                verdict = verdict_at(
+                    runs, caps, milestone, budget, estimate=estimate, prune=prune, to_cap=to_cap
+                )
                 milestone += CHUNK
             waiting = [
                 (r, c) for r, c, e in zip(runs, caps, stopped, strict=True)
@@ -259,12 +299,19 @@ def predicted_steps(run: DynamicRun, at: int | None = None) -> float:
 
 
 def verdict_at(
-    runs: list[DynamicRun], caps: list[int], at: int, budget: int | None, *, estimate: bool
+    runs: list[DynamicRun],
+    caps: list[int],
+    at: int,
+    budget: int | None,
+    *,
+    estimate: bool,
+    prune: float = PRUNE,
+    to_cap: bool = False,
 ) -> Verdict:
     """The d's verdict at milestone ``at`` (every case ended or past it): ``failed`` if a case
     diverged or reached its cap unsettled by ``at``; ``lost`` if the steps taken up to ``at``
     add up to ``budget``, or (past PREDICT_AFTER) a case is predicted past PRUNE times its cap
-    or the predicted total past PRUNE times ``budget``; ``settles`` (with ``estimate``) if
+    or the predicted total past ``prune`` times ``budget``; ``settles`` (with ``estimate``) if
     every case settled within its cap or is predicted within it; else ``running``."""
     if any(
         (r.diverged and r.steps <= at) or (not r.finished and c <= at and r.steps >= c)
@@ -278,9 +325,9 @@ def verdict_at(
         return Verdict("running")
     predicted = tuple(predicted_steps(r, at) for r in runs)
     total = float(sum(predicted))
-    if any(p > PRUNE * c for p, c in zip(predicted, caps, strict=True)):
+    if not to_cap and any(p > PRUNE * c for p, c in zip(predicted, caps, strict=True)):
         return Verdict("lost", total, predicted)
-    if budget is not None and total > PRUNE * budget:
+    if budget is not None and total > prune * budget:
         return Verdict("lost", total, predicted)
     if estimate and all(p <= c for p, c in zip(predicted, caps, strict=True)):
         return Verdict("settles", total, predicted)
@@ -296,29 +343,59 @@ def fastest_damping(
     *,
     dt: float | None = None,
     progress: Callable[[dict[str, Any]], None] | None = None,
+    prediction: Prediction | None = None,
+    models: list[StepModel] | None = None,
+    max_steps: int | None = None,
+    auto: bool = False,
 ) -> DampingFit:
     """The d in ``bounds`` that settles every load case in the fewest total steps.
 
     Args:
-        problem: the problem (max_steps, settle_tolerance from its spec).
+        problem: the problem (settle_tolerance, and max_steps unless given, from its spec).
         stiffness: the model's :class:`~fpm.model.forces.Stiffness`
             (:func:`fpm.model.stiffness.model_stiffness`), or (S,) per-spring stiffness, N/m.
         dt: the time step, s; None = the spec's (resolved at ``stiffness`` for 'auto').
         depth: penetration depth (None = every layer).
         bounds: (low, high) for d, N s/m.
-        guesses: two estimates of d to start from (e.g. :func:`critical_damping` of the
-            static and of the inertia-loaded shapes; equal when only one is known), clipped
-            into the bounds.
+        guesses: two estimates of d to start from when there is no ``prediction`` (e.g.
+            :func:`critical_damping` of the static and of the inertia-loaded shapes; equal
+            when only one is known), clipped into the bounds.
         progress: called with {"d", "total_steps"} after each d tried.
+        prediction: the fastest d predicted from the modes (:mod:`fpm.dynamics.modes`): the
+            search starts there and confirms it.
+        models: the reduced steps the prediction came from (one per load case): the margin
+            starts from their estimate of it.
+        max_steps: each run's cap on steps (None: the spec's; its 'auto' without a prediction
+            is :data:`fpm.dynamics.modes.FALLBACK_STEPS`, repeated as ``auto`` says).
+        auto: the cap came from fpm.max_steps 'auto': if nothing settles within it, the search
+            is repeated with MAX_STEPS_GROWTH times the cap (RETRIES times at most).
 
     Raises:
         DampingError: no d in the bounds settles every load case within max_steps.
     """
-    runs = _Runs(problem, stiffness, depth, time_step(problem, stiffness) if dt is None else dt)
-    try:
-        return _search(runs, bounds, guesses, progress)
-    finally:
-        runs.close()
+    if max_steps is None:
+        value = problem.spec.fpm.max_steps
+        auto = auto or value == "auto"
+        max_steps = FALLBACK_STEPS if value == "auto" else int(value)
+    step = time_step(problem, stiffness) if dt is None else dt
+    for attempt in range(RETRIES + 1):
+        last = not auto or attempt == RETRIES or max_steps >= SCHEMA_MAX_STEPS
+        runs = _Runs(problem, stiffness, depth, step)
+        runs.max_steps = max_steps
+        try:
+            return _search(
+                runs, bounds, guesses, progress, prediction, models, explain=last, grow=not last
+            )
+        except _ShortCap as short:  # the predicted d's runs need more steps than the cap
+            need = short.args[0]
+        except DampingError:
+            if last:
+                raise
+            need = 0.0
+        finally:
+            runs.close()
+        max_steps = int(min(SCHEMA_MAX_STEPS, max(MAX_STEPS_GROWTH * max_steps, 1.5 * need)))
+    raise AssertionError("unreachable")
 
 
 def _search(
@@ -326,27 +403,44 @@ def _search(
     bounds: tuple[float, float],
     guesses: tuple[float, float],
     progress: Callable[[dict[str, Any]], None] | None,
+    prediction: Prediction | None = None,
+    models: list[StepModel] | None = None,
+    *,
+    explain: bool = True,
+    grow: bool = False,
 ) -> DampingFit:
+    """The search (:func:`fastest_damping`); ``explain``: a failure says what would work (one
+    probe run of up to PROBE_STEPS times max_steps), else it only says that nothing settled;
+    ``grow``: the cap may grow (fpm.max_steps 'auto'), so if the predicted d's runs reach it
+    unsettled, :class:`_ShortCap` says how many steps they need (their decay's prediction)
+    at once, rather than searching on under a cap that is too small."""
     lo, hi = round(math.log(bounds[0]), 12), round(math.log(bounds[1]), 12)
-    max_steps = runs.problem.spec.fpm.max_steps
+    max_steps = runs.max_steps
     steps: dict[float, list[int] | None] = {}  # log d -> steps per case (None: not settled)
     slower: dict[float, int] = {}  # log d -> steps taken when stopped (at least the best total)
     # log d -> predicted steps per case, for a d stopped on its prediction
     forecast: dict[float, tuple[float, ...]] = {}
     best: list[Any] = []  # [log d, displacements (L, N, 3)] of the fewest total steps so far
+    short: dict[float, float] = {}  # log d -> steps it needs, for a d stopped by the cap
 
-    def total(y: float) -> float:
+    def total(y: float, prune: float = PRUNE, to_cap: bool = False) -> float:
         """Total steps at d = exp(y) (for a d stopped at the best total, the steps it had
         taken: a lower bound); inf if some case did not settle within max_steps."""
         y = round(min(max(y, lo), hi), 12)  # one key per d, whatever path computed it
         if y not in steps and y not in slower:
             # A d whose steps already add up to the best total cannot win: stop it there.
             budget = _total(steps[best[0]]) if best else None
-            results, verdict = runs(math.exp(y), [max_steps] * runs.cases, budget)
+            results, verdict = runs(
+                math.exp(y), [max_steps] * runs.cases, budget, prune=prune, to_cap=to_cap
+            )
             if verdict.outcome == "lost" and budget is not None:  # it cannot win
                 slower[y] = int(min(max(budget, verdict.total), 1 << 62))
                 if verdict.predicted:
                     forecast[y] = verdict.predicted
+            elif budget is None and verdict.outcome in ("lost", "failed"):
+                steps[y] = None
+                if not any(r.diverged for r in results):  # stopped by the cap
+                    short[y] = max([*verdict.predicted, 2.0 * max_steps])
             elif verdict.outcome == "done" and all(r.state == SETTLED for r in results):
                 settled = [r.steps for r in results]
                 steps[y] = settled
@@ -361,13 +455,27 @@ def _search(
             return float(slower[y])
         return float(_total(steps[y])) if steps[y] is not None else math.inf
 
-    # Bracket: start from the two guesses and their geometric mean, then walk towards fewer
-    # steps, each step 1.6x longer than the last, until the fewest are bracketed.
-    g_low, g_high = sorted(min(max(math.log(g), lo), hi) for g in guesses)
-    y0 = (g_low + g_high) / 2
-    step = max((g_high - g_low) / 2, math.log(BRACKET_STEP))
-    left, mid, right = max(y0 - step, lo), y0, min(y0 + step, hi)
-    f_mid, f_left, f_right = total(mid), total(left), total(right)
+    if prediction is not None:
+        # Confirm: the predicted d, then a run on either side, each stopped as soon as it is
+        # predicted no faster; walk on only where one of them is faster.
+        y0 = min(max(math.log(prediction.d), lo), hi)
+        step = math.log(CONFIRM)
+        left, mid, right = max(y0 - step, lo), y0, min(y0 + step, hi)
+        # The predicted d runs to the cap: early in a long run its decay is no guide (on a
+        # slender bar it predicted 3-8 times the steps the run took).
+        f_mid = total(mid, to_cap=True)
+        if grow and round(mid, 12) in short:
+            raise _ShortCap(short[round(mid, 12)])
+        f_left, f_right = total(left, CONFIRM_PRUNE), total(right, CONFIRM_PRUNE)
+    else:
+        # Bracket: start from the two guesses and their geometric mean.
+        g_low, g_high = sorted(min(max(math.log(g), lo), hi) for g in guesses)
+        y0 = (g_low + g_high) / 2
+        step = max((g_high - g_low) / 2, math.log(BRACKET_STEP))
+        left, mid, right = max(y0 - step, lo), y0, min(y0 + step, hi)
+        f_mid, f_left, f_right = total(mid), total(left), total(right)
+    # Walk towards fewer steps, each step 1.6x longer than the last, until the fewest are
+    # bracketed.
     walk = step
     while f_left < f_mid and left > lo:
         walk *= WALK_GROWTH
@@ -379,14 +487,14 @@ def _search(
         left, f_left, mid, f_mid = mid, f_mid, right, f_right
         right = min(mid + walk, hi)
         f_right = total(right)
-    if not best:  # nothing settled around the guesses: scan the whole range
+    if not best:  # nothing settled around the start: scan the whole range
         for y in np.linspace(lo, hi, 9):
             total(float(y))
         if not best:
             raise DampingError(
                 f"no d in [{bounds[0]:.3g}, {bounds[1]:.3g}] N s/m settles every load case "
-                f"within max_steps={max_steps} at dt = {runs.dt:.3g} s: "
-                + _what_would_work(runs, math.exp(y0), max_steps)
+                f"within max_steps={max_steps} at dt = {runs.dt:.3g} s"
+                + (": " + _what_would_work(runs, math.exp(y0), max_steps) if explain else "")
             )
     # Refine: golden-section steps between the best d and its tried neighbours.
     for _ in range(REFINE_STEPS):
@@ -397,12 +505,17 @@ def _search(
             break
         total(y)
     y_best, displacements = best
+    edge = None
+    if models is not None:
+        edge = _predicted_edge(models, math.exp(y_best), lo, max_steps)
     return DampingFit(
         d=math.exp(y_best),
         steps=list(steps[y_best] or []),
         displacements=displacements,
         d_min=math.exp(
-            _smallest_settling(runs, steps, forecast, y_best, lo, max_steps, math.log(BRACKET_STEP))
+            _smallest_settling(
+                runs, steps, forecast, y_best, lo, max_steps, math.log(BRACKET_STEP), edge
+            )
         ),
         guess=math.exp(y0),
         runs=runs.count,
@@ -411,7 +524,34 @@ def _search(
             [(math.exp(y), None if s is None else sum(s)) for y, s in steps.items()]
             + [(math.exp(y), None) for y in slower]
         ),
+        predicted=None if prediction is None else prediction.d,
+        predicted_steps=[] if prediction is None else list(prediction.steps),
+        max_steps=max_steps,
     )
+
+
+def _predicted_edge(models: list[StepModel], d_best: float, lo: float, cap: int) -> float | None:
+    """log d of the reduced steps' estimate of the margin: the smallest d (by bisection on log
+    d, to 1%) whose predicted steps stay within MARGIN_CAP times their own at ``d_best`` in
+    every load case; None if they do not settle at ``d_best``."""
+    fastest = [m.steps(d_best, cap) for m in models]
+    if not all(math.isfinite(f) and f > 0 for f in fastest):
+        return None
+    caps = [MARGIN_CAP * f for f in fastest]
+
+    def within(y: float) -> bool:
+        return all(m.steps(math.exp(y), int(c) + 1) <= c for m, c in zip(models, caps, strict=True))
+
+    ok, fail = math.log(d_best), lo
+    if within(fail):
+        return fail
+    while ok - fail > math.log(1.01):
+        middle = (ok + fail) / 2
+        if within(middle):
+            ok = middle
+        else:
+            fail = middle
+    return ok
 
 
 def _total(steps: list[int] | None) -> int:
@@ -454,14 +594,17 @@ def _smallest_settling(
     lo: float,
     max_steps: int,
     step: float,
+    edge: float | None = None,
 ) -> float:
     """log d of the smallest d whose runs all settle within MARGIN_CAP times their steps at the
     fastest d. The d tried by the search answer first, from their settled steps or from the
     predictions they were stopped on (``forecast``): from the smallest that settles, the
-    largest below it that does not brackets the edge, which bisection narrows to ``step / 2``
-    (log); with none below, the walk goes down by ``step`` while d settles, then bisects. A
-    probe stops once its decay predicts the answer (past PREDICT_AFTER steps): d_min is an
-    estimate where runs are long, exact where they settle sooner."""
+    largest below it that does not brackets the edge. ``edge`` (log d; the reduced steps'
+    estimate) is probed next, and then ``step / 2`` below it if it settles: on the prediction
+    that is the whole margin search. Without a bracket the walk goes down by ``step`` while d
+    settles; bisection narrows the bracket to ``step / 2`` (log). A probe stops once its decay
+    predicts the answer (past PREDICT_AFTER steps): d_min is an estimate where runs are long,
+    exact where they settle sooner."""
     fastest = steps[y_best] or []
     caps = [min(max_steps, MARGIN_CAP * s) for s in fastest]
 
@@ -473,23 +616,35 @@ def _smallest_settling(
             return all(p <= c for p, c in zip(forecast[y], caps, strict=True))
         return None
 
-    def settles(y: float) -> bool:
-        answer = known(y)
-        if answer is not None:
-            return answer
-        results, verdict = runs(math.exp(y), caps, estimate=True)
-        return verdict.outcome == "settles" or (
-            verdict.outcome == "done"
-            and all(r.state == SETTLED and r.steps <= c for r, c in zip(results, caps, strict=True))
-        )
-
     answers = {y: known(y) for y in [*steps, *forecast] if y <= y_best}
+
+    def settles(y: float) -> bool:
+        answer = answers.get(y)
+        if answer is None:
+            results, verdict = runs(math.exp(y), caps, estimate=True)
+            answer = verdict.outcome == "settles" or (
+                verdict.outcome == "done"
+                and all(
+                    r.state == SETTLED and r.steps <= c for r, c in zip(results, caps, strict=True)
+                )
+            )
+            answers[y] = answer
+        return answer
+
     y_ok = min(y for y, ok in answers.items() if ok)
     failing = [y for y, ok in answers.items() if ok is False and y < y_ok]
-    if failing:
-        y_fail = max(failing)
-    else:
-        y_fail = None
+    y_fail = max(failing) if failing else None
+    if edge is not None:
+        edge = round(edge, 12)
+        if edge < y_ok and (y_fail is None or edge > y_fail):
+            if settles(edge):
+                y_ok = edge
+                below = round(max(edge - step / 2, lo), 12)
+                if below < edge and (y_fail is None or below > y_fail) and not settles(below):
+                    y_fail = below
+            else:
+                y_fail = edge
+    if y_fail is None:
         while y_ok > lo:
             y = max(y_ok - step, lo)
             if not settles(y):
@@ -539,3 +694,7 @@ def _what_would_work(runs: _Runs, d: float, max_steps: int) -> str:
 
 class DampingError(RuntimeError):
     """No d in the bounds settles every load case."""
+
+
+class _ShortCap(Exception):
+    """The predicted d's runs reached the cap unsettled; ``args[0]``: the steps they need."""

@@ -8,8 +8,10 @@ from the better of the chains' best and the best single k), resolves depth 'auto
 finalize uses it too), with ``fpm.stiffness: "field"`` fits the per-cell field at that depth
 (:func:`fpm.fitting.field.fit_field`), and finds the fastest-settling nodal damping d (N s/m)
 at the dt of theta (or of the field):
-:func:`fpm.fitting.damping.fastest_damping`, from two critical-damping estimates
-(:func:`damping_guesses`). Its result, :class:`DampingStage`, is JSON-able and carries the final
+:func:`find_damping`: :func:`fpm.fitting.damping.fastest_damping` from the d the lattice's
+slowest modes predict (:mod:`fpm.dynamics.modes`; where the lattice at rest has none, from two
+critical-damping estimates, :func:`damping_guesses`), fpm.max_steps 'auto' resolved from the
+prediction. Its result, :class:`DampingStage`, is JSON-able and carries the final
 check (:class:`fpm.fitting.validation.FinalRun`): the runs of the fastest d are the calibration's
 last dynamic run.
 """
@@ -24,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from ..dynamics.equilibrium import StaticSolver
+from ..dynamics.modes import FALLBACK_STEPS, auto_max_steps, predict_damping
 from ..dynamics.stability import stable_time_step, time_step
 from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
 from ..model.forces import Stiffness
@@ -31,7 +34,7 @@ from ..model.problem import Problem
 from ..model.stiffness import has_volume, is_extended, is_field, model_stiffness
 from .bounds import damping_bounds, fit_depth, full_depth, stiffness_bounds
 from .cost import StaticCost
-from .damping import critical_damping, fastest_damping
+from .damping import DampingFit, critical_damping, fastest_damping
 from .field import fit_field
 from .stiffness_stage import (
     POLISH_SPAN,
@@ -61,6 +64,9 @@ class DampingStage:
         final: the check at (theta, d, depth): the d search's runs at d, which are the last
             dynamic run, against the static equilibria.
         seconds: wall time of this stage.
+        d_predicted: the fastest d predicted from the modes before any run, N s/m (None:
+            no prediction; the search started from the critical-damping estimates).
+        max_steps: the cap on each run's steps: the spec's, or 'auto' resolved.
         field: ``fpm.stiffness: "field"``: the field fit
             (:meth:`fpm.fitting.field.FieldStage.to_dict`), fitted at depth on the polished
             theta before d; d, dt and ``final`` are then those of the model it returns.
@@ -79,6 +85,8 @@ class DampingStage:
     damping_tried: list[tuple[float, int | None]]
     final: FinalRun
     seconds: float
+    d_predicted: float | None = None
+    max_steps: int | None = None
     field: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
@@ -209,14 +217,14 @@ def fit_damping(
     if progress is not None:
         progress({"phase": "damping"})
     dt = time_step(problem, stiffness)
-    fit = fastest_damping(
+    fit = find_damping(
         problem,
+        cost.solver,
         stiffness,
         depth,
-        damping_bounds(problem),
-        damping_guesses(problem, cost.solver, stiffness, depth, static),
-        dt=dt,
-        progress=None if progress is None else (lambda i: progress({"phase": "damping", **i})),
+        static,
+        dt,
+        None if progress is None else (lambda i: progress({"phase": "damping", **i})),
     )
     final = final_run(cost, stiffness, depth, fit.displacements, fit.steps, settled=True)
     return DampingStage(
@@ -233,6 +241,8 @@ def fit_damping(
         damping_tried=fit.tried,
         final=final,
         seconds=time.perf_counter() - t0,
+        d_predicted=fit.predicted,
+        max_steps=fit.max_steps,
         field=None if field is None else field.to_dict(),
     )
 
@@ -260,3 +270,39 @@ def damping_guesses(
         return critical_damping(problem, inertia, masses * static), upper
     except (SingularStiffnessError, NegativeCurvature):
         return upper, upper
+
+
+def find_damping(
+    problem: Problem,
+    solver: StaticSolver,
+    stiffness: Stiffness,
+    depth: int,
+    static: np.ndarray,
+    dt: float,
+    progress: Any = None,
+) -> DampingFit:
+    """The fastest-settling d at (``stiffness``, ``depth``, ``dt`` s), from ``static`` (L, N,
+    3) the static equilibria, m: the search of :func:`fpm.fitting.damping.fastest_damping`
+    started at the d the lattice's slowest modes predict
+    (:func:`fpm.dynamics.modes.predict_damping`), with fpm.max_steps 'auto' taken from the
+    steps predicted there (:func:`fpm.dynamics.modes.auto_max_steps`). Where the lattice at
+    rest has no modes to predict from (a mechanism, e.g. 'axis' springs) or no d settles in
+    the reduced steps, from the two critical-damping estimates of :func:`damping_guesses`,
+    'auto' then being FALLBACK_STEPS."""
+    bounds = damping_bounds(problem)
+    asked = problem.spec.fpm.max_steps
+    try:
+        prediction, models = predict_damping(problem, solver, stiffness, depth, dt, bounds, static)
+    except (ValueError, SingularStiffnessError, NegativeCurvature, np.linalg.LinAlgError):
+        guesses = damping_guesses(problem, solver, stiffness, depth, static)
+        cap = FALLBACK_STEPS if asked == "auto" else int(asked)
+        return fastest_damping(
+            problem, stiffness, depth, bounds, guesses, dt=dt, progress=progress, max_steps=cap,
+            auto=asked == "auto",
+        )  # fmt: skip
+    cap = auto_max_steps(prediction.steps) if asked == "auto" else int(asked)
+    return fastest_damping(
+        problem, stiffness, depth, bounds, (prediction.d, prediction.d), dt=dt,
+        progress=progress, prediction=prediction, models=models, max_steps=cap,
+        auto=asked == "auto",
+    )  # fmt: skip

@@ -129,6 +129,18 @@ class CalibrationResult(BaseModel):
     d_min: float | None = Field(
         description="smallest d that still settles every load case (two-stage), N s/m"
     )
+    d_predicted: float | None = Field(
+        None,
+        description="the fastest-settling d predicted from the lattice's slowest modes before "
+        "any run (two-stage; the search starts there and confirms it), N s/m; null: no "
+        "prediction (the search started from critical-damping estimates, or the paper method)",
+    )
+    max_steps: int | None = Field(
+        None,
+        description="the cap on each run's steps: the spec's fpm.max_steps, or its 'auto' "
+        "resolved (three times the predicted steps of the slowest load case); null in results "
+        "stored before the field existed",
+    )
     depth: int = Field(description="penetration depth, layers")
     full_depth: int = Field(description="the deepest perturbed list, layers")
     cost: float = Field(description="Eq. (2) of the last dynamic run at (stiffness, d, depth), m")

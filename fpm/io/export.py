@@ -217,9 +217,12 @@ def fpm_displacements(lattice: Lattice) -> tuple[np.ndarray, list[int], list[boo
     )
 
 
-def to_json(lattice: Lattice, fit: dict[str, Any] | None = None) -> dict[str, Any]:
+def to_json(
+    lattice: Lattice, fit: dict[str, Any] | None = None, max_steps: int | None = None
+) -> dict[str, Any]:
     """The ``json`` export (see the module docstring); ``fit``: figures to carry along (e.g. the
-    relative discrepancy per load case)."""
+    relative discrepancy per load case); ``max_steps``: the cap the fit's runs had (a
+    calibration result's ``max_steps``; None: :func:`resolved_max_steps`)."""
     problem, p = lattice.problem, lattice.params
     spec, solid = problem.spec, problem.solid
     springs = [
@@ -252,7 +255,7 @@ def to_json(lattice: Lattice, fit: dict[str, Any] | None = None) -> dict[str, An
             "dt": p.dt,
             "depth": p.depth,
             "settle_tolerance": spec.fpm.settle_tolerance,
-            "max_steps": spec.fpm.max_steps,
+            "max_steps": int(max_steps or resolved_max_steps(lattice)),
             "gravity": list(spec.fpm.gravity),
         },
         "energy": ENERGY,
@@ -278,6 +281,19 @@ def to_json(lattice: Lattice, fit: dict[str, Any] | None = None) -> dict[str, An
         ],
         **({"fit": fit} if fit else {}),
     }
+
+
+def resolved_max_steps(lattice: Lattice) -> int:
+    """The spec's fpm.max_steps as a number: its 'auto' resolved as for a run at the lattice's
+    parameters (:func:`fpm.dynamics.modes.predicted_max_steps`, every load case)."""
+    value = lattice.problem.spec.fpm.max_steps
+    if value != "auto":
+        return int(value)
+    from ..dynamics.modes import predicted_max_steps
+
+    p = lattice.params
+    stiffness = model_stiffness(lattice.problem, p.theta(lattice.problem))
+    return predicted_max_steps(lattice.problem, stiffness, p.d, p.depth, p.dt)
 
 
 def vtu_bytes(lattice: Lattice, fem: np.ndarray, fpm: np.ndarray) -> bytes:
@@ -501,7 +517,7 @@ def export(
             "validation_discrepancy_h",
         )
         fit = {k: record[k] for k in keys if k in record}
-        return json.dumps(to_json(lattice, fit)).encode()
+        return json.dumps(to_json(lattice, fit, record.get("max_steps"))).encode()
     if fmt == "sofa":
         return sofa_scene(lattice).encode()
     if fmt == "sofa-python":

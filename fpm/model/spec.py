@@ -495,12 +495,12 @@ class FpmSettings(_Strict):
         description="time step, s, or 'auto' (default): half the lattice's stability estimate "
         "at the fitted stiffness, at most 1 ms (a haptic 1 kHz loop)",
     )
-    max_steps: int = Field(
-        20_000,
-        ge=1,
-        le=1_000_000,
-        description="steps per load case before giving up (a cap: the result reports the steps "
-        "each load case took)",
+    max_steps: int | Literal["auto"] = Field(
+        "auto",
+        description="steps per load case before a run gives up (a cap: the result reports the "
+        "steps each load case took and the cap, max_steps), 1 to 1,000,000, or 'auto' "
+        "(default): three times the steps the lattice's slowest modes predict at the fitted d, "
+        "at least 1,000 (20,000 where nothing predicts it, e.g. the paper method)",
     )
     settle_tolerance: float = Field(
         1e-5,
@@ -520,6 +520,13 @@ class FpmSettings(_Strict):
     def _positive_dt(cls, v: float | str) -> float | str:
         if not isinstance(v, str) and not v > 0:
             raise ValueError("dt must be > 0 (s) or 'auto'")
+        return v
+
+    @field_validator("max_steps")
+    @classmethod
+    def _max_steps_range(cls, v: int | str) -> int | str:
+        if not isinstance(v, str) and not 1 <= v <= 1_000_000:
+            raise ValueError("max_steps must be 1 to 1,000,000 or 'auto'")
         return v
 
     @field_validator("depth")
