@@ -257,3 +257,35 @@ def test_an_independent_solve_of_the_json_export_reproduces_the_field(block):
         q = reference[j]
         figure = 100 * np.linalg.norm(u - q, axis=1).sum() / np.linalg.norm(q, axis=1).sum()
         assert figure == pytest.approx(stage.field_relative[j], abs=0.5)
+
+
+@pytest.mark.redis
+def test_a_field_calibration_through_the_service(api, run_workers):
+    """fem -> chains -> damping (the field) -> finalize on workers: the result and the
+    parameter set carry the field beside the four parameters, and the JSON export carries the
+    returned model's stiffnesses."""
+    calibration_id = api.post("/v1/calibrations", json=block_spec()).json()["id"]
+    run_workers()
+    done = api.get(f"/v1/calibrations/{calibration_id}").json()
+    assert done["status"] == "succeeded", done["error"]
+    result = done["result"]
+    field = result["field"]
+    assert result["stiffness_mode"] == "field"
+    assert len(field["spring_factor"]) == len(field["kappa_factor"]) == 27
+    assert len(field["cv_error"]) == len(field["cv_weights"]) == len(F.WEIGHTS)
+    for model in (field["four_parameter"], field["field"]):
+        assert len(model["relative_discrepancy"]) == 3
+        assert len(model["validation_relative_discrepancy"]) == 1
+    chosen = field["field"] if field["returned"] else field["four_parameter"]
+    assert result["validation_relative_discrepancy"] == pytest.approx(
+        chosen["validation_relative_discrepancy"], rel=1e-9
+    )
+    ps = api.get(f"/v1/parameter-sets/{done['parameter_set_id']}").json()
+    assert ps["field"] == field
+    path = f"/v1/parameter-sets/{done['parameter_set_id']}/export"
+    assert api.get(path, params={"format": "json"}).status_code == 202
+    run_workers()
+    model = api.get(path, params={"format": "json"}).json()
+    assert model["parameters"]["stiffness_field"] is field["returned"]
+    kappa = np.asarray(model["volume_stiffness"])
+    assert bool(np.ptp(kappa) > 0) is field["returned"]
