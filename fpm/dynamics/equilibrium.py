@@ -599,7 +599,7 @@ def static_solver(problem: Problem) -> StaticSolver:
 def static_equilibrium(
     problem: Problem,
     *,
-    k: float | Sequence[float] | np.ndarray,
+    k: float | Sequence[float] | np.ndarray | Stiffness,
     depth: int | None = None,
     load_case: int = 0,
     tolerance: float | None = None,
@@ -609,7 +609,8 @@ def static_equilibrium(
     Args:
         problem: from :func:`fpm.load_problem`.
         k: spring stiffness, N/m: one value for every spring, or one per spring family
-            (:func:`fpm.model.stiffness.spring_stiffness`; the spec's stiffness_scale applies).
+            (:func:`fpm.model.stiffness.spring_stiffness`; the spec's stiffness_scale applies);
+            or the model's :class:`~fpm.model.forces.Stiffness` itself (a field fit's).
         depth: penetration depth in layers; None = the spec's (its 'auto' means all layers).
         load_case: index into the spec's load cases.
         tolerance: relative force tolerance; None = a tenth of the spec's settle_tolerance.
@@ -618,7 +619,7 @@ def static_equilibrium(
     """
     if not 0 <= load_case < len(problem.load_cases):
         raise ValueError(f"load_case must be in 0..{len(problem.load_cases) - 1}")
-    if not np.all(np.asarray(k, dtype=float) > 0):
+    if not np.all((k.springs if isinstance(k, Stiffness) else np.asarray(k, dtype=float)) > 0):
         raise ValueError("need k > 0")
     if depth is None and problem.spec.fpm.depth != "auto":
         depth = int(problem.spec.fpm.depth)
