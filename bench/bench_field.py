@@ -23,11 +23,10 @@ Run: python -m bench field (about 10-20 minutes on 2 cores).
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 from bench.bench_calibration import load, run_organ, verdict
-from bench.bench_volume import cube_spec, fmt
+from bench.bench_volume import cube_spec, fmt, timed_fit
 
 CUBE_FIT_GOAL, CUBE_VALIDATION_GOAL = 2.0, 4.0
 ORGAN_VALIDATION_GOAL = 8.0
@@ -36,17 +35,6 @@ FIELD_TIME_GOAL = 180.0
 
 def ratio(value: float, goal: float) -> str:
     return f"{value / goal:.2f}x the goal"
-
-
-def fitted(spec: dict[str, Any]) -> tuple[Any, float]:
-    """(result, wall s) of fpm.calibrate with the FEM solved outside the timing."""
-    import fpm
-
-    problem = fpm.load_problem(spec)
-    reference = fpm.solve_fem(problem)
-    t0 = time.perf_counter()
-    result = fpm.calibrate(problem, reference=reference)
-    return result, time.perf_counter() - t0
 
 
 def side_by_side(name: str, r: Any, wall: float) -> None:
@@ -76,7 +64,7 @@ def cube() -> list[tuple[str, bool, str]]:
     print(f"\n1. The paper's cube, nu 0.45, selective reference ({load()})")
     out: list[tuple[str, bool, str]] = []
     for material, scale in (("linear", 0.01), ("neo-hookean", 1.0)):
-        r, wall = fitted(cube_spec(0.45, "field", "selective", material, scale))
+        r, wall = timed_fit(cube_spec(0.45, "field", "selective", material, scale))
         side_by_side(f"{material} reference, forces x {scale:g}", r, wall)
         field = r.field.field
         fit, check = max(field.relative_discrepancy), max(field.validation_relative_discrepancy)
@@ -100,7 +88,7 @@ def organ_5mm() -> list[tuple[str, bool, str]]:
 
     print(f"\n2. The organ at h = 5 mm with three validation cases ({load()})")
     spec, _ = organ_settings(0.005, "field")
-    r, wall = fitted(spec)
+    r, wall = timed_fit(spec)
     side_by_side("organ 5 mm", r, wall)
     v = r.validation_relative_discrepancy
     field = r.field.field.validation_relative_discrepancy
