@@ -144,7 +144,9 @@ def test_the_predicted_d_is_the_exact_steps_fastest(stiffness):
     from scipy.optimize import minimize_scalar
 
     lo, hi = damping_bounds(problem)
-    best = minimize_scalar(radius, bounds=(math.log(lo), math.log(hi)), method="bounded")
+    best = minimize_scalar(
+        radius, bounds=(math.log(lo), math.log(hi)), method="bounded", options={"xatol": 5e-3}
+    )
     assert abs(math.log(prediction.d) - best.x) < math.log(1.08)
     # the reduced step's slowest decay there agrees with the exact step's
     assert models[0].radius(prediction.d) == pytest.approx(radius(math.log(prediction.d)), abs=0.01)
@@ -160,7 +162,7 @@ def test_the_predicted_d_is_the_exact_steps_fastest(stiffness):
         ]  # fmt: skip
         return sum(r.steps for r in runs) if all(r.settled for r in runs) else math.inf
 
-    grid = np.geomspace(prediction.d / 1.5, prediction.d * 1.5, 25)
+    grid = np.geomspace(prediction.d / 1.3, prediction.d * 1.3, 13)
     assert total(prediction.d) <= 1.1 * min(total(d) for d in grid)
     # and the predicted steps are those of the runs within 25%
     runs = [model.run(j, k=stiffness_, d=prediction.d, depth=None, dt=dt, max_steps=50_000,
