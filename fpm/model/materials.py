@@ -7,7 +7,7 @@ material options multiply or extend that vector theta (docs/physics.md, *Materia
 - **Regions** (``material.regions``, :mod:`fpm.model.regions`): theta holds the families and
   kappa of every region present, base first: ``(axis, face, body, kappa, axis[r1], face[r1],
   body[r1], kappa[r1], ...)``. A cell gives its springs its region's family k times its share
-  (:data:`fpm.model.stiffness.CELL_SHARE`), so a spring on the boundary of two regions gets a
+  (:data:`fpm.model.shares.CELL_SHARE`), so a spring on the boundary of two regions gets a
   share from each, as an FEM assembles two materials; a cell carries its region's kappa.
 - **Transversely isotropic** (``material.type``, :mod:`fpm.model.anisotropy`): theta ends with
   the axial scale s, and every assembled spring along unit vector e is multiplied by
@@ -27,11 +27,13 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
+import scipy.sparse as sp
 
 from .anisotropy import axial_cosines, closed_form_start, local_stiffness, target_constants
 from .forces import Stiffness
-from .hexahedron import connectivity_families, local_families, local_pairs
+from .hexahedron import connectivity_families
 from .problem import Problem
+from .shares import cell_shares
 from .spec import BASE_REGION, lame_constants
 
 VOLUME = "kappa"
@@ -83,38 +85,25 @@ def _per_region(problem: Problem, values: np.ndarray) -> tuple[np.ndarray, float
     return values[: r * n].reshape(r, n), scale
 
 
-def region_weights(problem: Problem, shares: np.ndarray) -> np.ndarray:
-    """(R, S) per region and spring, the sum over the region's cells that contain the spring of
-    ``shares`` (:data:`fpm.model.stiffness.CELL_SHARE`) of its family: the rows add up to
+def region_weights(problem: Problem) -> np.ndarray:
+    """(R, S) per region (:func:`region_names` order) and spring, the sum over the region's
+    cells that contain the spring of the share they give it (:func:`fpm.model.shares.cell_shares`
+    times each region's indicator over the cells): the rows add up to
     :func:`fpm.model.stiffness.assembly_weights`. Kept in the problem's cache."""
     cached = problem.cache.get("region_weights")
     if cached is None:
-        solid = problem.solid
-        hexahedra = solid.elements()
-        if hexahedra is None:
-            raise ValueError("a network geometry has no cells to assemble springs from")
-        connectivity = problem.spec.geometry.connectivity  # type: ignore[union-attr]
-        pairs = local_pairs(connectivity)
-        a = hexahedra[:, pairs[:, 0]].ravel()
-        b = hexahedra[:, pairs[:, 1]].ravel()
-        n = problem.n_nodes
-        keys = np.minimum(a, b).astype(np.int64) * n + np.maximum(a, b)
-        springs = solid.springs.astype(np.int64)
-        spring_keys = springs[:, 0] * n + springs[:, 1]
-        order = np.argsort(spring_keys)
-        which = order[np.searchsorted(spring_keys, keys, sorter=order)]
-        share = np.tile(shares[local_families(connectivity)], len(hexahedra))
+        shares = cell_shares(problem)
         count = len(region_names(problem))
         cells = (
             problem.regions.cells
             if problem.regions is not None
-            else np.zeros(len(hexahedra), dtype=np.int32)
+            else np.zeros(shares.shape[1], dtype=np.int64)
         )
-        region = np.repeat(cells.astype(np.int64), len(pairs))
-        cached = np.bincount(
-            region * len(springs) + which, weights=share, minlength=count * len(springs)
-        ).reshape(count, len(springs))
-        problem.cache["region_weights"] = cached
+        indicator = sp.csr_matrix(
+            (np.ones(len(cells)), (np.arange(len(cells)), cells)), shape=(len(cells), count)
+        )
+        # Sums of 1/4, 1/2 and 1: exact in any order.
+        cached = problem.cache["region_weights"] = (shares @ indicator).T.toarray()
     return cached
 
 
@@ -129,14 +118,12 @@ def spring_axial_cosines(problem: Problem) -> np.ndarray:
     return cached
 
 
-def stiffness(
-    problem: Problem, values: np.ndarray, shares: np.ndarray, factor: np.ndarray | None
-) -> Stiffness:
+def stiffness(problem: Problem, values: np.ndarray, factor: np.ndarray | None) -> Stiffness:
     """The :class:`~fpm.model.forces.Stiffness` of ``values`` (theta, :func:`parameter_names`
     order): springs assembled region by region, times the axial factor and the spec's
     stiffness_scale ``factor`` (S,) if any; every cell its region's kappa."""
     rows, scale = _per_region(problem, values)
-    weights = region_weights(problem, shares)
+    weights = region_weights(problem)
     kinds = problem.solid.families
     springs = np.zeros(weights.shape[1])
     for r, row in enumerate(rows):
@@ -154,7 +141,7 @@ def stiffness(
 
 
 def linear_parts(
-    problem: Problem, shares: np.ndarray, factor: np.ndarray | None
+    problem: Problem, factor: np.ndarray | None
 ) -> tuple[list[Stiffness], Callable[[np.ndarray], np.ndarray]]:
     """The model at rest as ``sum_p c_p(theta) part_p``: the parts (each a Stiffness) and the
     coefficients c(theta). Regions: one part per parameter, c = theta. Transversely isotropic:
@@ -163,8 +150,8 @@ def linear_parts(
     n = len(parameter_names(problem))
     if not is_transverse(problem):
         eye = np.eye(n)
-        return [stiffness(problem, eye[p], shares, factor) for p in range(n)], lambda t: t
-    weights = region_weights(problem, shares)
+        return [stiffness(problem, eye[p], factor) for p in range(n)], lambda t: t
+    weights = region_weights(problem)
     cos2 = spring_axial_cosines(problem)
     kinds = problem.solid.families
     f = len(families(problem))

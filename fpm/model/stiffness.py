@@ -31,13 +31,13 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
-import scipy.sparse as sp
 
 from . import materials
 from .forces import Stiffness
-from .hexahedron import FAMILIES, connectivity_families, local_families, local_pairs
+from .hexahedron import FAMILIES, connectivity_families
 from .materials import is_extended
 from .problem import Problem
+from .shares import cell_shares
 from .spec import lame_constants
 
 VOLUME = "kappa"
@@ -46,11 +46,6 @@ VOLUME = "kappa"
 FLOOR = 1e-3
 """families+volume: the smallest body-diagonal stiffness (times mu h) and volume stiffness
 (times mu) a fit considers; 'zero' in a log-space search."""
-
-CELL_SHARE = np.array([0.25, 0.5, 1.0])
-"""Share of its family's k a cell gives each of its edges, face and body diagonals (an interior
-edge is in 4 cells, a face diagonal in 2, a body diagonal in 1)."""
-
 
 VOLUME_MODES = ("families+volume", "field")
 """The stiffness modes with the volume term and springs assembled from cells (theta: the
@@ -80,38 +75,10 @@ def is_field(problem: Problem) -> bool:
     return problem.spec.fpm.stiffness == "field"
 
 
-def cell_shares(problem: Problem) -> sp.csr_matrix:
-    """(S, H) sparse: entry (s, c) is the :data:`CELL_SHARE` of spring s's family that cell c
-    gives it (0 where s is not an edge or diagonal of c). Its row sums are
-    :func:`assembly_weights`; times per-cell factors, the field's springs
-    (:func:`field_stiffness`). Built once per problem."""
-    cached = problem.cache.get("cell_shares")
-    if cached is None:
-        solid = problem.solid
-        hexahedra = solid.elements()
-        if hexahedra is None:
-            raise ValueError("a network geometry has no cells to assemble springs from")
-        connectivity = problem.spec.geometry.connectivity  # type: ignore[union-attr]
-        pairs = local_pairs(connectivity)
-        a = hexahedra[:, pairs[:, 0]].ravel()
-        b = hexahedra[:, pairs[:, 1]].ravel()
-        n = problem.n_nodes
-        keys = np.minimum(a, b).astype(np.int64) * n + np.maximum(a, b)
-        springs = solid.springs.astype(np.int64)
-        spring_keys = springs[:, 0] * n + springs[:, 1]
-        order = np.argsort(spring_keys)
-        which = order[np.searchsorted(spring_keys, keys, sorter=order)]
-        share = np.tile(CELL_SHARE[local_families(connectivity)], len(hexahedra))
-        cell = np.repeat(np.arange(len(hexahedra)), len(pairs))
-        cached = problem.cache["cell_shares"] = sp.csr_matrix(
-            (share, (which, cell)), shape=(len(springs), len(hexahedra))
-        )
-    return cached
-
-
 def assembly_weights(problem: Problem) -> np.ndarray:
-    """(S,) per spring, the sum over the cells that contain it of :data:`CELL_SHARE` of its
-    family in that cell: 1 for an interior spring of a regular lattice, less on the surface."""
+    """(S,) per spring, the sum over the cells that contain it of the share of its family's k
+    that cell gives it (:data:`fpm.model.shares.CELL_SHARE`): 1 for an interior spring of a
+    regular lattice, less on the surface."""
     cached = problem.cache.get("assembly_weights")
     if cached is None:
         # Sums of 1/4, 1/2 and 1: exact in any order.
@@ -175,7 +142,7 @@ def model_stiffness(
             f"{len(names)} values, not {len(values)}"
         )
     if is_extended(problem):
-        return materials.stiffness(problem, values, CELL_SHARE, axis_factors(problem))
+        return materials.stiffness(problem, values, axis_factors(problem))
     springs = values[:-1][problem.solid.families] * assembly_weights(problem)
     factor = axis_factors(problem)
     if factor is not None:
@@ -368,7 +335,7 @@ def linear_parts(
     a transversely isotropic lattice, whose axial scale multiplies the families, has more
     (:func:`fpm.model.materials.linear_parts`)."""
     if is_extended(problem):
-        return materials.linear_parts(problem, CELL_SHARE, axis_factors(problem))
+        return materials.linear_parts(problem, axis_factors(problem))
     n = len(family_names(problem))
     eye = np.eye(n)
     return [model_stiffness(problem, eye[p]) for p in range(n)], lambda theta: theta
