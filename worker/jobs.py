@@ -41,6 +41,7 @@ from store.hashing import export_hash
 from store.status import CalibrationStatus, FemStatus, Phase
 
 from . import memory
+from .problems import problem_of
 
 PROGRESS_INTERVAL = 0.5
 """Seconds between progress writes of a job (each also checks for a cancel)."""
@@ -73,7 +74,7 @@ def fem_reference(fem_hash: str) -> dict[str, Any]:
         mesh = records.get_mesh(redis, mesh_id) if mesh_id else None
         if mesh_id and mesh is None:
             raise FemError(f"reference.mesh_id: no uploaded mesh {mesh_id}")
-        problem = load_problem(spec)
+        problem = load_problem(spec, mesh)  # its tags, if material.regions select by them
         memory.check(problem.n_nodes)  # refused before it starts, not killed halfway
         result = solve_fem(problem, mesh=mesh)
     except FemError as e:
@@ -127,7 +128,7 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
             "started": record.started or time.time(),
         },
     )
-    problem = load_problem(record.spec)
+    problem = problem_of(redis, record.spec)
     memory.check(problem.n_nodes)
     fem = FemResult.from_dict(reference)
     try:
@@ -275,7 +276,7 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
     if found is None:
         return {"failed": True}
     chains, reference = found
-    problem = load_problem(record.spec)
+    problem = problem_of(redis, record.spec)
     memory.check(problem.n_nodes)
     reporter = _DampingProgress(job, calibration_id)
     try:
@@ -311,7 +312,7 @@ def finalize_calibration(calibration_id: str) -> dict[str, Any]:
             _fail(redis, calibration_id, "the damping stage did not finish")
             return {"failed": True}
         damping = DampingStage.from_dict(saved)
-    problem = load_problem(record.spec)
+    problem = problem_of(redis, record.spec)
     memory.check(problem.n_nodes)
     warnings = check_reference(problem, reference)
     result = finalize(problem, reference, chains, damping, warnings=warnings).to_dict()
@@ -417,7 +418,7 @@ def export_parameter_set(parameter_set_id: str, fmt: str) -> dict[str, Any]:
         if fmt == "vtu":
             stored = records.get_fem_reference(redis, str(provenance.get("fem_hash", "")))
             fem = None if stored is None else stored["displacements"]
-        body = export(load_problem(record.spec), ps, fmt, fem=fem)
+        body = export(problem_of(redis, record.spec), ps, fmt, fem=fem)
     except ExportError as e:
         error, invalid = str(e), True
     except Exception as e:  # stored and shown; tried again after the cool-down

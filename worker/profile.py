@@ -16,11 +16,13 @@ from typing import Any
 import numpy as np
 from rq import get_current_job
 
-from fpm import load_problem, simulate
+from fpm import simulate
 from fpm.io.plot import profile_line
 from fpm.model.stiffness import fitted_theta
 from store import records, scratch
 from store.status import CalibrationStatus
+
+from .problems import problem_of
 
 
 def profile_data(problem: Any, reference: Any, result: dict[str, Any]) -> list[dict[str, Any]]:
@@ -87,7 +89,7 @@ def calibration_profile(calibration_id: str) -> dict[str, Any]:
     if error is None:
         assert record is not None and record.result is not None and reference is not None
         try:
-            problem = load_problem(record.spec)
+            problem = problem_of(redis, record.spec)
             cases = profile_data(problem, reference["displacements"], record.result)
         except Exception as e:  # stored and shown: a retry would fail the same way
             error = f"{type(e).__name__}: {e}"

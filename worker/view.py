@@ -44,12 +44,14 @@ from typing import Any
 import numpy as np
 from rq import get_current_job
 
-from fpm import load_problem, simulate
+from fpm import simulate
 from fpm.dynamics.equilibrium import static_equilibrium
 from fpm.model.problem import Problem
 from fpm.model.stiffness import fitted_theta
 from store import records, scratch
 from store.hashing import VIEW_VERSION, view_hash
+
+from .problems import problem_of
 
 MAGIC = b"FPMV"
 """The first 4 bytes of a view body."""
@@ -332,7 +334,7 @@ def parameter_set_view(parameter_set_id: str) -> dict[str, Any]:
             raise LookupError("the parameter set's FEM reference is no longer stored")
         full_depth = (record.result or {}).get("full_depth")
         body = view_body(
-            load_problem(record.spec),
+            problem_of(redis, record.spec),
             ps,
             stored["displacements"],
             parameter_set_id=parameter_set_id,

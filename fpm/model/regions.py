@@ -173,6 +173,12 @@ def tetrahedral_mesh(spec: ProblemSpec, mesh: dict[str, Any] | None) -> dict[str
     return None
 
 
+def tag_selectors(spec: ProblemSpec) -> list[int]:
+    """The indices of ``material.regions`` that select by a tag of the tetrahedral mesh (whose
+    tags the spec carries in ``reference.mesh`` or the upload ``reference.mesh_id`` names)."""
+    return [i for i, r in enumerate(spec.material.regions or []) if r.selector.tag is not None]
+
+
 def lattice_regions(
     spec: ProblemSpec,
     nodes: np.ndarray,
@@ -195,7 +201,7 @@ def lattice_regions(
     centres = nodes[hexahedra].mean(axis=1)
     tags = None
     tagged: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-    with_tags = [i for i, r in enumerate(regions) if r.selector.tag is not None]
+    with_tags = tag_selectors(spec)
     if with_tags:
         tetra = tetrahedral_mesh(spec, mesh)
         if tetra is None or tetra.get("tags") is None:
@@ -204,8 +210,8 @@ def lattice_regions(
             elif spec.reference.mesh_id is not None:
                 where = (
                     "the uploaded mesh reference.mesh_id names was not given to read them from "
-                    "(fpm.load_problem(spec, mesh); the service's jobs do not pass it yet: put "
-                    "the mesh, with its tags, in reference.mesh)"
+                    "(in-process: fpm.load_problem(spec, mesh), or the mesh with its tags in "
+                    "reference.mesh)"
                 )
             else:
                 where = "the spec has no tetrahedral mesh"
