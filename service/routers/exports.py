@@ -18,15 +18,13 @@ from collections.abc import AsyncIterator
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request
-from fastapi.responses import JSONResponse, Response, StreamingResponse
-from pydantic import BaseModel, Field
+from fastapi.responses import Response, StreamingResponse
 
-from store import graph, records, scratch
+from store import graph, scratch
 from store.hashing import export_hash
-from store.text import escape
 
+from .. import worker_made
 from ..deps import ParameterSetId, RedisDep, SettingsDep
-from ..errors import ProblemError, problem_responses
 from .parameter_sets import stored_parameter_set
 
 router = APIRouter(prefix="/v1/parameter-sets", tags=["parameter-sets"])
@@ -50,27 +48,13 @@ CONTENT = {
 }
 
 
-class ExportPending(BaseModel):
-    """The export is being made by a worker: ask again after ``retry_after`` seconds."""
-
-    status: Literal["pending"] = "pending"
-    retry_after: int = Field(description="seconds to wait before asking again (as Retry-After)")
-
-
-RETRY_HEADERS = {
-    "Retry-After": {
-        "description": "seconds to wait before asking again",
-        "schema": {"type": "integer"},
-    }
-}
-
-
 @router.get(
     "/{parameter_set_id}/export",
     operation_id="export_parameter_set",
     response_class=Response,
-    responses={
-        200: {
+    responses=worker_made.responses(
+        "export",
+        {
             "description": "json: nodes, springs [i, j, rest length, stiffness], masses, fixed "
             "nodes, d, dt, depth, perturbed layers per load case, with units; vtu: the lattice "
             "with FPM and FEM displacements and their error per load case (ParaView); sofa: a "
@@ -78,23 +62,7 @@ RETRY_HEADERS = {
             "volume term as a Python ForceField",
             "content": CONTENT,
         },
-        202: {
-            "model": ExportPending,
-            "description": "a worker is making the export: ask again after Retry-After seconds "
-            "(Location: this URL)",
-            "headers": {
-                **RETRY_HEADERS,
-                "Location": {"description": "where to ask", "schema": {"type": "string"}},
-            },
-        },
-        **problem_responses(404, 410, 422),
-        503: {
-            **problem_responses(503)[503],
-            "description": "Redis unreachable, or the export job failed: it is tried again "
-            "after Retry-After seconds",
-            "headers": RETRY_HEADERS,
-        },
-    },
+    ),
 )
 def export(
     parameter_set_id: ParameterSetId,
@@ -113,45 +81,19 @@ def export(
     ps = stored_parameter_set(redis, parameter_set_id)
     body = scratch.get_export(redis, export_hash(parameter_set_id, fmt))
     if body is None:
-        provenance = ps.get("provenance") or {}
-        record = records.get_calibration(redis, str(provenance.get("calibration_id", "")))
-        if record is None or record.spec_hash != provenance.get("spec_hash"):
-            raise ProblemError(
-                410,
-                "Gone",
-                f"the calibration that holds the spec of parameter set {parameter_set_id} is "
-                "gone: calibrate its spec again",
-            )
-        state = graph.request_export(
-            redis, parameter_set_id, fmt, record.spec, settings.finalize_timeout
+        made = worker_made.requested(
+            redis,
+            parameter_set_id,
+            ps,
+            lambda spec: graph.request_export(
+                redis, parameter_set_id, fmt, spec, settings.finalize_timeout
+            ),
+            f"the export job of parameter set {parameter_set_id} as {fmt}",
+            f"/v1/parameter-sets/{parameter_set_id}/export?format={fmt}",
         )
-        if state.invalid:
-            error = escape(state.error or "")
-            raise ProblemError(
-                422,
-                "Invalid input",
-                f"parameter set {parameter_set_id} does not fit its spec's lattice: {error}",
-                errors=[{"field": "parameter_set_id", "message": error}],
-            )
-        if state.error is not None:
-            raise ProblemError(
-                503,
-                "Service unavailable",
-                f"the export job of parameter set {parameter_set_id} as {fmt} failed "
-                f"({escape(state.error)}); it is tried again in {state.retry_after} s",
-                headers={"Retry-After": str(state.retry_after)},
-            )
-        if state.body is None:
-            pending = ExportPending(retry_after=state.retry_after)
-            return JSONResponse(
-                pending.model_dump(),
-                status_code=202,
-                headers={
-                    "Retry-After": str(state.retry_after),
-                    "Location": f"/v1/parameter-sets/{parameter_set_id}/export?format={fmt}",
-                },
-            )
-        body = state.body
+        if not isinstance(made, bytes):
+            return made
+        body = made
     # The cache holds the export gzip-compressed: sent as it is to a client that accepts gzip
     # (httpx, browsers, curl --compressed), unpacked here for one that does not.
     headers = {"Content-Disposition": f'attachment; filename="{parameter_set_id}{SUFFIXES[fmt]}"'}

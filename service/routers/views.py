@@ -15,18 +15,15 @@ view whose cached bytes expired is made again the same way.
 from __future__ import annotations
 
 import gzip
-from typing import Literal
 
 from fastapi import APIRouter, Request
-from fastapi.responses import JSONResponse, Response
-from pydantic import BaseModel, Field
+from fastapi.responses import Response
 
-from store import graph, records, scratch
+from store import graph, scratch
 from store.hashing import view_hash
-from store.text import escape
 
+from .. import worker_made
 from ..deps import ParameterSetId, RedisDep, SettingsDep
-from ..errors import ProblemError, problem_responses
 from .parameter_sets import stored_parameter_set
 
 router = APIRouter(prefix="/v1/parameter-sets", tags=["parameter-sets"])
@@ -35,27 +32,13 @@ MEDIA_TYPE = "application/octet-stream"
 """The view body's media type: binary (``FPMV``, a JSON header, typed arrays)."""
 
 
-class ViewPending(BaseModel):
-    """The 3D view data is being made by a worker: ask again after ``retry_after`` seconds."""
-
-    status: Literal["pending"] = "pending"
-    retry_after: int = Field(description="seconds to wait before asking again (as Retry-After)")
-
-
-RETRY_HEADERS = {
-    "Retry-After": {
-        "description": "seconds to wait before asking again",
-        "schema": {"type": "integer"},
-    }
-}
-
-
 @router.get(
     "/{parameter_set_id}/view",
     operation_id="get_parameter_set_view",
     response_class=Response,
-    responses={
-        200: {
+    responses=worker_made.responses(
+        "3D view",
+        {
             "description": "the 3D view data: b'FPMV', a little-endian uint32 header length, "
             "the header (JSON: h, node counts, bounds, per case its name, kind, figures and "
             "the names of its arrays; each array's dtype, shape and byte offset), then the "
@@ -64,23 +47,7 @@ RETRY_HEADERS = {
             "displacements, loaded vertices and their forces",
             "content": {MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}},
         },
-        202: {
-            "model": ViewPending,
-            "description": "a worker is making the view data: ask again after Retry-After "
-            "seconds (Location: this URL)",
-            "headers": {
-                **RETRY_HEADERS,
-                "Location": {"description": "where to ask", "schema": {"type": "string"}},
-            },
-        },
-        **problem_responses(404, 410, 422),
-        503: {
-            **problem_responses(503)[503],
-            "description": "Redis unreachable, or the view job failed: it is tried again after "
-            "Retry-After seconds",
-            "headers": RETRY_HEADERS,
-        },
-    },
+    ),
 )
 def view(
     parameter_set_id: ParameterSetId, redis: RedisDep, settings: SettingsDep, request: Request
@@ -95,43 +62,19 @@ def view(
     ps = stored_parameter_set(redis, parameter_set_id)
     body = scratch.get_export(redis, view_hash(parameter_set_id))
     if body is None:
-        provenance = ps.get("provenance") or {}
-        record = records.get_calibration(redis, str(provenance.get("calibration_id", "")))
-        if record is None or record.spec_hash != provenance.get("spec_hash"):
-            raise ProblemError(
-                410,
-                "Gone",
-                f"the calibration that holds the spec of parameter set {parameter_set_id} is "
-                "gone: calibrate its spec again",
-            )
-        state = graph.request_view(redis, parameter_set_id, record.spec, settings.finalize_timeout)
-        if state.invalid:
-            error = escape(state.error or "")
-            raise ProblemError(
-                422,
-                "Invalid input",
-                f"parameter set {parameter_set_id} does not fit its spec's lattice: {error}",
-                errors=[{"field": "parameter_set_id", "message": error}],
-            )
-        if state.error is not None:
-            raise ProblemError(
-                503,
-                "Service unavailable",
-                f"the 3D view job of parameter set {parameter_set_id} failed "
-                f"({escape(state.error)}); it is tried again in {state.retry_after} s",
-                headers={"Retry-After": str(state.retry_after)},
-            )
-        if state.body is None:
-            pending = ViewPending(retry_after=state.retry_after)
-            return JSONResponse(
-                pending.model_dump(),
-                status_code=202,
-                headers={
-                    "Retry-After": str(state.retry_after),
-                    "Location": f"/v1/parameter-sets/{parameter_set_id}/view",
-                },
-            )
-        body = state.body
+        made = worker_made.requested(
+            redis,
+            parameter_set_id,
+            ps,
+            lambda spec: graph.request_view(
+                redis, parameter_set_id, spec, settings.finalize_timeout
+            ),
+            f"the 3D view job of parameter set {parameter_set_id}",
+            f"/v1/parameter-sets/{parameter_set_id}/view",
+        )
+        if not isinstance(made, bytes):
+            return made
+        body = made
     # Cached gzip-compressed: sent as it is to a client that accepts gzip (browsers, httpx),
     # unpacked here for one that does not.
     headers = {"Vary": "Accept-Encoding", "Cache-Control": "no-cache"}
