@@ -84,7 +84,9 @@ def test_job_of_a_killed_worker_is_picked_up_within_a_minute(
     wait_for(picked_up_again, 60, "the chain to be picked up again")
     after = time.monotonic() - killed
     print(f"re-queued and picked up {after:.1f} s after the kill (TTL {SHORT_TTL} s)")
-    assert after < timing.requeue_bound(SHORT_TTL) + 1 < 60
+    # The bound is the design's; the slack covers process scheduling on a loaded 2-core
+    # machine (a full suite at load average 10 once took the bound + 1.04 s).
+    assert after < timing.requeue_bound(SHORT_TTL) + 3 < 60
     assert chain.retries_left == 0  # the retry (submit gives one) was spent on it
     wait_for(
         lambda: records.get_calibration(redis, record.id).status.terminal, 60, "the calibration"
