@@ -15,6 +15,7 @@ from redis import Redis
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from fpm import Problem, ProblemSpec, load_problem
+from fpm.model.regions import tag_selectors
 from fpm.model.spec import BoxGeometry, MeshGeometry, NetworkGeometry, VoxelGeometry
 from fpm.model.support import unheld_reason
 from fpm.model.tetrahedra import check_tetrahedra
@@ -137,9 +138,12 @@ def text_refusals(data: Any) -> list[dict[str, str]]:
     return out
 
 
-def check_calibration_spec(spec: ProblemSpec, settings: Settings) -> Problem:
+def check_calibration_spec(
+    spec: ProblemSpec, settings: Settings, mesh: dict[str, Any] | None = None
+) -> Problem:
     """Check ``spec``'s text and its size against the limits, then build it
-    (:func:`fpm.load_problem`).
+    (:func:`fpm.load_problem`; ``mesh`` the upload whose tags its regions select by,
+    :func:`check_reference_mesh`).
 
     Raises:
         ProblemError: 422 naming the field with refused characters, over a limit or that
@@ -166,7 +170,7 @@ def check_calibration_spec(spec: ProblemSpec, settings: Settings) -> Problem:
             "annealing.chains",
             f"{spec.annealing.chains} chains is over the limit of {settings.max_chains}",
         )
-    problem = load_problem(spec)
+    problem = load_problem(spec, mesh)
     if not problem.fixed.any():
         raise _rejected("fixed", "selects no node: the FEM reference needs the solid held")
     hexahedra = problem.solid.elements()
@@ -179,18 +183,24 @@ def check_calibration_spec(spec: ProblemSpec, settings: Settings) -> Problem:
     return problem
 
 
-def check_reference_mesh(spec: ProblemSpec, redis: Redis) -> None:
+def check_reference_mesh(spec: ProblemSpec, redis: Redis) -> dict[str, Any] | None:
     """A spec naming ``reference.mesh_id`` must name a mesh uploaded with ``POST /v1/meshes``.
+    Returns that mesh (nodes, tetrahedra, tags) when the spec's material regions select by its
+    tags (:func:`fpm.model.regions.tag_selectors`: the spec is built with it), else None.
 
     Raises:
         ProblemError: 422 at ``reference.mesh_id`` when no such mesh is stored.
     """
     mesh_id = spec.reference.mesh_id
-    if mesh_id is not None and not records.has_mesh(redis, mesh_id):
+    if mesh_id is None:
+        return None
+    mesh = records.get_mesh(redis, mesh_id) if tag_selectors(spec) else None
+    if mesh is None and not records.has_mesh(redis, mesh_id):
         raise _rejected(
             "reference.mesh_id",
             f"no uploaded mesh {mesh_id}: upload it first (POST /v1/meshes returns its id)",
         )
+    return mesh
 
 
 def mesh_refusals(nodes: Any, tetrahedra: Any, settings: Settings) -> list[dict[str, str]]:

@@ -515,28 +515,63 @@ def test_the_service_answers_bad_materials_422_naming_the_field_and_queues_nothi
 
 
 @pytest.mark.redis
-def test_an_uploaded_mesh_keeps_its_tags_and_a_tag_of_it_is_refused_until_jobs_pass_it(api, redis):
+def test_a_tag_of_an_uploaded_mesh_selects_a_region_through_the_service(api, redis, run_workers):
+    """POST /v1/meshes keeps the tags (part of the mesh's id); a calibration naming the upload
+    by reference.mesh_id with a region selected by one of its tags is accepted, its workers
+    build the spec with the stored mesh (the FEM's elements and the lattice's cells take the
+    tag's region), and its reference is the one the spec with the mesh inline gives; an
+    unknown tag of the upload is refused 422 naming the field, with nothing queued."""
     from test_service import assert_problem
 
+    from store import records
+
     spec = service_spec()
-    mesh = spec["reference"]["mesh"]
+    spec["reference"].update(AS_GIVEN)
+    inline = copy.deepcopy(spec)
+    mesh = spec["reference"].pop("mesh")
     tagged_id = api.post("/v1/meshes", json=mesh).json()["id"]
     plain_id = api.post("/v1/meshes", json={k: mesh[k] for k in ("nodes", "tetrahedra")}).json()[
         "id"
     ]
     assert tagged_id != plain_id  # the tags are part of its identity
-    from store import records
-
     assert records.get_mesh(redis, tagged_id)["tags"] == mesh["tags"]
-    bad = {**mesh, "tags": mesh["tags"][:3]}
-    assert_problem(api.post("/v1/meshes", json=bad), 422)
-    spec["reference"] = {"mesh_id": tagged_id}
+    assert_problem(api.post("/v1/meshes", json={**mesh, "tags": mesh["tags"][:3]}), 422)
+    stored = set(redis.keys())
+
+    unknown = copy.deepcopy(spec)
+    unknown["reference"]["mesh_id"] = tagged_id
+    unknown["material"]["regions"][0]["selector"]["tag"] = 9
     body = assert_problem(
-        api.post("/v1/calibrations", json=spec), 422, "material.regions.0.selector.tag"
+        api.post("/v1/calibrations", json=unknown), 422, "material.regions.0.selector.tag"
     )
-    assert "put the mesh, with its tags, in reference.mesh" in body["errors"][0]["message"]
-    problem = fpm.load_problem(spec, mesh=records.get_mesh(redis, tagged_id))  # in-process: fine
-    assert problem.regions.counts == [32, 32]
+    assert "no tetrahedron of the mesh has tag 9 (its tags: 1, 7)" in body["errors"][0]["message"]
+    untagged = copy.deepcopy(spec)
+    untagged["reference"]["mesh_id"] = plain_id
+    body = assert_problem(
+        api.post("/v1/fem-references", json=untagged), 422, "material.regions.0.selector.tag"
+    )
+    assert "the mesh has no tags" in body["errors"][0]["message"]
+    assert set(redis.keys()) == stored  # nothing queued, nothing half-written
+
+    spec["reference"]["mesh_id"] = tagged_id
+    calibration = api.post("/v1/calibrations", json=spec)
+    assert calibration.status_code == 202, calibration.text
+    run_workers()
+    done = api.get(f"/v1/calibrations/{calibration.json()['id']}").json()
+    assert done["status"] == "succeeded", done["error"]
+    assert [(r["name"], r["cells"]) for r in done["result"]["regions"]] == [
+        ("base", 32),
+        ("top", 32),
+    ]
+    fem = records.get_fem_reference(redis, records.get_calibration(redis, done["id"]).fem_hash)
+    expected = fpm.solve_fem(fpm.load_problem(inline)).displacements
+    np.testing.assert_allclose(
+        fem["displacements"], expected, rtol=0, atol=1e-12 * abs(expected).max()
+    )
+    homogeneous = copy.deepcopy(inline)
+    homogeneous["material"]["regions"] = []
+    softer = fpm.solve_fem(fpm.load_problem(homogeneous)).displacements
+    assert np.abs(softer - expected).sum() > 0.1 * np.abs(expected).sum()  # the tags mattered
 
 
 @pytest.mark.redis
