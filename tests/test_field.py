@@ -120,7 +120,7 @@ def test_the_four_parameter_gradient_equals_central_differences(pulled):
     problem, reference = pulled
     solver = StaticSolver(problem, warm=False)
     family = F.FamilyMap(problem)
-    objective = F.Objective(solver, reference, [0, 1, 2], None, family)
+    objective = F.Objective(F.Solvers([solver] * 3), reference, [0, 1, 2], None, family)
     y = np.log(continuum_start(problem))
     _, grad = objective(y)
     for i in range(len(y)):
@@ -154,7 +154,12 @@ def test_cross_validation_picks_a_weight_and_returns_a_field_only_if_it_predicts
         problem, reference, StaticSolver(problem), theta, None, weights=weights, iterations=FAST
     )
     assert stage.patterns == [[0], [1], [2]]
-    assert stage.weight in weights and len(stage.cv_error) == len(weights)
+    assert set(weights) <= set(stage.weights) and len(stage.cv_error) == len(stage.weights)
+    coarse = [stage.cv_error[stage.weights.index(w)] for w in weights]
+    if abs(coarse[0] - coarse[1]) > F.CV_FLAT:  # coarse to fine: the geometric mean too
+        assert stage.weights == [1.0, pytest.approx(0.1), 0.01]
+    else:
+        assert stage.weights == [1.0, 0.01]
     assert stage.cv_error[stage.weights.index(stage.weight)] == min(stage.cv_error)
     assert np.all(np.isfinite(stage.cv_cases)) and np.all(np.isfinite(stage.four_cv_cases))
     assert stage.returned == (min(stage.cv_error) < stage.four_cv_error)
@@ -272,7 +277,7 @@ def test_a_field_calibration_through_the_service(api, run_workers):
     field = result["field"]
     assert result["stiffness_mode"] == "field"
     assert len(field["spring_factor"]) == len(field["kappa_factor"]) == 27
-    assert len(field["cv_error"]) == len(field["cv_weights"]) == len(F.WEIGHTS)
+    assert len(field["cv_error"]) == len(field["cv_weights"]) >= len(F.WEIGHTS)
     for model in (field["four_parameter"], field["field"]):
         assert len(model["relative_discrepancy"]) == 3
         assert len(model["validation_relative_discrepancy"]) == 1

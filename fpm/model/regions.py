@@ -317,7 +317,8 @@ def element_materials(
 
 def check_material(spec: ProblemSpec) -> list[tuple[Loc, str]]:
     """What regions and a transversely isotropic material need of the rest of the spec: the
-    fit 'families+volume', the linear FEM (the neo-Hookean reference is one isotropic
+    fit 'families+volume' (with isotropic regions also 'field', the per-cell field on top of
+    each region's parameters), the linear FEM (the neo-Hookean reference is one isotropic
     material), and for the transversely isotropic material the default stiffness_scale (its
     axial scale is fitted)."""
     m = spec.material
@@ -325,12 +326,16 @@ def check_material(spec: ProblemSpec) -> list[tuple[Loc, str]]:
         return []
     what = "material.regions" if m.regions else "a transversely isotropic material"
     errors: list[tuple[Loc, str]] = []
-    if spec.fpm.stiffness != "families+volume":
+    allowed = (
+        ("families+volume",) if m.type == "transversely-isotropic" else ("families+volume", "field")
+    )
+    if spec.fpm.stiffness not in allowed:
         errors.append(
             (
                 ("fpm", "stiffness"),
-                f"{what} is fitted with fpm.stiffness 'families+volume' (each region, or the "
-                f"axial scale, gets its own parameters), not {spec.fpm.stiffness!r}",
+                f"{what} is fitted with fpm.stiffness {' or '.join(repr(a) for a in allowed)} "
+                f"(each region, or the axial scale, gets its own parameters; the field refines "
+                f"an isotropic region's), not {spec.fpm.stiffness!r}",
             )
         )
     if m.model != "linear" and spec.reference.displacements is None:

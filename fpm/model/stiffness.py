@@ -151,6 +151,33 @@ def model_stiffness(
     return Stiffness(springs, np.full(n_cells, values[-1]))
 
 
+def field_terms(
+    problem: Problem, theta: Sequence[float] | np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What the ``field`` model multiplies, from theta as families+volume reads it (the
+    families' k, N/m, then kappa, Pa; with material regions each region's, base first):
+    ``(k, kappa, cells)``, k (R, S) per region the family k of every spring, N/m, kappa (R,)
+    each region's, Pa, cells (H,) each cell's region (R = 1 without regions).
+
+    Raises:
+        ValueError: theta does not fit the model, or the model has no field (no volume
+            term, or a transversely isotropic material, whose axial scale the field has not).
+    """
+    values = np.atleast_1d(np.asarray(theta, dtype=float))
+    names = family_names(problem)
+    if not has_volume(problem) or len(values) != len(names) or materials.is_transverse(problem):
+        raise ValueError(
+            f"a stiffness field needs the families and kappa ({', '.join(names)}) of an "
+            "isotropic model with the volume term"
+        )
+    rows = values.reshape(-1, len(materials.families(problem)) + 1)
+    n_cells = cell_shares(problem).shape[1]
+    cells = (
+        problem.regions.cells if problem.regions is not None else np.zeros(n_cells, dtype=np.int64)
+    )
+    return rows[:, :-1][:, problem.solid.families], rows[:, -1].copy(), np.asarray(cells)
+
+
 def field_stiffness(
     problem: Problem,
     theta: Sequence[float] | np.ndarray,
@@ -158,21 +185,15 @@ def field_stiffness(
     kappa_factor: Sequence[float] | np.ndarray,
 ) -> Stiffness:
     """The ``field`` model's :class:`~fpm.model.forces.Stiffness`: theta as families+volume
-    reads it (the families' k, N/m, then kappa, Pa), each cell c giving its springs
-    ``spring_factor[c]`` times its share of their family's k and carrying
-    ``kappa_factor[c] * kappa`` (both (H,), aligned with the hexahedra). With every factor 1
-    it is :func:`model_stiffness` at theta.
+    reads it (:func:`field_terms`: the families' k, N/m, then kappa, Pa, per material region),
+    each cell c giving its springs ``spring_factor[c]`` times its share of their family's k
+    in its region and carrying ``kappa_factor[c]`` times its region's kappa (both (H,),
+    aligned with the hexahedra). With every factor 1 it is :func:`model_stiffness` at theta.
 
     Raises:
         ValueError: theta or the factors do not fit the lattice, or a factor is not > 0.
     """
-    values = np.atleast_1d(np.asarray(theta, dtype=float))
-    names = family_names(problem)
-    if not has_volume(problem) or len(values) != len(names):
-        raise ValueError(
-            f"a stiffness field needs the families and kappa ({', '.join(names)}) of a model "
-            "with the volume term"
-        )
+    k, kappa, cells = field_terms(problem, theta)
     shares = cell_shares(problem)
     a = np.asarray(spring_factor, dtype=float)
     b = np.asarray(kappa_factor, dtype=float)
@@ -183,11 +204,14 @@ def field_stiffness(
         )
     if not (np.all(a > 0) and np.all(b > 0)):
         raise ValueError("every factor of a stiffness field must be > 0")
-    springs = values[:-1][problem.solid.families] * (shares @ a)
+    if len(k) == 1:
+        springs = k[0] * (shares @ a)
+    else:
+        springs = sum(k[r] * (shares @ np.where(cells == r, a, 0.0)) for r in range(len(k)))
     factor = axis_factors(problem)
     if factor is not None:
         springs = springs * factor
-    return Stiffness(springs, values[-1] * b)
+    return Stiffness(springs, kappa[cells] * b)
 
 
 def spring_stiffness(problem: Problem, theta: float | Sequence[float] | np.ndarray) -> np.ndarray:
@@ -350,6 +374,7 @@ __all__ = [
     "cell_shares",
     "continuum_start",
     "family_names",
+    "field_terms",
     "field_stiffness",
     "fitted_theta",
     "has_volume",
