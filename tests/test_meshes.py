@@ -392,5 +392,13 @@ def test_cells_joined_by_less_than_a_face_are_dropped_and_the_fem_holds_the_rest
     assert np.asarray(spec["geometry"]["occupancy"]).sum() == 4 * 4 * 3
     dropped = [n for n in notes if n.startswith("dropped")]
     assert dropped and "dropped 2 cells (2e-06 m^3" in dropped[0]
-    spec["reference"] = {**spec.get("reference", {}), "refine": 0}  # the 8-node FEM as given
-    fpm.solve_fem(fpm.load_problem(spec))  # held: no "part of the solid is not held"
+    # The reference mesh is the same solid: the two cubes' 12 tetrahedra are left out with it
+    # (the corner cube, joined by nothing, would float, and a load spread over the lattice's
+    # top corner's patch reached it: the refined reference raised "can still move freely").
+    assert len(spec["reference"]["mesh"]["tetrahedra"]) == len(tets) - 12
+    left_out = [n for n in notes if n.startswith("reference.mesh: left out")]
+    assert left_out and "left out 12 tetrahedra (2e-06 m^3) in 2 piece(s)" in left_out[0]
+    for refine in (0, 1):  # as given with point loads; one refinement with the loads spread
+        spec["reference"]["refine"] = refine
+        fem = fpm.solve_fem(fpm.load_problem(spec))  # held: no "can still move freely"
+        assert np.all(np.isfinite(fem.displacements)) and fem.refinements == refine

@@ -241,7 +241,10 @@ def geometry_from_mesh(
         "origin": origin.tolist(),
         "connectivity": connectivity,
     }
-    reference = _reference_mesh(points, tets, tet_tags) if kind == "tetrahedra" else None
+    reference = None
+    if kind == "tetrahedra":
+        kept = origin + spacing * (np.argwhere(occupancy) + 0.5)  # the lattice's cell centres
+        reference = _reference_mesh(points, tets, tet_tags, kept, notes)
     if reference is not None and "tags" in reference:
         found = sorted(set(reference["tags"]))
         shown = ", ".join(map(str, found[:12])) + (", ..." if len(found) > 12 else "")
@@ -282,11 +285,20 @@ def cell_tags(mesh: Any) -> tuple[str | None, list[np.ndarray]]:
 
 
 def _reference_mesh(
-    points: np.ndarray, tets: np.ndarray, tags: np.ndarray | None = None
+    points: np.ndarray,
+    tets: np.ndarray,
+    tags: np.ndarray | None,
+    centres: np.ndarray,
+    notes: list[str],
 ) -> dict[str, Any]:
     """``reference.mesh`` of the tetrahedra: used nodes only, inside-out tetrahedra renumbered,
     flat ones (no volume: e.g. from a split wedge) dropped; ``tags`` (one per tetrahedron)
-    kept as its ``tags``."""
+    kept as its ``tags``. Of the mesh's pieces (:func:`face_pieces`) only those holding one
+    of the lattice's cell ``centres`` (C, 3), m, are kept: the reference is the solid the
+    lattice is (:func:`one_piece` drops the cells of the others), and a piece joined by less
+    than a face would not be held, and a load spread onto it (:mod:`fpm.fem.loads`) could not
+    be carried. A note in ``notes`` says what was left out."""
+    from ..fem.tet10 import locate
     from ..model.tetrahedra import DEGENERATE, EDGES, tetrahedron_volumes
 
     used, inverse = np.unique(tets, return_inverse=True)
@@ -298,6 +310,20 @@ def _reference_mesh(
     tets = tets[solid]
     volume = tetrahedron_volumes(nodes, tets)
     tets[volume < 0] = tets[volume < 0][:, [0, 2, 1, 3]]
+    pieces = face_pieces(nodes, tets)
+    if pieces.max() > 0:
+        held = np.zeros(pieces.max() + 1, dtype=bool)
+        held[pieces[locate(nodes, tets, centres).element]] = True
+        keep = held[pieces]
+        if not keep.all():
+            notes.append(
+                f"reference.mesh: left out {int((~keep).sum())} tetrahedra "
+                f"({float(np.abs(volume[~keep]).sum()):.3g} m^3) in {int((~held).sum())} "
+                "piece(s) joined to the rest by less than a face and holding no lattice cell: "
+                "the reference is the solid the lattice is"
+            )
+            tets = tets[keep]
+            solid[np.flatnonzero(solid)[~keep]] = False
     used, inverse = np.unique(tets, return_inverse=True)
     out: dict[str, Any] = {
         "nodes": nodes[used].tolist(),
@@ -530,6 +556,25 @@ def _orientation(
         exact = (f[2] - f[0]) * (f[5] - f[1]) - (f[3] - f[1]) * (f[4] - f[0])
         sign[k] = (exact > 0) - (exact < 0)
     return sign
+
+
+def face_pieces(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(T,) the piece of each tetrahedron ``tets`` (T, 4) on ``nodes`` (N, 3): tetrahedra that
+    share a face (three corners at the same positions, whether or not the mesh numbers them
+    as the same nodes) are in one piece; pieces numbered from 0."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    _, same = np.unique(nodes, axis=0, return_inverse=True)
+    corners = same.reshape(-1)[tets]
+    faces = np.sort(corners[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), axis=1)
+    _, face = np.unique(faces, axis=0, return_inverse=True)
+    count = len(tets) + int(face.max()) + 1
+    owner = np.repeat(np.arange(len(tets)), 4)
+    graph = coo_matrix(
+        (np.ones(len(owner)), (owner, len(tets) + face.reshape(-1))), shape=(count, count)
+    )
+    return connected_components(graph, directed=False)[1][: len(tets)]
 
 
 def one_piece(occupancy: np.ndarray) -> tuple[np.ndarray, int]:
