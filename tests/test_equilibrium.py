@@ -399,6 +399,23 @@ def test_a_warm_start_is_faster_and_lands_on_the_cold_answer(paper: fpm.Problem)
     assert warm.displacements == pytest.approx(cold.displacements, abs=1e-5 * u)
 
 
+def test_full_depth_by_its_number_shares_the_warm_starts_of_none(paper: fpm.Problem):
+    """Full depth asked as None and as its number is one list: the second solve at the same
+    stiffness starts at the first's answer and takes no Newton step; a shallower list keeps
+    its own warm starts (it starts from rest)."""
+    from fpm.fitting.bounds import full_depth
+
+    deepest = full_depth(paper)
+    k = spring_stiffness(paper, K_A)
+    solver = StaticSolver(paper)
+    first = solver.solve(2, k, None)
+    again = solver.solve(2, k, deepest)
+    assert first.iterations > 0 and again.iterations == 0 and again.start == "predicted"
+    assert np.array_equal(again.displacements, first.displacements)
+    shallow = solver.solve(2, k, deepest - 3)
+    assert shallow.start == "rest" and shallow.iterations > 0
+
+
 def test_proportional_stiffnesses_are_interpolated_exactly_enough(paper: fpm.Problem):
     """With one k, earlier solutions lie on the curve u(k, s F): three of them and s = 0
     interpolate a fourth so well that no Newton step is needed."""

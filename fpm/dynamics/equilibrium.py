@@ -28,8 +28,9 @@ geometrically nonlinear (they rotate and stretch), so E is minimised by Newton's
   the hierarchy was new; inexact Newton: CG stops at a residual relative to the current one
   (Eisenstat-Walker, choice 2), or once every node's linear residual is below half the target;
 - warm starts (:mod:`fpm.dynamics.predictor`): converged solutions kept per (load case,
-  depth) predict where Newton starts, refined on a Galerkin reduced model; on an annealing
-  walk with one k most solves then need no Newton step at all.
+  list) predict where Newton starts, refined on a Galerkin reduced model; on an annealing
+  walk with one k most solves then need no Newton step at all (full depth asked as None and
+  as its number is one list: the second solve at the same stiffness takes none).
 
 Converged when the largest unbalanced nodal force over the list is at most ``tolerance`` times
 the largest applied nodal force (the settle criterion of the dynamic run, with a tenth of its
@@ -179,7 +180,9 @@ class StaticSolver:
         self._systems: dict[bytes, SpringSystem] = {}
         self._buffers: dict[bytes, np.ndarray] = {}  # per system: the Newton tangent's values
         self._multigrid: dict[bytes, ReusedHierarchy] = {}
-        self._predictors: dict[tuple[int, int | None], _Predictor] = {}
+        # warm starts per (load case, list): depths whose lists hold the same nodes (full
+        # depth asked as None and as its number) share them
+        self._predictors: dict[tuple[int, bytes], _Predictor] = {}
         self.hierarchies_built = 0
 
     def default_tolerance(self) -> float:
@@ -210,9 +213,8 @@ class StaticSolver:
             del self._systems[oldest]
             self._buffers.pop(oldest, None)
             self._multigrid.pop(oldest, None)
-            for other, (other_key, _, _) in list(self._lists.items()):
-                if other_key == oldest:
-                    self._predictors.pop(other, None)
+            for case in [c for c in self._predictors if c[1] == oldest]:
+                del self._predictors[case]
         return system, layers
 
     def loads(self, load_case: int) -> np.ndarray:
@@ -272,9 +274,10 @@ class StaticSolver:
         applied = float(np.sqrt(np.einsum("ij,ij->i", forces, forces)).max(initial=0.0))
         target = tol * applied
         stats = _Stats()
-        predictor = self._predictors.get((load_case, depth))
+        case = (load_case, system.free.tobytes())
+        predictor = self._predictors.get(case)
         if predictor is None:
-            predictor = self._predictors[(load_case, depth)] = _Predictor(len(k.flat))
+            predictor = self._predictors[case] = _Predictor(len(k.flat))
         u, gradient = self._start(predictor, system, k, forces, applied, target, stats)
         u, residual, converged = self._newton(system, k, forces, u, gradient, target, stats)
         if converged and self.warm:
