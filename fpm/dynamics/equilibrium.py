@@ -213,8 +213,8 @@ class StaticSolver:
             del self._systems[oldest]
             self._buffers.pop(oldest, None)
             self._multigrid.pop(oldest, None)
-            for case in [c for c in self._predictors if c[1] == oldest]:
-                del self._predictors[case]
+            for warm in [c for c in self._predictors if c[1] == oldest]:
+                del self._predictors[warm]
         return system, layers
 
     def loads(self, load_case: int) -> np.ndarray:
