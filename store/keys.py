@@ -29,6 +29,7 @@ FEM_JOB = "worker.jobs.fem_reference"
 CHAIN_JOB = "worker.jobs.anneal_chain"
 DAMPING_JOB = "worker.jobs.fit_damping_stage"
 FINALIZE_JOB = "worker.jobs.finalize_calibration"
+CASE_JOB = "worker.spread.damping_case"
 FAILURE_CALLBACK = "worker.jobs.on_failure"
 PROFILE_JOB = "worker.profile.calibration_profile"
 EXPORT_JOB = "worker.jobs.export_parameter_set"
@@ -98,6 +99,30 @@ def damping_result(calibration_id: str) -> str:
     return f"{PREFIX}:calibration:{calibration_id}:damping"
 
 
+def case_run(calibration_id: str, task: str) -> str:
+    """Hash: one load case's run of the damping stage's d search (:mod:`worker.spread`),
+    ``task`` its digest: field ``task`` (JSON: what to run), then ``run`` (JSON: how it
+    ended) and ``displacements`` (raw float64 bytes) once run (written once)."""
+    return f"{PREFIX}:calibration:{calibration_id}:case-run:{task}"
+
+
+def case_claim(calibration_id: str, task: str) -> str:
+    """String: who runs the load-case task now (SET NX with a short expiry its holder renews;
+    an expired claim of a task with no result means its holder died)."""
+    return f"{PREFIX}:calibration:{calibration_id}:case-claim:{task}"
+
+
+def case_runs(calibration_id: str) -> str:
+    """Set: the digests of a calibration's load-case tasks (to drop them once finished)."""
+    return f"{PREFIX}:calibration:{calibration_id}:case-runs"
+
+
+def calibration_jobs(calibration_id: str) -> str:
+    """List: JSON spans of the calibration's jobs as they finish (worker, start, end, CPU s,
+    the jobs each waited for: :mod:`store.timeline`)."""
+    return f"{PREFIX}:calibration:{calibration_id}:jobs"
+
+
 def fem_reference(fem_hash: str) -> str:
     """String: JSON FemResult (nodes, displacements per load case); no expiry."""
     return f"{PREFIX}:fem:{fem_hash}"
@@ -143,6 +168,11 @@ def chain_job_id(calibration_id: str, chain: int) -> str:
 def damping_job_id(calibration_id: str) -> str:
     """RQ job id of the damping stage (two-stage calibrations)."""
     return f"{calibration_id}-damping"
+
+
+def case_job_id(calibration_id: str, task: str) -> str:
+    """RQ job id of one load-case task of the damping stage."""
+    return f"{calibration_id}-case-{task[:16]}"
 
 
 def finalize_job_id(calibration_id: str) -> str:

@@ -6,6 +6,9 @@
 - chain results (:class:`fpm.fitting.stiffness_stage.ChainResult` as JSON), read by the damping
   stage and finalize;
 - the damping stage's result (:class:`fpm.fitting.damping_stage.DampingStage` as JSON);
+- the damping stage's load-case tasks (:mod:`worker.spread`): what to run, who runs it (a
+  claim its holder renews), and the run (JSON and raw float64 displacements);
+- the spans of a calibration's jobs (worker, start, end, CPU s; :mod:`store.timeline`);
 - progress reports, one field per chain and one for the damping stage;
 - the FPM-vs-FEM profile data of a succeeded calibration (the web view's plot);
 - the exports of parameter sets (bytes, by :func:`store.hashing.export_hash`; kept
@@ -99,11 +102,110 @@ def get_damping_result(redis: Redis, calibration_id: str) -> dict[str, Any] | No
     return _json(redis.get(keys.damping_result(calibration_id)))
 
 
-def delete_stage_data(pipe: Any, calibration_id: str, chains: int) -> None:
-    """Queue dropping the checkpoints and the damping result once the calibration is done
-    (``pipe``: a pipeline, so that it happens with the write of the parameter set)."""
+def delete_stage_data(
+    pipe: Any, calibration_id: str, chains: int, tasks: list[str] | None = None
+) -> None:
+    """Queue dropping the checkpoints, the damping result and the load-case ``tasks``
+    (:func:`case_tasks`) once the calibration is done (``pipe``: a pipeline, so that it
+    happens with the write of the parameter set)."""
     pipe.delete(*[keys.chain_checkpoint(calibration_id, c) for c in range(chains)])
     pipe.delete(keys.damping_result(calibration_id))
+    for task in tasks or []:
+        pipe.delete(keys.case_run(calibration_id, task))
+    pipe.delete(keys.case_runs(calibration_id))
+
+
+CLAIM_TTL = 10
+"""Seconds a load-case task's claim lasts unless its holder renews it (:func:`claim_case`); a
+holder that died leaves the task to another after at most this long."""
+
+
+def add_case_task(redis: Redis, calibration_id: str, task: str, spec: dict[str, Any]) -> None:
+    """Store what load-case task ``task`` (its digest) runs, unless stored already."""
+    pipe = redis.pipeline()
+    pipe.hsetnx(keys.case_run(calibration_id, task), "task", json.dumps(spec))
+    pipe.expire(keys.case_run(calibration_id, task), SCRATCH_TTL)
+    pipe.sadd(keys.case_runs(calibration_id), task)
+    pipe.expire(keys.case_runs(calibration_id), SCRATCH_TTL)
+    pipe.execute()
+
+
+def get_case_task(redis: Redis, calibration_id: str, task: str) -> dict[str, Any] | None:
+    """What load-case task ``task`` runs, or None (unknown or dropped)."""
+    return _json(redis.hget(keys.case_run(calibration_id, task), "task"))
+
+
+def case_tasks(redis: Redis, calibration_id: str) -> list[str]:
+    """The digests of a calibration's load-case tasks."""
+    members = redis.smembers(keys.case_runs(calibration_id))
+    return sorted(t.decode() if isinstance(t, bytes) else str(t) for t in members)
+
+
+def has_case_run(redis: Redis, calibration_id: str, task: str) -> bool:
+    return bool(redis.hexists(keys.case_run(calibration_id, task), "run"))
+
+
+def claim_case(redis: Redis, calibration_id: str, task: str, holder: str) -> bool:
+    """True for the one caller that runs the task now (SET NX for CLAIM_TTL seconds); False if
+    another holds it or it has run."""
+    if has_case_run(redis, calibration_id, task):
+        return False
+    claim = keys.case_claim(calibration_id, task)
+    return bool(redis.set(claim, holder, nx=True, ex=CLAIM_TTL))
+
+
+def renew_claim(redis: Redis, calibration_id: str, task: str, holder: str) -> bool:
+    """Extend ``holder``'s claim by CLAIM_TTL seconds; False if it no longer holds it."""
+    claim = keys.case_claim(calibration_id, task)
+    pipe = redis.pipeline()
+    pipe.get(claim)
+    pipe.expire(claim, CLAIM_TTL)
+    held = pipe.execute()[0]
+    return held is not None and (held.decode() if isinstance(held, bytes) else held) == holder
+
+
+def release_claim(redis: Redis, calibration_id: str, task: str) -> None:
+    """Give the task up (its holder failed before storing a run): another may claim it."""
+    redis.delete(keys.case_claim(calibration_id, task))
+
+
+def save_case_run(
+    redis: Redis, calibration_id: str, task: str, run: dict[str, Any], displacements: bytes
+) -> None:
+    """Store a load-case task's run once (a second writer of the same deterministic run
+    changes nothing) and release its claim, in one MULTI/EXEC."""
+    key = keys.case_run(calibration_id, task)
+    pipe = redis.pipeline()
+    pipe.hsetnx(key, "displacements", displacements)
+    pipe.hsetnx(key, "run", json.dumps(run))
+    pipe.expire(key, SCRATCH_TTL)
+    pipe.delete(keys.case_claim(calibration_id, task))
+    pipe.execute()
+
+
+def get_case_run(
+    redis: Redis, calibration_id: str, task: str
+) -> tuple[dict[str, Any], bytes] | None:
+    """A load-case task's run (JSON dict, raw displacements), or None (not run yet)."""
+    run, displacements = redis.hmget(keys.case_run(calibration_id, task), ["run", "displacements"])
+    if run is None:
+        return None
+    raw = displacements or b""
+    return _json(run), raw.encode() if isinstance(raw, str) else bytes(raw)
+
+
+def add_span(redis: Redis, calibration_id: str, span: dict[str, Any]) -> None:
+    """Append one job's span (:class:`store.timeline.Span` as a dict) to the calibration's."""
+    key = keys.calibration_jobs(calibration_id)
+    pipe = redis.pipeline()
+    pipe.rpush(key, json.dumps(span))
+    pipe.expire(key, SCRATCH_TTL)
+    pipe.execute()
+
+
+def get_spans(redis: Redis, calibration_id: str) -> list[dict[str, Any]]:
+    """The spans of the calibration's jobs so far, in the order they were added."""
+    return [json.loads(raw) for raw in redis.lrange(keys.calibration_jobs(calibration_id), 0, -1)]
 
 
 def report_progress(redis: Redis, calibration_id: str, field: str, info: dict[str, Any]) -> bool:

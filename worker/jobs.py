@@ -35,13 +35,16 @@ from fpm.fitting.calibration import (
     run_chain,
 )
 from fpm.fitting.damping import DampingError
+from fpm.fitting.damping_stage import DampingPlan
 from fpm.io.export import ExportError, export
 from store import keys, records, scratch
 from store.hashing import export_hash
 from store.status import CalibrationStatus, FemStatus, Phase
+from store.timeline import critical_path
 
 from . import memory
 from .problems import problem_of
+from .spread import CaseSpread
 
 PROGRESS_INTERVAL = 0.5
 """Seconds between progress writes of a job (each also checks for a cancel)."""
@@ -67,6 +70,7 @@ def fem_reference(fem_hash: str) -> dict[str, Any]:
     if records.has_fem_reference(redis, fem_hash):
         return {"id": fem_hash, "cached": True}
     meta = records.get_fem_meta(redis, fem_hash)
+    cpu = time.process_time()
     records.update_fem_meta(redis, fem_hash, {"status": FemStatus.RUNNING, "started": time.time()})
     try:
         spec = json.loads(meta["spec"])
@@ -86,6 +90,8 @@ def fem_reference(fem_hash: str) -> dict[str, Any]:
     fields = {
         "status": FemStatus.SUCCEEDED,
         "finished": time.time(),
+        "worker": _job().worker_name or "?",  # the calibrations' timelines (finalize)
+        "cpu": time.process_time() - cpu,
         "n_nodes": len(result.nodes),
         "load_cases": result.load_cases,  # lists and dicts are stored as JSON
         "model": result.model,
@@ -138,6 +144,7 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
         return {"failed": True}
     saved = scratch.get_checkpoint(redis, calibration_id, chain)
     reporter = _ChainProgress(job, calibration_id, chain)
+    span = _Span(job, calibration_id, f"chain {chain}", [FEM_SPAN])
     try:
         result = run_chain(
             problem,
@@ -159,6 +166,7 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
         return {"failed": True}
     reporter.flush()
     scratch.save_chain_result(redis, calibration_id, chain, result.to_dict(), result.evaluations)
+    span.add()
     return {"x": result.x, "cost": result.cost, "evaluations": result.evaluations}
 
 
@@ -279,8 +287,25 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
     problem = problem_of(redis, record.spec)
     memory.check(problem.n_nodes)
     reporter = _DampingProgress(job, calibration_id)
+    span = _Span(job, calibration_id, "damping", [f"chain {c}" for c in range(record.chains)])
+    spreads: list[CaseSpread] = []
+
+    def spread(plan: DampingPlan) -> CaseSpread | None:
+        """The predicted d's load cases over the free workers (not a field's: its stiffness
+        is not rebuilt from theta)."""
+        if plan.field:
+            return None
+        timeout = job.timeout if isinstance(job.timeout, int) else SPREAD_TIMEOUT
+        spreads.append(
+            CaseSpread(
+                redis, calibration_id, plan, span.worker, timeout,
+                lambda: reporter.report(reporter.info),  # raises Canceled
+            )
+        )  # fmt: skip
+        return spreads[-1]
+
     try:
-        stage = fit_damping(problem, reference, chains, progress=reporter)
+        stage = fit_damping(problem, reference, chains, progress=reporter, cases=spread)
         reporter.flush()
     except Canceled:
         return {"canceled": True}
@@ -291,15 +316,19 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
         _fail(redis, calibration_id, f"damping stage failed: {e}{hint}")
         return {"failed": True}
     scratch.save_damping_result(redis, calibration_id, stage.to_dict())
+    span.add_around(spreads[0].rounds if spreads else [])
     return {"d": stage.d, "depth": stage.depth, "runs": stage.damping_runs}
 
 
 def finalize_calibration(calibration_id: str) -> dict[str, Any]:
-    """The last dynamic run and the figures; store the parameter set and the result."""
-    redis = _job().connection
+    """The last dynamic run and the figures; store the parameter set and the result, with the
+    timeline of the calibration's jobs and its critical path (:mod:`store.timeline`)."""
+    job = _job()
+    redis = job.connection
     record = records.get_calibration(redis, calibration_id)
     if record is None or record.status.terminal:
         return {"skipped": True}
+    span = _Span(job, calibration_id, "finalize", [])
     records.update_calibration(redis, calibration_id, {"phase": Phase.FINALIZE})
     found = _chains_and_reference(redis, record)
     if found is None:
@@ -316,11 +345,13 @@ def finalize_calibration(calibration_id: str) -> dict[str, Any]:
     memory.check(problem.n_nodes)
     warnings = check_reference(problem, reference)
     result = finalize(problem, reference, chains, damping, warnings=warnings).to_dict()
+    result.update(_timeline(redis, record, span))
     parameter_set = _parameter_set(record, result, problem.n_nodes)
+    tasks = scratch.case_tasks(redis, calibration_id)
 
     def store_once(pipe: Any) -> None:
         records.write_parameter_set(pipe, parameter_set)
-        scratch.delete_stage_data(pipe, calibration_id, record.chains)
+        scratch.delete_stage_data(pipe, calibration_id, record.chains, tasks)
 
     records.update_calibration(
         redis,
@@ -335,6 +366,66 @@ def finalize_calibration(calibration_id: str) -> dict[str, Any]:
         extra=store_once,
     )
     return {"parameter_set_id": parameter_set.id}
+
+
+FEM_SPAN = "FEM reference"
+"""The FEM job's span name (it ran for the calibration unless the reference was stored)."""
+SPREAD_TIMEOUT = 6 * 3600
+"""A load-case job's timeout when the damping job has none, s."""
+
+
+class _Span:
+    """A job's span for the calibration's timeline (:mod:`store.timeline`): started when made,
+    added by :meth:`add` (or :meth:`add_around`)."""
+
+    def __init__(self, job: Job, calibration_id: str, name: str, after: list[str]):
+        self.redis, self.calibration_id, self.name = job.connection, calibration_id, name
+        self.after = after
+        self.worker = job.worker_name or "?"
+        self.start, self.cpu = time.time(), time.process_time()
+
+    def as_dict(self, start: float, end: float, cpu: float, after: list[str]) -> dict[str, Any]:
+        return {"name": self.name, "worker": self.worker, "start": start, "end": end,
+                "cpu": cpu, "after": after}  # fmt: skip
+
+    def add(self) -> None:
+        span = self.as_dict(self.start, time.time(), time.process_time() - self.cpu, self.after)
+        scratch.add_span(self.redis, self.calibration_id, span)
+
+    def add_around(self, rounds: list[tuple[float, float, list[str]]]) -> None:
+        """The damping job: its span up to the first hand-out of load-case tasks (``rounds``:
+        :attr:`worker.spread.CaseSpread.rounds`), and "<name> (gather)" from the last on,
+        which waits for every task; with no hand-out one span. The job's CPU seconds go on the
+        first (its own threads' runs of tasks are counted in their spans as well)."""
+        if not rounds:
+            self.add()
+            return
+        first, last = rounds[0][0], rounds[-1][1]
+        cpu = time.process_time() - self.cpu
+        before = self.as_dict(self.start, first, cpu, self.after)
+        gather = self.as_dict(last, time.time(), 0.0, [n for r in rounds for n in r[2]])
+        gather["name"] = f"{self.name} (gather)"
+        scratch.add_span(self.redis, self.calibration_id, before)
+        scratch.add_span(self.redis, self.calibration_id, gather)
+
+
+def _timeline(redis: Redis, record: records.CalibrationRecord, own: _Span) -> dict[str, Any]:
+    """The result's ``jobs`` (the FEM job's span when it ran for this calibration, every
+    span in start order, finalize's last) and ``critical_path`` / ``critical_path_seconds``
+    (:func:`store.timeline.critical_path`)."""
+    spans = scratch.get_spans(redis, record.id)
+    meta = records.get_fem_meta(redis, record.fem_hash)
+    if not record.fem_cached and meta.get("started") and meta.get("finished"):
+        fem = {"name": FEM_SPAN, "worker": meta.get("worker") or "?",
+               "start": float(meta["started"]), "end": float(meta["finished"]),
+               "cpu": float(meta.get("cpu") or 0.0), "after": []}  # fmt: skip
+        spans.append(fem)
+    waited = {a for s in spans for a in s["after"]}
+    last = [s["name"] for s in spans if s["name"] not in waited]  # finalize waits for them
+    spans.append(own.as_dict(own.start, time.time(), time.process_time() - own.cpu, last))
+    spans.sort(key=lambda s: s["start"])
+    seconds, path = critical_path(spans)
+    return {"jobs": spans, "critical_path": path, "critical_path_seconds": seconds}
 
 
 def _parameter_set(

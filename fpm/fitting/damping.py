@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from typing import Any
@@ -58,7 +58,7 @@ from ..dynamics.modes import (
 )
 from ..dynamics.simulation import DynamicRun, FpmModel
 from ..dynamics.stability import auto_time_step, time_step
-from ..dynamics.voigt import SETTLED
+from ..dynamics.voigt import DIVERGED, INVERTED, RUNNING, SETTLED
 from ..model.forces import Stiffness
 from ..model.problem import Problem
 
@@ -169,11 +169,110 @@ def critical_damping(
     return float(np.exp(np.mean(np.log(estimates))))
 
 
+def _piece(run: DynamicRun, steps: int) -> int:
+    """Advance ``run`` by ``steps``, in samples of SAMPLE steps (its residual history); returns
+    the steps taken."""
+    start = run.steps
+    while run.steps - start < steps and not run.advance(min(SAMPLE, steps - run.steps + start)):
+        pass
+    return run.steps - start
+
+
+@dataclass
+class CaseRun:
+    """One load case run on its own to its end (settled, diverged, or ``cap`` steps), as the
+    search reads it: what :func:`verdict_at` and :func:`predicted_steps` read of a
+    :class:`~fpm.dynamics.simulation.DynamicRun`, and the settled displacements. JSON-able but
+    for ``displacements``, which travels as raw float64 bytes (:mod:`fpm.fitting.case_runs`).
+
+    Attributes:
+        steps: time steps taken; state: voigt.RUNNING (reached its cap), SETTLED or DIVERGED
+            (or INVERTED); settle_force: the residual it settles below, N.
+        history: (steps, residual N) after every SAMPLE steps.
+        displacements: (N, 3) where it settled, m ((0, 3) unless settled).
+    """
+
+    steps: int
+    state: int
+    settle_force: float
+    history: list[tuple[int, float]]
+    displacements: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    @property
+    def diverged(self) -> bool:
+        return self.state in (DIVERGED, INVERTED)
+
+    @property
+    def finished(self) -> bool:
+        return self.state != RUNNING
+
+    def result(self) -> CaseRun:
+        """Itself (the search reads ``result().displacements`` of a run)."""
+        return self
+
+
+def run_case(
+    model: FpmModel,
+    stiffness: Stiffness | np.ndarray,
+    depth: int | None,
+    dt: float,
+    load_case: int,
+    d: float,
+    cap: int,
+) -> CaseRun:
+    """Load case ``load_case`` at (``stiffness``, ``d`` N s/m, ``depth``, ``dt`` s) from rest
+    to its end: settled, diverged or ``cap`` steps; advanced in the same pieces of CHUNK steps
+    as the lockstep runs of :class:`_Runs`, so the very same floating-point sequence whatever
+    process runs it."""
+    s = model.problem.spec.fpm
+    run = model.start(
+        load_case, k=stiffness, d=d, depth=depth, dt=dt, settle_tolerance=s.settle_tolerance
+    )
+    while not run.finished and run.steps < cap:
+        _piece(run, min(CHUNK, cap - run.steps))
+    settled = run.state == SETTLED
+    return CaseRun(
+        steps=run.steps,
+        state=run.state,
+        settle_force=run.settle_force,
+        history=list(run.history),
+        displacements=run.result().displacements if settled else np.zeros((0, 3)),
+    )
+
+
+CaseRunner = Callable[[float, list[int], Callable[[int, float, int], CaseRun]], list[CaseRun]]
+"""Runs every load case of one d on its own: ``(d, caps, local) -> [CaseRun per case]``, where
+``local(j, d, cap)`` runs case j in this process (:func:`run_case`). The default runs them on
+this process's threads; the worker hands some to other workers
+(:mod:`worker.spread`). Every runner returns the same runs, so the search's answer does not
+depend on it."""
+
+
+def replay_verdict(runs: list[CaseRun], caps: list[int]) -> Verdict:
+    """The verdict the lockstep runs of :class:`_Runs` reach for a d run to its cap with no
+    budget (the predicted d's runs), from its cases run each to its end: the milestones every
+    CHUNK steps in turn, as the lockstep checks them, until one decides ``failed`` (a case
+    diverged or reached its cap unsettled by it) or every case ended before it (``done``)."""
+    verdict, milestone = Verdict("running"), CHUNK
+    while verdict.outcome == "running" and not all(r.steps < milestone for r in runs):
+        verdict = verdict_at(runs, caps, milestone, None, estimate=False, to_cap=True)
+        milestone += CHUNK
+    return Verdict("done") if verdict.outcome == "running" else verdict
+
+
 class _Runs:
-    """Runs every load case at one d, in pieces, on threads (the kernel releases the GIL)."""
+    """Runs every load case at one d, in pieces, on threads (the kernel releases the GIL).
+
+    ``cases``: how the predicted d's runs (no budget, to the cap: each case's run independent
+    of the others') are run (:data:`CaseRunner`; None: on these threads)."""
 
     def __init__(
-        self, problem: Problem, stiffness: Stiffness | np.ndarray, depth: int | None, dt: float
+        self,
+        problem: Problem,
+        stiffness: Stiffness | np.ndarray,
+        depth: int | None,
+        dt: float,
+        cases: CaseRunner | None = None,
     ):
         self.problem = problem
         self.stiffness = stiffness
@@ -186,14 +285,24 @@ class _Runs:
         self.count = 0
         self.work = 0
         self.max_steps = fixed_max_steps(problem.spec.fpm.max_steps)  # each run's cap on steps
+        self.runner = cases
 
-    def _piece(self, run: DynamicRun, steps: int) -> int:
-        """Advance ``run`` by ``steps``, in samples of SAMPLE steps (its residual history);
-        returns the steps taken."""
-        start = run.steps
-        while run.steps - start < steps and not run.advance(min(SAMPLE, steps - run.steps + start)):
-            pass
-        return run.steps - start
+    def local(self, load_case: int, d: float, cap: int) -> CaseRun:
+        """Load case ``load_case`` at d run on its own to its end in this process."""
+        return run_case(self.model, self.stiffness, self.depth, self.dt, load_case, d, cap)
+
+    def separate(self, d: float, caps: list[int]) -> tuple[list[CaseRun], Verdict]:
+        """Every load case at d, each run on its own to its end (by ``cases``, the
+        :data:`CaseRunner`), and the verdict the lockstep would reach (:func:`replay_verdict`).
+        For a d with no budget run to the cap, the same runs and verdict as :meth:`__call__`,
+        but that a failed d's other cases also run to their end."""
+        if self.runner is None:
+            runs = list(self.pool.map(self.local, range(self.cases), [d] * self.cases, caps))
+        else:
+            runs = self.runner(d, caps, self.local)
+        self.count += self.cases
+        self.work += sum(r.steps for r in runs)
+        return runs, replay_verdict(runs, caps)
 
     def __call__(
         self,
@@ -254,7 +363,7 @@ class _Runs:
             while waiting and verdict.outcome == "running" and len(running) < self.threads:
                 r, c = min(waiting, key=lambda rc: rc[0].steps)
                 waiting.remove((r, c))
-                running[self.pool.submit(self._piece, r, min(CHUNK, c - r.steps))] = r
+                running[self.pool.submit(_piece, r, min(CHUNK, c - r.steps))] = r
             if not running:
                 if verdict.outcome == "running":
                     verdict = Verdict("done")
@@ -281,7 +390,7 @@ class Verdict:
     predicted: tuple[float, ...] = ()
 
 
-def predicted_steps(run: DynamicRun, at: int | None = None) -> float:
+def predicted_steps(run: DynamicRun | CaseRun, at: int | None = None) -> float:
     """The steps ``run`` will have taken when it settles, predicted from the decay of its
     residual up to step ``at`` (None: its steps so far): the envelope (largest sample) over the
     last CHUNK steps against that over the CHUNK steps before, extrapolated exponentially down
@@ -305,7 +414,7 @@ def predicted_steps(run: DynamicRun, at: int | None = None) -> float:
 
 
 def verdict_at(
-    runs: list[DynamicRun],
+    runs: Sequence[DynamicRun | CaseRun],
     caps: list[int],
     at: int,
     budget: int | None,
@@ -353,6 +462,7 @@ def fastest_damping(
     models: list[StepModel] | None = None,
     max_steps: int | None = None,
     auto: bool = False,
+    cases: CaseRunner | None = None,
 ) -> DampingFit:
     """The d in ``bounds`` that settles every load case in the fewest total steps.
 
@@ -375,6 +485,8 @@ def fastest_damping(
             is :data:`fpm.dynamics.modes.FALLBACK_STEPS`, repeated as ``auto`` says).
         auto: the cap came from fpm.max_steps 'auto': if nothing settles within it, the search
             is repeated with MAX_STEPS_GROWTH times the cap (RETRIES times at most).
+        cases: runs the predicted d's load cases, each on its own (:data:`CaseRunner`; None:
+            on this process's threads); the answer is the same whatever runs them.
 
     Raises:
         DampingError: no d in the bounds settles every load case within max_steps.
@@ -386,7 +498,7 @@ def fastest_damping(
     step = time_step(problem, stiffness) if dt is None else dt
     for attempt in range(RETRIES + 1):
         last = not auto or attempt == RETRIES or max_steps >= SCHEMA_MAX_STEPS
-        runs = _Runs(problem, stiffness, depth, step)
+        runs = _Runs(problem, stiffness, depth, step, cases)
         runs.max_steps = max_steps
         try:
             return _search(
@@ -436,9 +548,13 @@ def _search(
         if y not in steps and y not in slower:
             # A d whose steps already add up to the best total cannot win: stop it there.
             budget = _total(steps[best[0]]) if best else None
-            results, verdict = runs(
-                math.exp(y), [max_steps] * runs.cases, budget, prune=prune, to_cap=to_cap
-            )
+            results: Sequence[DynamicRun | CaseRun]
+            if budget is None and to_cap:  # each case's run is its own: they may run apart
+                results, verdict = runs.separate(math.exp(y), [max_steps] * runs.cases)
+            else:
+                results, verdict = runs(
+                    math.exp(y), [max_steps] * runs.cases, budget, prune=prune, to_cap=to_cap
+                )
             if verdict.outcome == "lost" and budget is not None:  # it cannot win
                 slower[y] = int(min(max(budget, verdict.total), 1 << 62))
                 if verdict.predicted:

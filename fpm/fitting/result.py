@@ -69,6 +69,21 @@ class FieldFit(BaseModel):
     seconds: float = Field(description="wall time of the field fit, s")
 
 
+class JobSpan(BaseModel):
+    """One job of a calibration run by the service's workers (or one segment of the damping
+    job, which hands its load cases out: store.timeline)."""
+
+    name: str = Field(
+        description="what it ran: 'FEM reference', 'chain 0', 'damping', 'damping: d <d>, load "
+        "case <j>', 'damping (gather)', 'finalize'"
+    )
+    worker: str = Field(description="the worker that ran it")
+    start: float = Field(description="Unix time it started, s")
+    end: float = Field(description="Unix time it ended, s")
+    cpu: float = Field(description="CPU seconds it used, all its threads, s")
+    after: list[str] = Field([], description="the jobs it waited for (names)")
+
+
 class CalibrationResult(BaseModel):
     """The fitted parameters and how well they fit (units in each field's description)."""
 
@@ -182,6 +197,25 @@ class CalibrationResult(BaseModel):
         [], description="what the user should know (outside small strain, static/dynamic mismatch)"
     )
     chains: list[ChainSummary] = []
+    jobs: list[JobSpan] | None = Field(
+        None,
+        description="calibrated by the service: every job (and the damping job's two "
+        "segments around the load-case runs it handed out), in start order: worker, start, "
+        "end, CPU seconds and the jobs it waited for; absent when calibrated in-process",
+        exclude_if=lambda v: v is None,
+    )
+    critical_path: list[str] | None = Field(
+        None,
+        description="the longest chain of jobs each waiting for the one before (names, first "
+        "first): what the calibration takes with a free worker for every job",
+        exclude_if=lambda v: v is None,
+    )
+    critical_path_seconds: float | None = Field(
+        None,
+        description="the critical path's length, s (the sum of its jobs' durations: queueing "
+        "left out)",
+        exclude_if=lambda v: v is None,
+    )
     field: FieldFit | None = Field(
         None,
         description="fpm.stiffness 'field': the per-cell field and the side-by-side figures; "

@@ -1,0 +1,171 @@
+"""The damping stage's load cases spread over workers (worker.spread, issue 32 item 3): the
+same parameters to the bit with 1, 2 and 3 real worker processes and after the worker running
+a load case was killed; the timeline and critical path in the result; the per-case runs and
+the replayed verdict equal to the lockstep runs."""
+
+from __future__ import annotations
+
+import copy
+import json
+import signal
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from rq import Worker
+from rq.registry import StartedJobRegistry
+from rq.serializers import JSONSerializer
+
+import fpm
+from fpm.fitting.calibration import calibrate
+from fpm.fitting.damping import CHUNK, _Runs
+from fpm.model.stiffness import model_stiffness
+from service.limits import dump_spec
+from store import graph, keys, records
+from store.status import CalibrationStatus
+from store.timeline import critical_path
+
+SMALL = json.loads(
+    (Path(__file__).resolve().parents[1] / "examples" / "small-box.json").read_text()
+)
+
+FITTED = ("k", "stiffness", "volume_stiffness", "d", "d_min", "d_predicted", "depth", "dt",
+          "settle_steps", "cost", "static_cost", "relative_discrepancy", "damping_runs",
+          "evaluations")  # fmt: skip
+
+
+def long_cases(spec: dict[str, Any]) -> dict[str, Any]:
+    """The small box with load-case runs of a second or so (dt 2e-6 s: ~500x the steps)."""
+    spec = copy.deepcopy(spec)
+    spec["fpm"].update(dt=2e-6, max_steps=1_000_000)
+    return spec
+
+
+def test_critical_path_is_the_longest_chain_of_waits():
+    spans = [
+        {"name": "fem", "start": 0, "end": 2, "after": []},
+        {"name": "chain 0", "start": 2, "end": 10, "after": ["fem"]},
+        {"name": "chain 1", "start": 2, "end": 5, "after": ["fem"]},
+        {"name": "damping", "start": 10, "end": 11, "after": ["chain 0", "chain 1"]},
+        {"name": "case 0", "start": 11, "end": 14, "after": ["damping"]},
+        {"name": "case 1", "start": 12, "end": 20, "after": ["damping"]},  # queued 1 s
+        {"name": "gather", "start": 20, "end": 21, "after": ["case 0", "case 1", "gone"]},
+    ]
+    seconds, path = critical_path(spans)
+    assert path == ["fem", "chain 0", "damping", "case 1", "gather"]
+    assert seconds == 2 + 8 + 1 + 8 + 1  # durations only: the queueing second is left out
+    assert critical_path([]) == (0.0, [])
+
+
+@pytest.mark.parametrize("cap", [1_000_000, 3 * CHUNK, 3 * CHUNK + 50])
+def test_separate_runs_equal_the_lockstep_runs(cap):
+    """The predicted d's runs, each case on its own, and the verdict replayed from them equal
+    the lockstep runs: settled (the answer to the bit), and stopped by the cap (failed when the
+    cap is on a milestone, done but unsettled between two, as the lockstep decides)."""
+    problem = fpm.load_problem(long_cases(SMALL))
+    stiffness = model_stiffness(problem, [22.4347])
+    runs = _Runs(problem, stiffness, None, 2e-6)
+    try:
+        caps = [cap] * runs.cases
+        lockstep, verdict = runs(0.11, caps, None, to_cap=True)
+        separate, replayed = runs.separate(0.11, caps)
+    finally:
+        runs.close()
+    assert replayed.outcome == verdict.outcome
+    assert [r.state for r in separate] == [r.state for r in lockstep]
+    assert [r.steps for r in separate] == [r.steps for r in lockstep]
+    if cap == 1_000_000:
+        assert verdict.outcome == "done" and all(r.steps > 10 * CHUNK for r in separate)
+        for one, other in zip(separate, lockstep, strict=True):
+            assert np.array_equal(one.displacements, other.result().displacements)
+    else:
+        assert verdict.outcome == ("failed" if cap % CHUNK == 0 else "done")
+
+
+def submit(redis, spec):
+    dumped = dump_spec(fpm.load_problem(spec).spec)
+    return graph.submit_calibration(redis, dumped, graph.JobOptions(retries=1))
+
+
+def wait_done(redis, calibration_id: str, timeout: float = 240.0) -> records.CalibrationRecord:
+    deadline = time.monotonic() + timeout
+    while True:
+        record = records.get_calibration(redis, calibration_id)
+        assert record is not None
+        if record.status.terminal:
+            return record
+        assert time.monotonic() < deadline, f"timed out in {record.phase}"
+        time.sleep(0.1)
+
+
+def start_workers(redis, worker_processes, n: int) -> list[Any]:
+    started = [worker_processes.start() for _ in range(n)]
+    deadline = time.monotonic() + 60
+    while len(Worker.all(connection=redis)) < n:
+        assert time.monotonic() < deadline, "workers did not register"
+        time.sleep(0.1)
+    return started
+
+
+def case_spans(result: dict[str, Any]) -> list[dict[str, Any]]:
+    return [s for s in result["jobs"] if s["name"].startswith("damping: d ")]
+
+
+@pytest.mark.redis
+def test_same_parameters_with_one_two_and_three_workers(redis, worker_processes):
+    spec = long_cases(SMALL)
+    results, workers_of_cases = {}, {}
+    for n in (1, 2, 3):
+        redis.flushdb()
+        started = start_workers(redis, worker_processes, n)
+        record, _ = submit(redis, spec)
+        done = wait_done(redis, record.id)
+        assert done.status == CalibrationStatus.SUCCEEDED, done.error
+        results[n] = {name: done.result[name] for name in FITTED}
+        cases = case_spans(done.result)
+        assert sorted(s["name"][-1] for s in cases) == ["0", "1"]  # one run per load case
+        workers_of_cases[n] = {s["worker"] for s in cases}
+        names = [s["name"] for s in done.result["jobs"]]
+        assert names[0] == "FEM reference" and names[-1] == "finalize"
+        assert {"chain 0", "chain 1", "damping", "damping (gather)"} <= set(names)
+        for s in done.result["jobs"]:
+            assert s["start"] <= s["end"] and s["cpu"] >= 0 and s["worker"] != "?"
+        seconds, path = critical_path(done.result["jobs"])
+        assert done.result["critical_path"] == path and path[-1] == "finalize"
+        assert done.result["critical_path_seconds"] == pytest.approx(seconds)
+        wall = max(s["end"] for s in done.result["jobs"]) - done.result["jobs"][0]["start"]
+        assert 0 < seconds <= wall
+        for process in started:
+            worker_processes.stop(process)
+    assert results[1] == results[2] == results[3]  # to the bit (JSON floats round-trip)
+    expected = calibrate(fpm.load_problem(spec)).to_dict()  # in-process, one thread pool
+    assert results[1] == {name: expected[name] for name in FITTED}
+    assert len(workers_of_cases[1]) == 1
+    assert len(workers_of_cases[3]) >= 2, workers_of_cases  # the other workers took cases
+
+
+@pytest.mark.redis
+def test_worker_killed_holding_a_load_case_loses_nothing(redis, worker_processes):
+    spec = long_cases(SMALL)
+    started = start_workers(redis, worker_processes, 2)
+    record, _ = submit(redis, spec)
+    registry = StartedJobRegistry(keys.PRIORITY_QUEUE, connection=redis, serializer=JSONSerializer)
+    prefix = f"{record.id}-case-"
+    deadline = time.monotonic() + 120
+    while not [j for j in registry.get_job_ids(cleanup=False) if j.startswith(prefix)]:
+        assert time.monotonic() < deadline, "no load-case job started on another worker"
+        time.sleep(0.02)
+    holder = next(
+        w for w in Worker.all(connection=redis) if (w.get_current_job_id() or "").startswith(prefix)
+    )
+    (victim,) = [p for p in started if p.pid == holder.pid]
+    worker_processes.stop(victim, signal.SIGKILL)  # the worker and its work horse, mid-run
+    done = wait_done(redis, record.id)
+    assert done.status == CalibrationStatus.SUCCEEDED, done.error
+    expected = calibrate(fpm.load_problem(spec)).to_dict()
+    assert {name: done.result[name] for name in FITTED} == {name: expected[name] for name in FITTED}
+    cases = case_spans(done.result)
+    assert sorted(s["name"][-1] for s in cases) == ["0", "1"]
+    assert holder.name not in {s["worker"] for s in cases}  # its task was run again elsewhere
