@@ -464,8 +464,8 @@ def _request_cached(
 
 
 def cancel_calibration(redis: Redis, calibration_id: str) -> bool:
-    """Mark a calibration canceled, stop its running jobs (chains, damping stage, finalize) and
-    drop its queued ones.
+    """Mark a calibration canceled, stop its running jobs (chains, damping stage and the
+    load-case jobs it handed out, finalize) and drop its queued ones.
 
     Returns False if it had already finished (nothing changed). The shared FEM job is left
     alone: another calibration may need the same reference.
@@ -481,6 +481,9 @@ def cancel_calibration(redis: Redis, calibration_id: str) -> bool:
     assert record is not None
     job_ids = [keys.chain_job_id(calibration_id, c) for c in range(record.chains)]
     job_ids += [keys.damping_job_id(calibration_id), keys.finalize_job_id(calibration_id)]
+    job_ids += [
+        keys.case_job_id(calibration_id, t) for t in scratch.case_tasks(redis, calibration_id)
+    ]
     for job in Job.fetch_many(job_ids, connection=redis, serializer=JSONSerializer):
         if job is None:
             continue

@@ -243,6 +243,28 @@ def test_browser_shows_a_calibration_with_its_charts(finished, tmp_path):
         shutil.copyfile(png, copy_to)
 
 
+def test_browser_draws_the_jobs_on_their_workers(finished, tmp_path):
+    """The timeline panel: a bar per job of the result (the critical path's outlined), its
+    figures in the text, and the load cases' green bars on the screenshot."""
+    c = finished["calibration"]
+    r = c["result"]
+    url = f"{finished['url']}/#/calibrations/{c['id']}"
+    dom = browser.dump_dom(url)
+    panel = element(dom, "div", 'class="panel" id="timeline"')
+    assert f"{len(r['jobs'])} jobs on 1 worker(s)" in text_of(panel)
+    assert " → ".join(r["critical_path"]) in html.unescape(text_of(panel))
+    for job in r["jobs"]:
+        assert f'data-job="{html.escape(job["name"])}"' in panel, job["name"]
+    assert panel.count('stroke="#111"') == len(r["critical_path"]) + 1  # and the legend's
+    assert any(j["name"].startswith("damping: d ") for j in r["jobs"])  # the load cases' runs
+    png = browser.screenshot(url, tmp_path / "timeline.png", size=(1280, 2600))
+    import matplotlib.pyplot as plt
+
+    pixels = (plt.imread(png)[..., :3] * 255).round().astype(int).reshape(-1, 3)
+    case_green = np.array([0x2C, 0xA0, 0x2C])  # the load cases' bars (only there)
+    assert (np.abs(pixels - case_green).sum(axis=1) <= 6).sum() > 100
+
+
 def test_browser_shows_parameter_sets(finished):
     ps = finished["parameter_set"]
     dom = browser.dump_dom(f"{finished['url']}/#/parameter-sets")

@@ -51,7 +51,7 @@
   }
 
   const view = () => document.getElementById("view");
-  const show = (...nodes) => view().replaceChildren(...nodes.flat());
+  const show = (...nodes) => view().replaceChildren(...nodes.flat().filter((n) => n !== null)); // null: a panel with nothing to show
   const enc = encodeURIComponent;
 
   // ---- Formatting ----------------------------------------------------------------------------
@@ -619,7 +619,8 @@
     const panels = [el("p", null, el("a", { href: "#/" }, "← all calibrations")), head, progressPanel(c)];
     if (c.result) {
       panels.push(el("div", { class: "grid" }, fitPanel(c, names), parametersPanel(c)),
-        el("div", { class: "grid" }, profilePanel(c, token), historyPanel(c)), fieldPanel(c.result));
+        el("div", { class: "grid" }, profilePanel(c, token), historyPanel(c)), fieldPanel(c.result),
+        timelinePanel(c.result));
     }
     show(panels);
     if (ACTIVE.has(c.status)) later(token, POLL_ACTIVE_MS, () => calibrationView(id, token));
@@ -896,6 +897,92 @@
         svg("line", { x1: m.left, x2: m.left + 26, y1: ly - 4, y2: ly - 4, stroke: s.color, "stroke-width": 2, "stroke-dasharray": s.dash ? "6 4" : null }),
         svg("text", { x: m.left + 32, y: ly }, s.label));
     });
+    return root;
+  }
+
+  // The calibration's jobs on its workers: one lane per worker, a bar per job from its start
+  // to its end (seconds since the first job started), the critical path's bars outlined.
+  const JOB_COLORS = { fem: "#7f7f7f", chain: COLORS[0], damping: COLORS[1], case: COLORS[2], finalize: COLORS[4] };
+  function jobKind(name) {
+    if (name.startsWith("damping: ")) return "case";
+    if (name.startsWith("chain")) return "chain";
+    if (name.startsWith("damping")) return "damping";
+    return name === "finalize" ? "finalize" : "fem";
+  }
+
+  function timelinePanel(r) {
+    const jobs = r.jobs || [];
+    if (!jobs.length) return null;
+    const t0 = Math.min(...jobs.map((j) => j.start));
+    const wall = Math.max(...jobs.map((j) => j.end)) - t0;
+    const cpu = jobs.reduce((sum, j) => sum + j.cpu, 0);
+    return el("div", { class: "panel", id: "timeline" },
+      el("h3", null, "Jobs on the workers"),
+      el("p", null, `${jobs.length} jobs on ${new Set(jobs.map((j) => j.worker)).size} worker(s): `,
+        `wall ${seconds(wall)}, critical path ${seconds(r.critical_path_seconds)} `,
+        `(${(r.critical_path || []).join(" → ")}), CPU ${seconds(cpu)}`),
+      timelineChart(jobs, t0, wall, new Set(r.critical_path || [])));
+  }
+
+  // Rows of the timeline: per worker, as many as its jobs overlap (a job on the first row of
+  // its worker that is free by its start). Returns [[worker, row]...] and each job's row index.
+  function timelineRows(jobs) {
+    const rows = [];
+    const freeAt = [];
+    const rowOf = jobs.map((j) => {
+      let i = rows.findIndex((r, k) => r[0] === j.worker && freeAt[k] <= j.start);
+      if (i < 0) {
+        const last = rows.map((r) => r[0]).lastIndexOf(j.worker);
+        i = last < 0 ? rows.length : last + 1;
+        rows.splice(i, 0, [j.worker, rows.filter((r) => r[0] === j.worker).length]);
+        freeAt.splice(i, 0, -Infinity);
+      }
+      freeAt[i] = j.end;
+      return rows[i];
+    });
+    return { rows, rowOf };
+  }
+
+  function timelineChart(jobs, t0, wall, critical) {
+    const { rows, rowOf } = timelineRows(jobs);
+    const width = 1100;
+    const laneH = 28;
+    const m = { left: 110, right: 20, top: 26, bottom: 40 };
+    const plotW = width - m.left - m.right;
+    const height = m.top + laneH * rows.length + m.bottom;
+    const px = (t) => m.left + ((t - t0) / Math.max(wall, 1e-9)) * plotW;
+    const root = svg("svg", {
+      class: "chart", viewBox: `0 0 ${width} ${height}`, role: "img",
+      "aria-label": "the calibration's jobs on its workers over time",
+    });
+    const bottom = m.top + laneH * rows.length;
+    linearTicks(0, wall, 8).forEach((v) => root.append(
+      svg("line", { class: "gridline", x1: px(t0 + v), x2: px(t0 + v), y1: m.top, y2: bottom }),
+      svg("text", { x: px(t0 + v), y: bottom + 15, "text-anchor": "middle" }, num(v, 3))));
+    root.append(svg("text", { x: m.left + plotW / 2, y: bottom + 33, "text-anchor": "middle" },
+      "seconds since the first job started"));
+    rows.forEach(([w, k], i) => {
+      if (k === 0) root.append(svg("text", { x: m.left - 8, y: m.top + laneH * i + 18, "text-anchor": "end" }, w.slice(0, 12)));
+    });
+    jobs.forEach((j, n) => {
+      const lane = rows.indexOf(rowOf[n]);
+      const kind = jobKind(j.name);
+      const x = px(j.start);
+      const bar = svg("rect", {
+        x, y: m.top + laneH * lane + 4, width: Math.max(px(j.end) - x, 1.5), height: laneH - 8,
+        fill: JOB_COLORS[kind], "data-job": j.name,
+        stroke: critical.has(j.name) ? "#111" : null, "stroke-width": critical.has(j.name) ? 2 : null,
+      }, svg("title", null, `${j.name} on ${j.worker}: ${seconds(j.end - j.start)}, CPU ${seconds(j.cpu)}`));
+      root.append(bar);
+    });
+    let lx = m.left;
+    Object.entries({ fem: "FEM", chain: "chains", damping: "damping", case: "load cases", finalize: "finalize" }).forEach(([kind, label]) => {
+      root.append(svg("rect", { x: lx, y: 6, width: 12, height: 12, fill: JOB_COLORS[kind] }),
+        svg("text", { x: lx + 16, y: 16 }, label));
+      lx += 30 + 8 * label.length;
+    });
+    root.append(svg("rect", { x: lx, y: 6, width: 12, height: 12, fill: "none", stroke: "#111", "stroke-width": 2 }),
+      svg("text", { x: lx + 16, y: 16 }, "critical path"));
     return root;
   }
 
