@@ -156,7 +156,7 @@ def volume_forces(
     return -1
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def run_steps(
     order: np.ndarray,
     ptr: np.ndarray,
@@ -186,14 +186,21 @@ def run_steps(
     ``rest`` (N, 3) the rest positions. The volume term's cells (``corners`` (C, 8) ... ``kappa``
     as :func:`volume_forces`; C = 0: none) add their forces, kept in ``volume_force`` (N, 3).
     Stops early once the largest |F_i + F_s| of a sweep is below ``settle_force`` (N), once a
-    node is non-finite or further than ``max_move`` (m) from rest (DIVERGED), or once a cell
-    inverts (INVERTED). Returns (steps taken, RUNNING/SETTLED/DIVERGED/INVERTED, largest
+    node is non-finite or further than ``max_move`` (m) from rest (DIVERGED; two nodes at one
+    place give a non-finite force, NumPy's error model, rather than an exception), or once a
+    cell inverts (INVERTED). Returns (steps taken, RUNNING/SETTLED/DIVERGED/INVERTED, largest
     |F_i + F_s| of the last sweep, the inverted cell or -1).
     """
     scaled = stiffness_factor.shape[0] > 0
     cells = corners.shape[0] > 0
     limit2 = max_move * max_move
     worst = 0.0
+    most = 0
+    for i in order:
+        most = max(most, ptr[i + 1] - ptr[i])
+    r0s = np.empty(most)  # one node's springs
+    r1s = np.empty(most)
+    r2s = np.empty(most)
     for step in range(1, max_steps + 1):
         worst2 = 0.0
         if cells:
@@ -209,18 +216,45 @@ def run_steps(
                 f0 += volume_force[i, 0]
                 f1 += volume_force[i, 1]
                 f2 += volume_force[i, 2]
-            for e in range(ptr[i], ptr[i + 1]):
-                j = neighbour[e]
-                r0 = x[j, 0] - xi0
-                r1 = x[j, 1] - xi1
-                r2 = x[j, 2] - xi2
-                length = np.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
-                s = k * (length - rest_length[e]) / length
-                if scaled:
-                    s *= stiffness_factor[e]
-                f0 += s * r0
-                f1 += s * r1
-                f2 += s * r2
+            # The node's springs in three passes: gather r = x_j - x_i; each spring's force
+            # s r (a loop without indirect loads, which the compiler vectorises: the square
+            # roots and divisions, the step's costliest arithmetic, 8 springs at a time); sum
+            # them in the neighbours' order. Every value is the one the single loop computed,
+            # summed in the same order: positions identical to the bit.
+            first = ptr[i]
+            n = ptr[i + 1] - first
+            for t in range(n):
+                j = neighbour[first + t]
+                r0s[t] = x[j, 0] - xi0
+                r1s[t] = x[j, 1] - xi1
+                r2s[t] = x[j, 2] - xi2
+            rest_lengths = rest_length[first : first + n]
+            if scaled:
+                factors = stiffness_factor[first : first + n]
+                for t in range(n):
+                    r0 = r0s[t]
+                    r1 = r1s[t]
+                    r2 = r2s[t]
+                    length = np.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+                    s = k * (length - rest_lengths[t]) / length
+                    s *= factors[t]
+                    r0s[t] = s * r0
+                    r1s[t] = s * r1
+                    r2s[t] = s * r2
+            else:
+                for t in range(n):
+                    r0 = r0s[t]
+                    r1 = r1s[t]
+                    r2 = r2s[t]
+                    length = np.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+                    s = k * (length - rest_lengths[t]) / length
+                    r0s[t] = s * r0
+                    r1s[t] = s * r1
+                    r2s[t] = s * r2
+            for t in range(n):
+                f0 += r0s[t]
+                f1 += r1s[t]
+                f2 += r2s[t]
             f2sum = f0 * f0 + f1 * f1 + f2 * f2
             if f2sum > worst2:
                 worst2 = f2sum
