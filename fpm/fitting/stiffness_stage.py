@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize, minimize_scalar
 
+from ..dynamics.modes import single_threaded_blas
 from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
 from ..model.problem import Problem
 from ..model.stiffness import (
@@ -135,6 +136,20 @@ def run_chain(
         AnnealingError: no acceptable start, with the counts of rejected candidates and what
             to change (e.g. a time step from the lattice's stability estimate).
     """
+    # a chain shares the cores with the other chains: a threaded BLAS only waits
+    with single_threaded_blas():
+        return _run_chain(problem, reference, chain, progress, checkpoint, resume)
+
+
+def _run_chain(
+    problem: Problem,
+    reference: Any,
+    chain: int,
+    progress: Progress | None,
+    checkpoint: Callable[[Checkpoint], None] | None,
+    resume: Checkpoint | None,
+) -> ChainResult:
+    """:func:`run_chain`'s work."""
     t0 = time.perf_counter()
     a = problem.spec.annealing
     disp = reference_displacements(reference, problem)
