@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import json
+import re
 import signal
 import time
 from pathlib import Path
@@ -15,6 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 from rq import Worker
+from rq.job import Job
 from rq.registry import StartedJobRegistry
 from rq.serializers import JSONSerializer
 
@@ -110,13 +112,19 @@ def start_workers(redis, worker_processes, n: int) -> list[Any]:
 
 
 def case_spans(result: dict[str, Any]) -> list[dict[str, Any]]:
-    return [s for s in result["jobs"] if s["name"].startswith("damping: d ")]
+    """The spans of the predicted d's load cases, each run on its own."""
+    return [s for s in result["jobs"] if re.match(r"damping: d .*, load case \d$", s["name"])]
+
+
+def ahead_spans(result: dict[str, Any]) -> list[dict[str, Any]]:
+    """The spans of the d run ahead (the confirming d, the margin's probes)."""
+    return [s for s in result["jobs"] if s["name"].endswith(", all load cases")]
 
 
 @pytest.mark.redis
 def test_same_parameters_with_one_two_and_three_workers(redis, worker_processes):
     spec = long_cases(SMALL)
-    results, workers_of_cases = {}, {}
+    results, workers_of_cases, ahead = {}, {}, {}
     for n in (1, 2, 3):
         redis.flushdb()
         started = start_workers(redis, worker_processes, n)
@@ -127,9 +135,11 @@ def test_same_parameters_with_one_two_and_three_workers(redis, worker_processes)
         cases = case_spans(done.result)
         assert sorted(s["name"][-1] for s in cases) == ["0", "1"]  # one run per load case
         workers_of_cases[n] = {s["worker"] for s in cases}
+        ahead[n] = len(ahead_spans(done.result))
         names = [s["name"] for s in done.result["jobs"]]
         assert names[0] == "FEM reference" and names[-1] == "finalize"
         assert {"chain 0", "chain 1", "damping", "damping (gather)"} <= set(names)
+        assert len(set(names)) == len(names)  # each task ran once
         for s in done.result["jobs"]:
             assert s["start"] <= s["end"] and s["cpu"] >= 0 and s["worker"] != "?"
         seconds, path = critical_path(done.result["jobs"])
@@ -142,7 +152,8 @@ def test_same_parameters_with_one_two_and_three_workers(redis, worker_processes)
     assert results[1] == results[2] == results[3]  # to the bit (JSON floats round-trip)
     expected = calibrate(fpm.load_problem(spec)).to_dict()  # in-process, one thread pool
     assert results[1] == {name: expected[name] for name in FITTED}
-    assert len(workers_of_cases[1]) == 1
+    assert len(workers_of_cases[1]) == 1 and ahead[1] == 0  # nothing run ahead on one worker
+    assert ahead[2] >= 2 and ahead[3] >= 2  # the confirming d at once
     assert len(workers_of_cases[3]) >= 2, workers_of_cases  # the other workers took cases
 
 
@@ -154,12 +165,18 @@ def test_worker_killed_holding_a_load_case_loses_nothing(redis, worker_processes
     registry = StartedJobRegistry(keys.PRIORITY_QUEUE, connection=redis, serializer=JSONSerializer)
     prefix = f"{record.id}-case-"
     deadline = time.monotonic() + 120
-    while not [j for j in registry.get_job_ids(cleanup=False) if j.startswith(prefix)]:
+
+    def load_case_job() -> str | None:
+        for job_id in registry.get_job_ids(cleanup=False):
+            job = Job.fetch(job_id, connection=redis, serializer=JSONSerializer)
+            if job_id.startswith(prefix) and re.search(r"load case \d$", job.description or ""):
+                return job_id
+        return None
+
+    while (held := load_case_job()) is None:
         assert time.monotonic() < deadline, "no load-case job started on another worker"
         time.sleep(0.02)
-    holder = next(
-        w for w in Worker.all(connection=redis) if (w.get_current_job_id() or "").startswith(prefix)
-    )
+    holder = next(w for w in Worker.all(connection=redis) if w.get_current_job_id() == held)
     (victim,) = [p for p in started if p.pid == holder.pid]
     worker_processes.stop(victim, signal.SIGKILL)  # the worker and its work horse, mid-run
     done = wait_done(redis, record.id)

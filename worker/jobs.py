@@ -291,8 +291,8 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
     spreads: list[CaseSpread] = []
 
     def spread(plan: DampingPlan) -> CaseSpread | None:
-        """The predicted d's load cases over the free workers (not a field's: its stiffness
-        is not rebuilt from theta)."""
+        """The d search's runs over the free workers (not a field's: its stiffness is not
+        rebuilt from theta)."""
         if plan.field:
             return None
         timeout = job.timeout if isinstance(job.timeout, int) else SPREAD_TIMEOUT
@@ -305,7 +305,7 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
         return spreads[-1]
 
     try:
-        stage = fit_damping(problem, reference, chains, progress=reporter, cases=spread)
+        stage = fit_damping(problem, reference, chains, progress=reporter, spread=spread)
         reporter.flush()
     except Canceled:
         return {"canceled": True}
@@ -393,20 +393,23 @@ class _Span:
         scratch.add_span(self.redis, self.calibration_id, span)
 
     def add_around(self, rounds: list[tuple[float, float, list[str]]]) -> None:
-        """The damping job: its span up to the first hand-out of load-case tasks (``rounds``:
-        :attr:`worker.spread.CaseSpread.rounds`), and "<name> (gather)" from the last on,
-        which waits for every task; with no hand-out one span. The job's CPU seconds go on the
+        """The damping job, in segments around its hand-outs of tasks (``rounds``:
+        :attr:`worker.spread.CaseSpread.rounds`): "<name>" up to the first, "<name> (k)"
+        between hand-outs k - 1 and k, waiting for the tasks of the one before, "<name>
+        (gather)" from the last on; with no hand-out one span. The job's CPU seconds go on the
         first (its own threads' runs of tasks are counted in their spans as well)."""
         if not rounds:
             self.add()
             return
-        first, last = rounds[0][0], rounds[-1][1]
-        cpu = time.process_time() - self.cpu
-        before = self.as_dict(self.start, first, cpu, self.after)
-        gather = self.as_dict(last, time.time(), 0.0, [n for r in rounds for n in r[2]])
-        gather["name"] = f"{self.name} (gather)"
-        scratch.add_span(self.redis, self.calibration_id, before)
-        scratch.add_span(self.redis, self.calibration_id, gather)
+        edges = [self.start] + [t for r in rounds for t in r[:2]] + [time.time()]
+        for k in range(len(rounds) + 1):
+            start, end = edges[2 * k], edges[2 * k + 1]
+            after = self.after if k == 0 else rounds[k - 1][2]
+            cpu = time.process_time() - self.cpu if k == 0 else 0.0
+            span = self.as_dict(start, end, cpu, after)
+            if k:
+                span["name"] = f"{self.name} ({'gather' if k == len(rounds) else k})"
+            scratch.add_span(self.redis, self.calibration_id, span)
 
 
 def _timeline(redis: Redis, record: records.CalibrationRecord, own: _Span) -> dict[str, Any]:

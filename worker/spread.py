@@ -1,21 +1,25 @@
-"""The damping stage's load cases spread over the free workers (issue 32, item 3).
+"""The damping stage's runs spread over the free workers (issue 32, item 3).
 
 The d search's dearest runs are the predicted d's, every load case run to its end
-(docs/physics.md, *d from the spectrum*); each case's run is independent of the others'
-(:func:`fpm.fitting.damping.run_case`), so the damping job hands them out as tasks:
+(docs/physics.md, *d from the spectrum*): each case's run is independent of the others'
+(:func:`fpm.fitting.damping.run_case`). Then come the two d that confirm it and the margin's
+probes, each a d's lockstep runs whose requests the search can name before it needs them
+(:meth:`fpm.fitting.damping._Runs.prefetch`). The damping job hands them out as tasks:
 
-- each task (plan, d, load case, cap) is stored under its digest (:func:`task_digest`), and,
-  when other workers are idle, enqueued as a :func:`damping_case` job on the priority queue;
+- each task (the plan, and one load case at d with its cap, or one d's request) is stored
+  under its digest (:func:`task_digest`) and, when other workers are idle, enqueued as a
+  :func:`damping_case` job on the priority queue (requests ahead only then);
 - whoever claims a task first runs it (:func:`store.scratch.claim_case`): a case job on another
   worker, or the damping job itself on its own threads, which leaves the first tasks to the
   free workers (one each), takes the others, and after GRACE seconds any nobody claimed; a
   holder renews its claim while it runs, so a task whose holder died is claimed again once
   the claim expires (the damping job runs it; the killed job's retry finds it run);
-- the run is stored once (JSON and raw float64 displacements) and the damping job reads every
-  case's run back from there, in load-case order.
+- the runs are stored once (JSON and raw float64 displacements) and the damping job reads
+  them back from there, in order.
 
-A run is a deterministic function of its task, so the fitted parameters are the same to the
-bit whoever runs which task, with 1, 2 or 3 workers, and after a worker died.
+A task's runs are a deterministic function of the task, and the search takes a request's
+outcome only for the very request it makes, so the fitted parameters are the same to the bit
+whoever runs which task, with 1, 2 or 3 workers, and after a worker died.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ import json
 import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict
 from functools import partial
@@ -37,7 +41,7 @@ from rq import Worker, get_current_job
 from rq.job import Job
 
 from fpm.dynamics.simulation import FpmModel
-from fpm.fitting.damping import CaseRun, run_case
+from fpm.fitting.damping import CaseRun, Outcome, Request, Verdict, run_case, run_request
 from fpm.fitting.damping_stage import DampingPlan
 from fpm.model.stiffness import model_stiffness
 from store import graph, keys, records, scratch
@@ -54,34 +58,63 @@ any of them that nobody has claimed (a free worker claims one within a fraction 
 
 
 def task_digest(spec: dict[str, Any]) -> str:
-    """The digest of a task's spec (floats by their exact hexadecimal form)."""
-    exact = {k: [v.hex() for v in x] if k == "theta" else x for k, x in spec.items()}
-    exact["d"], exact["dt"] = float(spec["d"]).hex(), float(spec["dt"]).hex()
-    return hashlib.sha256(json.dumps(exact, sort_keys=True).encode()).hexdigest()[:32]
+    """The digest of a task's spec (floats by their exact hexadecimal form; ``after``, the
+    span it waits for, left out)."""
+
+    def exact(x: Any) -> Any:
+        if isinstance(x, float):
+            return x.hex()
+        if isinstance(x, dict):
+            return {k: exact(v) for k, v in x.items() if k != "after"}
+        return [exact(v) for v in x] if isinstance(x, list | tuple) else x
+
+    return hashlib.sha256(json.dumps(exact(spec), sort_keys=True).encode()).hexdigest()[:32]
 
 
 def task_name(spec: dict[str, Any]) -> str:
     """A task's span name (:mod:`store.timeline`)."""
+    if "request" in spec:
+        return f"damping: d {spec['request']['d']:.6g}, all load cases"
     return f"damping: d {spec['d']:.6g}, load case {spec['load_case']}"
 
 
-def to_stored(run: CaseRun) -> tuple[dict[str, Any], bytes]:
-    """A case's run as stored: (JSON dict, raw float64 displacements)."""
-    data = {k: v for k, v in asdict(run).items() if k != "displacements"}
-    data["shape"] = list(run.displacements.shape)
-    return data, np.ascontiguousarray(run.displacements, dtype=np.float64).tobytes()
+def to_stored(runs: list[CaseRun], verdict: Verdict | None) -> tuple[dict[str, Any], bytes]:
+    """A task's runs (and a request's verdict) as stored: (JSON dict, the runs' float64
+    displacements one after the other)."""
+    data: dict[str, Any] = {"runs": [], "verdict": None if verdict is None else asdict(verdict)}
+    for run in runs:
+        entry = {k: v for k, v in asdict(run).items() if k != "displacements"}
+        data["runs"].append({**entry, "shape": list(run.displacements.shape)})
+    raw = b"".join(np.ascontiguousarray(r.displacements, dtype=np.float64).tobytes() for r in runs)
+    return data, raw
 
 
-def from_stored(data: dict[str, Any], raw: bytes) -> CaseRun:
-    """The stored run back (:func:`to_stored`)."""
-    shape = tuple(data["shape"])
-    return CaseRun(
-        steps=int(data["steps"]),
-        state=int(data["state"]),
-        settle_force=float(data["settle_force"]),
-        history=[(int(n), float(r)) for n, r in data["history"]],
-        displacements=np.frombuffer(raw, dtype=np.float64).reshape(shape).copy(),
-    )
+def from_stored(data: dict[str, Any], raw: bytes) -> tuple[list[CaseRun], Verdict | None]:
+    """The stored runs and verdict back (:func:`to_stored`)."""
+    runs, offset = [], 0
+    for entry in data["runs"]:
+        shape = tuple(entry["shape"])
+        size = int(np.prod(shape)) * 8
+        displacements = np.frombuffer(raw[offset : offset + size], dtype=np.float64)
+        offset += size
+        runs.append(
+            CaseRun(
+                steps=int(entry["steps"]),
+                state=int(entry["state"]),
+                settle_force=float(entry["settle_force"]),
+                history=[(int(n), float(r)) for n, r in entry["history"]],
+                displacements=displacements.reshape(shape).copy(),
+            )
+        )
+    v = data["verdict"]
+    verdict = None if v is None else Verdict(v["outcome"], v["total"], tuple(v["predicted"]))
+    return runs, verdict
+
+
+def request_of(spec: dict[str, Any]) -> Request:
+    """A request task's :class:`Request` (JSON lists back to tuples)."""
+    r = spec["request"]
+    return Request(**{**r, "caps": tuple(r["caps"])})
 
 
 class Holding:
@@ -113,25 +146,25 @@ def run_task(
     spec: dict[str, Any],
     holder: str,
     worker: str,
-    run: Callable[[], CaseRun],
+    run: Callable[[], tuple[list[CaseRun], Verdict | None]],
 ) -> None:
-    """Run a claimed task (``run``), store its run and its span; on an error give the claim up
-    (another may take the task) and raise."""
+    """Run a claimed task (``run``: its runs and a request's verdict), store them and its
+    span; on an error give the claim up (another may take the task) and raise."""
     start, cpu = time.time(), time.thread_time()  # the thread's CPU: its run is one thread
     try:
         with Holding(redis, calibration_id, task, holder):
-            result = run()
+            runs, verdict = run()
     except BaseException:
         scratch.release_claim(redis, calibration_id, task)
         raise
-    scratch.save_case_run(redis, calibration_id, task, *to_stored(result))
+    scratch.save_case_run(redis, calibration_id, task, *to_stored(runs, verdict))
     span = {
         "name": task_name(spec),
         "worker": worker,
         "start": start,
         "end": time.time(),
         "cpu": time.thread_time() - cpu,
-        "after": ["damping"],
+        "after": [spec["after"]],
     }
     scratch.add_span(redis, calibration_id, span)
 
@@ -142,8 +175,8 @@ def free_workers(redis: Redis, me: str) -> int:
 
 
 class CaseSpread:
-    """The :data:`fpm.fitting.damping.CaseRunner` of the damping job: a d's load cases as
-    tasks, handed to free workers and run here when nobody took them (the module docstring).
+    """The damping job's :class:`fpm.fitting.damping.Spread`: its runs as tasks, handed to
+    free workers and run here when nobody took them (the module docstring).
 
     Args:
         redis, calibration_id: where the tasks go.
@@ -153,7 +186,7 @@ class CaseSpread:
         going_on: called while waiting; raises to stop (the calibration was canceled).
 
     Attributes:
-        rounds: per d handed out: (Unix start, end, the tasks' span names).
+        rounds: per hand-out: (Unix start, end, the tasks' span names).
     """
 
     def __init__(
@@ -171,17 +204,47 @@ class CaseSpread:
         self.threads = os.cpu_count() or 1
         self.rounds: list[tuple[float, float, list[str]]] = []
 
-    def __call__(
+    def _after(self) -> str:
+        """The span the next hand-out's tasks wait for (:meth:`worker.jobs._Span.add_around`)."""
+        return "damping" if not self.rounds else f"damping ({len(self.rounds)})"
+
+    def separate(
         self, d: float, caps: list[int], local: Callable[[int, float, int], CaseRun]
     ) -> list[CaseRun]:
-        start = time.time()
+        """Every load case at d as a task (run here when no other worker is free)."""
+        after = self._after()
         specs = [
-            {**asdict(self.plan), "d": d, "load_case": j, "cap": int(c)} for j, c in enumerate(caps)
+            {**asdict(self.plan), "d": d, "load_case": j, "cap": int(c), "after": after}
+            for j, c in enumerate(caps)
         ]
+        runs = [partial(_one_case, local, j, d, int(c)) for j, c in enumerate(caps)]
+        done = self._round(specs, runs, free_workers(self.redis, self.worker))
+        return [found[0][0] for found in done]
+
+    def ahead(
+        self, requests: list[Request], local: Callable[[Request], Outcome]
+    ) -> list[Outcome | None]:
+        """Each request as a task, only when other workers are free (else none is run)."""
+        free = free_workers(self.redis, self.worker)
+        if not free:
+            return [None] * len(requests)
+        after = self._after()
+        specs = [{**asdict(self.plan), "request": asdict(r), "after": after} for r in requests]
+        done = self._round(specs, [partial(_one_request, local, r) for r in requests], free)
+        return [None if verdict is None else (runs, verdict) for runs, verdict in done]
+
+    def _round(
+        self,
+        specs: list[dict[str, Any]],
+        local: Sequence[Callable[[], tuple[list[CaseRun], Verdict | None]]],
+        free: int,
+    ) -> list[tuple[list[CaseRun], Verdict | None]]:
+        """Store the tasks ``specs``, hand them to ``free`` workers and run the rest here
+        (``local[i]`` runs task i), wait for every one; their stored runs in order."""
+        start = time.time()
         tasks = [task_digest(s) for s in specs]
         for task, spec in zip(tasks, specs, strict=True):
             scratch.add_case_task(self.redis, self.calibration_id, task, spec)
-        free = free_workers(self.redis, self.worker)
         if free:
             self._enqueue(tasks, specs)
         handed = set(range(min(free, len(tasks))))  # the first ones; this job takes the rest
@@ -206,18 +269,17 @@ class CaseSpread:
                     if scratch.claim_case(self.redis, self.calibration_id, tasks[i], self.holder):
                         futures[i] = pool.submit(
                             run_task, self.redis, self.calibration_id, tasks[i], specs[i],
-                            self.holder, self.worker,
-                            partial(local, i, d, caps[i]),
+                            self.holder, self.worker, local[i],
                         )  # fmt: skip
                 self.going_on()
                 time.sleep(POLL)
-        runs = []
+        done = []
         for task in tasks:
             stored = scratch.get_case_run(self.redis, self.calibration_id, task)
             assert stored is not None
-            runs.append(from_stored(*stored))
+            done.append(from_stored(*stored))
         self.rounds.append((start, time.time(), [task_name(s) for s in specs]))
-        return runs
+        return done
 
     def _enqueue(self, tasks: list[str], specs: list[dict[str, Any]]) -> None:
         """A case job per task not run yet, on the priority queue (no failure callback: a case
@@ -239,9 +301,23 @@ class CaseSpread:
             )
 
 
+def _one_case(
+    local: Callable[[int, float, int], CaseRun], j: int, d: float, cap: int
+) -> tuple[list[CaseRun], None]:
+    """Load case j at d run here, as a task's runs."""
+    return [local(j, d, cap)], None
+
+
+def _one_request(
+    local: Callable[[Request], Outcome], request: Request
+) -> tuple[list[CaseRun], Verdict | None]:
+    """One d's request run here, as a task's runs and verdict."""
+    return local(request)
+
+
 def damping_case(calibration_id: str, task: str) -> dict[str, Any]:
-    """RQ job: run one load-case task of a calibration's damping stage, unless it has run, is
-    held by another, or the calibration has ended."""
+    """RQ job: run one task of a calibration's damping stage (a load case at one d, or one
+    d's request), unless it has run, is held by another, or the calibration has ended."""
     job: Job | None = get_current_job()
     if job is None:
         raise RuntimeError("not running inside an RQ job")
@@ -255,14 +331,17 @@ def damping_case(calibration_id: str, task: str) -> dict[str, Any]:
     if not scratch.claim_case(redis, calibration_id, task, holder):
         return {"skipped": True}
 
-    def run() -> CaseRun:
+    def run() -> tuple[list[CaseRun], Verdict | None]:
         problem = problem_of(redis, record.spec)
         memory.check(problem.n_nodes)
         stiffness = model_stiffness(problem, spec["theta"])
-        return run_case(
+        if "request" in spec:
+            return run_request(problem, stiffness, spec["depth"], spec["dt"], request_of(spec))
+        one = run_case(
             FpmModel(problem), stiffness, spec["depth"], spec["dt"], spec["load_case"],
             spec["d"], spec["cap"],
         )  # fmt: skip
+        return [one], None
 
     run_task(redis, calibration_id, task, spec, holder, worker, run)
-    return {"task": task, "load_case": spec["load_case"]}
+    return {"task": task, "name": task_name(spec)}

@@ -45,7 +45,7 @@ import os
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -210,6 +210,38 @@ class CaseRun:
         """Itself (the search reads ``result().displacements`` of a run)."""
         return self
 
+    @classmethod
+    def of(cls, run: DynamicRun | CaseRun) -> CaseRun:
+        """Where ``run`` stands (its displacements only if it settled)."""
+        if isinstance(run, CaseRun):
+            return run
+        settled = run.state == SETTLED
+        return cls(
+            steps=run.steps,
+            state=run.state,
+            settle_force=run.settle_force,
+            history=list(run.history),
+            displacements=run.result().displacements if settled else np.zeros((0, 3)),
+        )
+
+
+@dataclass(frozen=True)
+class Request:
+    """One d's lockstep runs as the search asks for them (:meth:`_Runs.__call__`'s
+    arguments): d (N s/m), each case's cap, the budget (None: none), and how predictions
+    decide."""
+
+    d: float
+    caps: tuple[int, ...]
+    budget: int | None
+    estimate: bool = False
+    prune: float = PRUNE
+    to_cap: bool = False
+
+
+Outcome = tuple[list["CaseRun"], "Verdict"]
+"""A d's runs (where each case stood when the d was decided) and its verdict."""
+
 
 def run_case(
     model: FpmModel,
@@ -230,22 +262,43 @@ def run_case(
     )
     while not run.finished and run.steps < cap:
         _piece(run, min(CHUNK, cap - run.steps))
-    settled = run.state == SETTLED
-    return CaseRun(
-        steps=run.steps,
-        state=run.state,
-        settle_force=run.settle_force,
-        history=list(run.history),
-        displacements=run.result().displacements if settled else np.zeros((0, 3)),
-    )
+    return CaseRun.of(run)
 
 
-CaseRunner = Callable[[float, list[int], Callable[[int, float, int], CaseRun]], list[CaseRun]]
-"""Runs every load case of one d on its own: ``(d, caps, local) -> [CaseRun per case]``, where
-``local(j, d, cap)`` runs case j in this process (:func:`run_case`). The default runs them on
-this process's threads; the worker hands some to other workers
-(:mod:`worker.spread`). Every runner returns the same runs, so the search's answer does not
-depend on it."""
+def run_request(
+    problem: Problem,
+    stiffness: Stiffness | np.ndarray,
+    depth: int | None,
+    dt: float,
+    request: Request,
+) -> Outcome:
+    """One d's lockstep runs (:meth:`_Runs.locked`) at (``stiffness``, ``depth``, ``dt`` s)
+    in this process, for another's search (:data:`AheadRunner`)."""
+    runs = _Runs(problem, stiffness, depth, dt)
+    try:
+        return runs.locked(request)
+    finally:
+        runs.close()
+
+
+class Spread(Protocol):
+    """How the search's runs may be spread over other processes (the worker's:
+    :class:`worker.spread.CaseSpread`). Whatever runs them, the runs are the same, so the
+    search's answer does not depend on it."""
+
+    def separate(
+        self, d: float, caps: list[int], local: Callable[[int, float, int], CaseRun]
+    ) -> list[CaseRun]:
+        """Every load case of one d run on its own to its end: ``[CaseRun per case]``, where
+        ``local(j, d, cap)`` runs case j in this process (:func:`run_case`)."""
+        ...
+
+    def ahead(
+        self, requests: list[Request], local: Callable[[Request], Outcome]
+    ) -> list[Outcome | None]:
+        """Requests the search will probably make next, at once (:meth:`_Runs.prefetch`):
+        their outcomes in order (None: not run), ``local`` running one here."""
+        ...
 
 
 def replay_verdict(runs: list[CaseRun], caps: list[int]) -> Verdict:
@@ -263,8 +316,10 @@ def replay_verdict(runs: list[CaseRun], caps: list[int]) -> Verdict:
 class _Runs:
     """Runs every load case at one d, in pieces, on threads (the kernel releases the GIL).
 
-    ``cases``: how the predicted d's runs (no budget, to the cap: each case's run independent
-    of the others') are run (:data:`CaseRunner`; None: on these threads)."""
+    ``spread``: runs the predicted d's cases (no budget, to the cap: each case's run
+    independent of the others') and the d the search will probably try next
+    (:meth:`prefetch`) over other processes (:class:`Spread`; None: the cases on these
+    threads, nothing ahead)."""
 
     def __init__(
         self,
@@ -272,7 +327,7 @@ class _Runs:
         stiffness: Stiffness | np.ndarray,
         depth: int | None,
         dt: float,
-        cases: CaseRunner | None = None,
+        spread: Spread | None = None,
     ):
         self.problem = problem
         self.stiffness = stiffness
@@ -285,24 +340,41 @@ class _Runs:
         self.count = 0
         self.work = 0
         self.max_steps = fixed_max_steps(problem.spec.fpm.max_steps)  # each run's cap on steps
-        self.runner = cases
+        self.spread = spread
+        self.fetched: dict[Request, Outcome] = {}
 
     def local(self, load_case: int, d: float, cap: int) -> CaseRun:
         """Load case ``load_case`` at d run on its own to its end in this process."""
         return run_case(self.model, self.stiffness, self.depth, self.dt, load_case, d, cap)
 
     def separate(self, d: float, caps: list[int]) -> tuple[list[CaseRun], Verdict]:
-        """Every load case at d, each run on its own to its end (by ``cases``, the
-        :data:`CaseRunner`), and the verdict the lockstep would reach (:func:`replay_verdict`).
-        For a d with no budget run to the cap, the same runs and verdict as :meth:`__call__`,
-        but that a failed d's other cases also run to their end."""
-        if self.runner is None:
+        """Every load case at d, each run on its own to its end (by ``spread``), and the
+        verdict the lockstep would reach (:func:`replay_verdict`). For a d with no budget run
+        to the cap, the same runs and verdict as :meth:`__call__`, but that a failed d's
+        other cases also run to their end."""
+        if self.spread is None:
             runs = list(self.pool.map(self.local, range(self.cases), [d] * self.cases, caps))
         else:
-            runs = self.runner(d, caps, self.local)
+            runs = self.spread.separate(d, caps, self.local)
         self.count += self.cases
         self.work += sum(r.steps for r in runs)
         return runs, replay_verdict(runs, caps)
+
+    def prefetch(self, requests: list[Request]) -> None:
+        """Run ``requests`` at once by ``spread`` (none without it), to be taken by the calls
+        that make the very same requests (one that differs, e.g. in its budget, runs anew)."""
+        if self.spread is None or not requests:
+            return
+        outcomes = self.spread.ahead(requests, self.locked)
+        for request, outcome in zip(requests, outcomes, strict=True):
+            if outcome is not None:
+                self.fetched[request] = outcome
+
+    def locked(self, request: Request) -> Outcome:
+        """``request``'s lockstep runs here, as :class:`CaseRun`; not counted in ``count``
+        and ``work`` until the search takes them (:meth:`__call__`), whoever ran them."""
+        runs, verdict, _ = self._lockstep(request)
+        return [CaseRun.of(run) for run in runs], verdict
 
     def __call__(
         self,
@@ -313,7 +385,7 @@ class _Runs:
         estimate: bool = False,
         prune: float = PRUNE,
         to_cap: bool = False,
-    ) -> tuple[list[DynamicRun], Verdict]:
+    ) -> tuple[Sequence[DynamicRun | CaseRun], Verdict]:
         """Every load case at d, case j for at most ``caps[j]`` steps, until every case has
         settled, one has diverged or reached its cap unsettled, or a :class:`Verdict` of
         :func:`verdict_at` ends it: at each milestone (every CHUNK steps) that every case has
@@ -323,7 +395,23 @@ class _Runs:
         with ``estimate`` it ``settles`` once every case is predicted within its cap.
 
         Decisions are taken only from each case's own state at the milestone, so they do not
-        depend on how the threads happened to interleave: a search repeats exactly."""
+        depend on how the threads happened to interleave: a search repeats exactly. A request
+        run ahead (:meth:`prefetch`) is taken from there."""
+        request = Request(d, tuple(caps), budget, estimate, prune, to_cap)
+        if request in self.fetched:
+            fetched, verdict = self.fetched.pop(request)
+            self.count += self.cases
+            self.work += sum(r.steps for r in fetched)
+            return fetched, verdict
+        runs, verdict, work = self._lockstep(request)
+        self.count += self.cases
+        self.work += work
+        return runs, verdict
+
+    def _lockstep(self, request: Request) -> tuple[list[DynamicRun], Verdict, int]:
+        """:meth:`__call__`'s runs of ``request``, and the steps they took."""
+        d, caps, budget = request.d, list(request.caps), request.budget
+        estimate, prune, to_cap = request.estimate, request.prune, request.to_cap
         s = self.problem.spec.fpm
         runs = [
             self.model.start(
@@ -336,7 +424,7 @@ class _Runs:
             )  # fmt: skip
             for j in range(self.cases)
         ]
-        self.count += self.cases
+        work = 0
         # Each free thread takes a piece of the case that has taken the fewest steps (so 3
         # cases keep 2 threads busy), until every case is done or a milestone decides. No case
         # runs more than a piece past the milestone still to be decided: a case slowed down by
@@ -367,10 +455,10 @@ class _Runs:
             if not running:
                 if verdict.outcome == "running":
                     verdict = Verdict("done")
-                return runs, verdict
+                return runs, verdict, work
             done, _ = wait(running, return_when=FIRST_COMPLETED)
             for future in done:
-                self.work += future.result()
+                work += future.result()
                 del running[future]
 
     def close(self) -> None:
@@ -462,7 +550,7 @@ def fastest_damping(
     models: list[StepModel] | None = None,
     max_steps: int | None = None,
     auto: bool = False,
-    cases: CaseRunner | None = None,
+    spread: Spread | None = None,
 ) -> DampingFit:
     """The d in ``bounds`` that settles every load case in the fewest total steps.
 
@@ -485,8 +573,9 @@ def fastest_damping(
             is :data:`fpm.dynamics.modes.FALLBACK_STEPS`, repeated as ``auto`` says).
         auto: the cap came from fpm.max_steps 'auto': if nothing settles within it, the search
             is repeated with MAX_STEPS_GROWTH times the cap (RETRIES times at most).
-        cases: runs the predicted d's load cases, each on its own (:data:`CaseRunner`; None:
-            on this process's threads); the answer is the same whatever runs them.
+        spread: runs the predicted d's load cases, each on its own, and the d tried next
+            over other processes (:class:`Spread`; None: here); the answer is the same
+            whatever runs them.
 
     Raises:
         DampingError: no d in the bounds settles every load case within max_steps.
@@ -498,7 +587,7 @@ def fastest_damping(
     step = time_step(problem, stiffness) if dt is None else dt
     for attempt in range(RETRIES + 1):
         last = not auto or attempt == RETRIES or max_steps >= SCHEMA_MAX_STEPS
-        runs = _Runs(problem, stiffness, depth, step, cases)
+        runs = _Runs(problem, stiffness, depth, step, spread)
         runs.max_steps = max_steps
         try:
             return _search(
@@ -588,6 +677,16 @@ def _search(
         f_mid = total(mid, to_cap=True)
         if grow and round(mid, 12) in short:
             raise _ShortCap(short[round(mid, 12)])
+        # Both at once where other workers are free: right's budget is mid's total unless left
+        # turns out faster (then right runs anew, with left's).
+        budget = _total(steps[best[0]]) if best else None
+        ahead = dict.fromkeys(round(min(max(y, lo), hi), 12) for y in (left, right))
+        runs.prefetch(
+            [
+                Request(math.exp(y), (max_steps,) * runs.cases, budget, prune=CONFIRM_PRUNE)
+                for y in ahead if y not in steps and y not in slower
+            ]
+        )  # fmt: skip
         f_left, f_right = total(left, CONFIRM_PRUNE), total(right, CONFIRM_PRUNE)
     else:
         # Bracket: start from the two guesses and their geometric mean.
@@ -764,9 +863,17 @@ def _smallest_settling(
     if edge is not None:
         edge = round(edge, 12)
         if edge < y_ok and (y_fail is None or edge > y_fail):
+            below = round(max(edge - step / 2, lo), 12)
+            # The probe below the edge at once where other workers are free (wasted if the
+            # edge does not settle).
+            then = below < edge and (y_fail is None or below > y_fail)
+            ahead = [edge, below] if then else [edge]
+            runs.prefetch(
+                [Request(math.exp(y), tuple(caps), None, estimate=True)
+                 for y in ahead if answers.get(y) is None]
+            )  # fmt: skip
             if settles(edge):
                 y_ok = edge
-                below = round(max(edge - step / 2, lo), 12)
                 if below < edge and (y_fail is None or below > y_fail) and not settles(below):
                     y_fail = below
             else:

@@ -35,7 +35,7 @@ from ..model.problem import Problem
 from ..model.stiffness import has_volume, is_extended, is_field, model_stiffness
 from .bounds import damping_bounds, fit_depth, full_depth, stiffness_bounds
 from .cost import StaticCost
-from .damping import CaseRunner, DampingFit, critical_damping, fastest_damping
+from .damping import DampingFit, Spread, critical_damping, fastest_damping
 from .field import fit_field
 from .stiffness_stage import (
     POLISH_SPAN,
@@ -176,14 +176,14 @@ def fit_damping(
     chains: list[ChainResult],
     *,
     progress: Progress | None = None,
-    cases: Callable[[DampingPlan], CaseRunner | None] | None = None,
+    spread: Callable[[DampingPlan], Spread | None] | None = None,
 ) -> DampingStage:
     """Two-stage, after the chains: polish the best stiffness (at the depth the chains fitted
     at), resolve the depth, find d.
 
-    ``cases``: given the :class:`DampingPlan` (what a load case's run needs besides d and its
-    cap), the :data:`~fpm.fitting.damping.CaseRunner` that runs the predicted d's load cases
-    (None: on this process's threads); the worker spreads them over free workers
+    ``spread``: given the :class:`DampingPlan` (what a run needs besides d and its caps),
+    the :class:`~fpm.fitting.damping.Spread` that runs the predicted d's load cases and the
+    d tried next over other processes (None: here); the worker hands them to free workers
     (:mod:`worker.spread`). The answer does not depend on it.
 
     With families, the polish starts from the better of the chains' best and the best single
@@ -246,7 +246,7 @@ def fit_damping(
         static,
         dt,
         None if progress is None else (lambda i: progress({"phase": "damping", **i})),
-        None if cases is None else cases(plan),
+        None if spread is None else spread(plan),
     )
     final = final_run(cost, stiffness, depth, fit.displacements, fit.steps, settled=True)
     return DampingStage(
@@ -302,7 +302,7 @@ def find_damping(
     static: np.ndarray,
     dt: float,
     progress: Any = None,
-    cases: CaseRunner | None = None,
+    spread: Spread | None = None,
 ) -> DampingFit:
     """The fastest-settling d at (``stiffness``, ``depth``, ``dt`` s), from ``static`` (L, N,
     3) the static equilibria, m: the search of :func:`fpm.fitting.damping.fastest_damping`
@@ -311,8 +311,8 @@ def find_damping(
     steps predicted there (:func:`fpm.dynamics.modes.auto_max_steps`). Where the lattice at
     rest has no modes to predict from (a mechanism, e.g. 'axis' springs) or no d settles in
     the reduced steps, from the two critical-damping estimates of :func:`damping_guesses`,
-    'auto' then being FALLBACK_STEPS. ``cases``: runs the predicted d's load cases
-    (:func:`fpm.fitting.damping.fastest_damping`)."""
+    'auto' then being FALLBACK_STEPS. ``spread``: runs the search's runs over other
+    processes (:func:`fpm.fitting.damping.fastest_damping`)."""
     bounds = damping_bounds(problem)
     asked = problem.spec.fpm.max_steps
     try:
@@ -322,11 +322,11 @@ def find_damping(
         cap = FALLBACK_STEPS if asked == "auto" else int(asked)
         return fastest_damping(
             problem, stiffness, depth, bounds, guesses, dt=dt, progress=progress, max_steps=cap,
-            auto=asked == "auto", cases=cases,
+            auto=asked == "auto", spread=spread,
         )  # fmt: skip
     cap = auto_max_steps(prediction.steps) if asked == "auto" else int(asked)
     return fastest_damping(
         problem, stiffness, depth, bounds, (prediction.d, prediction.d), dt=dt,
         progress=progress, prediction=prediction, models=models, max_steps=cap,
-        auto=asked == "auto", cases=cases,
+        auto=asked == "auto", spread=spread,
     )  # fmt: skip
