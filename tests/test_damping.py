@@ -18,6 +18,7 @@ from fpm.dynamics.voigt import SETTLED
 from fpm.fitting.damping import (
     CHUNK,
     PREDICT_AFTER,
+    _piece,
     _Runs,
     _search,
     _smallest_settling,
@@ -163,10 +164,10 @@ def test_the_decay_predicts_the_settle_steps(bar: fpm.Problem, d):
     try:
         run = runs.model.start(0, k=runs.stiffness, d=d, depth=None, dt=runs.dt,
                                settle_tolerance=bar.spec.fpm.settle_tolerance)  # fmt: skip
-        taken = runs._piece(run, PREDICT_AFTER)
+        taken = _piece(run, PREDICT_AFTER)
         assert not run.finished, "the case must still run when the prediction is made"
         predicted = predicted_steps(run)
-        taken += runs._piece(run, 20 * PREDICT_AFTER)
+        taken += _piece(run, 20 * PREDICT_AFTER)
         assert run.state == SETTLED
         assert predicted == pytest.approx(run.steps, rel=0.15)
         assert taken == run.steps
