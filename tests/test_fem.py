@@ -302,6 +302,19 @@ def test_direct_and_multigrid_solvers_agree():
     assert np.allclose(amg.displacements, direct.displacements, rtol=0, atol=1e-7 * scale)
 
 
+def test_load_cases_solved_on_threads_are_the_solves_alone(monkeypatch: pytest.MonkeyPatch):
+    """The multigrid path's load cases run on threads: each column is, bit for bit, what
+    CG gives for it alone (two cases or more take the threaded path)."""
+    import fpm.fem.linear_solver as linear_solver
+
+    problem = fpm.load_problem(SPEC)
+    assert len(problem.all_cases) >= 2
+    threaded = fpm.solve_fem(problem, method="amg").displacements
+    monkeypatch.setattr(linear_solver, "COLUMN_THREADS", 1)
+    alone = fpm.solve_fem(fpm.load_problem(SPEC), method="amg").displacements
+    assert np.array_equal(threaded, alone)
+
+
 def test_result_round_trips_through_json():
     result = fpm.solve_fem(fpm.load_problem(SPEC))
     assert result.displacements.shape == (2, 120, 3)

@@ -113,12 +113,36 @@ def factorize(
 
         def solve(f: np.ndarray) -> np.ndarray:
             try:
-                return np.stack([conjugate_gradients(k, b, cycle).x for b in f.T], axis=1)
+                return np.stack(_each_column(k, list(f.T), cycle), axis=1)
             except NegativeCurvature:
                 raise SingularStiffnessError("CG: the matrix is not positive definite") from None
 
         return solve
     raise ValueError(f"unknown method {method!r} (use 'direct', 'amg' or 'auto')")
+
+
+COLUMN_THREADS = 2
+"""The load cases' CG solves run on this many threads at once (the compiled smoother and
+SciPy's sparse products release the GIL): each column is the same solve, bit for bit, as alone.
+Measured on the organ at h = 3 mm (6 load cases, 59,000 unknowns, load average 8 on 2 cores):
+the reference in 22-26 s of wall time instead of 32-34 s, the same 5.5 CPU s, the same bits."""
+
+
+def _each_column(
+    k: sp.sparray | sp.spmatrix,
+    columns: list[np.ndarray],
+    cycle: Callable[[np.ndarray], np.ndarray],
+) -> list[np.ndarray]:
+    """:func:`conjugate_gradients` of ``k`` for each right-hand side in ``columns``, on up to
+    :data:`COLUMN_THREADS` threads (one V-cycle first, which sets up the hierarchy's coarse
+    solver, made on first use, before the threads share it)."""
+    if len(columns) < 2 or COLUMN_THREADS < 2:
+        return [conjugate_gradients(k, b, cycle).x for b in columns]
+    from concurrent.futures import ThreadPoolExecutor
+
+    cycle(np.zeros(k.shape[0]))
+    with ThreadPoolExecutor(min(COLUMN_THREADS, len(columns))) as pool:
+        return list(pool.map(lambda b: conjugate_gradients(k, b, cycle).x, columns))
 
 
 def amg_hierarchy(
