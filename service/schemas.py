@@ -222,7 +222,7 @@ class FemReference(BaseModel):
     levels: list[dict[str, Any]] | None = Field(
         None,
         description="per level solved: refinements, fem_nodes, change (per case, %, from the "
-        "level before), seconds",
+        "level before), seconds, iterations (CG per case; empty for a direct solve)",
     )
     notes: list[str] | None = Field(
         None, description="a refinement the node budget refused, an error not estimated"

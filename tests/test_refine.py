@@ -313,9 +313,10 @@ def test_refined_tetrahedra_converge_at_the_expected_rate_on_a_bar_with_a_known_
 # ------------------------------------------------------------------ the auto loop
 
 
-def fake_levels(changes: list[float], nodes: list[int]) -> Mesh:
+def fake_levels(changes: list[float], nodes: list[int], iterations: int | None = None) -> Mesh:
     """Level 0 of a sequence of meshes whose solutions change by ``changes`` (%) from one level
-    to the next (a 2-node field, one load case), level l having ``nodes[l]`` FEM nodes."""
+    to the next (a 2-node field, one load case), level l having ``nodes[l]`` FEM nodes and
+    solved by ``iterations`` CG iterations (None: a direct solve)."""
     solved: list[int] = []
 
     def level(k: int) -> Mesh:
@@ -325,7 +326,15 @@ def fake_levels(changes: list[float], nodes: list[int]) -> Mesh:
             solved.append(k)
             u = np.zeros((1, 2, 3))
             u[0, :, 0] = scale
-            return FemResult(np.zeros((2, 3)), u, [0.0], ["case"], "direct", loads="spread")
+            return FemResult(
+                np.zeros((2, 3)),
+                u,
+                [0.0],
+                ["case"],
+                "direct" if iterations is None else "amg",
+                loads="spread",
+                iterations=[] if iterations is None else [iterations],
+            )
 
         return Mesh(k, nodes[k], solve, lambda: level(k + 1))
 
@@ -356,6 +365,31 @@ def test_refine_auto_stops_under_1_percent_and_reports_the_last_change():
     levels, _ = converge(first, 2, 10**6)
     assert first.solved == [1, 2]  # type: ignore[attr-defined]
     assert summarise(levels, []).estimated_error == pytest.approx([3 / 1.11])
+
+
+def test_refine_auto_stops_before_a_level_whose_cg_iterations_make_it_too_costly():
+    """The work of a level is its nodes times the CG iterations per case the level before
+    needed: a mesh of slivers (examples/lobe.vtu: 717 iterations) is not refined to a level
+    that would cost more than the node budget of a well-shaped one; an explicit number of
+    refinements is solved whatever it costs."""
+    nodes = [10_000, 80_000, 640_000]
+    # well-shaped: 60 iterations, level 1 costs 80,000 x 60 / 100 = 48,000 nodes' worth
+    first = fake_levels([0.5, 0.1], nodes, iterations=60)
+    levels, notes = converge(first, "auto", 400_000)
+    assert [level.refinements for level in levels] == [0, 1] and notes == []
+    # slivers: 700 iterations, level 1 costs 560,000 nodes' worth
+    first = fake_levels([0.5, 0.1], nodes, iterations=700)
+    levels, notes = converge(first, "auto", 400_000)
+    assert [level.refinements for level in levels] == [0] and first.solved == [0]  # type: ignore[attr-defined]
+    assert "80,000 FEM nodes, and at the 700 CG iterations" in notes[0]
+    assert "as much as 560,000 nodes, over reference.node_budget (400,000)" in notes[0]
+    result = summarise(levels, notes)
+    assert result.estimated_error is None and result.levels[0]["iterations"] == [700]
+    assert result.notes[-1] == "reference.refine: one level only, so its error is not estimated"
+    # a larger budget refines it; a number of refinements asks for that level outright
+    assert len(converge(fake_levels([0.5, 0.1], nodes, iterations=700), "auto", 600_000)[0]) == 2
+    first = fake_levels([0.5, 0.1], nodes, iterations=700)
+    assert [level.refinements for level in converge(first, 1, 400_000)[0]] == [0, 1]
 
 
 def test_a_refined_reference_keeps_its_estimate_through_the_store():

@@ -57,6 +57,9 @@ class FemResult:
             the level before) and ``seconds``; empty when the reference was solved once.
         notes: what the user should know about the reference (a refinement the node budget
             refused, an error not estimated).
+        iterations: (L,) CG iterations per load case (then validation case) of the solve that
+            gave the displacements; empty for a direct solve or where not recorded (the
+            tetrahedra record them: :mod:`fpm.fem.refine` predicts a finer level's work).
     """
 
     nodes: np.ndarray
@@ -73,6 +76,7 @@ class FemResult:
     loads: str = "nodal"
     levels: list[dict[str, Any]] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    iterations: list[int] = field(default_factory=list)
 
     @property
     def positions(self) -> np.ndarray:
@@ -98,6 +102,7 @@ class FemResult:
             "loads": self.loads,
             "levels": [dict(level) for level in self.levels],
             "notes": list(self.notes),
+            "iterations": [int(n) for n in self.iterations],
         }
 
     @classmethod
@@ -125,6 +130,7 @@ class FemResult:
             data.get("loads", "nodal"),
             [dict(level) for level in data.get("levels", [])],
             [str(note) for note in data.get("notes", [])],
+            [int(n) for n in data.get("iterations", [])],
         )
 
 

@@ -312,7 +312,7 @@ def locate(nodes: np.ndarray, tets: np.ndarray, points: np.ndarray) -> Location:
     distance = np.zeros(n)
     outside = np.flatnonzero(~found)
     if len(outside):
-        e, q, d = _nearest_on_boundary(nodes, tets, points[outside])
+        e, q, d = nearest_on_boundary(nodes, tets, points[outside])
         element[outside] = e
         lam[outside] = _barycentric(coords[e], q)
         distance[outside] = d
@@ -321,11 +321,12 @@ def locate(nodes: np.ndarray, tets: np.ndarray, points: np.ndarray) -> Location:
     return Location(element, lam, distance)
 
 
-def _nearest_on_boundary(
+def nearest_on_boundary(
     nodes: np.ndarray, tets: np.ndarray, points: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For points outside the mesh: (P,) the tetrahedron owning the nearest boundary triangle,
-    (P, 3) the nearest point, (P,) its distance, m."""
+    """For ``points`` (P, 3), m (outside the mesh, or inside: the nearest point of its surface
+    either way): (P,) the tetrahedron owning the nearest boundary triangle, (P, 3) the nearest
+    point, (P,) its distance, m."""
     faces, owner = boundary_faces(tets)
     tri = nodes[faces]  # (F, 3, 3)
     centre = tri.mean(axis=1)
@@ -489,19 +490,28 @@ def tet10_reference(
     method = choose_method(int(free.sum())) if method == "auto" else method
     k = stiffness_matrix(mesh, c)
     solve = solve_direct if method == "direct" else solve_p_multigrid
-    u, residuals = solve(k, forces.reshape(len(cases), -1), free, mesh, method)
+    u, residuals, iterations = solve(k, forces.reshape(len(cases), -1), free, mesh, method)
     u_lattice = interpolate(mesh, u.reshape(len(cases), -1, 3), where)
     u_lattice[:, problem.fixed] = 0.0
     names = [case.name for case in cases]
-    return FemResult(lattice.copy(), u_lattice, residuals.tolist(), names, method, element="tet10")
+    return FemResult(
+        lattice.copy(),
+        u_lattice,
+        residuals.tolist(),
+        names,
+        method,
+        element="tet10",
+        iterations=iterations,
+    )
 
 
 def solve_direct(
     k: sp.bsr_matrix, forces: np.ndarray, free: np.ndarray, mesh: Tet10Mesh, method: str
-) -> tuple[np.ndarray, np.ndarray]:
-    """Sparse LU, as :func:`fpm.fem.solution.solve_dirichlet` (arguments as
-    :func:`solve_p_multigrid`)."""
-    return _solve_direct(k, forces, free, mesh.nodes, method)
+) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """Sparse LU, as :func:`fpm.fem.solution.solve_dirichlet` (arguments and returns as
+    :func:`solve_p_multigrid`; no iterations)."""
+    u, residuals = _solve_direct(k, forces, free, mesh.nodes, method)
+    return u, residuals, []
 
 
 def corner_prolongation(mesh: Tet10Mesh) -> sp.csr_matrix:
@@ -518,7 +528,7 @@ def corner_prolongation(mesh: Tet10Mesh) -> sp.csr_matrix:
 
 def solve_p_multigrid(
     k: sp.bsr_matrix, forces: np.ndarray, free: np.ndarray, mesh: Tet10Mesh, method: str = "amg"
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """Solve K u = f, u = 0 where not ``free``, by CG preconditioned with a two-grid p-multigrid
     cycle: a forward 3x3 block Gauss-Seidel sweep on the quadratic K, the correction on the
     linear (corner) field ``P^T K P`` by the project's smoothed-aggregation V-cycle
@@ -535,7 +545,9 @@ def solve_p_multigrid(
         method: unused (the signature of :func:`solve_direct`).
 
     Returns:
-        u (L, 3M), m, and residuals (L,) ||K u - f|| / ||f|| over the free unknowns.
+        u (L, 3M), m; residuals (L,) ||K u - f|| / ||f|| over the free unknowns; the CG
+        iterations per load case (a mesh of slivers needs many times those of a well-shaped
+        one: :mod:`fpm.fem.refine` predicts a finer level's work from them).
 
     Raises:
         FemError: K restricted to the free unknowns is singular (part of the mesh not held).
@@ -566,6 +578,7 @@ def solve_p_multigrid(
     f = forces[:, free]
     u = np.zeros_like(forces, dtype=float)
     residuals = np.zeros(len(forces))
+    iterations = []
     for case in range(len(forces)):
         try:
             result = conjugate_gradients(kff, f[case], precondition)
@@ -573,6 +586,7 @@ def solve_p_multigrid(
             raise singular from None
         u[case, free] = result.x
         residuals[case] = result.residual
+        iterations.append(int(result.iterations))
     if not np.all(np.isfinite(u)) or residuals.max(initial=0.0) > RESIDUAL_LIMIT:
         raise singular
-    return u, residuals
+    return u, residuals, iterations
