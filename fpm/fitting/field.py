@@ -29,13 +29,20 @@ to the factors (:class:`FieldMap`). tests/test_field.py checks it against centra
 leaving out a scaled copy tests only the force's size): refit the four parameters on the
 other cases (:class:`FamilyMap`, the same adjoint), fit the field on them for each weight of
 :data:`WEIGHTS` (strongest first, each starting from the last), and measure the left-out
-cases (relative discrepancy, %). The weight with the smallest mean left-out figure is chosen
-and the field is fitted on every load case at it. If even that mean is no better than the
+cases (relative discrepancy, %); where the means at those weights differ by more than
+:data:`CV_FLAT`, every fold also fits at the geometric mean of the best two (coarse to fine).
+The weight with the smallest mean left-out figure is chosen and the field is fitted on every
+load case at it. If even that mean is no better than the
 four parameters' own left-out mean, or if every load case is one pattern (nothing to predict),
 the field is not returned: the four-parameter fit is, with a warning saying why
 (:class:`FieldStage`; the field's figures are still reported beside the four parameters').
 The spec's validation cases take no part: they are measured at the end, for both
-(:func:`field_report`). Folds run on threads, each with its own static solver.
+(:func:`field_report`). The folds run one after another; within an evaluation the load
+cases run on threads, each with its own static solver (:class:`Solvers`).
+
+**Material regions.** Each cell's factors multiply its own region's families and kappa, the
+folds refit every region's parameters, and the smoothness graph has no edge between two
+regions (:func:`fit_field`'s default).
 """
 
 from __future__ import annotations
