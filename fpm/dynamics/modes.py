@@ -69,6 +69,7 @@ import math
 import threading
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -278,8 +279,7 @@ def lowest_modes(
         a_l, m_l = levels[level].A, masses_at[level]
 
         def precondition(r: np.ndarray, level: int = level) -> np.ndarray:
-            cycles = [v_cycle(hierarchy, np.ascontiguousarray(c), level) for c in r.T]  # type: ignore[arg-type]
-            return np.stack(cycles, axis=1)
+            return _cycles(hierarchy, r, level)
 
         def stiffness(y: np.ndarray, a_l: sp.spmatrix = a_l) -> np.ndarray:
             return np.asarray(a_l @ y)
@@ -296,6 +296,29 @@ def lowest_modes(
             MAX_ITERATIONS,
         )
     return Modes(nodes, w2[:count], x[:, :count], kx[:, :count], iterations)
+
+
+CYCLE_THREADS = 2
+"""The V-cycles of a block (one per column) run on this many threads on levels of at least
+:data:`THREADED_FROM` unknowns (the compiled smoother and SciPy's sparse products release the
+GIL); each column's cycle is the same, bit for bit."""
+THREADED_FROM = 20_000
+"""Unknowns of a level from which its block's V-cycles are threaded (below, a cycle takes
+well under a millisecond and the threads cost more than they save)."""
+
+
+def _cycles(hierarchy: object, r: np.ndarray, level: int) -> np.ndarray:
+    """One V-cycle of ``hierarchy`` from ``level`` (:func:`fpm.fem.linear_solver.v_cycle`) on
+    each column of ``r`` (n, b): (n, b). The first column's cycle runs alone (it sets up the
+    coarsest level's solver, made on first use, before threads share it)."""
+    columns = [np.ascontiguousarray(c) for c in r.T]
+    cycles = [v_cycle(hierarchy, c, level) for c in columns[:1]]  # type: ignore[arg-type]
+    if CYCLE_THREADS < 2 or r.shape[0] < THREADED_FROM or len(columns) < 3:
+        cycles += [v_cycle(hierarchy, c, level) for c in columns[1:]]  # type: ignore[arg-type]
+    else:
+        with ThreadPoolExecutor(CYCLE_THREADS) as pool:
+            cycles += pool.map(lambda c: v_cycle(hierarchy, c, level), columns[1:])  # type: ignore[arg-type]
+    return np.stack(cycles, axis=1)
 
 
 @njit(cache=True, nogil=True)
