@@ -31,12 +31,20 @@ import numpy as np
 from numba import njit
 
 from ..model.volume import (
+    _TRIPLES,
     COEFFICIENTS,
     coefficient_gradient,
     coefficient_hessian,
     corner_gradient,
     volume_change,
 )
+
+_PAIRS = np.array(
+    sorted({(i, j) for p, q, r, _ in _TRIPLES for i in (p, q, r) for j in (p, q, r) if i != j}),
+    dtype=np.int64,
+)
+"""(24, 2) the (k, q) with d^2 V / da_k da_q not identically zero: a_k, a_q in one triple
+product of the volume (in ascending order, as the full loop visits them)."""
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -132,14 +140,19 @@ def _cell_tangent_blocks(
         coefficient_gradient(a, grad_a)
         corner_gradient(grad_a, grad_x)
         if not modified:
+            # Only the nonzero terms: d^2V/da_k da_q is zero unless a_k and a_q share one of
+            # the volume's triple products (24 of the 36 blocks), and each block is a cross
+            # product's matrix, zero on its diagonal, as is then every sum of them. Skipping
+            # a term 0 * c changes no sum: the blocks are those of the full loops, to the bit.
             coefficient_hessian(a, hessian_a)
             half[:] = 0.0
-            for k in range(6):
-                for q in range(6):
-                    for m in range(8):
-                        cq = COEFFICIENTS[q, m]
-                        for x in range(3):
-                            for y in range(3):
+            for pair in range(len(_PAIRS)):
+                k, q = _PAIRS[pair, 0], _PAIRS[pair, 1]
+                for m in range(8):
+                    cq = COEFFICIENTS[q, m]
+                    for x in range(3):
+                        for y in range(3):
+                            if x != y:
                                 half[k, m, x, y] += hessian_a[k, q, x, y] * cq
             hessian_x[:] = 0.0
             for k in range(6):
@@ -148,7 +161,8 @@ def _cell_tangent_blocks(
                     for m in range(8):
                         for x in range(3):
                             for y in range(3):
-                                hessian_x[n, m, x, y] += ck * half[k, m, x, y]
+                                if x != y:
+                                    hessian_x[n, m, x, y] += ck * half[k, m, x, y]
         for n in range(8):
             for m in range(8):
                 at = position[c, n, m]
