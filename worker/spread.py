@@ -172,9 +172,16 @@ def run_task(
     scratch.add_span(redis, calibration_id, span)
 
 
-def free_workers(redis: Redis, me: str) -> int:
-    """Workers other than ``me`` that are idle now."""
-    return sum(1 for w in Worker.all(connection=redis) if w.name != me and w.get_state() == "idle")
+def free_workers(redis: Redis, me: str, calibration_id: str) -> int:
+    """Workers other than ``me`` that are idle now, or about to be: their job is one of this
+    calibration's tasks, whose runs the damping job is done waiting for (RQ marks a worker
+    idle a moment after its job has stored its runs)."""
+    prefix = keys.case_job_id(calibration_id, "")
+    return sum(
+        1 for w in Worker.all(connection=redis)
+        if w.name != me
+        and (w.get_state() == "idle" or (w.get_current_job_id() or "").startswith(prefix))
+    )  # fmt: skip
 
 
 class CaseSpread:
@@ -221,14 +228,14 @@ class CaseSpread:
             for j, c in enumerate(caps)
         ]
         runs = [partial(_one_case, local, j, d, int(c)) for j, c in enumerate(caps)]
-        done = self._round(specs, runs, free_workers(self.redis, self.worker))
+        done = self._round(specs, runs, free_workers(self.redis, self.worker, self.calibration_id))
         return [found[0][0] for found in done]
 
     def ahead(
         self, requests: list[Request], local: Callable[[Request], Outcome]
     ) -> list[Outcome | None]:
         """Each request as a task, only when other workers are free (else none is run)."""
-        free = free_workers(self.redis, self.worker)
+        free = free_workers(self.redis, self.worker, self.calibration_id)
         if not free:
             return [None] * len(requests)
         after = self._after()

@@ -1,0 +1,102 @@
+"""One calibration over 1, 2 and 3 workers (issue 32, item 3): wall time, critical path and
+the timeline of the organ at h = 3 mm (``python -m bench spread``; ``spread 5`` for h = 5 mm).
+
+Each run starts its own redis-server and ``python -m worker`` processes, submits the organ
+(families+volume, the bench's spec) through the job graph and reads the result's jobs and
+critical path (worker.spread, store.timeline). The fitted parameters must be identical to the
+bit whatever the number of workers.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from bench.bench_calibration import load, organ_settings, verdict
+
+ROOT = Path(__file__).resolve().parents[1]
+WORKERS = (1, 2, 3)
+FITTED = ("k", "stiffness", "volume_stiffness", "d", "d_min", "depth", "settle_steps",
+          "relative_discrepancy")  # fmt: skip
+
+
+def calibrate_on(redis_url: str, spec: dict[str, Any], workers: int) -> tuple[float, dict]:
+    """(wall s from submission to the end, the result) of one calibration on ``workers``
+    fresh worker processes (stopped afterwards)."""
+    from redis import Redis
+    from rq import Worker
+
+    from store import graph, records
+
+    redis = Redis.from_url(redis_url)
+    redis.flushdb()
+    command = [sys.executable, "-m", "worker", "--url", redis_url]
+    started = [
+        subprocess.Popen(command, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                         start_new_session=True)
+        for _ in range(workers)
+    ]  # fmt: skip
+    try:
+        while len(Worker.all(connection=redis)) < workers:
+            time.sleep(0.2)
+        t0 = time.time()
+        record, _ = graph.submit_calibration(redis, spec, graph.JobOptions(retries=1))
+        while True:
+            done = records.get_calibration(redis, record.id)
+            assert done is not None
+            if done.status.terminal:
+                break
+            time.sleep(0.5)
+        wall = time.time() - t0
+    finally:
+        for process in started:
+            os.killpg(process.pid, 15)
+            process.wait()
+    if done.result is None:
+        raise RuntimeError(f"the calibration {done.status}: {done.error}")
+    return wall, done.result
+
+
+def timeline(result: dict[str, Any]) -> None:
+    t0 = result["jobs"][0]["start"]
+    for s in result["jobs"]:
+        print(
+            f"     {s['name']:<38}{s['worker'][:8]:>9}{s['start'] - t0:8.1f}{s['end'] - t0:8.1f}"
+            f"{s['end'] - s['start']:8.1f}{s['cpu']:8.1f}"
+        )
+    print(f"     critical path: {' -> '.join(result['critical_path'])}")
+
+
+def main() -> None:
+    import fpm
+    from service.limits import dump_spec
+    from stack.redis_server import RedisServer
+
+    h = 0.005 if "5" in sys.argv[2:] else 0.003
+    spec = dump_spec(fpm.load_problem(organ_settings(h, "families+volume")[0]).spec)
+    print(f"\nThe organ at h = {1e3 * h:g} mm over 1, 2 and 3 workers ({load()})")
+    fitted: dict[int, dict[str, Any]] = {}
+    with RedisServer() as server:
+        for n in WORKERS:
+            wall, result = calibrate_on(server.url, spec, n)
+            fitted[n] = {name: result[name] for name in FITTED}
+            jobs = result["jobs"]
+            damping = [s for s in jobs if s["name"].startswith("damping")]
+            stage = max(s["end"] for s in damping) - min(s["start"] for s in damping)
+            print(
+                f"\n  {n} worker(s): wall {wall:.1f} s, critical path "
+                f"{result['critical_path_seconds']:.1f} s, damping stage {stage:.1f} s, "
+                f"CPU {sum(s['cpu'] for s in jobs):.0f} s ({load()})"
+            )
+            print(f"     {'job':<38}{'worker':>9}{'start':>8}{'end':>8}{'s':>8}{'cpu s':>8}")
+            timeline(result)
+    same = all(fitted[n] == fitted[WORKERS[0]] for n in WORKERS)
+    print(f"\nsummary: identical parameters with {WORKERS} workers: {verdict(same)}")
+
+
+if __name__ == "__main__":
+    main()
