@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from ..dynamics.modes import fixed_max_steps, single_threaded_blas
+from ..dynamics.modes import fixed_max_steps
 from ..model import materials
 from ..model.problem import Problem
 from ..model.stiffness import stiffness_dict, volume_stiffness
@@ -246,20 +246,6 @@ def calibrate(
         if progress is not None:
             progress({"phase": "fem"})
         reference = reference_for(problem)
-    # The chains, the damping runs and the solves keep the cores busy on their own threads;
-    # a threaded BLAS among them only waits (fpm.dynamics.modes.single_threaded_blas).
-    with single_threaded_blas():
-        return _stages(problem, n, progress, reference, threads)
-
-
-def _stages(
-    problem: Problem,
-    n: int,
-    progress: Progress | None,
-    reference: Any,
-    threads: int | None,
-) -> CalibrationResult:
-    """:func:`calibrate` after the reference: ``n`` chains, the damping stage, finalize."""
     warnings = check_reference(problem, reference)
 
     def one(chain: int) -> ChainResult:
