@@ -17,8 +17,9 @@ Both keep the model linear in its parts at rest, which the reduced linear model 
 needs (:func:`linear_parts`: for the transversely isotropic lattice the parts are each family's
 springs across the axis, along it, and the cells, with coefficients ``k``, ``s k`` and kappa).
 The homogeneous isotropic model does not come here (:func:`is_extended`), so its numbers are
-untouched. A spec with either option fits 'families+volume'
-(:func:`fpm.model.regions.check_material`).
+untouched. A spec with either option fits 'families+volume', with isotropic regions also
+'field', a per-cell field on each region's parameters (:func:`fpm.model.stiffness.field_terms`,
+:func:`fpm.model.regions.check_material`).
 """
 
 from __future__ import annotations
