@@ -17,6 +17,7 @@ import fpm
 from client import spec_from_mesh as sdk_spec_from_mesh
 from fpm.io.meshes import (
     MeshError,
+    face_pieces,
     geometry_from_mesh,
     lattice,
     parse_force,
@@ -402,3 +403,23 @@ def test_cells_joined_by_less_than_a_face_are_dropped_and_the_fem_holds_the_rest
         spec["reference"]["refine"] = refine
         fem = fpm.solve_fem(fpm.load_problem(spec))  # held: no "can still move freely"
         assert np.all(np.isfinite(fem.displacements)) and fem.refinements == refine
+
+
+def test_face_pieces_join_tetrahedra_through_faces_at_the_same_positions():
+    """Two cubes sharing a face are one piece, whether the mesh numbers the face's corners once
+    or twice (coincident nodes); a cube touching them along an edge only is a piece of its own,
+    and so is one touching at a corner."""
+    a = kuhn_box([0, 0, 0], [1, 1, 1], 1)
+    b = kuhn_box([1, 0, 0], [2, 1, 1], 1)  # shares the face x = 1, its own copies of its nodes
+    edge = kuhn_box([2, 1, 0], [3, 2, 1], 1)  # the edge x = 2, y = 1
+    corner = kuhn_box([3, 2, 1], [4, 3, 2], 1)  # the corner (3, 2, 1)
+    points, tets = np.zeros((0, 3)), np.zeros((0, 4), dtype=np.int64)
+    for p, t, _ in (a, b, edge, corner):
+        tets = np.concatenate([tets, t + len(points)])
+        points = np.concatenate([points, p])
+    pieces = face_pieces(points, tets)
+    assert [len(set(pieces[6 * i : 6 * i + 6])) for i in range(4)] == [1, 1, 1, 1]
+    assert pieces[0] == pieces[6] and len({pieces[0], pieces[12], pieces[18]}) == 3
+    # numbered once (the shared corners merged), the same pieces
+    merged, inverse = np.unique(points, axis=0, return_inverse=True)
+    np.testing.assert_array_equal(face_pieces(merged, inverse.reshape(-1)[tets]), pieces)
