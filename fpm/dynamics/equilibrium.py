@@ -476,6 +476,10 @@ class StaticSolver:
         mg.record(cg.iterations, cg.residual, cg.converged)
         return cg.x, cg.iterations
 
+    def multigrid(self, system: SpringSystem) -> ReusedHierarchy | None:
+        """The multigrid hierarchy this solver keeps for ``system``'s list (None: none yet)."""
+        return self._multigrid.get(system.free.tobytes())
+
     def _linear_hierarchy(
         self, system: SpringSystem, tangent: sp.sparray | sp.spmatrix
     ) -> ReusedHierarchy:

@@ -294,6 +294,7 @@ def lowest_modes(
             precondition(mass(np.asarray(levels[level].P @ x))),
             count,
             MAX_ITERATIONS,
+            m if level == 0 else None,  # the lattice's lumped masses: M is diagonal
         )
     return Modes(nodes, w2[:count], x[:, :count], kx[:, :count], iterations)
 
@@ -311,14 +312,20 @@ def _cycles(hierarchy: object, r: np.ndarray, level: int) -> np.ndarray:
     """One V-cycle of ``hierarchy`` from ``level`` (:func:`fpm.fem.linear_solver.v_cycle`) on
     each column of ``r`` (n, b): (n, b). The first column's cycle runs alone (it sets up the
     coarsest level's solver, made on first use, before threads share it)."""
-    columns = [np.ascontiguousarray(c) for c in r.T]
-    cycles = [v_cycle(hierarchy, c, level) for c in columns[:1]]  # type: ignore[arg-type]
-    if CYCLE_THREADS < 2 or r.shape[0] < THREADED_FROM or len(columns) < 3:
-        cycles += [v_cycle(hierarchy, c, level) for c in columns[1:]]  # type: ignore[arg-type]
+    out = np.empty_like(r)
+
+    def one(j: int) -> None:
+        out[:, j] = v_cycle(hierarchy, np.ascontiguousarray(r[:, j]), level)  # type: ignore[arg-type]
+
+    one(0)
+    rest = range(1, r.shape[1])
+    if CYCLE_THREADS < 2 or r.shape[0] < THREADED_FROM or len(rest) < 2:
+        for j in rest:
+            one(j)
     else:
         with ThreadPoolExecutor(CYCLE_THREADS) as pool:
-            cycles += pool.map(lambda c: v_cycle(hierarchy, c, level), columns[1:])  # type: ignore[arg-type]
-    return np.stack(cycles, axis=1)
+            list(pool.map(one, rest))
+    return out
 
 
 @njit(cache=True, nogil=True)
@@ -334,6 +341,22 @@ def _gram(x: np.ndarray, y: np.ndarray) -> np.ndarray:
             xp = x[i, p]
             for q in range(b):
                 out[p, q] += xp * y[i, q]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _weighted_gram(x: np.ndarray, m: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """x^T diag(m) y for tall x (n, a), y (n, b), m (n,): (a, b); the products m_i y_iq are
+    those of diag(m) @ y, summed as :func:`_gram` sums (the same bits as _gram(x, M y))."""
+    n, a = x.shape
+    b = y.shape[1]
+    out = np.zeros((a, b))
+    for i in range(n):
+        mi = m[i]
+        for p in range(a):
+            xp = x[i, p]
+            for q in range(b):
+                out[p, q] += xp * (mi * y[i, q])
     return out
 
 
@@ -358,18 +381,28 @@ def _lobpcg(
     x: np.ndarray,
     count: int,
     iterations: int = MAX_ITERATIONS,
+    diagonal: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Block LOBPCG for K x = w^2 M x (``apply``: K, ``mass``: M, on blocks of vectors):
     Rayleigh-Ritz on [X, T R, P] each iteration (R the residuals, T the preconditioner, P the
     last change of X orthogonal to X; K applied to the new directions T R only), until the
     first ``count`` residuals are below :data:`TOLERANCE` relative, or ``iterations``.
+    ``diagonal``: M's diagonal (n,) when M is diagonal (the lattice's lumped masses): the
+    M-weighted Gram matrices are then summed without forming M s (:func:`_weighted_gram`,
+    the same sums; on the 93,705-node organ M s of the stacked block is 135 MB).
     Returns (w^2, X, K X, iterations taken), ascending, X M-orthonormal."""
     block = x.shape[1]
+
+    def m_gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """a^T M b."""
+        if diagonal is not None:
+            return _weighted_gram(a, diagonal, b)
+        return _gram(a, np.ascontiguousarray(mass(b)))
 
     def orthonormal(s: np.ndarray, ks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """s and K s made M-orthonormal (SVQB: the Gram matrix's eigenvectors, directions
         below 1e-10 of the largest dropped)."""
-        gram = _gram(s, np.ascontiguousarray(mass(s)))
+        gram = m_gram(s, s)
         d = np.sqrt(np.maximum(np.diag(gram), 1e-300))
         e, v = np.linalg.eigh((gram + gram.T) / 2 / d[:, None] / d[None, :])
         keep = e > 1e-10 * e.max()
@@ -397,12 +430,15 @@ def _lobpcg(
             break
         last = w[:count].copy()
         t = np.ascontiguousarray(precondition(r))
-        parts, kparts = [x, t], [kx, np.ascontiguousarray(apply(t))]
-        if p is not None and kp is not None:
-            parts.append(p)
-            kparts.append(kp)
-        new_w, new_x, new_kx = ritz(*orthonormal(np.hstack(parts), np.hstack(kparts)))
-        change = np.ascontiguousarray(_gram(x, np.ascontiguousarray(mass(new_x))))
+        del r
+        stacked = np.hstack([x, t] if p is None else [x, t, p])
+        kt = np.ascontiguousarray(apply(t))
+        del t
+        kstacked = np.hstack([kx, kt] if kp is None else [kx, kt, kp])
+        del kt
+        new_w, new_x, new_kx = ritz(*orthonormal(stacked, kstacked))
+        del stacked, kstacked
+        change = np.ascontiguousarray(m_gram(x, new_x))
         p, kp = new_x - _combine(x, change), new_kx - _combine(kx, change)
         w, x, kx = new_w, new_x, new_kx
     return w, x, kx, taken
@@ -753,10 +789,18 @@ def reduced_steps(
         key = system.free.tobytes()
         params = system.parameters(stiffness)
         if key not in found:
-            tangent = system.tangent(np.zeros((system.n_free, 3)), params, modified=True)
+            kept = solver.multigrid(system) if 3 * system.n_free > DENSE_UP_TO else None
             hierarchy = None
-            if 3 * system.n_free > DENSE_UP_TO:
-                hierarchy = solver._linear_hierarchy(system, tangent).hierarchy
+            if kept is not None:
+                # above DENSE_UP_TO the modes read the hierarchy's own levels (the finest
+                # level's matrix is the stiffness), so the tangent at rest, 0.18 GB on the
+                # 93,705-node organ, is assembled only where there is no hierarchy yet
+                hierarchy = kept.hierarchy
+                tangent = hierarchy.levels[0].A
+            else:
+                tangent = system.tangent(np.zeros((system.n_free, 3)), params, modified=True)
+                if 3 * system.n_free > DENSE_UP_TO:
+                    hierarchy = solver._linear_hierarchy(system, tangent).hierarchy
             try:
                 lowest = lowest_modes(
                     tangent, problem.solid.masses[system.free], count, hierarchy=hierarchy,
