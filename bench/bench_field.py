@@ -11,6 +11,11 @@ Goals (issue #31; every figure is the relative discrepancy 100 sum|p - q| / sum|
    are one force pattern (the same nodes and direction, three sizes), so the field cannot be
    cross-validated on another load and is not returned there: the rows give the field's own
    figures (the result's ``field``) and say which model the calibration returned.
+1b. The same cube at 1/100 of the forces against a reference converged to about 1%
+   (``reference.refine`` 2, the forces spread; the default reference's own estimated error on
+   the cube, 4.7% on the pulls and 6.8% on the corner, is above the 2% goal), with a push
+   along y among the fitted cases: a second force pattern, so that the field is
+   cross-validated and can be returned. The same two goals.
 2. The organ (``bench/organ.py``) at h = 5 mm with its three validation cases: each <= 8%.
 3. The organ at h = 3 mm, field and all, in a fresh subprocess: the field fit (its stage,
    cross-validation included) <= 180 s; the whole calibration's wall and CPU time reported
@@ -84,6 +89,48 @@ def cube() -> list[tuple[str, bool, str]]:
     return out
 
 
+CONVERGED_REFINE = 2
+"""1b: refinements of the cube's reference (the forces spread): its estimated error about 1%."""
+SECOND_PATTERN = {
+    "name": "push y",
+    "forces": [{"at": [0.0555555556, 0.0555555556, 0.1], "vector": [0, 0.5, 0]}],
+}
+"""1b: a fitted load of another pattern (a top node next to the pulled ones, pushed along y;
+the validation cases stay unseen), so that the field can be cross-validated."""
+
+
+def cube_converged() -> list[tuple[str, bool, str]]:
+    """The cube at 1/100 of the forces against a reference converged to about 1%, with a second
+    force pattern among the fitted cases. The default reference's own estimated error on the
+    cube (refine 'check': 4.7% on the pulls, 6.8% on the corner press) is above the 2% goal,
+    so the goal can only be judged against a converged one."""
+    import fpm
+
+    print(f"\n1b. The cube, forces x 0.01, against a converged reference ({load()})")
+    default = fpm.solve_fem(fpm.load_problem(cube_spec(0.45, "field", scale=0.01)))
+    print(f"  the default reference's estimated error, %: {fmt(default.estimated_error or [])}")
+    spec = cube_spec(0.45, "field", scale=0.01)
+    spec["reference"]["refine"] = CONVERGED_REFINE
+    pattern = SECOND_PATTERN["forces"][0]
+    spec["load_cases"].append({**SECOND_PATTERN, "forces": [
+        {**pattern, "vector": [0.01 * v for v in pattern["vector"]]}
+    ]})  # fmt: skip
+    r, wall = timed_fit(spec)
+    print(f"  this reference's estimated error, %: {fmt(r.reference_error or [])}")
+    side_by_side("refine 2, three pulls and a push y fitted", r, wall)
+    field = r.field.field
+    fit, check = max(field.relative_discrepancy), max(field.validation_relative_discrepancy)
+    tag = "cube (converged reference, two force patterns)"
+    return [
+        (f"{tag}: field fit <= {CUBE_FIT_GOAL}% each", fit <= CUBE_FIT_GOAL,
+         f"{fmt(field.relative_discrepancy)} ({ratio(fit, CUBE_FIT_GOAL)})"),
+        (f"{tag}: field validation <= {CUBE_VALIDATION_GOAL}% each", check <= CUBE_VALIDATION_GOAL,
+         f"{fmt(field.validation_relative_discrepancy)} ({ratio(check, CUBE_VALIDATION_GOAL)}; "
+         f"four parameters {fmt(r.field.four_parameter.validation_relative_discrepancy)}); "
+         f"returned: {r.field.returned}"),
+    ]  # fmt: skip
+
+
 def organ_5mm() -> list[tuple[str, bool, str]]:
     from bench.bench_calibration import organ_settings
 
@@ -134,7 +181,7 @@ def organ_3mm() -> list[tuple[str, bool, str]]:
 
 
 def main() -> None:
-    goals = cube() + organ_5mm() + organ_3mm()
+    goals = cube() + cube_converged() + organ_5mm() + organ_3mm()
     print("\nsummary")
     for text, ok, value in goals:
         print(f"  [{verdict(ok)}] {text}: {value}")
