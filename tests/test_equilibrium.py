@@ -416,6 +416,27 @@ def test_full_depth_by_its_number_shares_the_warm_starts_of_none(paper: fpm.Prob
     assert shallow.start == "rest" and shallow.iterations > 0
 
 
+def test_keep_only_forgets_the_probes_and_keeps_the_chosen_depth(paper: fpm.Problem):
+    """After the depth search, keep_only(depth) drops the other lists' systems with their
+    warm starts (a probe asked again starts from rest) and keeps the chosen one's: its next
+    solve is the same to the bit as without keep_only (no Newton step, the warm answer)."""
+    from fpm.fitting.bounds import full_depth
+
+    deepest = full_depth(paper)
+    k = spring_stiffness(paper, K_A)
+    solvers = [StaticSolver(paper), StaticSolver(paper)]
+    for solver in solvers:
+        solver.solve(2, k, None)
+        solver.solve(2, k, deepest - 3)
+    solvers[0].keep_only(deepest)
+    assert len(solvers[0]._systems) == 1 and len(solvers[1]._systems) == 2
+    kept, other = (solver.solve(2, k, deepest) for solver in solvers)
+    assert kept.iterations == 0 and kept.start == "predicted"
+    assert np.array_equal(kept.displacements, other.displacements)
+    probe = solvers[0].solve(2, k, deepest - 3)
+    assert probe.start == "rest" and probe.iterations > 0
+
+
 def test_proportional_stiffnesses_are_interpolated_exactly_enough(paper: fpm.Problem):
     """With one k, earlier solutions lie on the curve u(k, s F): three of them and s = 0
     interpolate a fourth so well that no Newton step is needed."""

@@ -223,6 +223,7 @@ def fit_damping(
         )
     else:
         deepest = full_depth(problem)
+    cost.solver.keep_only(depth)  # the depth probes' systems are not asked again
     stiffness = model_stiffness(problem, theta)
     field = None
     if is_field(problem):  # the per-cell field on theta (the four parameters if it is refused)
