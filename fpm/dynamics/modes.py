@@ -333,21 +333,15 @@ def _gram(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """x^T y for tall x (n, a), y (n, b): (a, b). Compiled rather than BLAS: a threaded BLAS
     on a busy 2-core machine took 6 s for what one thread does in 0.1 s (n = 280,000, a = b =
     48; :func:`fpm.fem.linear_solver.conjugate_gradients` avoids it for the same reason)."""
-    n, a = x.shape
-    b = y.shape[1]
-    out = np.zeros((a, b))
-    for i in range(n):
-        for p in range(a):
-            xp = x[i, p]
-            for q in range(b):
-                out[p, q] += xp * y[i, q]
+    out = np.zeros((x.shape[1], y.shape[1]))
+    _gram_into(out, x, y)
     return out
 
 
 @njit(cache=True, nogil=True)
 def _gram_into(out: np.ndarray, x: np.ndarray, y: np.ndarray) -> None:
-    """out += x^T y, summed row after row as :func:`_gram` sums (a sum continued over pieces
-    of rows is the same, to the bit, as over all of them at once)."""
+    """out += x^T y, summed row after row (a sum continued over pieces of rows is the same, to
+    the bit, as over all of them at once); :func:`_gram` is it on zeros."""
     n, a = x.shape
     b = y.shape[1]
     for i in range(n):
