@@ -20,9 +20,6 @@ import numpy as np
 
 SEMI_AXES = np.array([0.07, 0.045, 0.035])
 """Semi-axes of the organ ellipsoid, m (as bench/organ.py)."""
-KEPT_JACOBIAN = 0.1
-""":func:`conform` keeps every hexahedron's smallest Jacobian determinant at least this
-fraction of the voxel's."""
 KUHN = [[0, 1, 2, 6], [0, 2, 3, 6], [0, 3, 7, 6], [0, 7, 4, 6], [0, 4, 5, 6], [0, 5, 1, 6]]
 """Six tetrahedra around the diagonal 0-6 of a hexahedron (fpm.model.hexahedron order)."""
 
@@ -90,7 +87,8 @@ def organ_spec(
     on top (0.02 N) and a lateral pull at the top (0.01 N); validation (``validation``): a press
     off centre, a pull along y at the side, both presses at once. ``refine`` None leaves
     reference.refine out. ``conforming``: the voxels' surface nodes moved onto the mesh's
-    surface (:func:`conform`), a hexahedral ``mesh`` geometry.
+    surface, a hexahedral ``mesh`` geometry (:func:`fpm.io.meshes.conform_spec`, what
+    ``fpmcal spec from-mesh --conform`` makes; the held box keeps its nodes).
 
     How fast a uniformly refined reference converges depends on the supports (measured with
     ``python -m bench refine``, 480 tetrahedra, the worst case per level): held below the
@@ -142,46 +140,7 @@ def organ_spec(
     if refine is not None:
         spec["reference"]["refine"] = refine
     if conforming:
-        spec["geometry"] = conform(spec, nodes, tets, held_below)
+        from fpm.io.meshes import conform_spec
+
+        spec = conform_spec(spec)[0]
     return spec
-
-
-def conform(spec: dict, nodes: np.ndarray, tets: np.ndarray, held_below: float = 0.0) -> dict:
-    """The ``mesh`` geometry of ``spec``'s voxel lattice with its surface nodes moved towards
-    their nearest points on the surface of the tetrahedra ``tets`` (T, 4) on ``nodes`` (N, 3),
-    m, so that the lattice is the mesh's solid instead of its staircase. Each node goes all
-    the way unless a hexahedron of it would keep less than :data:`KEPT_JACOBIAN` of its
-    smallest Jacobian determinant; those hexahedra's surface nodes go 0.8 of the way, then
-    0.8 of that, until none does. A node held (z at most ``held_below``) is not moved above
-    it. Measured on the 480-tetrahedron organ at h = 5 mm: the mean distance of the surface
-    nodes from the mesh's surface falls from 0.38 h to 0.07 h."""
-    import fpm
-    from fpm.fem.elasticity import min_jacobian_determinants
-    from fpm.fem.loads import lattice_surface
-    from fpm.fem.tet10 import nearest_on_boundary
-
-    solid = fpm.load_problem(spec).solid
-    x0, hexahedra = solid.nodes, solid.elements()
-    assert hexahedra is not None
-    surface = np.flatnonzero(lattice_surface(hexahedra, len(x0)))
-    _, target, _ = nearest_on_boundary(nodes, tets, x0[surface])
-    held = x0[surface, 2] <= held_below
-    target[held, 2] = np.minimum(target[held, 2], x0[surface[held], 2])
-    where = np.full(len(x0), -1)
-    where[surface] = np.arange(len(surface))
-    before = min_jacobian_determinants(x0[hexahedra])
-    share = np.ones(len(surface))
-    while True:
-        x = x0.copy()
-        x[surface] += share[:, None] * (target - x0[surface])
-        bad = min_jacobian_determinants(x[hexahedra]) < KEPT_JACOBIAN * before
-        if not bad.any():
-            break
-        moved = where[np.unique(hexahedra[bad])]
-        share[moved[moved >= 0]] *= 0.8
-    return {
-        "type": "mesh",
-        "nodes": x.tolist(),
-        "hexahedra": hexahedra.tolist(),
-        "connectivity": spec["geometry"].get("connectivity", "full"),
-    }

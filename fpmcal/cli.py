@@ -262,6 +262,7 @@ def cmd_spec_from_mesh(args: argparse.Namespace) -> None:
         name=args.name,
         dt=dt,
         voxel_reference=args.voxel_reference,
+        conform=args.conform,
     )
     for note in notes:
         print(f"note: {note}", file=sys.stderr)
@@ -564,6 +565,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--voxel-reference", action="store_true",
         help="tetrahedral meshes: solve the FEM reference on the voxel lattice (hexahedra) "
         "instead of on the tetrahedra, and leave the mesh out of the spec",
+    )  # fmt: skip
+    p.add_argument(
+        "--conform", action="store_true",
+        help="tetrahedral meshes: the voxel lattice's surface nodes moved onto the mesh's "
+        "surface (a hexahedral mesh geometry that is the mesh's solid, not its staircase; "
+        "face selectors become the boxes of the nodes within h/2 of the face)",
     )  # fmt: skip
     p.add_argument("--name", default=None, help="the spec's name (default: the file name)")
     p.add_argument(

@@ -423,3 +423,49 @@ def test_face_pieces_join_tetrahedra_through_faces_at_the_same_positions():
     # numbered once (the shared corners merged), the same pieces
     merged, inverse = np.unique(points, axis=0, return_inverse=True)
     np.testing.assert_array_equal(face_pieces(merged, inverse.reshape(-1)[tets]), pieces)
+
+
+def test_the_conforming_lattice_lies_on_the_mesh_surface_and_calibrates(tmp_path: Path):
+    """spec_from_mesh(conform=True) on the organ of bench/tet_organ.py: the voxels' hexahedra
+    with their surface nodes moved onto the mesh's surface (mean distance under a quarter of
+    the voxels'), every hexahedron keeping at least KEPT_JACOBIAN of its voxel's smallest
+    Jacobian, the fixed face held at the same nodes (now a box), and a calibration runs."""
+    from bench.tet_organ import organ_mesh
+    from fpm.fem.elasticity import min_jacobian_determinants
+    from fpm.fem.loads import lattice_surface
+    from fpm.fem.tet10 import nearest_on_boundary
+    from fpm.io.meshes import KEPT_JACOBIAN
+
+    nodes, tets = organ_mesh((4, 3, 4))
+    mesh = meshio.Mesh(nodes, [("tetra", tets)])
+    given = dict(
+        fix=["face:z-"], forces=["nearest:0,0,0.035:0,0,-0.01", "nearest:0.07,0,0:0.005,0,0"],
+        youngs_modulus=5e3, poisson_ratio=0.45, spacing=0.01,
+    )  # fmt: skip
+    voxels, _ = spec_from_mesh(mesh, **given)
+    spec, notes = spec_from_mesh(mesh, conform=True, **given)
+    assert spec["geometry"]["type"] == "mesh" and "box" in spec["fixed"][0]
+    assert any("surface nodes moved onto the mesh's surface" in n for n in notes)
+    before, after = fpm.load_problem(voxels), fpm.load_problem(spec)
+    hexahedra = after.solid.elements()
+    np.testing.assert_array_equal(before.solid.elements(), hexahedra)
+    np.testing.assert_array_equal(before.fixed, after.fixed)
+    surface = lattice_surface(hexahedra, after.n_nodes)
+    gap = [nearest_on_boundary(nodes, tets, p.nodes[surface])[2].mean() for p in (before, after)]
+    assert gap[1] < 0.25 * gap[0], gap
+    kept = min_jacobian_determinants(after.nodes[hexahedra])
+    assert np.all(kept >= KEPT_JACOBIAN * min_jacobian_determinants(before.nodes[hexahedra]))
+    with pytest.raises(MeshError, match="tetrahedral mesh"):
+        spec_from_mesh(mesh, conform=True, voxel_reference=True, **given)
+    path, out = tmp_path / "organ.vtu", tmp_path / "organ.json"
+    meshio.write(path, mesh)
+    argv = ["spec", "from-mesh", str(path), "--spacing", "0.01", "--fix", "face:z-", "--conform",
+            "--E", "5000", "--nu", "0.45", "-o", str(out)]  # fmt: skip
+    for force in given["forces"]:
+        argv += ["--force", force]
+    assert main(argv) == 0
+    assert json.loads(out.read_text())["geometry"] == spec["geometry"]
+    spec["reference"]["refine"] = 0  # the mesh as given: quick
+    problem = fpm.load_problem(spec)
+    result = fpm.calibrate(problem, reference=fpm.solve_fem(problem))
+    assert result.volume_stiffness is not None and max(result.relative_discrepancy) < 30
