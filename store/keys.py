@@ -89,6 +89,12 @@ def chain_result(calibration_id: str, chain: int) -> str:
     return f"{PREFIX}:calibration:{calibration_id}:chain:{chain}"
 
 
+def chain_equilibria(calibration_id: str, chain: int) -> str:
+    """String: raw float64 (L, N, 3) static equilibria at a chain's answer, m (beside its
+    ChainResult; only where the chain solved them last)."""
+    return f"{PREFIX}:calibration:{calibration_id}:chain:{chain}:equilibria"
+
+
 def chain_checkpoint(calibration_id: str, chain: int) -> str:
     """String: JSON annealing state of one chain, so a retried chain resumes."""
     return f"{PREFIX}:calibration:{calibration_id}:checkpoint:{chain}"

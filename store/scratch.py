@@ -73,11 +73,19 @@ def has_chain_result(redis: Redis, calibration_id: str, chain: int) -> bool:
 
 
 def save_chain_result(
-    redis: Redis, calibration_id: str, chain: int, result: dict[str, Any], evaluations: int
+    redis: Redis,
+    calibration_id: str,
+    chain: int,
+    result: dict[str, Any],
+    evaluations: int,
+    equilibria: bytes | None = None,
 ) -> None:
-    """Store a finished chain's result, drop its checkpoint and count its cost evaluations
-    (the metrics' counter), in one MULTI/EXEC."""
+    """Store a finished chain's result (and the raw float64 ``equilibria`` at its answer, when
+    it has them), drop its checkpoint and count its cost evaluations (the metrics' counter), in
+    one MULTI/EXEC."""
     pipe = redis.pipeline()
+    if equilibria is not None:
+        pipe.set(keys.chain_equilibria(calibration_id, chain), equilibria, ex=SCRATCH_TTL)
     pipe.set(keys.chain_result(calibration_id, chain), json.dumps(result), ex=SCRATCH_TTL)
     pipe.delete(keys.chain_checkpoint(calibration_id, chain))
     pipe.incrby(keys.evaluations_total(), evaluations)
@@ -88,6 +96,14 @@ def get_chain_results(redis: Redis, calibration_id: str, chains: int) -> list[An
     """Each chain's result dict, None for a chain that has not finished: list of ``chains``."""
     raws = redis.mget([keys.chain_result(calibration_id, c) for c in range(chains)])
     return [_json(raw) for raw in raws]
+
+
+def get_chain_equilibria(redis: Redis, calibration_id: str, chain: int) -> bytes | None:
+    """The raw equilibria a chain stored with its result (:func:`save_chain_result`), or None."""
+    raw = redis.get(keys.chain_equilibria(calibration_id, chain))
+    if raw is None:
+        return None
+    return raw.encode() if isinstance(raw, str) else bytes(raw)
 
 
 def has_damping_result(redis: Redis, calibration_id: str) -> bool:
@@ -109,6 +125,7 @@ def delete_stage_data(
     (:func:`case_tasks`) once the calibration is done (``pipe``: a pipeline, so that it
     happens with the write of the parameter set)."""
     pipe.delete(*[keys.chain_checkpoint(calibration_id, c) for c in range(chains)])
+    pipe.delete(*[keys.chain_equilibria(calibration_id, c) for c in range(chains)])
     pipe.delete(keys.damping_result(calibration_id))
     for task in tasks or []:
         pipe.delete(keys.case_run(calibration_id, task))

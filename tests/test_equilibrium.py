@@ -437,6 +437,40 @@ def test_keep_only_forgets_the_probes_and_keeps_the_chosen_depth(paper: fpm.Prob
     assert probe.start == "rest" and probe.iterations > 0
 
 
+def test_a_seeded_equilibrium_is_taken_as_it_is(paper: fpm.Problem):
+    """An equilibrium solved by another solver (a chain's, in another process) seeded into a
+    fresh one: its solve at the same stiffness takes no Newton step and returns it to the bit;
+    a solver with warm starts off ignores the seed."""
+    k = spring_stiffness(paper, K_A)
+    solved = StaticSolver(paper).solve(2, k, None)
+    fresh = StaticSolver(paper)
+    fresh.seed(2, k, None, solved.displacements)
+    again = fresh.solve(2, k, None)
+    assert again.start == "predicted" and again.iterations == 0
+    assert np.array_equal(again.displacements, solved.displacements)
+    cold = StaticSolver(paper, warm=False)
+    cold.seed(2, k, None, solved.displacements)
+    assert cold.solve(2, k, None).start == "rest"
+
+
+def test_a_shallow_list_seeded_from_full_depth_lands_on_its_cold_answer(paper: fpm.Problem):
+    """A depth probe started from the full-depth equilibrium restricted to its list (the depth
+    search's start) needs fewer Newton steps than from rest and lands on the same answer."""
+    from fpm.fitting.bounds import full_depth
+
+    depth = full_depth(paper) - 3
+    k = spring_stiffness(paper, K_A)
+    full = StaticSolver(paper).solve(2, k, None)
+    cold = StaticSolver(paper).solve(2, k, depth)
+    seeded = StaticSolver(paper)
+    seeded.seed(2, k, depth, full.displacements)
+    warm = seeded.solve(2, k, depth)
+    assert warm.converged and warm.start == "predicted"
+    assert warm.iterations < cold.iterations
+    u = np.abs(cold.displacements).max()
+    assert warm.displacements == pytest.approx(cold.displacements, abs=1e-5 * u)
+
+
 def test_proportional_stiffnesses_are_interpolated_exactly_enough(paper: fpm.Problem):
     """With one k, earlier solutions lie on the curve u(k, s F): three of them and s = 0
     interpolate a fourth so well that no Newton step is needed."""

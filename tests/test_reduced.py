@@ -65,3 +65,47 @@ def test_the_reduced_model_is_exact_where_its_basis_holds_the_response():
             j, None, case.unit.at(theta), cost.solver.loads(j), rtol=1e-12
         )[case.free].ravel()
         assert np.abs(case.linear(theta) - full).max() < 10 * RTOL * np.abs(full).max()
+
+
+def test_the_chain_hands_its_equilibria_and_stage_two_validates_beside_the_search():
+    """A families+volume chain returns the static equilibria at its answer (kept out of its
+    JSON): they are the equilibria a fresh solver finds there. Stage 2 started from them
+    takes no Newton step at the chain's answer, and its validation, solved on a thread beside
+    the d search, is what finalize would have solved itself, to the bit."""
+    from fpm.fitting.calibration import finalize
+    from fpm.fitting.damping_stage import fit_damping
+    from fpm.fitting.stiffness_stage import ChainResult, run_chain
+    from fpm.fitting.validation import validate
+
+    spec = box_spec(
+        (5, 4, 6), 0.01,
+        forces=[{"at": [0.02, 0.01, 0.05], "vector": [0.0, 0.0, -0.01]}],
+        fpm_settings={"stiffness": "families+volume"},
+    )  # fmt: skip
+    spec["load_cases"].append({"forces": [{"at": [0.04, 0.03, 0.05], "vector": [0.01, 0, 0]}]})
+    spec["validation_cases"] = [{"forces": [{"at": [0.0, 0.0, 0.05], "vector": [0, 0.01, 0]}]}]
+    spec["material"]["poisson_ratio"] = 0.45
+    spec["annealing"] = {"t_initial": 1.0, "t_final": 0.5, "beta": 1.0}
+    problem = fpm.load_problem(spec)
+    reference = fpm.solve_fem(problem)
+    chain = run_chain(problem, reference, 0)
+    assert chain.equilibria is not None and chain.equilibria.shape == (2, problem.n_nodes, 3)
+    assert "equilibria" not in chain.to_dict()
+    assert ChainResult.from_dict(chain.to_dict()).equilibria is None
+    fresh = StaticCost(problem, reference.displacements[:2], None)
+    for j, u in enumerate(chain.equilibria):
+        solved = fresh.displacements(chain.x, j).displacements
+        assert np.abs(solved - u).max() < 1e-4 * np.abs(u).max()
+    seeded = StaticCost(problem, reference.displacements[:2], None)
+    for j, u in enumerate(chain.equilibria):
+        seeded.solver.seed(j, model_stiffness(problem, chain.x), None, u)
+        again = seeded.displacements(chain.x, j)
+        assert again.iterations == 0 and np.array_equal(again.displacements, u)
+    stage = fit_damping(problem, reference, [chain])
+    assert stage.validation is not None
+    checked = None if stage.depth >= stage.full_depth else stage.depth
+    alone = validate(problem, reference, stage.theta, checked)
+    assert stage.validation["depth"] == checked
+    assert stage.validation["relative"] == alone.relative
+    result = finalize(problem, reference, [chain], stage)
+    assert result.validation_relative_discrepancy == alone.relative

@@ -19,6 +19,7 @@ import json
 import time
 from typing import Any
 
+import numpy as np
 from redis import Redis
 from rq import get_current_job
 from rq.job import Job
@@ -165,7 +166,10 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
         scratch.drop_checkpoint(redis, calibration_id, chain)
         return {"failed": True}
     reporter.flush()
-    scratch.save_chain_result(redis, calibration_id, chain, result.to_dict(), result.evaluations)
+    equilibria = None if result.equilibria is None else result.equilibria.tobytes()
+    scratch.save_chain_result(
+        redis, calibration_id, chain, result.to_dict(), result.evaluations, equilibria
+    )
     span.add()
     return {"x": result.x, "cost": result.cost, "evaluations": result.evaluations}
 
@@ -264,6 +268,18 @@ def _chains_and_reference(
     return chains, FemResult.from_dict(reference)
 
 
+def _with_equilibria(
+    redis: Redis, calibration_id: str, chains: list[ChainResult], problem: Any
+) -> None:
+    """Give each chain the static equilibria at its answer that it stored (where it did):
+    the damping stage starts from them rather than solving them again."""
+    shape = (len(problem.load_cases), problem.n_nodes, 3)
+    for chain in chains:
+        raw = scratch.get_chain_equilibria(redis, calibration_id, chain.chain)
+        if raw is not None and len(raw) == 8 * int(np.prod(shape)):
+            chain.equilibria = np.frombuffer(raw, dtype=np.float64).reshape(shape).copy()
+
+
 def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
     """Two-stage, stage 2: polish the stiffness, resolve the depth, find the fastest d.
 
@@ -286,6 +302,7 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
     chains, reference = found
     problem = problem_of(redis, record.spec)
     memory.check(problem.n_nodes)
+    _with_equilibria(redis, calibration_id, chains, problem)
     reporter = _DampingProgress(job, calibration_id)
     span = _Span(job, calibration_id, "damping", [f"chain {c}" for c in range(record.chains)])
     spreads: list[CaseSpread] = []

@@ -234,6 +234,26 @@ class StaticSolver:
         for key in [k for k in self._systems if k not in wanted]:
             self._drop(key)
 
+    def seed(
+        self,
+        load_case: int,
+        stiffness: Stiffness | np.ndarray,
+        depth: int | None,
+        displacements: np.ndarray,
+    ) -> None:
+        """Keep ``displacements`` (N, 3), m, as a warm start of ``load_case``'s list at
+        ``depth``, as if found at ``stiffness``: an equilibrium solved elsewhere (a chain's
+        last, in another process), or a deeper list's restricted to this one (a start only:
+        every answer is still checked against the residual, and a start worse than rest is
+        not taken). Nothing is kept when warm starts are off."""
+        if not self.warm:
+            return
+        system, _ = self.system(load_case, depth)
+        k = system.parameters(Stiffness.of(stiffness))
+        case = (load_case, system.free.tobytes())
+        predictor = self._predictors.setdefault(case, _Predictor(len(k.flat)))
+        predictor.add(np.asarray(displacements, dtype=float)[system.free], k.flat)
+
     def loads(self, load_case: int) -> np.ndarray:
         """(N, 3) constant nodal forces, N: the load case's plus the weight."""
         external = self.problem.load_cases[load_case].dense(self.problem.n_nodes)

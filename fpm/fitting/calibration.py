@@ -57,7 +57,13 @@ from .damping_stage import DampingStage, fit_damping, resolve_depth
 from .field import field_parts
 from .result import CalibrationResult, ChainSummary
 from .stiffness_stage import ChainResult, Progress, constrained_cost, run_chain
-from .validation import check_reference, final_run, reference_displacements, validate
+from .validation import (
+    Validation,
+    check_reference,
+    final_run,
+    reference_displacements,
+    validate,
+)
 
 __all__ = [
     # the orchestration
@@ -148,7 +154,11 @@ def finalize(
     # Full depth reaches every node from any load (a validation load elsewhere needs it).
     checked = None if depth >= deepest else depth
     field, model, field_notes = field_parts(problem, reference, damping, theta, checked)
-    validation = validate(problem, reference, model, checked)
+    saved = None if damping is None else damping.validation
+    if saved is not None and saved["depth"] == checked:  # solved beside the damping stage
+        validation = Validation(saved["relative"], saved["h_percent"], saved["notes"])
+    else:
+        validation = validate(problem, reference, model, checked)
     m = problem.solid.masses
     from ..fem.reference import reference_label
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -45,7 +46,7 @@ from .stiffness_stage import (
     constrained_cost,
     polish,
 )
-from .validation import FinalRun, final_run, reference_displacements
+from .validation import FinalRun, Validation, final_run, reference_displacements, validate
 
 
 @dataclass
@@ -71,6 +72,9 @@ class DampingStage:
         field: ``fpm.stiffness: "field"``: the field fit
             (:meth:`fpm.fitting.field.FieldStage.to_dict`), fitted at depth on the polished
             theta before d; d, dt and ``final`` are then those of the model it returns.
+        validation: the validation cases at (theta, the depth finalize validates at: None
+            for full depth), :class:`fpm.fitting.validation.Validation` as a dict with that
+            "depth"; solved on a thread beside the stage (None: left to finalize).
     """
 
     theta: list[float]
@@ -89,6 +93,7 @@ class DampingStage:
     d_predicted: float | None = None
     max_steps: int | None = None
     field: dict[str, Any] | None = None
+    validation: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -119,17 +124,24 @@ def resolve_depth(
 
     Galloping down from full depth (full - 1, full - 2, full - 4, ...) until a depth fails, then
     bisection between it and the last that passed; each probe is a static solve per load case,
-    and the returned depth always passes the test. The answer is usually close to full depth
+    started from full depth's equilibrium on the probe's list, and the returned depth always
+    passes the test. The answer is usually close to full depth
     (32 of 33 layers on the organ at h = 3 mm: 2 probes where bisection from 0 takes 6, each of
     the deepest, costliest lists). Returns (depth, full depth, {depth probed: case costs, m}).
     """
     full = cost(theta, None)
     deepest = full_depth(cost.problem)
     probed = {deepest: full.case_costs}
+    stiffness = model_stiffness(cost.problem, theta)
+    # each probe starts from full depth's equilibria (a warm solve returns them as they are)
+    cases = range(len(cost.problem.load_cases)) if math.isfinite(full.cost) else range(0)
+    shapes = [cost.displacements(theta, j, None).displacements for j in cases]
 
     def passes(depth: int) -> bool:
         if progress is not None:
             progress({"phase": "depth", "depth": depth})
+        for j, u in enumerate(shapes):
+            cost.solver.seed(j, stiffness, depth, u)
         ev = cost(theta, depth)
         probed[depth] = ev.case_costs
         return math.isfinite(ev.cost) and all(
@@ -190,10 +202,34 @@ def fit_damping(
     k (every family at one k, a 1-D search): one k is a point of the families' space, so a
     family fit never ends worse than the single-k fit of the same problem.
     """
+    with ThreadPoolExecutor(1, thread_name_prefix="validation") as side:
+        return _fit_damping(problem, reference, chains, progress, spread, side)
+
+
+def _fit_damping(
+    problem: Problem,
+    reference: Any,
+    chains: list[ChainResult],
+    progress: Progress | None,
+    spread: Callable[[DampingPlan], Spread | None] | None,
+    side: ThreadPoolExecutor,
+) -> DampingStage:
+    """:func:`fit_damping`'s work; ``side`` runs the validation cases' static solves while
+    the stage goes on (they need the final stiffness and depth, not d): with families+volume
+    the chain's answer is final, so they start at once, at full depth, on a core the stage's
+    single-threaded static work leaves idle; otherwise once the depth is chosen. A field's
+    model is validated by finalize."""
     t0 = time.perf_counter()
     disp = reference_displacements(reference, problem)
     best = chain_to_polish(problem, chains)
+    validating: dict[int | None, Future[Validation]] = {}
+    checks = bool(problem.validation_cases) and not is_field(problem)
+    if checks and has_volume(problem):
+        validating[None] = side.submit(validate, problem, reference, list(best.x), None)
     cost = StaticCost(problem, disp, fit_depth(problem))
+    if best.equilibria is not None:  # the chain's last solves: no need to solve them again
+        for j, u in enumerate(best.equilibria):
+            cost.solver.seed(j, model_stiffness(problem, best.x), cost.depth, u)
     if progress is not None:
         progress({"phase": "polish"})
     bounds = stiffness_bounds(problem)
@@ -224,6 +260,9 @@ def fit_damping(
     else:
         deepest = full_depth(problem)
     cost.solver.keep_only(depth)  # the depth probes' systems are not asked again
+    checked = None if depth >= deepest else depth  # as finalize validates
+    if checks and checked not in validating:
+        validating[checked] = side.submit(validate, problem, reference, list(theta), checked)
     stiffness = model_stiffness(problem, theta)
     field = None
     if is_field(problem):  # the per-cell field on theta (the four parameters if it is refused)
@@ -250,6 +289,10 @@ def fit_damping(
         None if spread is None else spread(plan),
     )
     final = final_run(cost, stiffness, depth, fit.displacements, fit.steps, settled=True)
+    validation = None
+    if checks:
+        found = validating[checked].result()
+        validation = {**asdict(found), "depth": checked}
     return DampingStage(
         theta=[float(t) for t in theta],
         static_cost=float(static_cost),
@@ -267,6 +310,7 @@ def fit_damping(
         d_predicted=fit.predicted,
         max_steps=fit.max_steps,
         field=None if field is None else field.to_dict(),
+        validation=validation,
     )
 
 

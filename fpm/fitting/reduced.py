@@ -334,17 +334,19 @@ def fit_reduced(
     start: list[float],
     bounds: tuple[np.ndarray, np.ndarray],
     model: ReducedLinearModel | None = None,
-) -> tuple[list[float], float, ReducedLinearModel]:
+) -> tuple[list[float], float, ReducedLinearModel, np.ndarray | None]:
     """Minimise Eq. (2) of the nonlinear static equilibria within ``bounds`` from ``start``:
     reduced linear fits with enrichment, corrected by the nonlinear defect until the minimiser
     stops moving (this module's docstring).
 
     Returns (parameters, their normalised static cost (inf if a load case has no equilibrium),
-    the model)."""
+    the model, the static equilibria at the parameters (L, N, 3), m, or None if one did not
+    converge)."""
     model = ReducedLinearModel(cost, start) if model is None else model
     lo, hi = np.log(bounds[0]), np.log(bounds[1])
     y = np.clip(np.log(np.asarray(start, dtype=float)), lo, hi)
     static = float("inf")
+    equilibria: np.ndarray | None = None
     step = FIRST_STEP
     for _ in range(DEFECT_ROUNDS):
         previous = y
@@ -354,8 +356,9 @@ def fit_reduced(
         model.enrich(theta)  # the full linear response at theta joins the basis
         solved = [cost.displacements(theta, j) for j in range(len(model.cases))]
         if not all(e.converged for e in solved):
-            static = float("inf")
+            static, equilibria = float("inf"), None
             break
+        equilibria = np.stack([e.displacements for e in solved])
         cost.evaluations += 1
         static = sum(cost.case_cost(j, e.displacements) for j, e in enumerate(solved))
         static /= cost.reference_cost
@@ -364,7 +367,7 @@ def fit_reduced(
             case.set_correction(equilibrium.displacements[case.free] - case.last.reshape(-1, 3))
         if float(np.abs(y - previous).max()) < CONVERGED:
             break
-    return list(np.exp(y)), static, model
+    return list(np.exp(y)), static, model, equilibria
 
 
 def _reduced_minimum(

@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -95,6 +95,10 @@ class ChainResult:
         history: normalised current cost after each move.
         near_best: states within 1% of this chain's best (:class:`NearBest`).
         seconds: wall time.
+        equilibria: (L, N, 3) the static equilibria at x, m, where the chain solved them last
+            (families+volume's defect-corrected fit), else None: stage 2 starts from them
+            instead of solving anew. Not in :meth:`to_dict` (the service stores the raw
+            float64 array beside the JSON).
     """
 
     chain: int
@@ -106,9 +110,12 @@ class ChainResult:
     history: list[float]
     near_best: list[NearBest]
     seconds: float
+    equilibria: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        data = asdict(replace(self, equilibria=None))
+        del data["equilibria"]
+        return data
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ChainResult:
@@ -159,6 +166,7 @@ def _run_chain(
     objective: Callable[[list[float]], State]
     initial: list[float] | None = None  # two-stage: the linear estimate
     reduced: ReducedLinearModel | None = None
+    equilibria: np.ndarray | None = None  # the static equilibria at the chain's answer
     if a.method == "two-stage":
         static = StaticCost(problem, disp, depth)
         reference_cost = static.reference_cost
@@ -227,7 +235,9 @@ def _run_chain(
     ]
     best_x, best_cost, evaluations = list(result.best.x), result.best.cost, result.evaluations
     if reduced is not None:
-        best_x, best_cost, reduced = fit_reduced(static, best_x, (lower, upper), reduced)
+        best_x, best_cost, reduced, equilibria = fit_reduced(
+            static, best_x, (lower, upper), reduced
+        )
         evaluations += reduced.solves
     return ChainResult(
         chain=chain,
@@ -239,6 +249,7 @@ def _run_chain(
         history=result.history,
         near_best=near,
         seconds=time.perf_counter() - t0,
+        equilibria=equilibria,
     )
 
 
