@@ -27,7 +27,7 @@ three validation cases, each force spread over its node's share of the solid.
    5 to 2.5 mm). Measured (load 1-6): no row meets both. The validation goal is met by the
    voxels at 3.5 mm (7.1 / 6.4 / 5.4%) and the conforming lattice at 2.5 mm (9.2 / 5.4 /
    5.5%), but there the reported error of the press off centre is 2.17% and 2.19% (and of
-   both presses 2.02% at 2.5 mm); the reference is at most 2% only at 5 mm and on the
+   both presses 2.01% and 2.02%); the reference is at most 2% only at 5 mm and on the
    conforming lattice at 3 mm, where the worst validation case is 16.3% (voxels, 5 mm), 14.2%
    (conforming, 5 mm) and 11.1% (conforming, 3 mm). At 5 mm also the fit against the mesh as
    given with point loads (``refine: 0``, the reference before this option), judged against
