@@ -27,9 +27,10 @@ from __future__ import annotations
 
 import json
 import resource
-import subprocess
 import sys
 import time
+
+from bench import child_json
 
 SIDES = (10, 20, 30, 40, 50)
 DIRECT_UP_TO = 20
@@ -128,13 +129,7 @@ def compare_models() -> list[str]:
     for model in ("linear", "neo-hookean"):
         runs = []
         for _ in range(MODEL_REPEATS):
-            out = subprocess.run(
-                [sys.executable, "-m", "bench.bench_fem", "model", str(n), model],
-                capture_output=True,
-                text=True,
-                check=True,
-            )
-            runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
+            runs.append(child_json("bench.bench_fem", "model", str(n), model))
         row = min(runs, key=lambda r: r["total"])
         row["peak_mb"] = max(r["peak_mb"] for r in runs)
         rows[model] = row
@@ -276,13 +271,7 @@ def run_tet10() -> dict:
 def compare_tet10() -> list[str]:
     """The tet10 reference of a 50,000-tetrahedron organ, in its own process: one row, time
     against :data:`TET10_GOAL`."""
-    out = subprocess.run(
-        [sys.executable, "-m", "bench.bench_fem", "tet10-case"],
-        capture_output=True,
-        text=True,
-        check=True,
-    )
-    row = json.loads(out.stdout.strip().splitlines()[-1])
+    row = child_json("bench.bench_fem", "tet10-case")
     print(
         f"{'tetrahedra':>10} {'lattice':>8} {'method':>7} {'total s':>8} {'goal s':>7} "
         f"{'ratio':>6} {'peak MB':>8} {'residual':>9}"
@@ -311,13 +300,7 @@ def main() -> None:
     failures = []
     for n in SIDES:
         for method in ("direct", "amg") if n <= DIRECT_UP_TO else ("amg",):
-            out = subprocess.run(
-                [sys.executable, "-m", "bench.bench_fem", str(n), method],
-                capture_output=True,
-                text=True,
-                check=True,
-            )
-            row = json.loads(out.stdout.strip().splitlines()[-1])
+            row = child_json("bench.bench_fem", str(n), method)
             chosen = choose_method(row["unknowns"]) == method
             label = method + ("*" if chosen else "")
             print(

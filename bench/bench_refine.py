@@ -44,10 +44,11 @@ from __future__ import annotations
 
 import json
 import resource
-import subprocess
 import sys
 import time
 from typing import Any
+
+from bench import child_json
 
 AUTO_CELLS = (12, 9, 8)
 """The 5,000-tetrahedron organ (5,184 tetrahedra)."""
@@ -97,13 +98,7 @@ def run_auto() -> dict[str, Any]:
 
 def auto() -> list[str]:
     print(f"\n1. refine 'auto' on the {AUTO_CELLS} organ, in its own process")
-    out = subprocess.run(
-        [sys.executable, "-m", "bench.bench_refine", "auto-case"],
-        capture_output=True,
-        text=True,
-        check=True,
-    )
-    row = json.loads(out.stdout.strip().splitlines()[-1])
+    row = child_json("bench.bench_refine", "auto-case")
     print(
         f"{row['tetrahedra']} tetrahedra, {row['lattice_nodes']} lattice nodes; cases: "
         + ", ".join(row["cases"])
@@ -188,13 +183,7 @@ def fit() -> list[str]:
     rows = []
     for spacing in FIT_SPACINGS:
         for lattice in LATTICES:
-            out = subprocess.run(
-                [sys.executable, "-m", "bench.bench_refine", "fit-case", str(spacing), lattice],
-                capture_output=True,
-                text=True,
-                check=True,
-            )
-            rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+            rows.append(child_json("bench.bench_refine", "fit-case", str(spacing), lattice))
     print(f"{rows[0]['tetrahedra']} tetrahedra; cases: press top, lateral | press off centre, "
           "lateral y, two presses")  # fmt: skip
     for row in rows:
