@@ -202,8 +202,14 @@ def fit_damping(
     k (every family at one k, a 1-D search): one k is a point of the families' space, so a
     family fit never ends worse than the single-k fit of the same problem.
     """
-    with ThreadPoolExecutor(1, thread_name_prefix="validation") as side:
-        return _fit_damping(problem, reference, chains, progress, spread, side)
+    side = ThreadPoolExecutor(1, thread_name_prefix="validation")
+    try:
+        stage = _fit_damping(problem, reference, chains, progress, spread, side)
+    except BaseException:  # a failed or canceled stage does not wait for its validation
+        side.shutdown(wait=False, cancel_futures=True)
+        raise
+    side.shutdown()
+    return stage
 
 
 def _fit_damping(
