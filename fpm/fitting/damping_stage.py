@@ -234,8 +234,9 @@ def _fit_damping(
         validating[None] = side.submit(validate, problem, reference, list(best.x), None)
     cost = StaticCost(problem, disp, fit_depth(problem))
     if best.equilibria is not None:  # the chain's last solves: no need to solve them again
+        at_best = model_stiffness(problem, best.x)
         for j, u in enumerate(best.equilibria):
-            cost.solver.seed(j, model_stiffness(problem, best.x), cost.depth, u)
+            cost.solver.seed(j, at_best, cost.depth, u)
     if progress is not None:
         progress({"phase": "polish"})
     bounds = stiffness_bounds(problem)

@@ -873,9 +873,11 @@ def conform_spec(spec: dict[str, Any]) -> tuple[dict[str, Any], list[str]]:
     margin = np.max(hi - lo) + h
     boxes: list[tuple[np.ndarray, np.ndarray]] = []
     notes: list[str] = []
+    rewritten: list[str] = []  # the selectors that had to change form
 
     def kept(selector: dict[str, Any]) -> dict[str, Any]:
         out = dict(selector)
+        rewritten.extend(key for key in ("face", "at") if key in out)
         if "face" in out:
             axis, side = "xyz".index(out["face"][0]), out.pop("face")[1]
             box_lo, box_hi = lo - margin, hi + margin
@@ -898,12 +900,7 @@ def conform_spec(spec: dict[str, Any]) -> tuple[dict[str, Any], list[str]]:
             conformed[key] = [
                 {**case, "forces": [kept(f) for f in case["forces"]]} for case in spec[key]
             ]
-    if any("face" in s or "at" in s for s in spec["fixed"]) or any(
-        "face" in f or "at" in f
-        for key in ("load_cases", "validation_cases")
-        for case in spec.get(key, [])
-        for f in case["forces"]
-    ):
+    if rewritten:
         notes.append(
             "conforming lattice: face selectors became the boxes of the nodes within h/2 of "
             "the face (the surface no longer has flat faces), 'at' selectors the nodes they "
