@@ -18,7 +18,15 @@ from bench.tet_organ import organ_mesh
 from fpm.fem import tet10
 from fpm.fem.elasticity import constitutive_matrix, min_jacobian_determinants
 from fpm.fem.linear_solver import factorize
-from fpm.fem.loads import Samples, lattice_surface, tetrahedron_nodal_loads, triangle_rule
+from fpm.fem.loads import (
+    Samples,
+    hexahedron_surface_samples,
+    hexahedron_volume_samples,
+    lattice_surface,
+    spread,
+    tetrahedron_nodal_loads,
+    triangle_rule,
+)
 from fpm.fem.refine import (
     Mesh,
     converge,
@@ -178,13 +186,51 @@ def test_the_spread_load_sums_to_the_lattice_force_and_its_moment(element):
         if case in (0, 3, 4):  # on a face, inside: exactly the lattice force's moment
             np.testing.assert_allclose(got, expected, atol=1e-10 * scale)
         else:  # an edge, a corner: as near as weights that stay positive allow, the
-            # resultant's line within h/4 of the node (its patch reaches h/2 from it)
-            assert np.linalg.norm(got - expected) < 0.25 * scale
+            # resultant's line within h/2 of the node (its hat reaches h from it)
+            assert np.linalg.norm(got - expected) < 0.5 * scale
         # spread: the loaded node takes a part only, its neighbours the rest
         node = problem.load_cases[case].nodes[0]
         assert np.linalg.norm(nodal[case][np.argmin(np.linalg.norm(positions - at, axis=1))]) < (
             0.7 * np.linalg.norm(f)
         ), node
+
+
+def test_a_uniform_tractions_nodal_forces_spread_back_to_that_traction():
+    """The hats are a partition of unity: the consistent nodal forces of a uniform traction t
+    on the top face (t h^2 on its inner nodes, half on its edges, a quarter at its corners)
+    come back as t itself wherever only inner nodes' hats reach (at least h from the face's
+    edges), every sample carrying t times its area."""
+    problem = box_problem(LOADS[:1])  # its loads are not used
+    x, h = problem.nodes, problem.h
+    top = np.flatnonzero(np.isclose(x[:, 2], 0.1))
+    on_edge = np.isclose(x[top, 0], 0.0) | np.isclose(x[top, 0], 0.1)
+    on_edge2 = np.isclose(x[top, 1], 0.0) | np.isclose(x[top, 1], 0.1)
+    t = np.array([0.2, -0.1, -1.0])  # Pa
+    forces = np.zeros((1, problem.n_nodes, 3))
+    forces[0, top] = (
+        t * h**2 * np.where(on_edge, 0.5, 1.0)[:, None] * np.where(on_edge2, 0.5, 1.0)[:, None]
+    )
+    hexahedra = problem.solid.elements()
+    surface = lattice_surface(hexahedra, problem.n_nodes)
+    at_nodes = Samples(x, np.ones(len(x)), np.zeros(len(x), dtype=np.int64), np.zeros((len(x), 3)))
+    out = spread(
+        x, surface, h, forces,
+        hexahedron_surface_samples(x, hexahedra, x[top], h),
+        lambda: hexahedron_volume_samples(x, hexahedra, x[top], h),
+        at_nodes,
+    )  # fmt: skip
+    assert set(out.kinds.values()) == {"traction"}
+    np.testing.assert_allclose(out.forces.sum(axis=1)[0], t * 0.1**2, rtol=1e-12)
+    points, where = np.unique(np.round(out.samples.points, 12), axis=0, return_inverse=True)
+    load = np.zeros((len(points), 3))
+    np.add.at(load, where.ravel(), out.forces[0])
+    inner = np.all((points[:, :2] > h + 1e-9) & (points[:, :2] < 0.1 - h - 1e-9), axis=1)
+    inner &= np.isclose(points[:, 2], 0.1)
+    assert inner.sum() > 100
+    samples = hexahedron_surface_samples(x, hexahedra, x[top], h)
+    sample_area = dict(zip(map(tuple, np.round(samples.points, 12)), samples.weights, strict=True))
+    expected = np.array([sample_area[tuple(p)] for p in points[inner]])[:, None] * t
+    np.testing.assert_allclose(load[inner], expected, rtol=1e-9, atol=1e-15)
 
 
 def organ_spec(cells: tuple[int, int, int], h: float = 0.01) -> dict:
