@@ -2,18 +2,21 @@
 
 A calibration is::
 
-    fem job (skipped if the reference is stored) --> chain 0 .. chain n-1 --> damping --> finalize
+    fem job (skipped if stored) --+--> chain 0 .. chain n-1 --> damping --> finalize
+    reduced-basis job ------------/
 
-(the damping job only for the two-stage method: polish, depth, fastest-settling d). The chains
-and a large problem's FEM job go to the queue of long jobs; the damping job, finalize and the
-FEM job of a small problem (:data:`SMALL_FEM_NODES`) to the priority queue that workers drain
-first (:data:`store.keys.QUEUES`).
+(the damping job only for the two-stage method: polish, depth, fastest-settling d; the
+reduced-basis job only for its families+volume chains, :func:`builds_basis`: it needs no FEM
+reference, so it runs beside the FEM job). The chains and a large problem's FEM and
+reduced-basis jobs go to the queue of long jobs; the damping job, finalize and a small
+problem's (:data:`SMALL_FEM_NODES`) FEM and reduced-basis jobs to the priority queue that
+workers drain first (:data:`store.keys.QUEUES`).
 
 Jobs are enqueued by dotted path with RQ's JSON serializer and carry only ids; the spec, the
 FEM reference and the chain results live under our own keys (:mod:`store.keys`). Chains
-depend on the FEM job and finalize on the chains with ``allow_failure``: a failed dependency
-still wakes the next job, which then records the calibration as failed (no job is left
-waiting for ever).
+depend on the FEM and reduced-basis jobs and finalize on the chains with ``allow_failure``: a
+failed dependency still wakes the next job, which then records the calibration as failed (no
+job is left waiting for ever).
 """
 
 from __future__ import annotations
@@ -29,6 +32,8 @@ from rq.command import send_stop_job_command
 from rq.exceptions import InvalidJobOperation, NoSuchJobError
 from rq.job import Dependency, Job, JobStatus
 from rq.serializers import JSONSerializer
+
+from fpm.model.spec import VOLUME_MODES
 
 from . import keys, records, scratch
 from .hashing import export_hash, fem_hash, fem_spec, spec_hash, view_hash
@@ -178,13 +183,15 @@ def _enqueue(
     finish = priority_queue(redis)
     common = _common(options)
     fem_job = None if record.fem_cached else submit_fem(redis, record.spec, options, supplied)
+    basis_job = _enqueue_basis(redis, record, options) if builds_basis(record.spec) else None
+    before = [j for j in (fem_job, basis_job) if j is not None]
     chains = [
         q.enqueue_call(
             keys.CHAIN_JOB,
             args=(record.id, chain),
             job_id=keys.chain_job_id(record.id, chain),
             timeout=options.chain_timeout,
-            depends_on=Dependency(fem_job, allow_failure=True) if fem_job else None,
+            depends_on=Dependency(before, allow_failure=True) if before else None,
             description=f"{escape(record.name)}: chain {chain}",
             **common,
         )
@@ -211,6 +218,26 @@ def _enqueue(
         depends_on=Dependency(before_finalize, allow_failure=True),
         description=f"{escape(record.name)}: finalize",
         **common,
+    )
+
+
+def builds_basis(spec: dict[str, Any]) -> bool:
+    """The calibration of ``spec`` has a reduced-basis job: two-stage with a stiffness mode
+    whose chains anneal stage 1's reduced linear model (families+volume, field)."""
+    return spec["annealing"]["method"] == "two-stage" and spec["fpm"]["stiffness"] in VOLUME_MODES
+
+
+def _enqueue_basis(redis: Redis, record: records.CalibrationRecord, options: JobOptions) -> Job:
+    """The reduced-basis job (no dependency: it needs the spec only), on the queue its FEM job
+    would take (:func:`submit_fem`): about as long as the FEM's solve."""
+    small = fem_nodes(record.spec) <= SMALL_FEM_NODES
+    return (priority_queue(redis) if small else queue(redis)).enqueue_call(
+        keys.BASIS_JOB,
+        args=(record.id,),
+        job_id=keys.basis_job_id(record.id),
+        timeout=options.chain_timeout,
+        description=f"{escape(record.name)}: reduced basis",
+        **_common(options),
     )
 
 
@@ -464,8 +491,8 @@ def _request_cached(
 
 
 def cancel_calibration(redis: Redis, calibration_id: str) -> bool:
-    """Mark a calibration canceled, stop its running jobs (chains, damping stage and the
-    load-case jobs it handed out, finalize) and drop its queued ones.
+    """Mark a calibration canceled, stop its running jobs (reduced basis, chains, damping stage
+    and the load-case jobs it handed out, finalize) and drop its queued ones.
 
     Returns False if it had already finished (nothing changed). The shared FEM job is left
     alone: another calibration may need the same reference.
@@ -479,7 +506,8 @@ def cancel_calibration(redis: Redis, calibration_id: str) -> bool:
         return False
     record = records.get_calibration(redis, calibration_id)
     assert record is not None
-    job_ids = [keys.chain_job_id(calibration_id, c) for c in range(record.chains)]
+    job_ids = [keys.basis_job_id(calibration_id)]
+    job_ids += [keys.chain_job_id(calibration_id, c) for c in range(record.chains)]
     job_ids += [keys.damping_job_id(calibration_id), keys.finalize_job_id(calibration_id)]
     job_ids += [
         keys.case_job_id(calibration_id, t) for t in scratch.case_tasks(redis, calibration_id)

@@ -27,6 +27,7 @@ QUEUES = (PRIORITY_QUEUE, QUEUE)
 # callback recognise them): one name each.
 FEM_JOB = "worker.jobs.fem_reference"
 CHAIN_JOB = "worker.jobs.anneal_chain"
+BASIS_JOB = "worker.jobs.reduced_basis"
 DAMPING_JOB = "worker.jobs.fit_damping_stage"
 FINALIZE_JOB = "worker.jobs.finalize_calibration"
 CASE_JOB = "worker.spread.damping_case"
@@ -89,10 +90,11 @@ def chain_result(calibration_id: str, chain: int) -> str:
     return f"{PREFIX}:calibration:{calibration_id}:chain:{chain}"
 
 
-def chain_equilibria(calibration_id: str, chain: int) -> str:
-    """String: raw float64 (L, N, 3) static equilibria at a chain's answer, m (beside its
-    ChainResult; only where the chain solved them last)."""
-    return f"{PREFIX}:calibration:{calibration_id}:chain:{chain}:equilibria"
+def reduced_basis(calibration_id: str) -> str:
+    """Hash: stage 1's first reduced basis of a families+volume calibration (written once by
+    its reduced-basis job, read by the chains and the damping job): field ``layout`` (JSON:
+    per load case its nodes and columns), field ``arrays`` (the raw int64 / float64 arrays)."""
+    return f"{PREFIX}:calibration:{calibration_id}:reduced-basis"
 
 
 def chain_checkpoint(calibration_id: str, chain: int) -> str:
@@ -169,6 +171,11 @@ def fem_job_id(fem_hash: str) -> str:
 def chain_job_id(calibration_id: str, chain: int) -> str:
     """RQ job id of one annealing chain."""
     return f"{calibration_id}-chain-{chain}"
+
+
+def basis_job_id(calibration_id: str) -> str:
+    """RQ job id of the reduced-basis job (families+volume, two-stage calibrations)."""
+    return f"{calibration_id}-reduced-basis"
 
 
 def damping_job_id(calibration_id: str) -> str:

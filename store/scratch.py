@@ -1,6 +1,8 @@
 """A calibration's scratch data in Redis: what its jobs hand on to each other, kept
 :data:`SCRATCH_TTL` seconds (no numerical code here).
 
+- stage 1's first reduced basis (:class:`fpm.fitting.reduced.ReducedBasis`: a JSON layout and
+  raw arrays), built once and read by every chain and the damping stage;
 - chain checkpoints (:class:`fpm.fitting.annealing.Checkpoint` as JSON), so that a retried
   chain resumes;
 - chain results (:class:`fpm.fitting.stiffness_stage.ChainResult` as JSON), read by the damping
@@ -72,20 +74,36 @@ def has_chain_result(redis: Redis, calibration_id: str, chain: int) -> bool:
     return bool(redis.exists(keys.chain_result(calibration_id, chain)))
 
 
-def save_chain_result(
-    redis: Redis,
-    calibration_id: str,
-    chain: int,
-    result: dict[str, Any],
-    evaluations: int,
-    equilibria: bytes | None = None,
+def has_reduced_basis(redis: Redis, calibration_id: str) -> bool:
+    return bool(redis.hexists(keys.reduced_basis(calibration_id), "arrays"))
+
+
+def save_reduced_basis(
+    redis: Redis, calibration_id: str, layout: dict[str, Any], arrays: bytes
 ) -> None:
-    """Store a finished chain's result (and the raw float64 ``equilibria`` at its answer, when
-    it has them), drop its checkpoint and count its cost evaluations (the metrics' counter), in
-    one MULTI/EXEC."""
+    """Store the calibration's first reduced basis (its ``layout`` as JSON and its raw
+    ``arrays``) in one MULTI/EXEC."""
+    key = keys.reduced_basis(calibration_id)
     pipe = redis.pipeline()
-    if equilibria is not None:
-        pipe.set(keys.chain_equilibria(calibration_id, chain), equilibria, ex=SCRATCH_TTL)
+    pipe.hset(key, mapping={"layout": json.dumps(layout), "arrays": arrays})
+    pipe.expire(key, SCRATCH_TTL)
+    pipe.execute()
+
+
+def get_reduced_basis(redis: Redis, calibration_id: str) -> tuple[dict[str, Any], bytes] | None:
+    """(layout, raw arrays) of the calibration's first reduced basis, or None (not built)."""
+    layout, arrays = redis.hmget(keys.reduced_basis(calibration_id), ["layout", "arrays"])
+    if layout is None or arrays is None:
+        return None
+    return _json(layout), arrays.encode() if isinstance(arrays, str) else bytes(arrays)
+
+
+def save_chain_result(
+    redis: Redis, calibration_id: str, chain: int, result: dict[str, Any], evaluations: int
+) -> None:
+    """Store a finished chain's result, drop its checkpoint and count its cost evaluations (the
+    metrics' counter), in one MULTI/EXEC."""
+    pipe = redis.pipeline()
     pipe.set(keys.chain_result(calibration_id, chain), json.dumps(result), ex=SCRATCH_TTL)
     pipe.delete(keys.chain_checkpoint(calibration_id, chain))
     pipe.incrby(keys.evaluations_total(), evaluations)
@@ -96,14 +114,6 @@ def get_chain_results(redis: Redis, calibration_id: str, chains: int) -> list[An
     """Each chain's result dict, None for a chain that has not finished: list of ``chains``."""
     raws = redis.mget([keys.chain_result(calibration_id, c) for c in range(chains)])
     return [_json(raw) for raw in raws]
-
-
-def get_chain_equilibria(redis: Redis, calibration_id: str, chain: int) -> bytes | None:
-    """The raw equilibria a chain stored with its result (:func:`save_chain_result`), or None."""
-    raw = redis.get(keys.chain_equilibria(calibration_id, chain))
-    if raw is None:
-        return None
-    return raw.encode() if isinstance(raw, str) else bytes(raw)
 
 
 def has_damping_result(redis: Redis, calibration_id: str) -> bool:
@@ -121,11 +131,11 @@ def get_damping_result(redis: Redis, calibration_id: str) -> dict[str, Any] | No
 def delete_stage_data(
     pipe: Any, calibration_id: str, chains: int, tasks: list[str] | None = None
 ) -> None:
-    """Queue dropping the checkpoints, the damping result and the load-case ``tasks``
-    (:func:`case_tasks`) once the calibration is done (``pipe``: a pipeline, so that it
-    happens with the write of the parameter set)."""
+    """Queue dropping the checkpoints, the reduced basis, the damping result and the load-case
+    ``tasks`` (:func:`case_tasks`) once the calibration is done (``pipe``: a pipeline, so that
+    it happens with the write of the parameter set)."""
     pipe.delete(*[keys.chain_checkpoint(calibration_id, c) for c in range(chains)])
-    pipe.delete(*[keys.chain_equilibria(calibration_id, c) for c in range(chains)])
+    pipe.delete(keys.reduced_basis(calibration_id))
     pipe.delete(keys.damping_result(calibration_id))
     for task in tasks or []:
         pipe.delete(keys.case_run(calibration_id, task))

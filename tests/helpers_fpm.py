@@ -130,3 +130,21 @@ def spring_forces(
     np.add.at(out, springs[:, 0], f)
     np.add.at(out, springs[:, 1], -f)
     return out
+
+
+def stage_one(problem: fpm.Problem, reference: Any, chain: int = 0) -> tuple[list[float], float]:
+    """Stage 1 of a families+volume fit as a calibration makes it: one chain annealing the
+    reduced model on the first basis, then the defect-corrected fit from its answer (the
+    damping stage's polish). Returns (theta, its normalised static cost)."""
+    from fpm.fitting.bounds import fit_depth, stiffness_bounds
+    from fpm.fitting.cost import StaticCost
+    from fpm.fitting.reduced import first_basis, fit_reduced
+    from fpm.fitting.stiffness_stage import run_chain
+    from fpm.fitting.validation import reference_displacements
+
+    annealed = run_chain(problem, reference, chain)
+    cost = StaticCost(problem, reference_displacements(reference, problem), fit_depth(problem))
+    theta, static, _ = fit_reduced(
+        cost, first_basis(problem), annealed.x, stiffness_bounds(problem)
+    )
+    return theta, static

@@ -8,14 +8,13 @@ import copy
 
 import numpy as np
 import pytest
-from helpers_fpm import box_spec, spec_errors
+from helpers_fpm import box_spec, spec_errors, stage_one
 
 import fpm
 from fpm.fem import tet10
 from fpm.fem.materials import hexahedron_stiffness, tetrahedron_elasticity
 from fpm.fem.solution import solve_dirichlet
 from fpm.fitting.cost import StaticCost
-from fpm.fitting.stiffness_stage import run_chain
 from fpm.fitting.validation import reference_displacements
 from fpm.model.anisotropy import closed_form_start, lattice_constants
 from fpm.model.spec import ReferenceSettings
@@ -312,32 +311,29 @@ def test_the_fit_finds_the_axial_scale_and_beats_an_isotropic_lattice():
     spec["reference"] = dict(AS_GIVEN)
     problem = fpm.load_problem(spec)
     reference = fpm.solve_fem(problem)
-    chain = run_chain(problem, reference, 0)
-    assert len(chain.x) == 5 and 4.0 < chain.x[-1] < 16.0
+    x, cost = stage_one(problem, reference)
+    assert len(x) == 5 and 4.0 < x[-1] < 16.0
     iso = copy.deepcopy(spec)
     iso["material"] = {"youngs_modulus": E_T, "poisson_ratio": NU_T, "density": 1000.0}
     iso_problem = fpm.load_problem(iso)
-    iso_chain = run_chain(iso_problem, reference, 0)  # the same reference, no axial scale
-    assert chain.cost < 0.85 * iso_chain.cost
-    fitted, isotropic = (
-        relative(problem, reference, chain.x),
-        relative(iso_problem, reference, iso_chain.x),
-    )
+    iso_x, iso_cost = stage_one(iso_problem, reference)  # the same reference, no axial scale
+    assert cost < 0.85 * iso_cost
+    fitted, isotropic = relative(problem, reference, x), relative(iso_problem, reference, iso_x)
     assert fitted[2] < 0.5 * isotropic[2] and max(fitted) < 20.0
     # the stored form reads back (the axial scale is in 'stiffness')
     record = {
-        "stiffness": stiffness_dict(problem, chain.x),
-        "volume_stiffness": volume_stiffness(problem, chain.x),
+        "stiffness": stiffness_dict(problem, x),
+        "volume_stiffness": volume_stiffness(problem, x),
     }
-    assert record["stiffness"]["axial_scale"] == chain.x[-1]
-    assert fitted_theta(problem, record) == pytest.approx(chain.x)
-    springs = model_stiffness(problem, chain.x).springs / assembly_weights(problem)
+    assert record["stiffness"]["axial_scale"] == x[-1]
+    assert fitted_theta(problem, record) == pytest.approx(x)
+    springs = model_stiffness(problem, x).springs / assembly_weights(problem)
     along = (
         np.abs(np.diff(problem.nodes[problem.solid.springs], axis=1)[:, 0, 2]) > 0.99 * problem.h
     )
     edges = problem.solid.families == 0
-    np.testing.assert_allclose(springs[along & edges], chain.x[0] * chain.x[-1], rtol=1e-12)
-    np.testing.assert_allclose(springs[~along & edges], chain.x[0], rtol=1e-12)
+    np.testing.assert_allclose(springs[along & edges], x[0] * x[-1], rtol=1e-12)
+    np.testing.assert_allclose(springs[~along & edges], x[0], rtol=1e-12)
 
 
 # --- refusals ------------------------------------------------------------------------------------

@@ -1,7 +1,9 @@
 """Stage 1's reduced linear model (fpm.fitting.reduced) against mathematics: the lattice's
 stiffness at rest is linear in the fitted parameters (the shared-pattern K(theta) is the
 tangent assembled at theta), and the reduced model is exact on a basis that holds the exact
-response (Galerkin)."""
+response (Galerkin). And its place in a calibration: the first basis built once and handed to
+the chains gives the same bits as a chain that builds it, a chain given it makes no full
+solve, the defect-corrected fit runs once per calibration (the damping stage's polish)."""
 
 from __future__ import annotations
 
@@ -9,9 +11,22 @@ import numpy as np
 from helpers_fpm import box_spec
 
 import fpm
+from fpm.dynamics.equilibrium import StaticSolver
 from fpm.fitting.cost import StaticCost
-from fpm.fitting.reduced import RTOL, ReducedLinearModel
-from fpm.model.stiffness import continuum_start, family_names, model_stiffness
+from fpm.fitting.reduced import (
+    RTOL,
+    ReducedBasis,
+    ReducedLinearModel,
+    first_basis,
+    unit_matrices,
+)
+from fpm.model.stiffness import (
+    continuum_start,
+    family_names,
+    fitted_theta,
+    linear_parts,
+    model_stiffness,
+)
 
 
 def problem_and_cost(force: float = 0.01) -> tuple[fpm.Problem, StaticCost]:
@@ -33,14 +48,13 @@ def test_the_stiffness_at_rest_is_linear_in_the_parameters():
     """K(theta) from the shared unit matrices equals the tangent at rest assembled at theta."""
     problem, cost = problem_and_cost()
     theta = np.array(continuum_start(problem)) * np.array([1.3, 0.7, 50.0, 1.1])
-    model = ReducedLinearModel(cost, list(theta))
     system, _ = cost.solver.system(0, None)
+    units = unit_matrices(problem, system, linear_parts(problem)[0], None)
     direct = system.tangent(np.zeros((system.n_free, 3)), system.parameters(
         model_stiffness(problem, theta)), modified=True)  # fmt: skip
-    combined = model.cases[0].unit.at(theta)
+    combined = units.at(theta)
     scale = np.abs(direct.toarray()).max()
     assert np.abs((combined - direct).toarray()).max() < 1e-12 * scale
-    units = model.cases[0].unit
     assert len(units) == len(family_names(problem))
     for p, e in enumerate(np.eye(len(units))):  # each K_p alone, on its own nonzero blocks
         alone = system.tangent(np.zeros((system.n_free, 3)), system.parameters(
@@ -57,7 +71,8 @@ def test_the_reduced_model_is_exact_where_its_basis_holds_the_response():
     enrichment solved to a relative residual of RTOL)."""
     problem, cost = problem_and_cost()
     start = continuum_start(problem)
-    model = ReducedLinearModel(cost, start)
+    model = ReducedLinearModel.of(problem, first_basis(problem), cost.reference)
+    model.attach(cost.solver, None)
     theta = np.array(start) * np.array([0.8, 1.2, 30.0, 0.9])
     model.enrich(theta)
     for j, case in enumerate(model.cases):
@@ -67,40 +82,111 @@ def test_the_reduced_model_is_exact_where_its_basis_holds_the_response():
         assert np.abs(case.linear(theta) - full).max() < 10 * RTOL * np.abs(full).max()
 
 
-def test_the_chain_hands_its_equilibria_and_stage_two_validates_beside_the_search():
-    """A families+volume chain returns the static equilibria at its answer (kept out of its
-    JSON): they are the equilibria a fresh solver finds there. Stage 2 started from them
-    takes no Newton step at the chain's answer, and its validation, solved on a thread beside
-    the d search, is what finalize would have solved itself, to the bit."""
-    from fpm.fitting.calibration import finalize
-    from fpm.fitting.damping_stage import fit_damping
-    from fpm.fitting.stiffness_stage import ChainResult, run_chain
-    from fpm.fitting.validation import validate
-
+def small_fit(validation: bool = True, short: bool = True) -> tuple[fpm.Problem, object]:
+    """The 5x4x6 box (families+volume, two load cases, a validation case), with a short
+    schedule (else the default: 15 moves), and its FEM reference."""
     spec = box_spec(
         (5, 4, 6), 0.01,
         forces=[{"at": [0.02, 0.01, 0.05], "vector": [0.0, 0.0, -0.01]}],
         fpm_settings={"stiffness": "families+volume"},
     )  # fmt: skip
     spec["load_cases"].append({"forces": [{"at": [0.04, 0.03, 0.05], "vector": [0.01, 0, 0]}]})
-    spec["validation_cases"] = [{"forces": [{"at": [0.0, 0.0, 0.05], "vector": [0, 0.01, 0]}]}]
+    if validation:
+        spec["validation_cases"] = [{"forces": [{"at": [0.0, 0.0, 0.05], "vector": [0, 0.01, 0]}]}]
     spec["material"]["poisson_ratio"] = 0.45
-    spec["annealing"] = {"t_initial": 1.0, "t_final": 0.5, "beta": 1.0}
+    if short:
+        spec["annealing"] = {"t_initial": 1.0, "t_final": 0.5, "beta": 1.0}
     problem = fpm.load_problem(spec)
-    reference = fpm.solve_fem(problem)
+    return problem, fpm.solve_fem(problem)
+
+
+class CountedSolves:
+    """Counts StaticSolver.linear_solve calls (full solves and V-cycles) while active."""
+
+    def __init__(self, monkeypatch):
+        self.calls = 0
+        real = StaticSolver.linear_solve
+
+        def counted(solver, *args, **kwargs):
+            self.calls += 1
+            return real(solver, *args, **kwargs)
+
+        monkeypatch.setattr(StaticSolver, "linear_solve", counted)
+
+
+def test_a_chain_on_the_stored_basis_equals_one_that_builds_it_and_makes_no_solve(monkeypatch):
+    """The first basis through its stored form (raw arrays, as Redis holds it) gives a chain
+    the same moves, answer and cost to the bit as a chain that builds the basis itself; the
+    chain given it makes no linear solve at all, where building it takes one full solve and
+    one V-cycle per parameter for each load case. A chain resumed from a checkpoint on it ends
+    where the uninterrupted one does (the resumed chain anneals the same reduced model)."""
+    from fpm.fitting.stiffness_stage import run_chain
+
+    problem, reference = small_fit(short=False)
+    counter = CountedSolves(monkeypatch)
+    built = run_chain(problem, reference, 0)
+    n_params, n_cases = len(family_names(problem)), len(problem.load_cases)
+    assert counter.calls == n_cases * (1 + n_params)
+    basis = first_basis(problem)
+    assert basis.solves == n_cases
+    stored = ReducedBasis.from_stored(*basis.to_stored())
+    for a, b in zip(basis.cases, stored.cases, strict=True):
+        for x, y in ((a.free, b.free), (a.basis, b.basis), (a.projected, b.projected),
+                     (a.rhs, b.rhs)):  # fmt: skip
+            assert x.dtype == y.dtype and np.array_equal(x, y)
+    counter.calls = 0
+    checkpoints = []
+    given = run_chain(problem, reference, 0, basis=stored, checkpoint=checkpoints.append)
+    assert counter.calls == 0
+    assert given.x == built.x and given.cost == built.cost and given.history == built.history
+    assert checkpoints
+    resumed = run_chain(problem, reference, 0, basis=stored, resume=checkpoints[0])
+    assert (resumed.x, resumed.cost, resumed.history) == (given.x, given.cost, given.history)
+
+
+def test_the_defect_corrected_fit_runs_once_per_calibration(monkeypatch):
+    """Two chains anneal; the defect-corrected fit runs once, from the best chain's state, in
+    the damping stage, and a static solve at its answer then takes no Newton step (its last
+    round's equilibria are the solver's warm starts). The stage given the first basis lands
+    on the same parameters to the bit as one that builds it, and as calibrate."""
+    import fpm.fitting.damping_stage as damping_stage
+    from fpm.fitting.bounds import stiffness_bounds
+    from fpm.fitting.calibration import calibrate
+    from fpm.fitting.damping_stage import fit_damping
+    from fpm.fitting.reduced import fit_reduced
+    from fpm.fitting.stiffness_stage import run_chain
+
+    problem, reference = small_fit(validation=False)
+    starts = []
+
+    def counted_fit(*args, **kwargs):
+        starts.append(args[2])
+        return fit_reduced(*args, **kwargs)
+
+    monkeypatch.setattr(damping_stage, "fit_reduced", counted_fit)
+    result = calibrate(problem, reference=reference, chains=2, threads=1)
+    assert len(starts) == 1
+    assert starts[0] == min(result.chains, key=lambda c: c.cost).x
+    chains = [run_chain(problem, reference, c) for c in range(2)]
+    stage = fit_damping(problem, reference, chains)
+    given = fit_damping(problem, reference, chains, basis=first_basis(problem))
+    assert stage.theta == given.theta == fitted_theta(problem, result)
+    cost = StaticCost(problem, reference.displacements[:2], None)
+    theta, _, _ = fit_reduced(cost, first_basis(problem), starts[0], stiffness_bounds(problem))
+    assert theta == stage.theta
+    assert [cost.displacements(theta, j).iterations for j in range(2)] == [0, 0]
+
+
+def test_stage_two_validates_beside_the_search():
+    """The validation cases, solved on a thread beside the d search once the polish is done,
+    are what finalize would have solved itself, to the bit."""
+    from fpm.fitting.calibration import finalize
+    from fpm.fitting.damping_stage import fit_damping
+    from fpm.fitting.stiffness_stage import run_chain
+    from fpm.fitting.validation import validate
+
+    problem, reference = small_fit()
     chain = run_chain(problem, reference, 0)
-    assert chain.equilibria is not None and chain.equilibria.shape == (2, problem.n_nodes, 3)
-    assert "equilibria" not in chain.to_dict()
-    assert ChainResult.from_dict(chain.to_dict()).equilibria is None
-    fresh = StaticCost(problem, reference.displacements[:2], None)
-    for j, u in enumerate(chain.equilibria):
-        solved = fresh.displacements(chain.x, j).displacements
-        assert np.abs(solved - u).max() < 1e-4 * np.abs(u).max()
-    seeded = StaticCost(problem, reference.displacements[:2], None)
-    for j, u in enumerate(chain.equilibria):
-        seeded.solver.seed(j, model_stiffness(problem, chain.x), None, u)
-        again = seeded.displacements(chain.x, j)
-        assert again.iterations == 0 and np.array_equal(again.displacements, u)
     stage = fit_damping(problem, reference, [chain])
     assert stage.validation is not None
     checked = None if stage.depth >= stage.full_depth else stage.depth

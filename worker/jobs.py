@@ -1,11 +1,12 @@
-"""RQ job functions: FEM reference, one annealing chain, the damping stage (two-stage method),
-finalize, and the export of a parameter set (enqueued by dotted path).
+"""RQ job functions: FEM reference, stage 1's reduced basis (families+volume), one annealing
+chain, the damping stage (two-stage method), finalize, and the export of a parameter set
+(enqueued by dotted path).
 
 Every job takes ids only and reads what it needs from our keys; every job may run twice
 (a retry after its worker died) and writes its results once, under deterministic keys:
-a finished chain is not re-run, a stopped chain resumes from its checkpoint, a finished
-damping stage is not re-run (an interrupted one starts again: it is deterministic), and the
-parameter set is written with SET NX.
+a stored reduced basis is not built again, a finished chain is not re-run, a stopped chain
+resumes from its checkpoint, a finished damping stage is not re-run (an interrupted one starts
+again: it is deterministic), and the parameter set is written with SET NX.
 
 Progress goes to the calibration's progress hash (:func:`store.keys.calibration_progress`):
 one field per chain, and the field :data:`store.keys.DAMPING_PROGRESS` for the damping stage.
@@ -19,7 +20,6 @@ import json
 import time
 from typing import Any
 
-import numpy as np
 from redis import Redis
 from rq import get_current_job
 from rq.job import Job
@@ -37,6 +37,7 @@ from fpm.fitting.calibration import (
 )
 from fpm.fitting.damping import DampingError
 from fpm.fitting.damping_stage import DampingPlan
+from fpm.fitting.reduced import ReducedBasis, first_basis
 from fpm.io.export import ExportError, export
 from store import keys, records, scratch
 from store.hashing import export_hash
@@ -112,6 +113,33 @@ def fem_reference(fem_hash: str) -> dict[str, Any]:
     return {"id": fem_hash, "cached": False, "n_nodes": len(result.nodes)}
 
 
+def reduced_basis(calibration_id: str) -> dict[str, Any]:
+    """Build and store stage 1's first reduced basis of a families+volume calibration
+    (:func:`fpm.fitting.reduced.first_basis`: from the spec alone, beside the FEM job), which
+    every chain and the damping job read instead of building it. Returns a summary."""
+    job = _job()
+    redis = job.connection
+    record = records.get_calibration(redis, calibration_id)
+    if record is None or record.status.terminal:
+        return {"skipped": True}
+    if scratch.has_reduced_basis(redis, calibration_id):
+        return {"skipped": True}
+    problem = problem_of(redis, record.spec)
+    memory.check(problem.n_nodes)
+    span = _Span(job, calibration_id, BASIS_SPAN, [])
+    basis = first_basis(problem)
+    scratch.save_reduced_basis(redis, calibration_id, *basis.to_stored())
+    span.add()
+    return {"solves": basis.solves, "columns": [c.basis.shape[1] for c in basis.cases]}
+
+
+def _stored_basis(redis: Redis, calibration_id: str) -> ReducedBasis | None:
+    """The calibration's first reduced basis as its job stored it, or None (not built: the
+    chain or damping stage that needs it builds it, to the same bits)."""
+    stored = scratch.get_reduced_basis(redis, calibration_id)
+    return None if stored is None else ReducedBasis.from_stored(*stored)
+
+
 def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
     """Run one annealing chain of a calibration and store its ChainResult."""
     job = _job()
@@ -145,7 +173,7 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
         return {"failed": True}
     saved = scratch.get_checkpoint(redis, calibration_id, chain)
     reporter = _ChainProgress(job, calibration_id, chain)
-    span = _Span(job, calibration_id, f"chain {chain}", [FEM_SPAN])
+    span = _Span(job, calibration_id, f"chain {chain}", [FEM_SPAN, BASIS_SPAN])
     try:
         result = run_chain(
             problem,
@@ -156,6 +184,7 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
                 redis, calibration_id, chain, state.to_dict()
             ),
             resume=Checkpoint.from_dict(saved) if saved else None,
+            basis=_stored_basis(redis, calibration_id),
         )
     except Canceled:
         return {"canceled": True}
@@ -166,10 +195,7 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
         scratch.drop_checkpoint(redis, calibration_id, chain)
         return {"failed": True}
     reporter.flush()
-    equilibria = None if result.equilibria is None else result.equilibria.tobytes()
-    scratch.save_chain_result(
-        redis, calibration_id, chain, result.to_dict(), result.evaluations, equilibria
-    )
+    scratch.save_chain_result(redis, calibration_id, chain, result.to_dict(), result.evaluations)
     span.add()
     return {"x": result.x, "cost": result.cost, "evaluations": result.evaluations}
 
@@ -268,18 +294,6 @@ def _chains_and_reference(
     return chains, FemResult.from_dict(reference)
 
 
-def _with_equilibria(
-    redis: Redis, calibration_id: str, chains: list[ChainResult], problem: Any
-) -> None:
-    """Give each chain the static equilibria at its answer that it stored (where it did):
-    the damping stage starts from them rather than solving them again."""
-    shape = (len(problem.load_cases), problem.n_nodes, 3)
-    for chain in chains:
-        raw = scratch.get_chain_equilibria(redis, calibration_id, chain.chain)
-        if raw is not None and len(raw) == 8 * int(np.prod(shape)):
-            chain.equilibria = np.frombuffer(raw, dtype=np.float64).reshape(shape).copy()
-
-
 def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
     """Two-stage, stage 2: polish the stiffness, resolve the depth, find the fastest d.
 
@@ -302,7 +316,6 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
     chains, reference = found
     problem = problem_of(redis, record.spec)
     memory.check(problem.n_nodes)
-    _with_equilibria(redis, calibration_id, chains, problem)
     reporter = _DampingProgress(job, calibration_id)
     span = _Span(job, calibration_id, "damping", [f"chain {c}" for c in range(record.chains)])
     spreads: list[CaseSpread] = []
@@ -322,7 +335,10 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
         return spreads[-1]
 
     try:
-        stage = fit_damping(problem, reference, chains, progress=reporter, spread=spread)
+        basis = _stored_basis(redis, calibration_id)
+        stage = fit_damping(
+            problem, reference, chains, progress=reporter, spread=spread, basis=basis
+        )
         reporter.flush()
     except Canceled:
         return {"canceled": True}
@@ -387,6 +403,8 @@ def finalize_calibration(calibration_id: str) -> dict[str, Any]:
 
 FEM_SPAN = "FEM reference"
 """The FEM job's span name (it ran for the calibration unless the reference was stored)."""
+BASIS_SPAN = "reduced basis"
+"""The reduced-basis job's span name (families+volume calibrations only)."""
 SPREAD_TIMEOUT = 6 * 3600
 """A load-case job's timeout when the damping job has none, s."""
 

@@ -16,8 +16,10 @@ Either way, depth 'auto' is resolved on static equilibria (:func:`resolve_depth`
 dynamic run at (stiffness, d, depth) gives the reported cost, discrepancies and settle steps.
 
 Data flow (the service runs each step as a job): :func:`check_reference` (units) ->
-:func:`run_chain` (one seeded chain) -> :func:`fit_damping` (two-stage: polish, depth, d) ->
-:func:`finalize` -> :class:`CalibrationResult`. :func:`calibrate` does all of it in-process.
+:func:`run_chain` (one seeded chain; families+volume chains share one first reduced basis,
+:func:`fpm.fitting.reduced.first_basis`, which needs no reference) -> :func:`fit_damping`
+(two-stage: polish, depth, d) -> :func:`finalize` -> :class:`CalibrationResult`.
+:func:`calibrate` does all of it in-process, the same way.
 
 This module is the orchestration (calibrate, finalize, the paper method's pick); the steps live
 beside it, and their entry points and results are importable from here (``__all__``):
@@ -50,11 +52,12 @@ import numpy as np
 from ..dynamics.modes import fixed_max_steps
 from ..model import materials
 from ..model.problem import Problem
-from ..model.stiffness import stiffness_dict, volume_stiffness
+from ..model.stiffness import has_volume, stiffness_dict, volume_stiffness
 from .bounds import damping_bounds, fit_depth, full_depth, mode_notes, stiffness_bounds
 from .cost import CostFunction, StaticCost, dynamic_time_step
 from .damping_stage import DampingStage, fit_damping, resolve_depth
 from .field import field_parts
+from .reduced import first_basis
 from .result import CalibrationResult, ChainSummary
 from .stiffness_stage import ChainResult, Progress, constrained_cost, run_chain
 from .validation import (
@@ -257,10 +260,13 @@ def calibrate(
             progress({"phase": "fem"})
         reference = reference_for(problem)
     warnings = check_reference(problem, reference)
+    two_stage = problem.spec.annealing.method == "two-stage"
+    # families+volume: the chains' first reduced basis, built once for all of them
+    basis = first_basis(problem) if two_stage and has_volume(problem) else None
 
     def one(chain: int) -> ChainResult:
         cb = None if progress is None else (lambda info: progress({"phase": "annealing", **info}))
-        return run_chain(problem, reference, chain, progress=cb)
+        return run_chain(problem, reference, chain, progress=cb, basis=basis)
 
     workers = min(n, threads or os.cpu_count() or 1)
     if workers == 1:
@@ -268,10 +274,9 @@ def calibrate(
     else:
         with ThreadPoolExecutor(workers) as pool:
             results = list(pool.map(one, range(n)))
-    problem.cache.pop("reduced_units", None)  # stage 1's shared matrices (fpm.fitting.reduced)
     damping = None
-    if problem.spec.annealing.method == "two-stage":
-        damping = fit_damping(problem, reference, results, progress=progress)
+    if two_stage:
+        damping = fit_damping(problem, reference, results, progress=progress, basis=basis)
     if progress is not None:
         progress({"phase": "finalize"})
     return finalize(problem, reference, results, damping, warnings=warnings)

@@ -28,7 +28,12 @@ from typing import Any
 import numpy as np
 
 from ..dynamics.equilibrium import StaticSolver
-from ..dynamics.modes import FALLBACK_STEPS, auto_max_steps, predict_damping
+from ..dynamics.modes import (
+    FALLBACK_STEPS,
+    auto_max_steps,
+    predict_damping,
+    single_threaded_blas,
+)
 from ..dynamics.stability import stable_time_step, time_step
 from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
 from ..model.forces import Stiffness
@@ -38,6 +43,7 @@ from .bounds import damping_bounds, fit_depth, full_depth, stiffness_bounds
 from .cost import StaticCost
 from .damping import DampingFit, Spread, critical_damping, fastest_damping
 from .field import fit_field
+from .reduced import ReducedBasis, first_basis, fit_reduced
 from .stiffness_stage import (
     POLISH_SPAN,
     UNIFORM_SPAN,
@@ -189,9 +195,15 @@ def fit_damping(
     *,
     progress: Progress | None = None,
     spread: Callable[[DampingPlan], Spread | None] | None = None,
+    basis: ReducedBasis | None = None,
 ) -> DampingStage:
     """Two-stage, after the chains: polish the best stiffness (at the depth the chains fitted
     at), resolve the depth, find d.
+
+    families+volume (and field): the polish is the defect-corrected reduced fit
+    (:func:`fpm.fitting.reduced.fit_reduced`) from the best chain's state on ``basis``, the
+    calibration's first basis (built here when None: the same bits); its last round's static
+    equilibria are the warm starts of the stage's static solves at the answer.
 
     ``spread``: given the :class:`DampingPlan` (what a run needs besides d and its caps),
     the :class:`~fpm.fitting.damping.Spread` that runs the predicted d's load cases and the
@@ -204,7 +216,7 @@ def fit_damping(
     """
     side = ThreadPoolExecutor(1, thread_name_prefix="validation")
     try:
-        stage = _fit_damping(problem, reference, chains, progress, spread, side)
+        stage = _fit_damping(problem, reference, chains, progress, spread, side, basis)
     except BaseException:  # a failed or canceled stage does not wait for its validation
         side.shutdown(wait=False, cancel_futures=True)
         raise
@@ -219,44 +231,35 @@ def _fit_damping(
     progress: Progress | None,
     spread: Callable[[DampingPlan], Spread | None] | None,
     side: ThreadPoolExecutor,
+    basis: ReducedBasis | None,
 ) -> DampingStage:
     """:func:`fit_damping`'s work; ``side`` runs the validation cases' static solves while
     the stage goes on (they need the final stiffness and depth, not d): with families+volume
-    the chain's answer is final, so they start at once, at full depth, on a core the stage's
-    single-threaded static work leaves idle; otherwise once the depth is chosen. A field's
+    they start once the polish is done, at full depth, on a core the stage's single-threaded
+    static work leaves idle; otherwise once the depth is chosen. A field's
     model is validated by finalize."""
     t0 = time.perf_counter()
     disp = reference_displacements(reference, problem)
     best = chain_to_polish(problem, chains)
     validating: dict[int | None, Future[Validation]] = {}
     checks = bool(problem.validation_cases) and not is_field(problem)
-    if checks and has_volume(problem):
-        validating[None] = side.submit(validate, problem, reference, list(best.x), None)
     cost = StaticCost(problem, disp, fit_depth(problem))
-    if best.equilibria is not None:  # the chain's last solves: no need to solve them again
-        at_best = model_stiffness(problem, best.x)
-        for j, u in enumerate(best.equilibria):
-            cost.solver.seed(j, at_best, cost.depth, u)
     if progress is not None:
         progress({"phase": "polish"})
     bounds = stiffness_bounds(problem)
-    start, ceilings = best.x, None
-    if len(start) > 1 and not has_volume(problem):
-        uniform, _ = polish(
-            cost, [float(np.exp(np.mean(np.log(start))))], (bounds[0][:1], bounds[1][:1]),
-            progress, span=UNIFORM_SPAN, uniform=len(start),
-        )  # fmt: skip
-        ceilings = cost(uniform * len(start)).case_costs
-        chains_best = constrained_cost(cost(start), cost.reference_cost, ceilings)
-        if constrained_cost(cost(uniform * len(start)), cost.reference_cost, None) < chains_best:
-            start = uniform * len(start)
-    span = UNIFORM_SPAN if len(start) > 1 else POLISH_SPAN
-    if has_volume(problem):  # the chains' defect-corrected fit is the polish
-        theta = list(start)
+    solves = 0
+    if has_volume(problem):  # the defect-corrected reduced fit is the polish
+        with single_threaded_blas():
+            theta, _, solves = fit_reduced(
+                cost, basis or first_basis(problem), best.x, bounds, progress
+            )
+        problem.cache.pop("reduced_units", None)  # its unit matrices are not needed again
+        if checks:  # the stiffness is final: its validation at full depth starts now
+            validating[None] = side.submit(validate, problem, reference, list(theta), None)
     else:
-        theta, _ = polish(cost, start, bounds, progress, span=span, ceilings=ceilings)
+        theta = _polish(cost, best.x, bounds, progress)
     static_cost = cost(theta).cost / cost.reference_cost
-    evaluations = cost.evaluations
+    evaluations = cost.evaluations + solves
     depth = fit_depth(problem)
     if progress is not None:
         progress({"phase": "depth"})
@@ -319,6 +322,30 @@ def _fit_damping(
         field=None if field is None else field.to_dict(),
         validation=validation,
     )
+
+
+def _polish(
+    cost: StaticCost,
+    start: list[float],
+    bounds: tuple[np.ndarray, np.ndarray],
+    progress: Progress | None,
+) -> list[float]:
+    """The polished stiffness from the chains' best ``start`` (not families+volume): with
+    families, from the better of it and the best single k, under that k's case costs as
+    ceilings (:func:`fpm.fitting.stiffness_stage.polish`)."""
+    ceilings = None
+    if len(start) > 1:
+        uniform, _ = polish(
+            cost, [float(np.exp(np.mean(np.log(start))))], (bounds[0][:1], bounds[1][:1]),
+            progress, span=UNIFORM_SPAN, uniform=len(start),
+        )  # fmt: skip
+        ceilings = cost(uniform * len(start)).case_costs
+        chains_best = constrained_cost(cost(start), cost.reference_cost, ceilings)
+        if constrained_cost(cost(uniform * len(start)), cost.reference_cost, None) < chains_best:
+            start = uniform * len(start)
+    span = UNIFORM_SPAN if len(start) > 1 else POLISH_SPAN
+    theta, _ = polish(cost, start, bounds, progress, span=span, ceilings=ceilings)
+    return list(theta)
 
 
 def damping_guesses(

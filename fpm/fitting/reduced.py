@@ -20,12 +20,18 @@ to the reduced model's displacements, ``Q y(theta) + delta_j``; until the minimi
 delta changes slowly with theta, so a few rounds (one linear and one warm-started static solve
 per load case each) reach the minimiser of the nonlinear cost, where a derivative-free polish
 on static solves would need a hundred.
+
+Who does what in a calibration: the first basis (:func:`first_basis`: the response at the
+chains' start and how it turns) depends on the lattice, the loads and the start only, so it is
+built once (:class:`ReducedBasis`; the service's reduced-basis job, beside the FEM job); every
+chain anneals the reduced cost on it (no full solve); the defect-corrected fit
+(:func:`fit_reduced`) runs once, from the best chain's state, as the damping stage's polish.
 """
 
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -34,8 +40,11 @@ import scipy.sparse as sp
 from numba import njit
 from scipy.optimize import minimize
 
+from ..dynamics.equilibrium import StaticSolver
+from ..dynamics.modes import single_threaded_blas
 from ..model.problem import Problem
-from ..model.stiffness import linear_parts
+from ..model.stiffness import continuum_start, linear_parts
+from .bounds import fit_depth, stiffness_bounds
 from .cost import StaticCost
 
 CONVERGED = 2e-3
@@ -48,21 +57,103 @@ MAX_EVALUATIONS = 400
 """Nelder-Mead evaluations of the reduced cost per round."""
 
 
-@dataclass
-class _Case:
-    """One load case's reduced model: basis (M, m) over its free nodes, K_p projected, f."""
+@dataclass(frozen=True)
+class CaseBasis:
+    """One load case's first basis (:func:`first_basis`): what of its reduced model does not
+    depend on the reference.
+
+    Attributes:
+        free: (M,) int64, the free nodes of the case's list, ascending.
+        basis: (3M, m) orthonormal columns over them, node-major (x, y, z of free[0], ...).
+        projected: (P, m, m) the K_p projected on the basis, Q^T K_p Q, N/m.
+        rhs: (m,) the case's forces projected, Q^T f, N.
+    """
 
     free: np.ndarray
-    unit: UnitMatrices  # the K_p
-    loads: np.ndarray  # (3M,)
-    reference: np.ndarray  # (M, 3) reference displacements of the free nodes
-    held: float  # sum of |reference| over the nodes that do not move in this list
+    basis: np.ndarray
+    projected: np.ndarray
+    rhs: np.ndarray
+
+
+@dataclass(frozen=True)
+class ReducedBasis:
+    """Every load case's first basis at the chains' start: the same for every chain of a
+    calibration, so built once (the service's reduced-basis job, beside the FEM job) and handed
+    to the chains and the damping stage (raw arrays through Redis: :meth:`to_stored`).
+
+    Attributes:
+        cases: one per load case.
+        solves: full linear solves it took (one per load case; the turns are V-cycles).
+    """
+
+    cases: tuple[CaseBasis, ...]
+    solves: int
+
+    def to_stored(self) -> tuple[dict[str, Any], bytes]:
+        """(the layout as a JSON-able dict, the arrays' raw bytes one after the other: per case
+        free as int64, then basis, projected and rhs as float64)."""
+        layout: dict[str, Any] = {"solves": self.solves, "cases": []}
+        parts = []
+        for case in self.cases:
+            layout["cases"].append({"nodes": len(case.free), "columns": case.basis.shape[1],
+                                    "parameters": case.projected.shape[0]})  # fmt: skip
+            parts.append(np.ascontiguousarray(case.free, dtype=np.int64).tobytes())
+            for a in (case.basis, case.projected, case.rhs):
+                parts.append(np.ascontiguousarray(a, dtype=np.float64).tobytes())
+        return layout, b"".join(parts)
+
+    @classmethod
+    def from_stored(cls, layout: dict[str, Any], raw: bytes) -> ReducedBasis:
+        """The basis back from :meth:`to_stored`'s layout and bytes (the same bits)."""
+        cases, offset = [], 0
+
+        def take(shape: tuple[int, ...], dtype: type[np.generic]) -> np.ndarray:
+            nonlocal offset
+            size = int(np.prod(shape)) * 8
+            a = np.frombuffer(raw, dtype=dtype, count=size // 8, offset=offset).reshape(shape)
+            offset += size
+            return a.copy()
+
+        for c in layout["cases"]:
+            n, m, p = c["nodes"], c["columns"], c["parameters"]
+            free = take((n,), np.int64)
+            basis, projected = take((3 * n, m), np.float64), take((p, m, m), np.float64)
+            cases.append(CaseBasis(free, basis, projected, take((m,), np.float64)))
+        if offset != len(raw):
+            raise ValueError(f"a stored reduced basis of {len(raw)} bytes, its layout {offset}")
+        return cls(tuple(cases), int(layout["solves"]))
+
+
+@dataclass
+class _Case:
+    """One load case's reduced model: basis (M, m) over its free nodes, K_p projected, f; the
+    reference where the cost is wanted (:meth:`ReducedLinearModel.of`), the unit matrices and
+    loads where the basis grows (:meth:`ReducedLinearModel.attach`)."""
+
+    free: np.ndarray
     basis: np.ndarray  # (3M, m)
     projected: np.ndarray  # (P, m, m)
     rhs: np.ndarray  # (m,)
+    reference: np.ndarray | None = None  # (M, 3) reference displacements of the free nodes
+    held: float = 0.0  # sum of |reference| over the nodes that do not move in this list
+    unit: UnitMatrices | None = None  # the K_p
+    loads: np.ndarray | None = None  # (3M,)
     correction: np.ndarray | None = None  # (M, 3) nonlinear minus linear displacements
     last: np.ndarray | None = None  # (3M,) the last full linear response added
     offset: np.ndarray | None = None  # (M, 3) correction minus reference (set by :meth:`cost`)
+
+    @classmethod
+    def of(cls, basis: CaseBasis, reference: np.ndarray) -> _Case:
+        """The case of ``basis`` against ``reference`` (N, 3), m."""
+        moving = np.zeros(len(reference), dtype=bool)
+        moving[basis.free] = True
+        held = float(np.linalg.norm(reference[~moving], axis=1).sum())
+        return cls(basis.free, basis.basis, basis.projected, basis.rhs,
+                   reference=reference[basis.free], held=held)  # fmt: skip
+
+    def stored(self) -> CaseBasis:
+        """The basis as it stands (:class:`CaseBasis`)."""
+        return CaseBasis(self.free, self.basis, self.projected, self.rhs)
 
     def add(self, response: np.ndarray, *, last: bool = True) -> None:
         """Extend the basis by ``response`` (3M,) (Gram-Schmidt twice; dropped if dependent);
@@ -78,6 +169,7 @@ class _Case:
         if size == 0 or left <= 1e-10 * size:
             return
         v /= left
+        assert self.unit is not None and self.loads is not None  # attached
         self.basis = np.column_stack([self.basis, v])
         kv = np.stack([self.unit.matrix(p) @ v for p in range(len(self.unit))])  # (P, 3M)
         column = np.einsum("ia,pi->pa", self.basis, kv)  # (P, m)
@@ -112,6 +204,7 @@ class _Case:
         except np.linalg.LinAlgError:
             return float("inf")
         if self.offset is None:
+            assert self.reference is not None
             base = -self.reference if self.correction is None else self.correction - self.reference
             self.offset = np.ascontiguousarray(base, dtype=float)
         return _reduced_cost(self.basis, y, self.offset) + self.held
@@ -240,60 +333,50 @@ def unit_matrices(
 
 
 class ReducedLinearModel:
-    """The linear lattice of every load case on a growing basis (this module's docstring).
+    """The linear lattice of every load case on a growing basis (this module's docstring):
+    Eq. (2) of the reduced model at any theta (:meth:`__call__`, given the reference by
+    :meth:`of`); once :meth:`attach` ed to a static solver, :meth:`enrich` grows the bases by
+    full linear solves.
 
     Args:
-        cost: the static cost (its solver's lists, multigrid and linear solves are used).
-        start: parameters whose response, and the directions in which it turns as each
-            parameter grows, make the first basis.
+        problem: the problem.
+        cases: one per load case.
     """
 
-    def __init__(self, cost: StaticCost, start: list[float]):
-        self.cost = cost
-        self.problem: Problem = cost.problem
+    def __init__(self, problem: Problem, cases: list[_Case]):
+        self.problem = problem
+        self.cases = cases
         self.solves = 0
         # K(theta) = sum_p c_p(theta) K_p: c = theta but for a transversely isotropic lattice
-        units, self.coefficients = linear_parts(self.problem)
-        n = len(units)
-        solver = cost.solver
-        self.cases: list[_Case] = []
-        for j in range(len(self.problem.load_cases)):
-            system, _ = solver.system(j, cost.depth)
-            unit = unit_matrices(self.problem, system, units, cost.depth)
-            loads = solver.loads(j)
-            reference = cost.reference[j]
-            moving = np.zeros(self.problem.n_nodes, dtype=bool)
-            moving[system.free] = True
-            held = float(np.linalg.norm(reference[~moving], axis=1).sum())
-            self.cases.append(
-                _Case(
-                    free=system.free,
-                    unit=unit,
-                    loads=np.ascontiguousarray(loads[system.free]).ravel(),
-                    reference=reference[system.free],
-                    held=held,
-                    basis=np.zeros((3 * system.n_free, 0)),
-                    projected=np.zeros((n, 0, 0)),
-                    rhs=np.zeros(0),
-                )
-            )
-        theta = np.asarray(start, dtype=float)
-        self.enrich(theta)
-        # How the response turns as each parameter grows: du/dtheta_p = -K^-1 K_p u, taken as
-        # one multigrid V-cycle on K_p u (a direction for the basis; exact solves come later).
-        formed: dict[int, sp.bsr_matrix] = {}
+        self.parts, self.coefficients = linear_parts(problem)
+        self.solver: StaticSolver | None = None
+        self.depth: int | None = None
+
+    @classmethod
+    def of(cls, problem: Problem, basis: ReducedBasis, reference: np.ndarray) -> ReducedLinearModel:
+        """The model on ``basis`` whose cost measures against ``reference`` (L, N, 3), m."""
+        cases = [_Case.of(b, reference[j]) for j, b in enumerate(basis.cases)]
+        return cls(problem, cases)
+
+    def attach(self, solver: StaticSolver, depth: int | None) -> None:
+        """Give each case what its basis grows by: its list's unit matrices (shared through
+        ``problem.cache``: :func:`unit_matrices`) and loads, and ``solver`` for the linear
+        solves at ``depth`` (its multigrid hierarchies serve them)."""
+        self.solver, self.depth = solver, depth
         for j, case in enumerate(self.cases):
-            assert case.last is not None
-            matrix = self._matrix(case, theta, formed)
-            for p in range(len(case.unit)):
-                loads = np.zeros((self.problem.n_nodes, 3))
-                loads[case.free] = (case.unit.matrix(p) @ case.last).reshape(-1, 3)
-                turn = solver.linear_solve(j, cost.depth, matrix, loads, rtol=1.0)
-                case.add(np.ascontiguousarray(turn[case.free]).ravel(), last=False)
+            system, _ = solver.system(j, depth)
+            assert np.array_equal(system.free, case.free)
+            case.unit = unit_matrices(self.problem, system, self.parts, depth)
+            case.loads = np.ascontiguousarray(solver.loads(j)[system.free]).ravel()
+
+    def basis(self) -> ReducedBasis:
+        """The bases as they stand (:class:`ReducedBasis`)."""
+        return ReducedBasis(tuple(case.stored() for case in self.cases), self.solves)
 
     def enrich(self, theta: np.ndarray) -> None:
         """Add the full linear responses at ``theta`` to every load case's basis."""
-        solver = self.cost.solver
+        solver = self.solver
+        assert solver is not None  # attached
         formed: dict[int, sp.bsr_matrix] = {}
         for j, case in enumerate(self.cases):
             guess = None
@@ -302,10 +385,26 @@ class ReducedLinearModel:
                 guess[case.free] = case.linear(self.coefficients(theta)).reshape(-1, 3)
             matrix = self._matrix(case, theta, formed)
             response = solver.linear_solve(
-                j, self.cost.depth, matrix, solver.loads(j), guess=guess, rtol=RTOL
+                j, self.depth, matrix, solver.loads(j), guess=guess, rtol=RTOL
             )
             self.solves += 1
             case.add(np.ascontiguousarray(response[case.free]).ravel())
+
+    def turn(self, theta: np.ndarray) -> None:
+        """Add how each case's last response turns as each parameter grows,
+        du/dtheta_p = -K^-1 K_p u, taken as one multigrid V-cycle on K_p u (a direction for
+        the basis; exact solves come later)."""
+        solver = self.solver
+        assert solver is not None  # attached
+        formed: dict[int, sp.bsr_matrix] = {}
+        for j, case in enumerate(self.cases):
+            assert case.last is not None and case.unit is not None
+            matrix = self._matrix(case, theta, formed)
+            for p in range(len(case.unit)):
+                loads = np.zeros((self.problem.n_nodes, 3))
+                loads[case.free] = (case.unit.matrix(p) @ case.last).reshape(-1, 3)
+                turn = solver.linear_solve(j, self.depth, matrix, loads, rtol=1.0)
+                case.add(np.ascontiguousarray(turn[case.free]).ravel(), last=False)
 
     def _matrix(
         self, case: _Case, theta: np.ndarray, formed: dict[int, sp.bsr_matrix]
@@ -313,6 +412,7 @@ class ReducedLinearModel:
         """K(theta) of ``case``'s list, formed once per call site for the load cases that share
         the list's unit matrices (at full depth every case: 3 sums of 0.16 s each became one
         on the organ at h = 3 mm); ``formed`` keeps them by the unit matrices' identity."""
+        assert case.unit is not None  # attached
         key = id(case.unit)
         if key not in formed:
             formed[key] = case.unit.at(self.coefficients(theta))
@@ -324,6 +424,37 @@ class ReducedLinearModel:
         return float(sum(case.cost(c) for case in self.cases))
 
 
+def chain_start(problem: Problem) -> list[float]:
+    """Where families+volume chains start, and their first basis is built: the continuum
+    start (:func:`fpm.model.stiffness.continuum_start`) inside the stiffness bounds."""
+    lower, upper = stiffness_bounds(problem)
+    return list(np.clip(continuum_start(problem), lower, upper))
+
+
+def first_basis(problem: Problem) -> ReducedBasis:
+    """Every load case's first basis at :func:`chain_start`, at the depth the chains fit at:
+    the full linear response there and how it turns as each parameter grows (one linear solve
+    and P V-cycles per load case). It depends on the lattice, the loads and the start only,
+    not on the reference. Built on a static solver of its own (whoever takes the basis solves
+    on a solver it did not touch, so the answers do not depend on who built it) with one BLAS
+    thread (the same bits in a chain, the damping stage or a job of their own)."""
+    with single_threaded_blas():
+        solver = StaticSolver(problem)
+        depth = fit_depth(problem)
+        n = len(linear_parts(problem)[0])
+        cases = []
+        for j in range(len(problem.load_cases)):
+            system, _ = solver.system(j, depth)
+            cases.append(_Case(system.free, np.zeros((3 * system.n_free, 0)),
+                               np.zeros((n, 0, 0)), np.zeros(0)))  # fmt: skip
+        model = ReducedLinearModel(problem, cases)
+        model.attach(solver, depth)
+        theta = np.asarray(chain_start(problem), dtype=float)
+        model.enrich(theta)
+        model.turn(theta)
+        return model.basis()
+
+
 DEFECT_ROUNDS = 8
 """At most this many rounds: a reduced fit, then a full linear and a static solve per load case
 at its minimiser (the basis grows, the defect is renewed)."""
@@ -331,24 +462,26 @@ at its minimiser (the basis grows, the defect is renewed)."""
 
 def fit_reduced(
     cost: StaticCost,
+    basis: ReducedBasis,
     start: list[float],
     bounds: tuple[np.ndarray, np.ndarray],
-    model: ReducedLinearModel | None = None,
-) -> tuple[list[float], float, ReducedLinearModel, np.ndarray | None]:
+    progress: Callable[[dict[str, Any]], None] | None = None,
+) -> tuple[list[float], float, int]:
     """Minimise Eq. (2) of the nonlinear static equilibria within ``bounds`` from ``start``:
-    reduced linear fits with enrichment, corrected by the nonlinear defect until the minimiser
-    stops moving (this module's docstring).
+    reduced linear fits on ``basis`` with enrichment, corrected by the nonlinear defect until
+    the minimiser stops moving (this module's docstring). The static equilibria at the answer
+    stay in ``cost``'s solver as its warm starts, so a static solve there takes no Newton step.
+    ``progress`` gets {phase: "polish", round, evaluations} after each round.
 
     Returns (parameters, their normalised static cost (inf if a load case has no equilibrium),
-    the model, the static equilibria at the parameters (L, N, 3), m, or None if one did not
-    converge)."""
-    model = ReducedLinearModel(cost, start) if model is None else model
+    the full linear solves it made)."""
+    model = ReducedLinearModel.of(cost.problem, basis, cost.reference)
+    model.attach(cost.solver, cost.depth)
     lo, hi = np.log(bounds[0]), np.log(bounds[1])
     y = np.clip(np.log(np.asarray(start, dtype=float)), lo, hi)
     static = float("inf")
-    equilibria: np.ndarray | None = None
     step = FIRST_STEP
-    for _ in range(DEFECT_ROUNDS):
+    for rounds in range(1, DEFECT_ROUNDS + 1):
         previous = y
         y = _reduced_minimum(model, y, lo, hi, step)
         step = max(min(step, 2 * float(np.abs(y - previous).max())), 10 * CONVERGED)
@@ -356,18 +489,19 @@ def fit_reduced(
         model.enrich(theta)  # the full linear response at theta joins the basis
         solved = [cost.displacements(theta, j) for j in range(len(model.cases))]
         if not all(e.converged for e in solved):
-            static, equilibria = float("inf"), None
+            static = float("inf")
             break
-        equilibria = np.stack([e.displacements for e in solved])
         cost.evaluations += 1
         static = sum(cost.case_cost(j, e.displacements) for j, e in enumerate(solved))
         static /= cost.reference_cost
         for case, equilibrium in zip(model.cases, solved, strict=True):
             assert case.last is not None
             case.set_correction(equilibrium.displacements[case.free] - case.last.reshape(-1, 3))
+        if progress is not None:
+            progress({"phase": "polish", "round": rounds, "evaluations": cost.evaluations})
         if float(np.abs(y - previous).max()) < CONVERGED:
             break
-    return list(np.exp(y)), static, model, equilibria
+    return list(np.exp(y)), static, model.solves
 
 
 def _reduced_minimum(

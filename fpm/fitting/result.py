@@ -18,7 +18,10 @@ class ChainSummary(BaseModel):
 
     chain: int
     x: list[float] = Field(description="best state: stiffness parameters, N/m (paper: then d)")
-    cost: float = Field(description="its normalised cost")
+    cost: float = Field(
+        description="its normalised cost (families+volume: of the reduced linear model the "
+        "chain anneals; the damping stage's polish then fits the static equilibria)"
+    )
     evaluations: int
 
 

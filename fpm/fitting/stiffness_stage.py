@@ -7,7 +7,9 @@ space) inside the box of :mod:`fpm.fitting.bounds`:
   N/m; then kappa, Pa, for families+volume), each candidate's cost Eq. (2) taken at its static
   equilibria (:class:`fpm.fitting.cost.StaticCost`). The chain starts from the linear estimate
   (:func:`linear_estimate`); families+volume start from the continuum start and anneal the
-  reduced linear model (:mod:`fpm.fitting.reduced`), whose defect-corrected fit ends the chain;
+  reduced linear model (:mod:`fpm.fitting.reduced`) on the calibration's first basis (built
+  once, handed to every chain); its defect-corrected fit, from the best chain's state, is the
+  damping stage's polish;
 - paper: over (theta, d) jointly (d in N s/m), each candidate run dynamically to rest
   (:class:`fpm.fitting.cost.CostFunction`); an unsettled candidate is rejected.
 
@@ -16,8 +18,9 @@ outcome, :class:`ChainResult` (its best x and cost, and the states near it, :cla
 JSON-able: the service runs each chain as a job and stores it.
 
 After the chains (two-stage, :func:`fpm.fitting.damping_stage.fit_damping`), :func:`polish`
-refines the best state by a bounded local minimisation of the static cost in log theta; a
-families fit is polished under ceilings, the single-k fit's per-case costs
+refines the best state by a bounded local minimisation of the static cost in log theta
+(families+volume: :func:`fpm.fitting.reduced.fit_reduced` instead); a families fit is polished
+under ceilings, the single-k fit's per-case costs
 (:func:`constrained_cost`).
 """
 
@@ -26,7 +29,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -36,7 +39,6 @@ from ..dynamics.modes import single_threaded_blas
 from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
 from ..model.problem import Problem
 from ..model.stiffness import (
-    continuum_start,
     family_names,
     has_volume,
     model_stiffness,
@@ -45,7 +47,7 @@ from ..model.stiffness import (
 from .annealing import AnnealingError, Checkpoint, Schedule, State, anneal
 from .bounds import damping_bounds, fit_depth, stiffness_bounds
 from .cost import CostFunction, Evaluation, StaticCost
-from .reduced import ReducedLinearModel, fit_reduced
+from .reduced import ReducedBasis, ReducedLinearModel, chain_start, first_basis
 from .validation import reference_displacements
 
 POLISH_SPAN = 0.1
@@ -89,16 +91,13 @@ class ChainResult:
         chain: chain index (the generator is seeded with (spec seed, chain)).
         method: "two-stage" (x = stiffness parameters) or "paper" (x = stiffness + [d]).
         x: best state; stiffness in N/m, d in N s/m.
-        cost: its normalised cost (Eq. 2 / reference cost).
+        cost: its normalised cost (Eq. 2 / reference cost; families+volume: of the reduced
+            linear model).
         evaluations: cost evaluations (one per move, plus the start search's).
         accepted: accepted moves.
         history: normalised current cost after each move.
         near_best: states within 1% of this chain's best (:class:`NearBest`).
         seconds: wall time.
-        equilibria: (L, N, 3) the static equilibria at x, m, where the chain solved them last
-            (families+volume's defect-corrected fit), else None: stage 2 starts from them
-            instead of solving anew. Not in :meth:`to_dict` (the service stores the raw
-            float64 array beside the JSON).
     """
 
     chain: int
@@ -110,12 +109,9 @@ class ChainResult:
     history: list[float]
     near_best: list[NearBest]
     seconds: float
-    equilibria: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict[str, Any]:
-        data = asdict(replace(self, equilibria=None))
-        del data["equilibria"]
-        return data
+        return asdict(self)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ChainResult:
@@ -130,11 +126,14 @@ def run_chain(
     progress: Progress | None = None,
     checkpoint: Callable[[Checkpoint], None] | None = None,
     resume: Checkpoint | None = None,
+    basis: ReducedBasis | None = None,
 ) -> ChainResult:
     """One annealing chain, seeded by (spec seed, ``chain``): exactly repeatable.
 
-    Two-stage: over the stiffness parameters, each evaluation a static solve. Paper: over
-    (stiffness, d), each evaluation dynamic runs to rest.
+    Two-stage: over the stiffness parameters, each evaluation a static solve; families+volume:
+    each evaluation the reduced linear model on ``basis``, the calibration's first basis
+    (:func:`fpm.fitting.reduced.first_basis`, built here when None: the same bits), no
+    full solve at all. Paper: over (stiffness, d), each evaluation dynamic runs to rest.
     ``progress`` gets {chain, move, moves, temperature, best_cost, current_cost} after each move;
     ``checkpoint`` gets a :class:`~fpm.fitting.annealing.Checkpoint` every few moves, which
     ``resume`` continues from.
@@ -145,7 +144,7 @@ def run_chain(
     """
     # a chain shares the cores with the other chains: a threaded BLAS only waits
     with single_threaded_blas():
-        return _run_chain(problem, reference, chain, progress, checkpoint, resume)
+        return _run_chain(problem, reference, chain, progress, checkpoint, resume, basis)
 
 
 def _run_chain(
@@ -155,6 +154,7 @@ def _run_chain(
     progress: Progress | None,
     checkpoint: Callable[[Checkpoint], None] | None,
     resume: Checkpoint | None,
+    basis: ReducedBasis | None,
 ) -> ChainResult:
     """:func:`run_chain`'s work."""
     t0 = time.perf_counter()
@@ -166,16 +166,14 @@ def _run_chain(
     objective: Callable[[list[float]], State]
     initial: list[float] | None = None  # two-stage: the linear estimate
     reduced: ReducedLinearModel | None = None
-    equilibria: np.ndarray | None = None  # the static equilibria at the chain's answer
     if a.method == "two-stage":
         static = StaticCost(problem, disp, depth)
         reference_cost = static.reference_cost
-        if has_volume(problem) and resume is None:
-            # families+volume: the chain anneals the reduced linear model (fpm.fitting.reduced),
-            # then the defect-corrected reduced fit lands on the static equilibria's minimum.
-            reduced = ReducedLinearModel(
-                static, list(np.clip(continuum_start(problem), lower, upper))
-            )
+        if has_volume(problem):
+            # families+volume: the chain anneals the reduced linear model (fpm.fitting.reduced)
+            # on the calibration's first basis; the damping stage's defect-corrected fit from
+            # the best chain's state lands on the static equilibria's minimum.
+            reduced = ReducedLinearModel.of(problem, basis or first_basis(problem), disp)
 
         def objective(x: list[float]) -> State:
             if reduced is not None:
@@ -188,7 +186,7 @@ def _run_chain(
         if resume is not None:
             initial = None
         elif has_volume(problem):  # the closed form is the natural start (fpm.model.stiffness)
-            initial = list(np.clip(continuum_start(problem), lower, upper))
+            initial = chain_start(problem)
         else:
             initial = [linear_estimate(static, lower[0], upper[0])] * n
 
@@ -233,23 +231,16 @@ def _run_chain(
         NearBest(s.x, s.cost, s.info.get("steps"), s.info.get("settled", True))
         for s in result.near_best
     ]
-    best_x, best_cost, evaluations = list(result.best.x), result.best.cost, result.evaluations
-    if reduced is not None:
-        best_x, best_cost, reduced, equilibria = fit_reduced(
-            static, best_x, (lower, upper), reduced
-        )
-        evaluations += reduced.solves
     return ChainResult(
         chain=chain,
         method=a.method,
-        x=best_x,
-        cost=best_cost,
-        evaluations=evaluations,
+        x=list(result.best.x),
+        cost=result.best.cost,
+        evaluations=result.evaluations,
         accepted=result.accepted,
         history=result.history,
         near_best=near,
         seconds=time.perf_counter() - t0,
-        equilibria=equilibria,
     )
 
 

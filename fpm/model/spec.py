@@ -55,6 +55,11 @@ class _Strict(BaseModel):
 MaterialModel = Literal["linear", "neo-hookean"]
 StiffnessMode = Literal["families+volume", "single", "families", "field"]
 STIFFNESS_MODES: tuple[str, ...] = get_args(StiffnessMode)
+VOLUME_MODES = ("families+volume", "field")
+"""The stiffness modes with the volume term and springs assembled from cells (theta: the
+families, then kappa); ``field`` adds per-cell factors on top
+(:func:`fpm.model.stiffness.field_stiffness`). Here, so that the store, which sees only the
+spec, knows which calibrations build stage 1's reduced basis."""
 MAX_DT = 1e-3
 """dt 'auto' is at most this, s (a haptic 1 kHz loop)."""
 

@@ -38,7 +38,7 @@ from .hexahedron import FAMILIES, connectivity_families
 from .materials import is_extended
 from .problem import Problem
 from .shares import cell_shares
-from .spec import lame_constants
+from .spec import VOLUME_MODES, lame_constants
 
 VOLUME = "kappa"
 """Name of the volume stiffness among the fitted parameters (Pa)."""
@@ -46,10 +46,6 @@ VOLUME = "kappa"
 FLOOR = 1e-3
 """families+volume: the smallest body-diagonal stiffness (times mu h) and volume stiffness
 (times mu) a fit considers; 'zero' in a log-space search."""
-
-VOLUME_MODES = ("families+volume", "field")
-"""The stiffness modes with the volume term and springs assembled from cells (theta: the
-families, then kappa); ``field`` adds per-cell factors on top (:func:`field_stiffness`)."""
 
 
 def family_names(problem: Problem) -> tuple[str, ...]:
