@@ -3,7 +3,7 @@
 Each test runs the real API in-process against a real redis-server and real ``python -m worker``
 processes (or the in-process burst worker where the damage is in the job, not the process).
 The worker killed mid-chain (retry + checkpoint resume) is in tests/test_worker.py; the worker
-killed during the damping stage is here.
+killed during the reduced-basis job and during the damping stage is here.
 """
 
 from __future__ import annotations
@@ -29,7 +29,8 @@ from fpm.fitting.calibration import calibrate
 from service.main import create_app
 from service.settings import Settings
 from stack.redis_server import RedisServer
-from store import graph, keys
+from store import graph, keys, records, scratch
+from store.status import CalibrationStatus
 
 pytestmark = pytest.mark.redis
 
@@ -341,6 +342,43 @@ def test_worker_killed_in_the_damping_stage_is_retried(
         assert api.get("/v1/parameter-sets").json()["total"] == 1
         assert not redis.exists(keys.damping_result(calibration_id))
         assert_no_work_left(redis)
+
+
+# --- A worker killed during the reduced-basis job -----------------------------------------------
+
+
+def test_worker_killed_in_the_reduced_basis_job_is_retried(redis, worker_processes, small_spec):
+    """families+volume on a 22^3-node box (its first basis about a second): the worker dies
+    while it builds the basis, before it is stored; the job is re-queued, another worker
+    builds it and the calibration ends with the uninterrupted in-process answer, to the bit."""
+    from test_worker import submit
+
+    spec = copy.deepcopy(small_spec)
+    spec["geometry"]["nodes"] = [22, 22, 22]
+    spec["fpm"].update(stiffness="families+volume", dt="auto", max_steps="auto", depth="auto")
+    record, _ = submit(redis, spec)
+    basis_id = keys.basis_job_id(record.id)
+    registry = StartedJobRegistry(keys.QUEUE, connection=redis, serializer=JSONSerializer)
+    first = worker_processes.start()
+    wait_for(lambda: basis_id in registry.get_job_ids(cleanup=False), 60, "the basis job")
+    (horse,) = child_pids(first.pid)
+    os.kill(first.pid, signal.SIGKILL)  # the worker dies; its work horse with it
+    first.wait()
+    wait_for(lambda: not alive(horse), 5, "the work horse to die")
+    assert not scratch.has_reduced_basis(redis, record.id)  # killed before it stored it
+    registry.cleanup(timestamp=time.time() + 3600)  # RQ's maintenance, the heartbeat expired
+    job = Job.fetch(basis_id, connection=redis, serializer=JSONSerializer)
+    assert job.get_status() == JobStatus.QUEUED and job.retries_left == 0
+    worker_processes.start()  # another worker takes the retry
+    wait_for(lambda: records.get_calibration(redis, record.id).status.terminal, 120, "the end")
+    done = records.get_calibration(redis, record.id)
+    assert done.status == CalibrationStatus.SUCCEEDED, done.error
+    expected = calibrate(fpm.load_problem(spec))
+    for name in ("stiffness", "volume_stiffness", "d", "d_min", "depth", "settle_steps"):
+        assert done.result[name] == getattr(expected, name), name
+    assert [s["name"] for s in done.result["jobs"]].count("reduced basis") == 1
+    assert not redis.exists(keys.reduced_basis(record.id))
+    assert_no_work_left(redis)
 
 
 # --- Workers and Redis killed while seeded calibrations run ------------------------------------

@@ -147,6 +147,59 @@ def test_job_graph_of_each_method(redis, run_workers, small_spec, method):
         assert damping is None
 
 
+def test_families_volume_builds_its_reduced_basis_once_beside_the_fem(
+    redis, run_workers, small_spec, monkeypatch
+):
+    """families+volume: the reduced-basis job waits for nothing, the chains for it and the FEM
+    job; it alone builds the first basis, which each chain and the damping job read back (none
+    builds it again); the answer equals the in-process calibration's to the bit; the timeline
+    has its span, the chains after it; finalize drops the stored basis."""
+    import fpm.fitting.damping_stage as damping_stage
+    import fpm.fitting.stiffness_stage as stiffness_stage
+
+    small_spec["fpm"].update(stiffness="families+volume", dt="auto", max_steps="auto")
+    record, _ = submit(redis, small_spec)
+    fem, basis = keys.fem_job_id(record.fem_hash), keys.basis_job_id(record.id)
+    chains = [keys.chain_job_id(record.id, c) for c in range(2)]
+    jobs = Job.fetch_many([fem, basis, *chains], connection=redis, serializer=JSONSerializer)
+    assert {j.id: (j.func_name, sorted(j.dependency_ids)) for j in jobs} == {
+        fem: (keys.FEM_JOB, []),
+        basis: (keys.BASIS_JOB, []),
+        chains[0]: (keys.CHAIN_JOB, sorted([fem, basis])),
+        chains[1]: (keys.CHAIN_JOB, sorted([fem, basis])),
+    }
+    built: list[str] = []
+    for module in (worker_jobs, stiffness_stage, damping_stage):
+
+        def counted(problem, real=module.first_basis, name=module.__name__):
+            built.append(name)
+            return real(problem)
+
+        monkeypatch.setattr(module, "first_basis", counted)
+    given = []
+    real_run_chain = worker_jobs.run_chain
+
+    def recording_run_chain(problem, reference, chain, **kw):
+        given.append(kw["basis"])
+        return real_run_chain(problem, reference, chain, **kw)
+
+    monkeypatch.setattr(worker_jobs, "run_chain", recording_run_chain)
+    run_workers()
+    monkeypatch.undo()
+    done = records.get_calibration(redis, record.id)
+    assert done.status == CalibrationStatus.SUCCEEDED, done.error
+    assert built == ["worker.jobs"] and len(given) == 2 and None not in given
+    expected = calibrate(fpm.load_problem(small_spec))
+    for name in ("stiffness", "volume_stiffness", "d", "d_min", "depth", "cost", "static_cost",
+                 "relative_discrepancy", "settle_steps", "evaluations"):  # fmt: skip
+        assert done.result[name] == getattr(expected, name), name
+    assert not redis.exists(keys.reduced_basis(record.id))
+    spans = {s["name"]: s for s in done.result["jobs"]}
+    assert spans["reduced basis"]["after"] == []
+    assert "reduced basis" in spans["chain 0"]["after"]
+    assert spans["reduced basis"]["cpu"] >= 0 and spans["reduced basis"]["worker"]
+
+
 def test_identical_spec_returns_the_same_calibration(redis, run_workers, small_spec):
     first, _ = submit(redis, small_spec)
     again, created = submit(redis, small_spec)
@@ -324,7 +377,7 @@ def test_newer_fem_numerics_make_a_new_reference(small_spec, monkeypatch):
 def test_every_job_name_is_a_function_rq_can_import():
     import importlib
 
-    names = (keys.FEM_JOB, keys.CHAIN_JOB, keys.DAMPING_JOB, keys.FINALIZE_JOB)
+    names = (keys.FEM_JOB, keys.BASIS_JOB, keys.CHAIN_JOB, keys.DAMPING_JOB, keys.FINALIZE_JOB)
     for name in (*names, keys.FAILURE_CALLBACK, keys.PROFILE_JOB):
         module, function = name.rsplit(".", 1)
         assert callable(getattr(importlib.import_module(module), function)), name
