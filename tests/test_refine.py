@@ -22,6 +22,7 @@ from fpm.fem.loads import (
     Samples,
     hexahedron_surface_samples,
     hexahedron_volume_samples,
+    lattice_spacing,
     lattice_surface,
     spread,
     tetrahedron_nodal_loads,
@@ -213,8 +214,10 @@ def test_a_uniform_tractions_nodal_forces_spread_back_to_that_traction():
     hexahedra = problem.solid.elements()
     surface = lattice_surface(hexahedra, problem.n_nodes)
     at_nodes = Samples(x, np.ones(len(x)), np.zeros(len(x), dtype=np.int64), np.zeros((len(x), 3)))
+    spacing = lattice_spacing(x, hexahedra)
+    np.testing.assert_allclose(spacing, [h, h, h])
     out = spread(
-        x, surface, h, forces,
+        x, surface, spacing, forces,
         hexahedron_surface_samples(x, hexahedra, x[top], h),
         lambda: hexahedron_volume_samples(x, hexahedra, x[top], h),
         at_nodes,

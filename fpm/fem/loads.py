@@ -5,8 +5,9 @@ part, not on a point: a point load's displacement in a continuum is infinite at 
 grows without bound under refinement, so a reference that is to converge under refinement
 (:mod:`fpm.fem.refine`) cannot apply it as one. A node's *share* is its *hat*, the trilinear
 shape function of the lattice's cells around it,
-``phi_x(p) = prod_k max(0, 1 - |p_k - x_k| / h)`` (1 at the node, 0 at its neighbours and beyond,
-2h across), and each lattice nodal force ``f`` at node ``x`` becomes:
+``phi_x(p) = prod_k max(0, 1 - |p_k - x_k| / h_k)`` (1 at the node, 0 at its neighbours and
+beyond, 2 h_k across; ``h_k`` the lattice's spacing along axis k, :func:`lattice_spacing`), and
+each lattice nodal force ``f`` at node ``x`` becomes:
 
 - on a node of the lattice's surface (a corner of a hexahedron face that belongs to one
   hexahedron only): a traction on the solid's surface within its hat, in proportion to the hat;
@@ -124,6 +125,16 @@ def lattice_surface(hexahedra: np.ndarray, n_nodes: int) -> np.ndarray:
     surface = np.zeros(n_nodes, dtype=bool)
     surface[corners.ravel()] = True
     return surface
+
+
+def lattice_spacing(nodes: np.ndarray, hexahedra: np.ndarray) -> np.ndarray:
+    """(3,) the lattice's spacing along x, y, z, m: the median extent of its hexahedra (H, 8)
+    on ``nodes`` (N, 3) along each axis. On a box or voxel lattice the cells' size exactly; on
+    a voxel lattice whose surface nodes were moved onto a mesh's surface
+    (:func:`fpm.io.meshes.conform_lattice`) the voxels' size, where its shortest spring can be
+    a third of it."""
+    x = nodes[hexahedra]
+    return np.asarray(np.median(x.max(axis=1) - x.min(axis=1), axis=0), dtype=float)
 
 
 def subdivisions(longest: float, h: float) -> int:
@@ -383,7 +394,7 @@ class Spread:
 def spread(
     lattice: np.ndarray,
     surface: np.ndarray,
-    h: float,
+    spacing: np.ndarray,
     forces: np.ndarray,
     on_surface: Samples,
     in_volume: Callable[[], Samples],
@@ -395,7 +406,7 @@ def spread(
     Args:
         lattice: (N, 3) lattice node positions, m.
         surface: (N,) bool, the lattice's surface nodes (:func:`lattice_surface`).
-        h: lattice spacing, m.
+        spacing: (3,) the lattice's spacing along each axis (:func:`lattice_spacing`), m.
         forces: (L, N, 3) nodal forces per load case, N.
         on_surface: samples of the solid's surface near the loaded nodes.
         in_volume: makes the samples of the solid's volume near the loaded nodes (called only
@@ -408,11 +419,11 @@ def spread(
     volume: list[Samples] = []  # made on first need
 
     def share(node: int) -> tuple[Samples, str]:
-        if surface[node] and (chosen := _under_hat(on_surface, lattice[node], h)) is not None:
+        if surface[node] and (chosen := _under_hat(on_surface, lattice[node], spacing)) is not None:
             return chosen, "traction"
         if not volume:
             volume.append(in_volume())
-        if (chosen := _under_hat(volume[0], lattice[node], h)) is not None:
+        if (chosen := _under_hat(volume[0], lattice[node], spacing)) is not None:
             return chosen, "body"
         return at_nodes.take(np.array([node])), "point"
 
@@ -437,15 +448,15 @@ def spread(
     return Spread(samples, out, kinds)
 
 
-def hat(points: np.ndarray, node: np.ndarray, h: float) -> np.ndarray:
+def hat(points: np.ndarray, node: np.ndarray, spacing: np.ndarray) -> np.ndarray:
     """(Q,) the lattice node's hat at ``points`` (Q, 3): the trilinear shape function of the
-    lattice's cells around ``node`` (3,), spacing ``h`` (module docstring)."""
-    return np.prod(np.clip(1.0 - np.abs(points - node) / h, 0.0, None), axis=1)
+    lattice's cells around ``node`` (3,), ``spacing`` (3,) m apart (module docstring)."""
+    return np.prod(np.clip(1.0 - np.abs(points - node) / spacing, 0.0, None), axis=1)
 
 
-def _under_hat(samples: Samples, node: np.ndarray, h: float) -> Samples | None:
+def _under_hat(samples: Samples, node: np.ndarray, spacing: np.ndarray) -> Samples | None:
     """The ``samples`` within ``node``'s hat, each weight times the hat there (None: none)."""
-    values = hat(samples.points, node, h)
+    values = hat(samples.points, node, spacing)
     inside = np.flatnonzero(values > 0)
     if not len(inside) or values[inside] @ samples.weights[inside] <= 0:
         return None

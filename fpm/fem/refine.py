@@ -68,6 +68,7 @@ from .loads import (
     hexahedron_nodal_loads,
     hexahedron_surface_samples,
     hexahedron_volume_samples,
+    lattice_spacing,
     lattice_surface,
     spread,
     tetrahedron_nodal_loads,
@@ -382,7 +383,9 @@ def tetrahedron_loads(
     hexahedra = problem.solid.elements()
     assert hexahedra is not None
     surface = lattice_surface(hexahedra, problem.n_nodes)
-    lattice, h = problem.nodes, problem.h
+    lattice = problem.nodes
+    spacing = lattice_spacing(lattice, hexahedra)
+    h = float(spacing.max())  # the samples reach the hats and lie h / 8 apart
 
     def loads(mesh: Tet10Mesh, where: Location) -> np.ndarray:
         corners = mesh.nodes[: mesh.n_corners]
@@ -393,7 +396,7 @@ def tetrahedron_loads(
         spreaded = spread(
             lattice,
             surface,
-            h,
+            spacing,
             forces,
             tetrahedron_surface_samples(corners, tets, faces, owner, loaded, h),
             lambda: tetrahedron_volume_samples(corners, tets, loaded, h),
@@ -524,8 +527,11 @@ def hexahedron_loads(
     lattice's: the lattice's ``forces`` (L, N, 3) spread (:mod:`fpm.fem.loads`; ``surface`` the
     lattice's surface nodes)."""
     n = problem.n_nodes
-    h = problem.h
     lattice = problem.nodes
+    lattice_hexahedra = problem.solid.elements()
+    assert lattice_hexahedra is not None
+    spacing = lattice_spacing(lattice, lattice_hexahedra)
+    h = float(spacing.max())  # the samples reach the hats and lie h / 8 apart
     loaded = lattice[np.any(forces != 0, axis=(0, 2))]
     owner, corner = np.nonzero(hexahedra < n)
     node = hexahedra[owner, corner]
@@ -537,7 +543,7 @@ def hexahedron_loads(
     spreaded = spread(
         lattice,
         surface,
-        h,
+        spacing,
         forces,
         hexahedron_surface_samples(nodes, hexahedra, loaded, h),
         lambda: hexahedron_volume_samples(nodes, hexahedra, loaded, h),
