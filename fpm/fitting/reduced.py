@@ -126,7 +126,7 @@ class ReducedBasis:
 
 @dataclass
 class _Case:
-    """One load case's reduced model: basis (M, m) over its free nodes, K_p projected, f; the
+    """One load case's reduced model: basis (3M, m) over its free nodes, K_p projected, f; the
     reference where the cost is wanted (:meth:`ReducedLinearModel.of`), the unit matrices and
     loads where the basis grows (:meth:`ReducedLinearModel.attach`)."""
 
