@@ -16,8 +16,9 @@ measure), in %.
   positive (tests/test_refine.py).
 - **Loads.** A point load's displacement does not converge under refinement, so every level
   applies a lattice nodal force as a load on that node's share of the solid
-  (:mod:`fpm.fem.loads`: a traction on its patch of surface, a body load on its cell), sampled
-  the same way at every level.
+  (:mod:`fpm.fem.loads`: a traction on the surface within its hat, the lattice's trilinear
+  shape function of that node, or a body load on the volume within it), sampled the same way
+  at every level.
 - **Supports.** On tetrahedra, by position at every level (:func:`fpm.fem.tet10.fixed_nodes`):
   each level holds the region the spec's selectors name as well as its mesh resolves it, so a
   held region whose boundary no mesh face follows converges only as its staircase does (first
