@@ -30,6 +30,7 @@ Run: python -m bench field (about 10-20 minutes on 2 cores).
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
 from bench.bench_calibration import load, run_organ, verdict
@@ -151,14 +152,71 @@ def cube_converged() -> list[tuple[str, bool, str]]:
     field = r.field.field
     fit, check = max(field.relative_discrepancy), max(field.validation_relative_discrepancy)
     tag = "cube (converged reference, two force patterns)"
+    returned = "returned" if r.field.returned else "NOT returned (the four parameters are)"
     return [
-        (f"{tag}: field fit <= {CUBE_FIT_GOAL}% each", fit <= CUBE_FIT_GOAL,
-         f"{fmt(field.relative_discrepancy)} ({ratio(fit, CUBE_FIT_GOAL)})"),
-        (f"{tag}: field validation <= {CUBE_VALIDATION_GOAL}% each", check <= CUBE_VALIDATION_GOAL,
+        (f"{tag}: the returned field's fit <= {CUBE_FIT_GOAL}% each",
+         r.field.returned and fit <= CUBE_FIT_GOAL,
+         f"{fmt(field.relative_discrepancy)} ({ratio(fit, CUBE_FIT_GOAL)}; {returned})"),
+        (f"{tag}: the returned field's validation <= {CUBE_VALIDATION_GOAL}% each",
+         r.field.returned and check <= CUBE_VALIDATION_GOAL,
          f"{fmt(field.validation_relative_discrepancy)} ({ratio(check, CUBE_VALIDATION_GOAL)}; "
-         f"four parameters {fmt(r.field.four_parameter.validation_relative_discrepancy)}); "
-         f"returned: {r.field.returned}"),
+         f"four parameters {fmt(r.field.four_parameter.validation_relative_discrepancy)}; "
+         f"{returned})"),
     ]  # fmt: skip
+
+
+OTHER_PATTERNS: dict[str, dict[str, Any]] = {
+    "push in at a top edge": SECOND_PATTERN["forces"][0],
+    "press down at a top edge": {"at": [0.0444444444, 0.0, 0.1], "vector": [0, 0, -0.5]},
+    "press down off centre": {"at": [0.0333333333, 0.0666666667, 0.1], "vector": [0, 0, -0.5]},
+    "press in at a side face": {"at": [0.1, 0.0444444444, 0.0555555556], "vector": [-0.5, 0, 0]},
+    "push at another top corner": {"at": [0.0, 0.0, 0.1], "vector": [0.5, 0, 0]},
+}
+"""1c: second force patterns fitted beside the pulls, none the image of a validation case under
+the cube's symmetry (the push at a pulled node, the image of the sideways case, is left out);
+forces x 0.01 like the pulls'."""
+
+
+def cube_training_sets() -> list[tuple[str, bool, str]]:
+    """1b's goals over every training set of the pulls and one or two of
+    :data:`OTHER_PATTERNS` (15 sets), not only the one 1b shows: how many return the field,
+    how many of those meet both goals, and the range of the corner press. 1b's set was
+    chosen among such sets against the reference of the time (its nearest-node patches); this
+    part says how much that choice carries."""
+    from itertools import combinations
+
+    import fpm
+
+    print(f"\n1c. The cube of 1b over its training sets ({load()})")
+    base = cube_spec(0.45, "field", scale=0.01)
+    base["reference"]["refine"] = CONVERGED_REFINE
+    names = list(OTHER_PATTERNS)
+    sets = [list(c) for n in (1, 2) for c in combinations(names, n)]
+    print(f"  {'fitted besides the pulls':<58}{'returned':>9}{'field fit %':>24}"
+          f"{'field validation %':>20}{'four param. validation %':>26}")  # fmt: skip
+    met, returned, corner = 0, 0, []
+    for chosen in sets:
+        spec = json.loads(json.dumps(base))
+        for name in chosen:
+            force = OTHER_PATTERNS[name]
+            spec["load_cases"].append({"name": name, "forces": [
+                {**force, "vector": [0.01 * v for v in force["vector"]]}
+            ]})  # fmt: skip
+        r = fpm.calibrate(fpm.load_problem(spec))
+        f = r.field
+        fit, check = f.field.relative_discrepancy, f.field.validation_relative_discrepancy
+        ok = f.returned and max(fit) <= CUBE_FIT_GOAL and max(check) <= CUBE_VALIDATION_GOAL
+        returned += f.returned
+        met += ok
+        corner.append(check[-1])
+        print(f"  {' + '.join(chosen):<58}{'yes' if f.returned else 'no':>9}{fmt(fit):>24}"
+              f"{fmt(check):>20}{fmt(f.four_parameter.validation_relative_discrepancy):>26}"
+              f"{'  both goals' if ok else ''}", flush=True)  # fmt: skip
+    summary = (
+        f"{met} of {len(sets)} sets (field returned by {returned}; the field's corner "
+        f"{min(corner):.1f}-{max(corner):.1f}%)"
+    )
+    return [("cube over 15 training sets: the returned field meets both goals", met > 0, summary)]
 
 
 def organ_5mm() -> list[tuple[str, bool, str]]:
@@ -211,7 +269,7 @@ def organ_3mm() -> list[tuple[str, bool, str]]:
 
 
 def main() -> None:
-    goals = cube() + cube_converged() + organ_5mm() + organ_3mm()
+    goals = cube() + cube_converged() + cube_training_sets() + organ_5mm() + organ_3mm()
     print("\nsummary")
     for text, ok, value in goals:
         print(f"  [{verdict(ok)}] {text}: {value}")

@@ -169,6 +169,14 @@ def test_cross_validation_picks_a_weight_and_returns_a_field_only_if_it_predicts
     assert sum(stage.field_relative) <= sum(stage.four_relative) + 1e-9
 
 
+def test_the_left_out_mean_counts_each_force_pattern_once():
+    """Three sizes of one pull and one push: the pull is one pattern, not three votes."""
+    figures = np.array([3.7, 3.7, 3.7, 3.0])
+    assert F._mean(figures, [[0, 1, 2], [3]]) == pytest.approx(3.35)
+    assert F._mean(figures, [[0], [1], [2], [3]]) == pytest.approx(3.525)
+    assert F._mean(np.array([1.0, np.inf]), [[0], [1]]) == float("inf")
+
+
 def test_a_field_no_better_than_the_four_parameters_is_refused_with_a_warning(block, monkeypatch):
     """The rule itself: the field's left-out figures made worse than the four parameters'."""
     problem, reference = block

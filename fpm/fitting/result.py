@@ -36,7 +36,8 @@ class ModelFigures(BaseModel):
     )
     cv_error: float = Field(
         description="cross-validation: the mean relative discrepancy, %, of the load cases "
-        "left out (a force pattern at a time), each refitted without them"
+        "left out (a force pattern at a time), each refitted without them; the mean over the "
+        "patterns, each the mean of its cases"
     )
     cv_cases: list[float] = Field(description="per load case, its figure when left out, %")
 
@@ -57,7 +58,8 @@ class FieldFit(BaseModel):
     smoothness_weight: float = Field(description="the weight chosen by cross-validation")
     cv_weights: list[float] = Field(description="the smoothness weights tried, strongest first")
     cv_error: list[float] = Field(
-        description="per weight tried, the field's mean left-out relative discrepancy, %"
+        description="per weight tried, the field's mean left-out relative discrepancy, % "
+        "(over the patterns, each the mean of its cases)"
     )
     cv_cases: list[list[float]] = Field(description="per weight, per load case left out, %")
     patterns: list[list[int]] = Field(
