@@ -72,7 +72,7 @@ def test_the_reduced_model_is_exact_where_its_basis_holds_the_response():
     problem, cost = problem_and_cost()
     start = continuum_start(problem)
     model = ReducedLinearModel.of(problem, first_basis(problem), cost.reference)
-    model.attach(cost.solver, None)
+    model.attach([cost.solver] * len(model.cases), None)
     theta = np.array(start) * np.array([0.8, 1.2, 30.0, 0.9])
     model.enrich(theta)
     for j, case in enumerate(model.cases):
@@ -175,6 +175,35 @@ def test_the_defect_corrected_fit_runs_once_per_calibration(monkeypatch):
     theta, _, _ = fit_reduced(cost, first_basis(problem), starts[0], stiffness_bounds(problem))
     assert theta == stage.theta
     assert [cost.displacements(theta, j).iterations for j in range(2)] == [0, 0]
+
+
+def test_the_fit_is_the_same_on_one_or_two_threads():
+    """Three load cases over the fit's two static solvers (cases 0 and 2 on one): the same
+    answer to the bit whether the two groups run one after the other or at once, and every
+    case's equilibrium at the answer is a warm start of the cost's solver."""
+    from fpm.fitting.bounds import stiffness_bounds
+    from fpm.fitting.reduced import fit_reduced
+
+    spec = box_spec(
+        (5, 4, 6), 0.01,
+        forces=[{"at": [0.02, 0.01, 0.05], "vector": [0.0, 0.0, -0.01]}],
+        fpm_settings={"stiffness": "families+volume"},
+    )  # fmt: skip
+    spec["load_cases"] += [
+        {"forces": [{"at": [0.04, 0.03, 0.05], "vector": [0.01, 0, 0]}]},
+        {"forces": [{"at": [0.0, 0.0, 0.05], "vector": [0, 0.01, 0]}]},
+    ]
+    spec["material"]["poisson_ratio"] = 0.45
+    problem = fpm.load_problem(spec)
+    reference = fpm.solve_fem(problem).displacements[:3]
+    start = np.array(continuum_start(problem)) * np.array([1.2, 0.8, 20.0, 1.1])
+    answers = []
+    for threads in (1, 2):
+        cost = StaticCost(problem, reference, None)
+        answers.append(fit_reduced(cost, first_basis(problem), list(start),
+                                   stiffness_bounds(problem), threads=threads))  # fmt: skip
+        assert [cost.displacements(answers[-1][0], j).iterations for j in range(3)] == [0, 0, 0]
+    assert answers[0] == answers[1]
 
 
 def test_stage_two_validates_beside_the_search():
