@@ -360,12 +360,16 @@ def test_worker_killed_in_the_reduced_basis_job_is_retried(redis, worker_process
     basis_id = keys.basis_job_id(record.id)
     registry = StartedJobRegistry(keys.QUEUE, connection=redis, serializer=JSONSerializer)
     first = worker_processes.start()
-    wait_for(lambda: basis_id in registry.get_job_ids(cleanup=False), 60, "the basis job")
+    job = Job.fetch(basis_id, connection=redis, serializer=JSONSerializer)
+    wait_for(lambda: job.get_status() == JobStatus.STARTED, 60, "the basis job")
+    wait_for(lambda: child_pids(first.pid), 5, "its work horse")
+    time.sleep(0.2)  # into the build (about a second)
     (horse,) = child_pids(first.pid)
     os.kill(first.pid, signal.SIGKILL)  # the worker dies; its work horse with it
     first.wait()
     wait_for(lambda: not alive(horse), 5, "the work horse to die")
     assert not scratch.has_reduced_basis(redis, record.id)  # killed before it stored it
+    assert basis_id in registry.get_job_ids(cleanup=False)
     registry.cleanup(timestamp=time.time() + 3600)  # RQ's maintenance, the heartbeat expired
     job = Job.fetch(basis_id, connection=redis, serializer=JSONSerializer)
     assert job.get_status() == JobStatus.QUEUED and job.retries_left == 0
