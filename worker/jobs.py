@@ -66,6 +66,17 @@ def _job() -> Job:
     return job
 
 
+def _calibration_job(calibration_id: str) -> tuple[Job, Redis, records.CalibrationRecord] | None:
+    """This job, its connection and calibration ``calibration_id``'s record; None when the
+    calibration is gone or has ended (the job has nothing to do)."""
+    job = _job()
+    redis = job.connection
+    record = records.get_calibration(redis, calibration_id)
+    if record is None or record.status.terminal:
+        return None
+    return job, redis, record
+
+
 def fem_reference(fem_hash: str) -> dict[str, Any]:
     """Solve and store the FEM reference ``fem_hash`` (no expiry). Returns a summary."""
     redis = _job().connection
@@ -117,11 +128,10 @@ def reduced_basis(calibration_id: str) -> dict[str, Any]:
     """Build and store stage 1's first reduced basis of a families+volume calibration
     (:func:`fpm.fitting.reduced.first_basis`: from the spec alone, beside the FEM job), which
     every chain and the damping job read instead of building it. Returns a summary."""
-    job = _job()
-    redis = job.connection
-    record = records.get_calibration(redis, calibration_id)
-    if record is None or record.status.terminal:
+    opened = _calibration_job(calibration_id)
+    if opened is None:
         return {"skipped": True}
+    job, redis, record = opened
     if scratch.has_reduced_basis(redis, calibration_id):
         return {"skipped": True}
     problem = problem_of(redis, record.spec)
@@ -142,11 +152,10 @@ def _stored_basis(redis: Redis, calibration_id: str) -> ReducedBasis | None:
 
 def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
     """Run one annealing chain of a calibration and store its ChainResult."""
-    job = _job()
-    redis = job.connection
-    record = records.get_calibration(redis, calibration_id)
-    if record is None or record.status.terminal:
+    opened = _calibration_job(calibration_id)
+    if opened is None:
         return {"skipped": True}
+    job, redis, record = opened
     if scratch.has_chain_result(redis, calibration_id, chain):
         return {"skipped": True}
     reference = records.get_fem_reference(redis, record.fem_hash)
@@ -301,11 +310,10 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
     starts again, as it is deterministic and keeps no checkpoint). Progress: the field
     ``keys.DAMPING_PROGRESS`` of the progress hash.
     """
-    job = _job()
-    redis = job.connection
-    record = records.get_calibration(redis, calibration_id)
-    if record is None or record.status.terminal:
+    opened = _calibration_job(calibration_id)
+    if opened is None:
         return {"skipped": True}
+    job, redis, record = opened
     if scratch.has_damping_result(redis, calibration_id):
         return {"skipped": True}
     if not records.update_calibration(redis, calibration_id, {"phase": Phase.DAMPING}):
@@ -356,11 +364,10 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
 def finalize_calibration(calibration_id: str) -> dict[str, Any]:
     """The last dynamic run and the figures; store the parameter set and the result, with the
     timeline of the calibration's jobs and its critical path (:mod:`store.timeline`)."""
-    job = _job()
-    redis = job.connection
-    record = records.get_calibration(redis, calibration_id)
-    if record is None or record.status.terminal:
+    opened = _calibration_job(calibration_id)
+    if opened is None:
         return {"skipped": True}
+    job, redis, record = opened
     span = _Span(job, calibration_id, "finalize", [])
     records.update_calibration(redis, calibration_id, {"phase": Phase.FINALIZE})
     found = _chains_and_reference(redis, record)
