@@ -2,18 +2,20 @@
 
 The d search's dearest runs are the predicted d's, every load case run to its end
 (docs/physics.md, *d from the spectrum*): each case's run is independent of the others'
-(:func:`fpm.fitting.damping.run_case`). Then come the two d that confirm it and the margin's
-probes, each a d's lockstep runs whose requests the search can name before it needs them
-(:meth:`fpm.fitting.damping._Runs.prefetch`). The damping job hands them out as tasks:
+(:func:`fpm.fitting.damping.run_case`). Then come the two d that confirm it, handed out
+with them under a budget known before they end (:data:`fpm.fitting.damping.CONFIRM_AHEAD`),
+and the margin's probes, each a d's lockstep runs whose requests the search can name before it
+needs them (:meth:`fpm.fitting.damping._Runs.prefetch`). The damping job hands them out as
+tasks:
 
 - each task (the plan, and one load case at d with its cap, or one d's request) is stored
   under its digest (:func:`task_digest`) and, when other workers are idle, enqueued as a
   :func:`damping_case` job on the priority queue (requests ahead only then);
 - whoever claims a task first runs it (:func:`store.scratch.claim_case`): a case job on another
   worker, or the damping job itself on its own threads, which leaves the first tasks to the
-  free workers (one each), takes the others, and after GRACE seconds any nobody claimed; a
-  holder renews its claim while it runs, so a task whose holder died is claimed again once
-  the claim expires (the damping job runs it; the killed job's retry finds it run);
+  free workers (one each), takes the others in order, and after GRACE seconds any nobody
+  claimed; a holder renews its claim while it runs, so a task whose holder died is claimed
+  again once the claim expires (the damping job runs it; the killed job's retry finds it run);
 - the runs are stored once (JSON and raw float64 displacements) and the damping job reads
   them back from there, in order.
 
@@ -74,7 +76,9 @@ def task_digest(spec: dict[str, Any]) -> str:
 def task_name(spec: dict[str, Any]) -> str:
     """A task's span name (:mod:`store.timeline`)."""
     if "request" in spec:
-        return f"damping: d {spec['request']['d']:.6g}, all load cases"
+        r = spec["request"]
+        within = "" if r["budget"] is None else f" within {r['budget']} steps"
+        return f"damping: d {r['d']:.6g}{within}, all load cases"
     return f"damping: d {spec['d']:.6g}, load case {spec['load_case']}"
 
 
@@ -219,17 +223,29 @@ class CaseSpread:
         return "damping" if not self.rounds else f"damping ({len(self.rounds)})"
 
     def separate(
-        self, d: float, caps: list[int], local: Callable[[int, float, int], CaseRun]
-    ) -> list[CaseRun]:
-        """Every load case at d as a task (run here when no other worker is free)."""
+        self,
+        d: float,
+        caps: list[int],
+        local: Callable[[int, float, int], CaseRun],
+        beside: list[Request],
+        local_request: Callable[[Request], Outcome],
+    ) -> tuple[list[CaseRun], list[Outcome | None]]:
+        """Every load case at d as a task (run here when no other worker is free), and each
+        request ``beside`` as a task after them, only when other workers are free."""
         after = self._after()
+        free = free_workers(self.redis, self.worker, self.calibration_id)
+        asked = beside if free else []
         specs = [
             {**asdict(self.plan), "d": d, "load_case": j, "cap": int(c), "after": after}
             for j, c in enumerate(caps)
-        ]
+        ] + [{**asdict(self.plan), "request": asdict(r), "after": after} for r in asked]
         runs = [partial(_one_case, local, j, d, int(c)) for j, c in enumerate(caps)]
-        done = self._round(specs, runs, free_workers(self.redis, self.worker, self.calibration_id))
-        return [found[0][0] for found in done]
+        runs += [partial(_one_request, local_request, r) for r in asked]
+        done = self._round(specs, runs, free)
+        outcomes: list[Outcome | None] = [None] * len(beside)
+        for i, (found, verdict) in enumerate(done[len(caps) :]):
+            outcomes[i] = (found, verdict)
+        return [found[0][0] for found in done[: len(caps)]], outcomes
 
     def ahead(
         self, requests: list[Request], local: Callable[[Request], Outcome]
@@ -273,7 +289,7 @@ class CaseSpread:
                     break
                 if handed and time.time() > start + GRACE:
                     handed = set()  # not claimed by now: nobody took them
-                for i in reversed(waiting):
+                for i in waiting:  # in order: the longest runs (a d's cases) come first
                     if i in futures or i in handed or len(futures) >= self.threads:
                         continue
                     if scratch.claim_case(self.redis, self.calibration_id, tasks[i], self.holder):

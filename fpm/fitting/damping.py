@@ -98,8 +98,14 @@ runs."""
 CONFIRM = 1.04
 """The runs that confirm a predicted d sit this factor below and above it."""
 CONFIRM_PRUNE = 1.0
-"""A confirming run is dropped once its predicted total exceeds the predicted d's total (it
-would at best tie; the predicted d is kept)."""
+"""A confirming run is dropped once its predicted total exceeds its budget: the predicted d's
+total (it would at best tie; the predicted d is kept), or CONFIRM_AHEAD's if that is larger."""
+CONFIRM_AHEAD = 1.3
+"""The confirming runs' budget is at least this times the modes' predicted total steps: a
+budget known before the predicted d's runs end, so that where other workers are free they run
+beside them (the modes predict 0.84-0.85 of the steps the runs take on the organ at 5 and
+3 mm; a confirming d that settles within it is run to its end, and if the predicted d's runs
+take more, the confirming d run anew under their total)."""
 RETRIES = 2
 """With fpm.max_steps 'auto', a search in which nothing settles within the predicted cap is
 repeated this many times more with MAX_STEPS_GROWTH times the cap (up to the schema's 10^6)."""
@@ -287,10 +293,17 @@ class Spread(Protocol):
     search's answer does not depend on it."""
 
     def separate(
-        self, d: float, caps: list[int], local: Callable[[int, float, int], CaseRun]
-    ) -> list[CaseRun]:
-        """Every load case of one d run on its own to its end: ``[CaseRun per case]``, where
-        ``local(j, d, cap)`` runs case j in this process (:func:`run_case`)."""
+        self,
+        d: float,
+        caps: list[int],
+        local: Callable[[int, float, int], CaseRun],
+        beside: list[Request],
+        local_request: Callable[[Request], Outcome],
+    ) -> tuple[list[CaseRun], list[Outcome | None]]:
+        """Every load case of one d run on its own to its end, ``[CaseRun per case]``, where
+        ``local(j, d, cap)`` runs case j in this process (:func:`run_case`); and the requests
+        ``beside`` at the same time, only when other workers are free: their outcomes in
+        order (None: not run), ``local_request`` running one here."""
         ...
 
     def ahead(
@@ -347,15 +360,20 @@ class _Runs:
         """Load case ``load_case`` at d run on its own to its end in this process."""
         return run_case(self.model, self.stiffness, self.depth, self.dt, load_case, d, cap)
 
-    def separate(self, d: float, caps: list[int]) -> tuple[list[CaseRun], Verdict]:
+    def separate(
+        self, d: float, caps: list[int], beside: Sequence[Request] = ()
+    ) -> tuple[list[CaseRun], Verdict]:
         """Every load case at d, each run on its own to its end (by ``spread``), and the
         verdict the lockstep would reach (:func:`replay_verdict`). For a d with no budget run
         to the cap, the same runs and verdict as :meth:`__call__`, but that a failed d's
-        other cases also run to their end."""
+        other cases also run to their end. ``beside``: requests the search will probably make
+        next, run at the same time by ``spread`` where other workers are free (as
+        :meth:`prefetch`)."""
         if self.spread is None:
             runs = list(self.pool.map(self.local, range(self.cases), [d] * self.cases, caps))
         else:
-            runs = self.spread.separate(d, caps, self.local)
+            runs, outcomes = self.spread.separate(d, caps, self.local, list(beside), self.locked)
+            self._keep(list(beside), outcomes)
         self.count += self.cases
         self.work += sum(r.steps for r in runs)
         return runs, replay_verdict(runs, caps)
@@ -363,9 +381,13 @@ class _Runs:
     def prefetch(self, requests: list[Request]) -> None:
         """Run ``requests`` at once by ``spread`` (none without it), to be taken by the calls
         that make the very same requests (one that differs, e.g. in its budget, runs anew)."""
+        requests = [r for r in requests if r not in self.fetched]
         if self.spread is None or not requests:
             return
-        outcomes = self.spread.ahead(requests, self.locked)
+        self._keep(requests, self.spread.ahead(requests, self.locked))
+
+    def _keep(self, requests: list[Request], outcomes: list[Outcome | None]) -> None:
+        """The outcomes of requests run ahead, for the calls that make them."""
         for request, outcome in zip(requests, outcomes, strict=True):
             if outcome is not None:
                 self.fetched[request] = outcome
@@ -630,16 +652,28 @@ def _search(
     best: list[Any] = []  # [log d, displacements (L, N, 3)] of the fewest total steps so far
     short: dict[float, float] = {}  # log d -> steps it needs, for a d stopped by the cap
 
-    def total(y: float, prune: float = PRUNE, to_cap: bool = False) -> float:
-        """Total steps at d = exp(y) (for a d stopped at the best total, the steps it had
-        taken: a lower bound); inf if some case did not settle within max_steps."""
-        y = round(min(max(y, lo), hi), 12)  # one key per d, whatever path computed it
+    def key(y: float) -> float:
+        """log d within the bounds, rounded: one key per d, whatever path computed it."""
+        return round(min(max(y, lo), hi), 12)
+
+    def total(
+        y: float,
+        prune: float = PRUNE,
+        to_cap: bool = False,
+        floor: int = 0,
+        beside: Sequence[Request] = (),
+    ) -> float:
+        """Total steps at d = exp(y) (for a d stopped at its budget, the steps it had taken:
+        a lower bound); inf if some case did not settle within max_steps. Its budget: the
+        best total, or ``floor`` if that is larger (none before anything settled).
+        ``beside``: requests run at the same time as a d run ``to_cap``."""
+        y = key(y)
         if y not in steps and y not in slower:
-            # A d whose steps already add up to the best total cannot win: stop it there.
-            budget = _total(steps[best[0]]) if best else None
+            # A d whose steps already add up to the budget cannot win: stop it there.
+            budget = max(_total(steps[best[0]]), floor) if best else None
             results: Sequence[DynamicRun | CaseRun]
             if budget is None and to_cap:  # each case's run is its own: they may run apart
-                results, verdict = runs.separate(math.exp(y), [max_steps] * runs.cases)
+                results, verdict = runs.separate(math.exp(y), [max_steps] * runs.cases, beside)
             else:
                 results, verdict = runs(
                     math.exp(y), [max_steps] * runs.cases, budget, prune=prune, to_cap=to_cap
@@ -655,7 +689,7 @@ def _search(
             elif verdict.outcome == "done" and all(r.state == SETTLED for r in results):
                 settled = [r.steps for r in results]
                 steps[y] = settled
-                if budget is None or sum(settled) < budget:
+                if not best or sum(settled) < _total(steps[best[0]]):
                     best[:] = [y, np.stack([r.result().displacements for r in results])]
             else:
                 steps[y] = None
@@ -668,26 +702,33 @@ def _search(
 
     if prediction is not None:
         # Confirm: the predicted d, then a run on either side, each stopped as soon as it is
-        # predicted no faster; walk on only where one of them is faster.
+        # predicted no faster than its budget; walk on only where one of them is faster.
         y0 = min(max(math.log(prediction.d), lo), hi)
         step = math.log(CONFIRM)
         left, mid, right = max(y0 - step, lo), y0, min(y0 + step, hi)
+        caps = (max_steps,) * runs.cases
+        sides = [y for y in dict.fromkeys(key(y) for y in (left, right)) if y != key(mid)]
+        # Their budget is known before the predicted d's runs end (CONFIRM_AHEAD), so where
+        # other workers are free they run beside them, under that budget.
+        floor = int(min(CONFIRM_AHEAD * prediction.total, 1 << 62))
+        beside = [Request(math.exp(y), caps, floor, prune=CONFIRM_PRUNE) for y in sides]
         # The predicted d runs to the cap: early in a long run its decay is no guide (on a
         # slender bar it predicted 3-8 times the steps the run took).
-        f_mid = total(mid, to_cap=True)
-        if grow and round(mid, 12) in short:
-            raise _ShortCap(short[round(mid, 12)])
-        # Both at once where other workers are free: right's budget is mid's total unless left
-        # turns out faster (then right runs anew, with left's).
-        budget = _total(steps[best[0]]) if best else None
-        ahead = dict.fromkeys(round(min(max(y, lo), hi), 12) for y in (left, right))
+        f_mid = total(mid, to_cap=True, beside=beside)
+        if grow and key(mid) in short:
+            raise _ShortCap(short[key(mid)])
+        # Both at once where other workers are free (if not run beside the predicted d: its
+        # total is the larger budget): right's budget is mid's total (or the floor) unless
+        # left turns out faster (then right runs anew, with left's).
+        budget = max(_total(steps[best[0]]), floor) if best else None
         runs.prefetch(
             [
-                Request(math.exp(y), (max_steps,) * runs.cases, budget, prune=CONFIRM_PRUNE)
-                for y in ahead if y not in steps and y not in slower
+                Request(math.exp(y), caps, budget, prune=CONFIRM_PRUNE)
+                for y in sides if y not in steps and y not in slower
             ]
         )  # fmt: skip
-        f_left, f_right = total(left, CONFIRM_PRUNE), total(right, CONFIRM_PRUNE)
+        f_left = total(left, CONFIRM_PRUNE, floor=floor)
+        f_right = total(right, CONFIRM_PRUNE, floor=floor)
     else:
         # Bracket: start from the two guesses and their geometric mean.
         g_low, g_high = sorted(min(max(math.log(g), lo), hi) for g in guesses)
@@ -864,24 +905,29 @@ def _smallest_settling(
         edge = round(edge, 12)
         if edge < y_ok and (y_fail is None or edge > y_fail):
             below = round(max(edge - step / 2, lo), 12)
-            # The probe below the edge at once where other workers are free (wasted if the
-            # edge does not settle).
+            further = round(max(below - step, lo), 12)
+            # The probes below the edge at once where other workers are free (wasted if the
+            # edge, or the first below it, does not settle): the walk's next step from there.
             then = below < edge and (y_fail is None or below > y_fail)
-            ahead = [edge, below] if then else [edge]
+            on = then and MARGIN_PROBES > 2 and further < below
+            ahead = [edge, below, further] if on else [edge, below] if then else [edge]
             runs.prefetch(
                 [Request(math.exp(y), tuple(caps), None, estimate=True)
                  for y in ahead if answers.get(y) is None]
             )  # fmt: skip
             if settles(edge):
                 y_ok = edge
-                if below < edge and (y_fail is None or below > y_fail) and not settles(below):
-                    y_fail = below
+                if then:
+                    if settles(below):
+                        y_ok = below
+                    else:
+                        y_fail = below
             else:
                 y_fail = edge
     limit = MARGIN_PROBES if edge is not None else math.inf
     if y_fail is None:
         while y_ok > lo and probes[0] < limit:
-            y = max(y_ok - step, lo)
+            y = round(max(y_ok - step, lo), 12)
             if not settles(y):
                 y_fail = y
                 break
