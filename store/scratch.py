@@ -196,6 +196,17 @@ def release_claim(redis: Redis, calibration_id: str, task: str) -> None:
     redis.delete(keys.case_claim(calibration_id, task))
 
 
+def name_budget(redis: Redis, calibration_id: str, task: str, budget: int | None) -> None:
+    """Name the budget of request task ``task`` given LATER (None: no budget), once."""
+    redis.hsetnx(keys.case_run(calibration_id, task), "budget", json.dumps(budget))
+
+
+def named_budget(redis: Redis, calibration_id: str, task: str) -> tuple[bool, int | None]:
+    """(named yet, the budget) of request task ``task`` (:func:`name_budget`)."""
+    raw = redis.hget(keys.case_run(calibration_id, task), "budget")
+    return (False, None) if raw is None else (True, _json(raw))
+
+
 def save_case_run(
     redis: Redis, calibration_id: str, task: str, run: dict[str, Any], displacements: bytes
 ) -> None:

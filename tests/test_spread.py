@@ -22,7 +22,7 @@ from rq.serializers import JSONSerializer
 
 import fpm
 from fpm.fitting.calibration import calibrate
-from fpm.fitting.damping import CHUNK, _Runs
+from fpm.fitting.damping import CHUNK, CONFIRM, CONFIRM_PRUNE, LATER, Request, _Runs
 from fpm.model.stiffness import model_stiffness
 from service.limits import dump_spec
 from store import graph, keys, records
@@ -84,6 +84,41 @@ def test_separate_runs_equal_the_lockstep_runs(cap):
             assert np.array_equal(one.displacements, other.result().displacements)
     else:
         assert verdict.outcome == ("failed" if cap % CHUNK == 0 else "done")
+
+
+@pytest.mark.parametrize("named_after", [0.0, 0.7])
+def test_a_budget_named_later_gives_the_verdict_of_the_budget_known(named_after):
+    """A confirming d run beside the predicted d's learns its budget (their total) only once
+    they have ended: its cases run on undecided until then, and the milestones they passed
+    are decided afterwards, as the lockstep with the budget known decides them (the same
+    verdict, its total and predictions to the bit), however late the budget comes."""
+    problem = fpm.load_problem(long_cases(SMALL))
+    stiffness = model_stiffness(problem, [22.4347])
+    runs = _Runs(problem, stiffness, None, 2e-6)
+    try:
+        caps = [1_000_000] * runs.cases
+        predicted, _ = runs(0.11, caps, None, to_cap=True)
+        total = sum(r.steps for r in predicted)
+        for d in (0.11 / CONFIRM, 0.11 * CONFIRM):
+            known, verdict = runs(d, caps, total, prune=CONFIRM_PRUNE)
+            start, looks = time.monotonic(), []
+
+            def resolve(start=start, looks=looks):
+                looks.append(time.monotonic())
+                return (time.monotonic() - start >= named_after, total)
+
+            later, late = runs.locked(Request(d, tuple(caps), LATER, prune=CONFIRM_PRUNE), resolve)
+            assert (late.outcome, late.total, late.predicted) == (
+                verdict.outcome, verdict.total, verdict.predicted
+            )  # fmt: skip
+            assert verdict.outcome in ("lost", "done")
+            if verdict.outcome == "done":
+                assert [r.steps for r in later] == [r.steps for r in known]
+            elif named_after:  # the cases ran on past the milestone that decides
+                assert sum(r.steps for r in later) > sum(r.steps for r in known)
+                assert len(looks) >= 2
+    finally:
+        runs.close()
 
 
 def submit(redis, spec):

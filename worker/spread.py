@@ -43,7 +43,17 @@ from rq import Worker, get_current_job
 from rq.job import Job
 
 from fpm.dynamics.simulation import FpmModel
-from fpm.fitting.damping import CaseRun, Outcome, Request, Verdict, run_case, run_request
+from fpm.fitting.damping import (
+    LATER,
+    CaseRun,
+    Outcome,
+    Request,
+    Resolve,
+    Verdict,
+    run_case,
+    run_request,
+    settled_total,
+)
 from fpm.fitting.damping_stage import DampingPlan
 from fpm.model.stiffness import model_stiffness
 from store import graph, keys, records, scratch
@@ -77,7 +87,7 @@ def task_name(spec: dict[str, Any]) -> str:
     """A task's span name (:mod:`store.timeline`)."""
     if "request" in spec:
         r = spec["request"]
-        within = "" if r["budget"] is None else f" within {r['budget']} steps"
+        within = {None: "", LATER: " within their total"}.get(r["budget"], f" within {r['budget']}")
         return f"damping: d {r['d']:.6g}{within}, all load cases"
     return f"damping: d {spec['d']:.6g}, load case {spec['load_case']}"
 
@@ -228,10 +238,11 @@ class CaseSpread:
         caps: list[int],
         local: Callable[[int, float, int], CaseRun],
         beside: list[Request],
-        local_request: Callable[[Request], Outcome],
+        local_request: Callable[[Request, Resolve], Outcome],
     ) -> tuple[list[CaseRun], list[Outcome | None]]:
         """Every load case at d as a task (run here when no other worker is free), and each
-        request ``beside`` as a task after them, only when other workers are free."""
+        request ``beside`` as a task after them, only when other workers are free: their
+        budget (LATER) is named in their tasks once the cases' runs are all stored."""
         after = self._after()
         free = free_workers(self.redis, self.worker, self.calibration_id)
         asked = beside if free else []
@@ -239,11 +250,31 @@ class CaseSpread:
             {**asdict(self.plan), "d": d, "load_case": j, "cap": int(c), "after": after}
             for j, c in enumerate(caps)
         ] + [{**asdict(self.plan), "request": asdict(r), "after": after} for r in asked]
+        tasks = [task_digest(spec) for spec in specs]
+        runs: list[Callable[[], tuple[list[CaseRun], Verdict | None]]]
         runs = [partial(_one_case, local, j, d, int(c)) for j, c in enumerate(caps)]
-        runs += [partial(_one_request, local_request, r) for r in asked]
-        done = self._round(specs, runs, free)
+        runs += [
+            partial(_one_named_later, local_request, self._resolve(t), r)
+            for t, r in zip(tasks[len(caps) :], asked, strict=True)
+        ]
+
+        def name_budget() -> bool:
+            """Once the cases' runs are all stored, their total in the requests' tasks."""
+            cases = tasks[: len(caps)]
+            if not all(scratch.has_case_run(self.redis, self.calibration_id, t) for t in cases):
+                return False
+            stored = [scratch.get_case_run(self.redis, self.calibration_id, t) for t in cases]
+            budget = settled_total([from_stored(*found)[0][0] for found in stored
+                                    if found is not None], caps)  # fmt: skip
+            for task in tasks[len(caps) :]:
+                scratch.name_budget(self.redis, self.calibration_id, task, budget)
+            return True
+
+        named_later = set(range(len(caps), len(specs))) if asked else set()
+        done = self._round(specs, runs, free, (name_budget, named_later))
         outcomes: list[Outcome | None] = [None] * len(beside)
         for i, (found, verdict) in enumerate(done[len(caps) :]):
+            assert verdict is not None  # a request's
             outcomes[i] = (found, verdict)
         return [found[0][0] for found in done[: len(caps)]], outcomes
 
@@ -259,14 +290,23 @@ class CaseSpread:
         done = self._round(specs, [partial(_one_request, local, r) for r in requests], free)
         return [None if verdict is None else (runs, verdict) for runs, verdict in done]
 
+    def _resolve(self, task: str) -> Resolve:
+        """Where request task ``task`` run here learns its budget named later."""
+        return partial(scratch.named_budget, self.redis, self.calibration_id, task)
+
     def _round(
         self,
         specs: list[dict[str, Any]],
         local: Sequence[Callable[[], tuple[list[CaseRun], Verdict | None]]],
         free: int,
+        later: tuple[Callable[[], bool], set[int]] | None = None,
     ) -> list[tuple[list[CaseRun], Verdict | None]]:
         """Store the tasks ``specs``, hand them to ``free`` workers and run the rest here
-        (``local[i]`` runs task i), wait for every one; their stored runs in order."""
+        (``local[i]`` runs task i), wait for every one; their stored runs in order.
+        ``later``: (called while waiting until it has named a budget (True), the tasks whose
+        budget it names): this job runs those only once it has (its threads would otherwise
+        wait on tasks that they hold up)."""
+        name_budget, named_later = later if later is not None else (None, set())
         start = time.time()
         tasks = [task_digest(s) for s in specs]
         for task, spec in zip(tasks, specs, strict=True):
@@ -287,10 +327,14 @@ class CaseSpread:
                 ]  # fmt: skip
                 if not waiting:
                     break
+                if name_budget is not None and name_budget():
+                    name_budget, named_later = None, set()
                 if handed and time.time() > start + GRACE:
                     handed = set()  # not claimed by now: nobody took them
                 for i in waiting:  # in order: the longest runs (a d's cases) come first
-                    if i in futures or i in handed or len(futures) >= self.threads:
+                    if i in futures or i in handed or i in named_later:
+                        continue
+                    if len(futures) >= self.threads:
                         continue
                     if scratch.claim_case(self.redis, self.calibration_id, tasks[i], self.holder):
                         futures[i] = pool.submit(
@@ -341,6 +385,13 @@ def _one_request(
     return local(request)
 
 
+def _one_named_later(
+    local: Callable[[Request, Resolve], Outcome], resolve: Resolve, request: Request
+) -> tuple[list[CaseRun], Verdict | None]:
+    """One d's request whose budget is named later run here (``resolve``: where from)."""
+    return local(request, resolve)
+
+
 def damping_case(calibration_id: str, task: str) -> dict[str, Any]:
     """RQ job: run one task of a calibration's damping stage (a load case at one d, or one
     d's request), unless it has run, is held by another, or the calibration has ended."""
@@ -362,7 +413,10 @@ def damping_case(calibration_id: str, task: str) -> dict[str, Any]:
         memory.check(problem.n_nodes)
         stiffness = model_stiffness(problem, spec["theta"])
         if "request" in spec:
-            return run_request(problem, stiffness, spec["depth"], spec["dt"], request_of(spec))
+            return run_request(
+                problem, stiffness, spec["depth"], spec["dt"], request_of(spec),
+                partial(_named_budget, redis, calibration_id, task),
+            )  # fmt: skip
         one = run_case(
             FpmModel(problem), stiffness, spec["depth"], spec["dt"], spec["load_case"],
             spec["d"], spec["cap"],
@@ -371,3 +425,12 @@ def damping_case(calibration_id: str, task: str) -> dict[str, Any]:
 
     run_task(redis, calibration_id, task, spec, holder, worker, run)
     return {"task": task, "name": task_name(spec)}
+
+
+def _named_budget(redis: Redis, calibration_id: str, task: str) -> tuple[bool, int | None]:
+    """A request task's budget named later (:func:`store.scratch.named_budget`), on another
+    worker: raises once the calibration has ended (its damping job will name none)."""
+    record = records.get_calibration(redis, calibration_id)
+    if record is None or record.status.terminal:
+        raise RuntimeError(f"calibration {calibration_id} has ended")
+    return scratch.named_budget(redis, calibration_id, task)

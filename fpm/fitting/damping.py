@@ -42,9 +42,10 @@ from __future__ import annotations
 
 import math
 import os
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -98,14 +99,13 @@ runs."""
 CONFIRM = 1.04
 """The runs that confirm a predicted d sit this factor below and above it."""
 CONFIRM_PRUNE = 1.0
-"""A confirming run is dropped once its predicted total exceeds its budget: the predicted d's
-total (it would at best tie; the predicted d is kept), or CONFIRM_AHEAD's if that is larger."""
-CONFIRM_AHEAD = 1.3
-"""The confirming runs' budget is at least this times the modes' predicted total steps: a
-budget known before the predicted d's runs end, so that where other workers are free they run
-beside them (the modes predict 0.84-0.85 of the steps the runs take on the organ at 5 and
-3 mm; a confirming d that settles within it is run to its end, and if the predicted d's runs
-take more, the confirming d run anew under their total)."""
+"""A confirming run is dropped once its predicted total exceeds the predicted d's total (it
+would at best tie; the predicted d is kept)."""
+LATER = -1
+"""A :class:`Request`'s budget that is named once the runs have started: the confirming d's,
+run beside the predicted d's whose total is their budget (:meth:`_Runs.separate`)."""
+LOOK = 0.2
+"""Seconds between a lockstep's looks for a budget named later."""
 RETRIES = 2
 """With fpm.max_steps 'auto', a search in which nothing settles within the predicted cap is
 repeated this many times more with MAX_STEPS_GROWTH times the cap (up to the schema's 10^6)."""
@@ -234,8 +234,8 @@ class CaseRun:
 @dataclass(frozen=True)
 class Request:
     """One d's lockstep runs as the search asks for them (:meth:`_Runs.__call__`'s
-    arguments): d (N s/m), each case's cap, the budget (None: none), and how predictions
-    decide."""
+    arguments): d (N s/m), each case's cap, the budget (None: none; LATER: named once the
+    runs have started), and how predictions decide."""
 
     d: float
     caps: tuple[int, ...]
@@ -271,20 +271,35 @@ def run_case(
     return CaseRun.of(run)
 
 
+Resolve = Callable[[], tuple[bool, int | None]]
+"""Where a lockstep learns a budget named LATER: (named yet, the budget)."""
+
+
 def run_request(
     problem: Problem,
     stiffness: Stiffness | np.ndarray,
     depth: int | None,
     dt: float,
     request: Request,
+    resolve: Resolve | None = None,
 ) -> Outcome:
     """One d's lockstep runs (:meth:`_Runs.locked`) at (``stiffness``, ``depth``, ``dt`` s)
-    in this process, for another's search (:data:`AheadRunner`)."""
+    in this process, for another's search; ``resolve``: where a budget named LATER comes
+    from."""
     runs = _Runs(problem, stiffness, depth, dt)
     try:
-        return runs.locked(request)
+        return runs.locked(request, resolve)
     finally:
         runs.close()
+
+
+def settled_total(runs: list[CaseRun], caps: list[int]) -> int | None:
+    """The total steps of a d whose cases each ran on their own to their end, as the search
+    takes it for the best so far (:func:`replay_verdict` done and every case settled), else
+    None: the budget of the requests run beside them."""
+    if replay_verdict(runs, caps).outcome == "done" and all(r.state == SETTLED for r in runs):
+        return sum(r.steps for r in runs)
+    return None
 
 
 class Spread(Protocol):
@@ -298,12 +313,14 @@ class Spread(Protocol):
         caps: list[int],
         local: Callable[[int, float, int], CaseRun],
         beside: list[Request],
-        local_request: Callable[[Request], Outcome],
+        local_request: Callable[[Request, Resolve], Outcome],
     ) -> tuple[list[CaseRun], list[Outcome | None]]:
         """Every load case of one d run on its own to its end, ``[CaseRun per case]``, where
-        ``local(j, d, cap)`` runs case j in this process (:func:`run_case`); and the requests
-        ``beside`` at the same time, only when other workers are free: their outcomes in
-        order (None: not run), ``local_request`` running one here."""
+        ``local(j, d, cap)`` runs case j in this process (:func:`run_case`); and, only when
+        other workers are free, the requests ``beside`` at the same time, whose budget LATER
+        is :func:`settled_total` of the cases' runs, named once they have all ended: their
+        outcomes in order (None: not run), ``local_request(request, resolve)`` running one
+        here."""
         ...
 
     def ahead(
@@ -366,14 +383,15 @@ class _Runs:
         """Every load case at d, each run on its own to its end (by ``spread``), and the
         verdict the lockstep would reach (:func:`replay_verdict`). For a d with no budget run
         to the cap, the same runs and verdict as :meth:`__call__`, but that a failed d's
-        other cases also run to their end. ``beside``: requests the search will probably make
-        next, run at the same time by ``spread`` where other workers are free (as
-        :meth:`prefetch`)."""
+        other cases also run to their end. ``beside``: requests (budget LATER) the search will
+        probably make next under this d's :func:`settled_total`, run at the same time by
+        ``spread`` where other workers are free, to be taken as :meth:`prefetch` ed."""
         if self.spread is None:
             runs = list(self.pool.map(self.local, range(self.cases), [d] * self.cases, caps))
         else:
             runs, outcomes = self.spread.separate(d, caps, self.local, list(beside), self.locked)
-            self._keep(list(beside), outcomes)
+            named = settled_total(runs, caps)
+            self._keep([replace(r, budget=named) for r in beside], outcomes)
         self.count += self.cases
         self.work += sum(r.steps for r in runs)
         return runs, replay_verdict(runs, caps)
@@ -392,10 +410,11 @@ class _Runs:
             if outcome is not None:
                 self.fetched[request] = outcome
 
-    def locked(self, request: Request) -> Outcome:
+    def locked(self, request: Request, resolve: Resolve | None = None) -> Outcome:
         """``request``'s lockstep runs here, as :class:`CaseRun`; not counted in ``count``
-        and ``work`` until the search takes them (:meth:`__call__`), whoever ran them."""
-        runs, verdict, _ = self._lockstep(request)
+        and ``work`` until the search takes them (:meth:`__call__`), whoever ran them.
+        ``resolve``: where a budget named LATER comes from."""
+        runs, verdict, _ = self._lockstep(request, resolve)
         return [CaseRun.of(run) for run in runs], verdict
 
     def __call__(
@@ -430,9 +449,18 @@ class _Runs:
         self.work += work
         return runs, verdict
 
-    def _lockstep(self, request: Request) -> tuple[list[DynamicRun], Verdict, int]:
-        """:meth:`__call__`'s runs of ``request``, and the steps they took."""
+    def _lockstep(
+        self, request: Request, resolve: Resolve | None = None
+    ) -> tuple[list[DynamicRun], Verdict, int]:
+        """:meth:`__call__`'s runs of ``request``, and the steps they took. A budget named
+        LATER (by ``resolve``, looked at every LOOK seconds): until then the cases run on
+        undecided (up to their caps), then the milestones they have passed are decided in
+        turn as they would have been with the budget known, so the verdict is the same."""
         d, caps, budget = request.d, list(request.caps), request.budget
+        pending = budget == LATER
+        if pending and resolve is None:
+            raise ValueError("a budget named later needs where to learn it")
+        looked = -math.inf
         estimate, prune, to_cap = request.estimate, request.prune, request.to_cap
         s = self.problem.spec.fpm
         runs = [
@@ -456,8 +484,14 @@ class _Runs:
         milestone = CHUNK
         verdict = Verdict("running")
         while True:
+            if pending and time.monotonic() - looked >= LOOK:
+                assert resolve is not None
+                looked = time.monotonic()
+                named, value = resolve()
+                if named:
+                    budget, pending = value, False
             stopped = [r.finished or r.steps >= c for r, c in zip(runs, caps, strict=True)]
-            while verdict.outcome == "running":
+            while verdict.outcome == "running" and not pending:
                 if all(stopped) and all(r.steps < milestone for r in runs):
                     break  # every case ended before this milestone
                 if not all(e or r.steps >= milestone for e, r in zip(stopped, runs, strict=True)):
@@ -468,12 +502,16 @@ class _Runs:
                 milestone += CHUNK
             waiting = [
                 (r, c) for r, c, e in zip(runs, caps, stopped, strict=True)
-                if not e and r not in running.values() and r.steps < milestone + CHUNK
+                if not e and r not in running.values()
+                and (pending or r.steps < milestone + CHUNK)
             ]  # fmt: skip
             while waiting and verdict.outcome == "running" and len(running) < self.threads:
                 r, c = min(waiting, key=lambda rc: rc[0].steps)
                 waiting.remove((r, c))
                 running[self.pool.submit(_piece, r, min(CHUNK, c - r.steps))] = r
+            if not running and pending:  # every case has ended: wait for the budget
+                time.sleep(LOOK)
+                continue
             if not running:
                 if verdict.outcome == "running":
                     verdict = Verdict("done")
@@ -657,20 +695,15 @@ def _search(
         return round(min(max(y, lo), hi), 12)
 
     def total(
-        y: float,
-        prune: float = PRUNE,
-        to_cap: bool = False,
-        floor: int = 0,
-        beside: Sequence[Request] = (),
+        y: float, prune: float = PRUNE, to_cap: bool = False, beside: Sequence[Request] = ()
     ) -> float:
-        """Total steps at d = exp(y) (for a d stopped at its budget, the steps it had taken:
-        a lower bound); inf if some case did not settle within max_steps. Its budget: the
-        best total, or ``floor`` if that is larger (none before anything settled).
-        ``beside``: requests run at the same time as a d run ``to_cap``."""
+        """Total steps at d = exp(y) (for a d stopped at the best total, the steps it had
+        taken: a lower bound); inf if some case did not settle within max_steps.
+        ``beside``: requests run at the same time as a d run ``to_cap``, under its total."""
         y = key(y)
         if y not in steps and y not in slower:
-            # A d whose steps already add up to the budget cannot win: stop it there.
-            budget = max(_total(steps[best[0]]), floor) if best else None
+            # A d whose steps already add up to the best total cannot win: stop it there.
+            budget = _total(steps[best[0]]) if best else None
             results: Sequence[DynamicRun | CaseRun]
             if budget is None and to_cap:  # each case's run is its own: they may run apart
                 results, verdict = runs.separate(math.exp(y), [max_steps] * runs.cases, beside)
@@ -708,27 +741,24 @@ def _search(
         left, mid, right = max(y0 - step, lo), y0, min(y0 + step, hi)
         caps = (max_steps,) * runs.cases
         sides = [y for y in dict.fromkeys(key(y) for y in (left, right)) if y != key(mid)]
-        # Their budget is known before the predicted d's runs end (CONFIRM_AHEAD), so where
-        # other workers are free they run beside them, under that budget.
-        floor = int(min(CONFIRM_AHEAD * prediction.total, 1 << 62))
-        beside = [Request(math.exp(y), caps, floor, prune=CONFIRM_PRUNE) for y in sides]
+        # Where other workers are free they run beside the predicted d's, their budget (its
+        # total) named once those have ended.
+        beside = [Request(math.exp(y), caps, LATER, prune=CONFIRM_PRUNE) for y in sides]
         # The predicted d runs to the cap: early in a long run its decay is no guide (on a
         # slender bar it predicted 3-8 times the steps the run took).
         f_mid = total(mid, to_cap=True, beside=beside)
         if grow and key(mid) in short:
             raise _ShortCap(short[key(mid)])
-        # Both at once where other workers are free (if not run beside the predicted d: its
-        # total is the larger budget): right's budget is mid's total (or the floor) unless
-        # left turns out faster (then right runs anew, with left's).
-        budget = max(_total(steps[best[0]]), floor) if best else None
+        # Both at once where other workers are free (unless run beside): right's budget is
+        # mid's total unless left turns out faster (then right runs anew, with left's).
+        budget = _total(steps[best[0]]) if best else None
         runs.prefetch(
             [
                 Request(math.exp(y), caps, budget, prune=CONFIRM_PRUNE)
                 for y in sides if y not in steps and y not in slower
             ]
         )  # fmt: skip
-        f_left = total(left, CONFIRM_PRUNE, floor=floor)
-        f_right = total(right, CONFIRM_PRUNE, floor=floor)
+        f_left, f_right = total(left, CONFIRM_PRUNE), total(right, CONFIRM_PRUNE)
     else:
         # Bracket: start from the two guesses and their geometric mean.
         g_low, g_high = sorted(min(max(math.log(g), lo), hi) for g in guesses)
