@@ -196,15 +196,15 @@ def release_claim(redis: Redis, calibration_id: str, task: str) -> None:
     redis.delete(keys.case_claim(calibration_id, task))
 
 
-def name_budget(redis: Redis, calibration_id: str, task: str, budget: int | None) -> None:
-    """Name the budget of request task ``task`` given LATER (None: no budget), once."""
-    redis.hsetnx(keys.case_run(calibration_id, task), "budget", json.dumps(budget))
+def name_later(redis: Redis, calibration_id: str, task: str, named: dict[str, Any]) -> None:
+    """Name, once, what request task ``task`` learns once its runs have started
+    (:func:`fpm.fitting.damping.named_later`: its budget or its caps)."""
+    redis.hsetnx(keys.case_run(calibration_id, task), "named", json.dumps(named))
 
 
-def named_budget(redis: Redis, calibration_id: str, task: str) -> tuple[bool, int | None]:
-    """(named yet, the budget) of request task ``task`` (:func:`name_budget`)."""
-    raw = redis.hget(keys.case_run(calibration_id, task), "budget")
-    return (False, None) if raw is None else (True, _json(raw))
+def named_later(redis: Redis, calibration_id: str, task: str) -> dict[str, Any] | None:
+    """What :func:`name_later` named for request task ``task``, or None (not yet)."""
+    return _json(redis.hget(keys.case_run(calibration_id, task), "named"))
 
 
 def save_case_run(

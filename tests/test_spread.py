@@ -105,7 +105,7 @@ def test_a_budget_named_later_gives_the_verdict_of_the_budget_known(named_after)
 
             def resolve(start=start, looks=looks):
                 looks.append(time.monotonic())
-                return (time.monotonic() - start >= named_after, total)
+                return {"budget": total} if time.monotonic() - start >= named_after else None
 
             later, late = runs.locked(Request(d, tuple(caps), LATER, prune=CONFIRM_PRUNE), resolve)
             assert (late.outcome, late.total, late.predicted) == (
@@ -117,6 +117,43 @@ def test_a_budget_named_later_gives_the_verdict_of_the_budget_known(named_after)
             elif named_after:  # the cases ran on past the milestone that decides
                 assert sum(r.steps for r in later) > sum(r.steps for r in known)
                 assert len(looks) >= 2
+    finally:
+        runs.close()
+
+
+@pytest.mark.parametrize("named_after", [0.0, 0.7])
+@pytest.mark.parametrize("short", [False, True])
+def test_caps_named_later_give_the_verdict_of_the_caps_known(named_after, short):
+    """A margin probe run beside the predicted d's learns its caps (twice their steps) only
+    once they have ended: its cases run on meanwhile, and a case that went past its cap is
+    taken as it stood there, so the verdict is the one of the probe with its caps known: it
+    settles within twice the steps, and fails with caps shorter than the first prediction
+    (the cases reach them unsettled)."""
+    problem = fpm.load_problem(long_cases(SMALL))
+    stiffness = model_stiffness(problem, [22.4347])
+    runs = _Runs(problem, stiffness, None, 2e-6)
+    try:
+        wide = [1_000_000] * runs.cases
+        predicted, _ = runs(0.11, wide, None, to_cap=True)
+        caps = [2 * CHUNK if short else 2 * r.steps for r in predicted]
+        d = 0.11 / 1.12
+        known, verdict = runs(d, caps, None, estimate=True)
+        start = time.monotonic()
+
+        def resolve():
+            return {"caps": caps} if time.monotonic() - start >= named_after else None
+
+        request = Request(d, tuple(wide), None, estimate=True, caps_later=True)
+        later, late = runs.locked(request, resolve)
+        assert (late.outcome, late.total, late.predicted) == (
+            verdict.outcome, verdict.total, verdict.predicted
+        )  # fmt: skip
+        assert verdict.outcome == ("failed" if short else "settles")
+        assert all(r.steps <= c for r, c in zip(later, caps, strict=True))  # as capped
+        if short:
+            assert [(r.steps, r.finished) for r in later] == [(c, False) for c in caps]
+        _, how = runs.locked(request, lambda: {"caps": None})  # the search asks none
+        assert how.outcome == "dropped"
     finally:
         runs.close()
 

@@ -50,9 +50,9 @@ from fpm.fitting.damping import (
     Request,
     Resolve,
     Verdict,
+    named_later,
     run_case,
     run_request,
-    settled_total,
 )
 from fpm.fitting.damping_stage import DampingPlan
 from fpm.model.stiffness import model_stiffness
@@ -88,6 +88,7 @@ def task_name(spec: dict[str, Any]) -> str:
     if "request" in spec:
         r = spec["request"]
         within = {None: "", LATER: " within their total"}.get(r["budget"], f" within {r['budget']}")
+        within += " within the margin's caps" if r.get("caps_later") else ""
         return f"damping: d {r['d']:.6g}{within}, all load cases"
     return f"damping: d {spec['d']:.6g}, load case {spec['load_case']}"
 
@@ -258,20 +259,21 @@ class CaseSpread:
             for t, r in zip(tasks[len(caps) :], asked, strict=True)
         ]
 
-        def name_budget() -> bool:
-            """Once the cases' runs are all stored, their total in the requests' tasks."""
+        def name_later() -> bool:
+            """Once the cases' runs are all stored, what the requests learn from them (their
+            budget or caps) in their tasks."""
             cases = tasks[: len(caps)]
             if not all(scratch.has_case_run(self.redis, self.calibration_id, t) for t in cases):
                 return False
             stored = [scratch.get_case_run(self.redis, self.calibration_id, t) for t in cases]
-            budget = settled_total([from_stored(*found)[0][0] for found in stored
-                                    if found is not None], caps)  # fmt: skip
-            for task in tasks[len(caps) :]:
-                scratch.name_budget(self.redis, self.calibration_id, task, budget)
+            ran = [from_stored(*found)[0][0] for found in stored if found is not None]
+            for task, request in zip(tasks[len(caps) :], asked, strict=True):
+                named = named_later(request, ran, caps)
+                scratch.name_later(self.redis, self.calibration_id, task, named)
             return True
 
-        named_later = set(range(len(caps), len(specs))) if asked else set()
-        done = self._round(specs, runs, free, (name_budget, named_later))
+        later = set(range(len(caps), len(specs))) if asked else set()
+        done = self._round(specs, runs, free, (name_later, later))
         outcomes: list[Outcome | None] = [None] * len(beside)
         for i, (found, verdict) in enumerate(done[len(caps) :]):
             assert verdict is not None  # a request's
@@ -292,7 +294,7 @@ class CaseSpread:
 
     def _resolve(self, task: str) -> Resolve:
         """Where request task ``task`` run here learns its budget named later."""
-        return partial(scratch.named_budget, self.redis, self.calibration_id, task)
+        return partial(scratch.named_later, self.redis, self.calibration_id, task)
 
     def _round(
         self,
@@ -303,10 +305,10 @@ class CaseSpread:
     ) -> list[tuple[list[CaseRun], Verdict | None]]:
         """Store the tasks ``specs``, hand them to ``free`` workers and run the rest here
         (``local[i]`` runs task i), wait for every one; their stored runs in order.
-        ``later``: (called while waiting until it has named a budget (True), the tasks whose
-        budget it names): this job runs those only once it has (its threads would otherwise
-        wait on tasks that they hold up)."""
-        name_budget, named_later = later if later is not None else (None, set())
+        ``later``: (called while waiting until it has named what requests learn later (True),
+        those requests' tasks): this job runs those only once it has (its threads would
+        otherwise wait on tasks that they hold up)."""
+        name_later, named_later = later if later is not None else (None, set())
         start = time.time()
         tasks = [task_digest(s) for s in specs]
         for task, spec in zip(tasks, specs, strict=True):
@@ -327,8 +329,8 @@ class CaseSpread:
                 ]  # fmt: skip
                 if not waiting:
                     break
-                if name_budget is not None and name_budget():
-                    name_budget, named_later = None, set()
+                if name_later is not None and name_later():
+                    name_later, named_later = None, set()
                 if handed and time.time() > start + GRACE:
                     handed = set()  # not claimed by now: nobody took them
                 for i in waiting:  # in order: the longest runs (a d's cases) come first
@@ -415,7 +417,7 @@ def damping_case(calibration_id: str, task: str) -> dict[str, Any]:
         if "request" in spec:
             return run_request(
                 problem, stiffness, spec["depth"], spec["dt"], request_of(spec),
-                partial(_named_budget, redis, calibration_id, task),
+                partial(_named, redis, calibration_id, task),
             )  # fmt: skip
         one = run_case(
             FpmModel(problem), stiffness, spec["depth"], spec["dt"], spec["load_case"],
@@ -427,10 +429,10 @@ def damping_case(calibration_id: str, task: str) -> dict[str, Any]:
     return {"task": task, "name": task_name(spec)}
 
 
-def _named_budget(redis: Redis, calibration_id: str, task: str) -> tuple[bool, int | None]:
-    """A request task's budget named later (:func:`store.scratch.named_budget`), on another
-    worker: raises once the calibration has ended (its damping job will name none)."""
+def _named(redis: Redis, calibration_id: str, task: str) -> dict[str, Any] | None:
+    """What a request task learns later (:func:`store.scratch.named_later`), on another
+    worker: raises once the calibration has ended (its damping job will name nothing)."""
     record = records.get_calibration(redis, calibration_id)
     if record is None or record.status.terminal:
         raise RuntimeError(f"calibration {calibration_id} has ended")
-    return scratch.named_budget(redis, calibration_id, task)
+    return scratch.named_later(redis, calibration_id, task)

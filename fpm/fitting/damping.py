@@ -235,7 +235,9 @@ class CaseRun:
 class Request:
     """One d's lockstep runs as the search asks for them (:meth:`_Runs.__call__`'s
     arguments): d (N s/m), each case's cap, the budget (None: none; LATER: named once the
-    runs have started), and how predictions decide."""
+    runs have started), and how predictions decide; ``caps_later``: the caps are named once
+    the runs have started, within ``caps`` (a margin probe's, run beside the predicted d's
+    whose steps set them)."""
 
     d: float
     caps: tuple[int, ...]
@@ -243,6 +245,7 @@ class Request:
     estimate: bool = False
     prune: float = PRUNE
     to_cap: bool = False
+    caps_later: bool = False
 
 
 Outcome = tuple[list["CaseRun"], "Verdict"]
@@ -271,8 +274,10 @@ def run_case(
     return CaseRun.of(run)
 
 
-Resolve = Callable[[], tuple[bool, int | None]]
-"""Where a lockstep learns a budget named LATER: (named yet, the budget)."""
+Resolve = Callable[[], dict[str, Any] | None]
+"""Where a lockstep learns what is named later (None: not yet): {"budget": int or None} for
+a budget LATER, {"caps": [int per case], or None: drop the request} for caps named later
+(:func:`named_later`)."""
 
 
 def run_request(
@@ -296,10 +301,38 @@ def run_request(
 def settled_total(runs: list[CaseRun], caps: list[int]) -> int | None:
     """The total steps of a d whose cases each ran on their own to their end, as the search
     takes it for the best so far (:func:`replay_verdict` done and every case settled), else
-    None: the budget of the requests run beside them."""
+    None."""
     if replay_verdict(runs, caps).outcome == "done" and all(r.state == SETTLED for r in runs):
         return sum(r.steps for r in runs)
     return None
+
+
+def named_later(request: Request, runs: list[CaseRun], caps: list[int]) -> dict[str, Any]:
+    """What ``request``, run beside a d's cases (``runs``, each to ``caps``), learns once
+    they have ended, as the search would make it with that d the best so far: a confirming
+    d's budget, their :func:`settled_total`; a margin probe's caps, MARGIN_CAP times each
+    case's steps within the request's own (None when they did not all settle: then the
+    search makes no such probe)."""
+    total = settled_total(runs, caps)
+    if not request.caps_later:
+        return {"budget": total}
+    if total is None:
+        return {"caps": None}
+    return {"caps": [min(c, MARGIN_CAP * r.steps) for r, c in zip(runs, request.caps, strict=True)]}
+
+
+def _capped(run: DynamicRun, cap: int) -> DynamicRun | CaseRun:
+    """``run`` as it would stand had it been capped at ``cap`` steps (a run that went on
+    past a cap named later): its state and residual history up to there (the kernel checks
+    settling every step, so a run that ended by the cap ended the same way)."""
+    if run.steps <= cap:
+        return run
+    return CaseRun(
+        steps=cap,
+        state=RUNNING,
+        settle_force=run.settle_force,
+        history=[(n, r) for n, r in run.history if n <= cap],
+    )
 
 
 class Spread(Protocol):
@@ -390,8 +423,13 @@ class _Runs:
             runs = list(self.pool.map(self.local, range(self.cases), [d] * self.cases, caps))
         else:
             runs, outcomes = self.spread.separate(d, caps, self.local, list(beside), self.locked)
-            named = settled_total(runs, caps)
-            self._keep([replace(r, budget=named) for r in beside], outcomes)
+            for request, outcome in zip(beside, outcomes, strict=True):
+                named = named_later(request, runs, caps)
+                if "budget" in named:
+                    self._keep([replace(request, budget=named["budget"])], [outcome])
+                elif named["caps"] is not None:
+                    taken = replace(request, caps=tuple(named["caps"]), caps_later=False)
+                    self._keep([taken], [outcome])
         self.count += self.cases
         self.work += sum(r.steps for r in runs)
         return runs, replay_verdict(runs, caps)
@@ -451,15 +489,15 @@ class _Runs:
 
     def _lockstep(
         self, request: Request, resolve: Resolve | None = None
-    ) -> tuple[list[DynamicRun], Verdict, int]:
+    ) -> tuple[list[DynamicRun | CaseRun], Verdict, int]:
         """:meth:`__call__`'s runs of ``request``, and the steps they took. A budget named
         LATER (by ``resolve``, looked at every LOOK seconds): until then the cases run on
         undecided (up to their caps), then the milestones they have passed are decided in
         turn as they would have been with the budget known, so the verdict is the same."""
         d, caps, budget = request.d, list(request.caps), request.budget
-        pending = budget == LATER
+        pending = budget == LATER or request.caps_later
         if pending and resolve is None:
-            raise ValueError("a budget named later needs where to learn it")
+            raise ValueError("what is named later needs where to learn it")
         looked = -math.inf
         estimate, prune, to_cap = request.estimate, request.prune, request.to_cap
         s = self.problem.spec.fpm
@@ -487,17 +525,26 @@ class _Runs:
             if pending and time.monotonic() - looked >= LOOK:
                 assert resolve is not None
                 looked = time.monotonic()
-                named, value = resolve()
-                if named:
-                    budget, pending = value, False
-            stopped = [r.finished or r.steps >= c for r, c in zip(runs, caps, strict=True)]
+                named = resolve()
+                if named is not None:  # the pieces under way end first: then nothing moves
+                    for future in running:
+                        work += future.result()
+                    running.clear()
+                    if named.get("caps", caps) is None:  # the search will not ask for it
+                        dropped: list[DynamicRun | CaseRun] = list(runs)
+                        return dropped, Verdict("dropped"), work
+                    budget = named.get("budget", budget)
+                    caps, pending = list(named.get("caps", caps)), False
+            # (a run past a cap named later, as it stood at that cap)
+            seen = [_capped(r, c) for r, c in zip(runs, caps, strict=True)]
+            stopped = [r.finished or r.steps >= c for r, c in zip(seen, caps, strict=True)]
             while verdict.outcome == "running" and not pending:
-                if all(stopped) and all(r.steps < milestone for r in runs):
+                if all(stopped) and all(r.steps < milestone for r in seen):
                     break  # every case ended before this milestone
-                if not all(e or r.steps >= milestone for e, r in zip(stopped, runs, strict=True)):
+                if not all(e or r.steps >= milestone for e, r in zip(stopped, seen, strict=True)):
                     break  # a case has not reached it yet
                 verdict = verdict_at(
-                    runs, caps, milestone, budget, estimate=estimate, prune=prune, to_cap=to_cap
+                    seen, caps, milestone, budget, estimate=estimate, prune=prune, to_cap=to_cap
                 )
                 milestone += CHUNK
             waiting = [
@@ -515,7 +562,7 @@ class _Runs:
             if not running:
                 if verdict.outcome == "running":
                     verdict = Verdict("done")
-                return runs, verdict, work
+                return seen, verdict, work
             done, _ = wait(running, return_when=FIRST_COMPLETED)
             for future in done:
                 work += future.result()
@@ -742,8 +789,18 @@ def _search(
         caps = (max_steps,) * runs.cases
         sides = [y for y in dict.fromkeys(key(y) for y in (left, right)) if y != key(mid)]
         # Where other workers are free they run beside the predicted d's, their budget (its
-        # total) named once those have ended.
+        # total) named once those have ended; so do the margin's probes should it stay the
+        # fastest, their caps named from its steps (:func:`_smallest_settling`).
         beside = [Request(math.exp(y), caps, LATER, prune=CONFIRM_PRUNE) for y in sides]
+        edge = (
+            None if models is None else _predicted_edge(models, math.exp(key(mid)), lo, max_steps)
+        )
+        if edge is not None:
+            probes = dict.fromkeys(_margin_probes(edge, lo, math.log(BRACKET_STEP)))
+            beside += [
+                Request(math.exp(y), caps, None, estimate=True, caps_later=True)
+                for y in probes if y < key(mid)
+            ]  # fmt: skip
         # The predicted d runs to the cap: early in a long run its decay is no guide (on a
         # slender bar it predicted 3-8 times the steps the run took).
         f_mid = total(mid, to_cap=True, beside=beside)
@@ -932,10 +989,8 @@ def _smallest_settling(
     failing = [y for y, ok in answers.items() if ok is False and y < y_ok]
     y_fail = max(failing) if failing else None
     if edge is not None:
-        edge = round(edge, 12)
+        edge, below, further = _margin_probes(edge, lo, step)
         if edge < y_ok and (y_fail is None or edge > y_fail):
-            below = round(max(edge - step / 2, lo), 12)
-            further = round(max(below - step, lo), 12)
             # The probes below the edge at once where other workers are free (wasted if the
             # edge, or the first below it, does not settle): the walk's next step from there.
             then = below < edge and (y_fail is None or below > y_fail)
@@ -969,6 +1024,14 @@ def _smallest_settling(
         else:
             y_fail = middle
     return y_ok
+
+
+def _margin_probes(edge: float, lo: float, step: float) -> tuple[float, float, float]:
+    """log d of the margin's probes from the reduced steps' edge (:func:`_smallest_settling`):
+    the edge, ``step / 2`` below it and a walk's ``step`` below that (within ``lo``)."""
+    edge = round(edge, 12)
+    below = round(max(edge - step / 2, lo), 12)
+    return edge, below, round(max(below - step, lo), 12)
 
 
 PROBE_STEPS = 20
