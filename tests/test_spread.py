@@ -89,9 +89,10 @@ def test_separate_runs_equal_the_lockstep_runs(cap):
 @pytest.mark.parametrize("named_after", [0.0, 0.7])
 def test_a_budget_named_later_gives_the_verdict_of_the_budget_known(named_after):
     """A confirming d run beside the predicted d's learns its budget (their total) only once
-    they have ended: its cases run on undecided until then, and the milestones they passed
-    are decided afterwards, as the lockstep with the budget known decides them (the same
-    verdict, its total and predictions to the bit), however late the budget comes."""
+    they have ended: its cases run on undecided until then (up to HOLD steps), and the
+    milestones they passed are decided afterwards, as the lockstep with the budget known
+    decides them (the same verdict, its total and predictions to the bit), however late the
+    budget comes."""
     problem = fpm.load_problem(long_cases(SMALL))
     stiffness = model_stiffness(problem, [22.4347])
     runs = _Runs(problem, stiffness, None, 2e-6)
@@ -114,8 +115,7 @@ def test_a_budget_named_later_gives_the_verdict_of_the_budget_known(named_after)
             assert verdict.outcome in ("lost", "done")
             if verdict.outcome == "done":
                 assert [r.steps for r in later] == [r.steps for r in known]
-            elif named_after:  # the cases ran on past the milestone that decides
-                assert sum(r.steps for r in later) > sum(r.steps for r in known)
+            if named_after:  # it ran undecided (up to HOLD steps), looking for the budget
                 assert len(looks) >= 2
     finally:
         runs.close()

@@ -105,7 +105,11 @@ LATER = -1
 """A :class:`Request`'s budget that is named once the runs have started: the confirming d's,
 run beside the predicted d's whose total is their budget (:meth:`_Runs.separate`)."""
 LOOK = 0.2
-"""Seconds between a lockstep's looks for a budget named later."""
+"""Seconds between a lockstep's looks for what is named later."""
+HOLD = PREDICT_AFTER + 2 * CHUNK
+"""Until what it needs is named, a lockstep's cases run at most this many steps and then wait:
+past PREDICT_AFTER, where the verdicts of the d run beside the predicted d's usually come
+(their cores go to the predicted d's cases meanwhile)."""
 RETRIES = 2
 """With fpm.max_steps 'auto', a search in which nothing settles within the predicted cap is
 repeated this many times more with MAX_STEPS_GROWTH times the cap (up to the schema's 10^6)."""
@@ -490,10 +494,11 @@ class _Runs:
     def _lockstep(
         self, request: Request, resolve: Resolve | None = None
     ) -> tuple[list[DynamicRun | CaseRun], Verdict, int]:
-        """:meth:`__call__`'s runs of ``request``, and the steps they took. A budget named
-        LATER (by ``resolve``, looked at every LOOK seconds): until then the cases run on
-        undecided (up to their caps), then the milestones they have passed are decided in
-        turn as they would have been with the budget known, so the verdict is the same."""
+        """:meth:`__call__`'s runs of ``request``, and the steps they took. A budget LATER
+        or caps named later (by ``resolve``, looked at every LOOK seconds): until then the
+        cases run on undecided, up to HOLD steps, then the milestones they have passed are
+        decided in turn as they would have been with the budget or caps known (a case past
+        its cap as it stood there), so the verdict is the same."""
         d, caps, budget = request.d, list(request.caps), request.budget
         pending = budget == LATER or request.caps_later
         if pending and resolve is None:
@@ -550,13 +555,13 @@ class _Runs:
             waiting = [
                 (r, c) for r, c, e in zip(runs, caps, stopped, strict=True)
                 if not e and r not in running.values()
-                and (pending or r.steps < milestone + CHUNK)
+                and r.steps < (HOLD if pending else milestone + CHUNK)
             ]  # fmt: skip
             while waiting and verdict.outcome == "running" and len(running) < self.threads:
                 r, c = min(waiting, key=lambda rc: rc[0].steps)
                 waiting.remove((r, c))
                 running[self.pool.submit(_piece, r, min(CHUNK, c - r.steps))] = r
-            if not running and pending:  # every case has ended: wait for the budget
+            if not running and pending:  # every case has ended or waits: wait for the names
                 time.sleep(LOOK)
                 continue
             if not running:
