@@ -222,3 +222,22 @@ def test_h_is_the_lattice_spacing():
     )
     assert net.h == pytest.approx(0.03)
     assert net.rest_lengths.tolist() == pytest.approx([0.03, 0.04])
+
+
+@pytest.mark.parametrize("connectivity", ["axis", "axis+face", "full"])
+def test_hexahedron_springs_are_the_unique_sorted_pairs_with_the_lowest_family(connectivity):
+    """The springs of a voxel lattice with a hole: every node pair a hexahedron joins, once,
+    in lexicographic order, with the lowest family any hexahedron gives it (as np.unique on
+    the rows computes it, which the int64 keys replaced)."""
+    from fpm.model.geometry import box_hexahedra, hexahedron_springs, local_families, local_pairs
+
+    hexahedra = np.delete(box_hexahedra((5, 4, 4)), 13, axis=0)  # 4 x 3 x 3 cells, one gone
+    springs, families = hexahedron_springs(hexahedra, connectivity)
+    lp = local_pairs(connectivity)
+    pairs = np.stack([hexahedra[:, lp[:, 0]].ravel(), hexahedra[:, lp[:, 1]].ravel()], axis=1)
+    pairs.sort(axis=1)
+    expected, inverse = np.unique(pairs, axis=0, return_inverse=True)
+    lowest = np.full(len(expected), 127, dtype=np.int8)
+    np.minimum.at(lowest, inverse.ravel(), np.tile(local_families(connectivity), len(hexahedra)))
+    assert springs.dtype == np.int32 and np.array_equal(springs, expected)
+    assert np.array_equal(families, lowest)
