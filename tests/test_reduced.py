@@ -178,9 +178,10 @@ def test_the_defect_corrected_fit_runs_once_per_calibration(monkeypatch):
 
 
 def test_the_fit_is_the_same_on_one_or_two_threads():
-    """Three load cases over the fit's two static solvers (cases 0 and 2 on one): the same
-    answer to the bit whether the two groups run one after the other or at once, and every
-    case's equilibrium at the answer is a warm start of the cost's solver."""
+    """Three load cases over the fit's two static solvers (one: every linear response and
+    case 0's equilibrium, the other: cases 1 and 2's): the same answer to the bit whether the
+    two solvers' shares run one after the other or at once, and every case's equilibrium at
+    the answer is a warm start of the cost's solver."""
     from fpm.fitting.bounds import stiffness_bounds
     from fpm.fitting.reduced import fit_reduced
 

@@ -483,11 +483,16 @@ at its minimiser (the basis grows, the defect is renewed)."""
 
 
 CASE_SOLVERS = 2
-"""A round of :func:`fit_reduced` splits the load cases over this many static solvers (case j
-on solver j mod 2, solver 0 the cost's), each solving its cases one after the other on a
-thread of its own: on the organ at h = 3 mm the fit took 3.75-4.0 instead of 5.5 s on a quiet
-2-core machine. The answer does not depend on the threads (a solver's cases always run in the
-same order); each more solver would hold a multigrid hierarchy and a tangent buffer more."""
+"""A round of :func:`fit_reduced` splits its solves over this many static solvers, each
+solving its share one after the other on a thread of its own: solver 0 (the cost's) every
+load case's full linear response (a CG from the reduced model's answer: after the first round
+a tenth of a static solve) and case 0's static equilibrium, the others the other cases'
+static equilibria in turn. On the organ at h = 3 mm the fit took 3.75-4.0 instead of 5.5 s on
+a quiet 2-core machine with case j wholly on solver j mod 2; with this split the 93,705-node
+organ's rounds are closer to even (static solves 2-6 s, responses 0.1-4.6 s). The answer does
+not depend on the threads (a solver's solves always run in the same order); each more solver
+would hold a multigrid hierarchy and a tangent buffer more (a third: +420 MiB at 93,705
+nodes, for 2.4 s)."""
 
 
 def fit_reduced(
@@ -502,9 +507,9 @@ def fit_reduced(
     reduced linear fits on ``basis`` with enrichment, corrected by the nonlinear defect until
     the minimiser stops moving (this module's docstring).
 
-    Each round's full linear and static solves run per group of load cases, each group on its
-    own static solver (:data:`CASE_SOLVERS`), the groups at once on ``threads`` threads with
-    the same answer to the bit. The static equilibria at the answer are left as ``cost``'s
+    Each round's full linear and static solves are split over static solvers
+    (:data:`CASE_SOLVERS`), the solvers' shares at once on ``threads`` threads with the same
+    answer to the bit. The static equilibria at the answer are left as ``cost``'s
     warm starts, so a static solve there takes no Newton step. ``progress`` gets {phase:
     "polish", round, evaluations} after each round.
 
@@ -514,8 +519,10 @@ def fit_reduced(
     model = ReducedLinearModel.of(problem, basis, cost.reference)
     n_cases = len(model.cases)
     solvers = [cost.solver] + [StaticSolver(problem) for _ in range(1, min(CASE_SOLVERS, n_cases))]
-    groups = [list(range(g, n_cases, len(solvers))) for g in range(len(solvers))]
-    model.attach([solvers[j % len(solvers)] for j in range(n_cases)], cost.depth)
+    # whose static equilibrium each solver finds (solver 0 also every linear response)
+    others = len(solvers) - 1
+    statics = [0 if j == 0 or not others else 1 + (j - 1) % others for j in range(n_cases)]
+    model.attach([solvers[0]] * n_cases, cost.depth)
     lo, hi = np.log(bounds[0]), np.log(bounds[1])
     y = np.clip(np.log(np.asarray(start, dtype=float)), lo, hi)
     static = float("inf")
@@ -530,13 +537,18 @@ def fit_reduced(
             stiffness = model_stiffness(problem, theta)
             responses = model.responses(theta)
             tasks = [
-                partial(_group_round, [(j, responses[j]) for j in group], solvers[g], stiffness,
+                partial(_solver_round, list(enumerate(responses)) if g == 0 else [],
+                        [j for j in range(n_cases) if statics[j] == g], solver, stiffness,
                         cost.depth)
-                for g, group in enumerate(groups)
+                for g, solver in enumerate(solvers)
             ]  # fmt: skip
-            done = dict(pair for found in pool.map(lambda run: run(), tasks) for pair in found)
-            model.add(done[j][0] for j in range(n_cases))  # the basis grows
-            solved = [done[j][1] for j in range(n_cases)]
+            linear: dict[int, np.ndarray] = {}
+            equilibria: dict[int, Equilibrium] = {}
+            for found, solved_here in pool.map(lambda run: run(), tasks):
+                linear.update(found)
+                equilibria.update(solved_here)
+            model.add(linear[j] for j in range(n_cases))  # the basis grows
+            solved = [equilibria[j] for j in range(n_cases)]
             if not all(e.converged for e in solved):
                 static = float("inf")
                 break
@@ -552,21 +564,25 @@ def fit_reduced(
             if float(np.abs(y - previous).max()) < CONVERGED:
                 break
     for j, equilibrium in enumerate(solved):  # the other solvers' answers as cost's warm starts
-        if j % len(solvers) and equilibrium.converged:
+        if statics[j] and equilibrium.converged:
             cost.solver.seed(j, stiffness, cost.depth, equilibrium.displacements)
     return list(np.exp(y)), static, model.solves
 
 
-def _group_round(
-    cases: list[tuple[int, Callable[[], np.ndarray]]],
+def _solver_round(
+    responses: list[tuple[int, Callable[[], np.ndarray]]],
+    statics: list[int],
     solver: StaticSolver,
     stiffness: Stiffness,
     depth: int | None,
-) -> list[tuple[int, tuple[np.ndarray, Equilibrium]]]:
-    """One group's part of a round of :func:`fit_reduced`, its load cases one after the other
-    on ``solver``: per case j (with the call from :meth:`ReducedLinearModel.responses`), j and
-    (its full linear response, its static equilibrium at ``stiffness``)."""
-    return [(j, (response(), solver.solve(j, stiffness, depth))) for j, response in cases]
+) -> tuple[dict[int, np.ndarray], dict[int, Equilibrium]]:
+    """One solver's share of a round of :func:`fit_reduced`, one solve after the other: the
+    full linear responses of ``responses`` (load case j, the call from
+    :meth:`ReducedLinearModel.responses`, which solves on this solver), then the static
+    equilibria of load cases ``statics`` at ``stiffness`` on ``solver``. Returns ({j: response
+    (3M,)}, {j: equilibrium})."""
+    linear = {j: response() for j, response in responses}
+    return linear, {j: solver.solve(j, stiffness, depth) for j in statics}
 
 
 def _reduced_minimum(
