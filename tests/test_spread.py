@@ -86,76 +86,78 @@ def test_separate_runs_equal_the_lockstep_runs(cap):
         assert verdict.outcome == ("failed" if cap % CHUNK == 0 else "done")
 
 
+@pytest.fixture
+def predicted_runs():
+    """The lockstep runs of the long small box at (k 22.4347, d = 0.11, no budget, to a cap of
+    10^6 steps): (the _Runs, its cases' runs at d, as the predicted d's beside which others
+    run)."""
+    problem = fpm.load_problem(long_cases(SMALL))
+    runs = _Runs(problem, model_stiffness(problem, [22.4347]), None, 2e-6)
+    try:
+        predicted, _ = runs(0.11, [1_000_000] * runs.cases, None, to_cap=True)
+        yield runs, predicted
+    finally:
+        runs.close()
+
+
 @pytest.mark.parametrize("named_after", [0.0, 0.7])
-def test_a_budget_named_later_gives_the_verdict_of_the_budget_known(named_after):
+def test_a_budget_named_later_gives_the_verdict_of_the_budget_known(named_after, predicted_runs):
     """A confirming d run beside the predicted d's learns its budget (their total) only once
     they have ended: its cases run on undecided until then (up to HOLD steps), and the
     milestones they passed are decided afterwards, as the lockstep with the budget known
     decides them (the same verdict, its total and predictions to the bit), however late the
     budget comes."""
-    problem = fpm.load_problem(long_cases(SMALL))
-    stiffness = model_stiffness(problem, [22.4347])
-    runs = _Runs(problem, stiffness, None, 2e-6)
-    try:
-        caps = [1_000_000] * runs.cases
-        predicted, _ = runs(0.11, caps, None, to_cap=True)
-        total = sum(r.steps for r in predicted)
-        for d in (0.11 / CONFIRM, 0.11 * CONFIRM):
-            known, verdict = runs(d, caps, total, prune=CONFIRM_PRUNE)
-            start, looks = time.monotonic(), []
+    runs, predicted = predicted_runs
+    caps = [1_000_000] * runs.cases
+    total = sum(r.steps for r in predicted)
+    for d in (0.11 / CONFIRM, 0.11 * CONFIRM):
+        known, verdict = runs(d, caps, total, prune=CONFIRM_PRUNE)
+        start, looks = time.monotonic(), []
 
-            def resolve(start=start, looks=looks):
-                looks.append(time.monotonic())
-                return {"budget": total} if time.monotonic() - start >= named_after else None
+        def resolve(start=start, looks=looks):
+            looks.append(time.monotonic())
+            return {"budget": total} if time.monotonic() - start >= named_after else None
 
-            later, late = runs.locked(Request(d, tuple(caps), LATER, prune=CONFIRM_PRUNE), resolve)
-            assert (late.outcome, late.total, late.predicted) == (
-                verdict.outcome, verdict.total, verdict.predicted
-            )  # fmt: skip
-            assert verdict.outcome in ("lost", "done")
-            if verdict.outcome == "done":
-                assert [r.steps for r in later] == [r.steps for r in known]
-            if named_after:  # it ran undecided (up to HOLD steps), looking for the budget
-                assert len(looks) >= 2
-    finally:
-        runs.close()
+        later, late = runs.locked(Request(d, tuple(caps), LATER, prune=CONFIRM_PRUNE), resolve)
+        assert (late.outcome, late.total, late.predicted) == (
+            verdict.outcome, verdict.total, verdict.predicted
+        )  # fmt: skip
+        assert verdict.outcome in ("lost", "done")
+        if verdict.outcome == "done":
+            assert [r.steps for r in later] == [r.steps for r in known]
+        if named_after:  # it ran undecided (up to HOLD steps), looking for the budget
+            assert len(looks) >= 2
 
 
 @pytest.mark.parametrize("named_after", [0.0, 0.7])
 @pytest.mark.parametrize("short", [False, True])
-def test_caps_named_later_give_the_verdict_of_the_caps_known(named_after, short):
+def test_caps_named_later_give_the_verdict_of_the_caps_known(named_after, short, predicted_runs):
     """A margin probe run beside the predicted d's learns its caps (twice their steps) only
     once they have ended: its cases run on meanwhile, and a case that went past its cap is
     taken as it stood there, so the verdict is the one of the probe with its caps known: it
     settles within twice the steps, and fails with caps shorter than the first prediction
     (the cases reach them unsettled)."""
-    problem = fpm.load_problem(long_cases(SMALL))
-    stiffness = model_stiffness(problem, [22.4347])
-    runs = _Runs(problem, stiffness, None, 2e-6)
-    try:
-        wide = [1_000_000] * runs.cases
-        predicted, _ = runs(0.11, wide, None, to_cap=True)
-        caps = [2 * CHUNK if short else 2 * r.steps for r in predicted]
-        d = 0.11 / 1.12
-        known, verdict = runs(d, caps, None, estimate=True)
-        start = time.monotonic()
+    runs, predicted = predicted_runs
+    wide = [1_000_000] * runs.cases
+    caps = [2 * CHUNK if short else 2 * r.steps for r in predicted]
+    d = 0.11 / 1.12
+    _, verdict = runs(d, caps, None, estimate=True)
+    start = time.monotonic()
 
-        def resolve():
-            return {"caps": caps} if time.monotonic() - start >= named_after else None
+    def resolve():
+        return {"caps": caps} if time.monotonic() - start >= named_after else None
 
-        request = Request(d, tuple(wide), None, estimate=True, caps_later=True)
-        later, late = runs.locked(request, resolve)
-        assert (late.outcome, late.total, late.predicted) == (
-            verdict.outcome, verdict.total, verdict.predicted
-        )  # fmt: skip
-        assert verdict.outcome == ("failed" if short else "settles")
-        assert all(r.steps <= c for r, c in zip(later, caps, strict=True))  # as capped
-        if short:
-            assert [(r.steps, r.finished) for r in later] == [(c, False) for c in caps]
-        _, how = runs.locked(request, lambda: {"caps": None})  # the search asks none
-        assert how.outcome == "dropped"
-    finally:
-        runs.close()
+    request = Request(d, tuple(wide), None, estimate=True, caps_later=True)
+    later, late = runs.locked(request, resolve)
+    assert (late.outcome, late.total, late.predicted) == (
+        verdict.outcome, verdict.total, verdict.predicted
+    )  # fmt: skip
+    assert verdict.outcome == ("failed" if short else "settles")
+    assert all(r.steps <= c for r, c in zip(later, caps, strict=True))  # as capped
+    if short:
+        assert [(r.steps, r.finished) for r in later] == [(c, False) for c in caps]
+    _, how = runs.locked(request, lambda: {"caps": None})  # the search asks none
+    assert how.outcome == "dropped"
 
 
 def submit(redis, spec):

@@ -242,8 +242,9 @@ class CaseSpread:
         local_request: Callable[[Request, Resolve], Outcome],
     ) -> tuple[list[CaseRun], list[Outcome | None]]:
         """Every load case at d as a task (run here when no other worker is free), and each
-        request ``beside`` as a task after them, only when other workers are free: their
-        budget (LATER) is named in their tasks once the cases' runs are all stored."""
+        request ``beside`` as a task after them, only when other workers are free: what they
+        learn later (their budget or caps) is named in their tasks once the cases' runs are
+        all stored."""
         after = self._after()
         free = free_workers(self.redis, self.worker, self.calibration_id)
         asked = beside if free else []

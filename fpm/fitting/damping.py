@@ -354,10 +354,10 @@ class Spread(Protocol):
     ) -> tuple[list[CaseRun], list[Outcome | None]]:
         """Every load case of one d run on its own to its end, ``[CaseRun per case]``, where
         ``local(j, d, cap)`` runs case j in this process (:func:`run_case`); and, only when
-        other workers are free, the requests ``beside`` at the same time, whose budget LATER
-        is :func:`settled_total` of the cases' runs, named once they have all ended: their
-        outcomes in order (None: not run), ``local_request(request, resolve)`` running one
-        here."""
+        other workers are free, the requests ``beside`` at the same time, learning what
+        :func:`named_later` makes of the cases' runs (a budget LATER, or caps) once those
+        have all ended: their outcomes in order (None: not run), ``local_request(request,
+        resolve)`` running one here."""
         ...
 
     def ahead(
