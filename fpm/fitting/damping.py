@@ -293,8 +293,8 @@ def run_request(
     resolve: Resolve | None = None,
 ) -> Outcome:
     """One d's lockstep runs (:meth:`_Runs.locked`) at (``stiffness``, ``depth``, ``dt`` s)
-    in this process, for another's search; ``resolve``: where a budget named LATER comes
-    from."""
+    in this process, for another's search; ``resolve``: where what is named later (a budget
+    LATER, or caps) comes from."""
     runs = _Runs(problem, stiffness, depth, dt)
     try:
         return runs.locked(request, resolve)
@@ -420,9 +420,10 @@ class _Runs:
         """Every load case at d, each run on its own to its end (by ``spread``), and the
         verdict the lockstep would reach (:func:`replay_verdict`). For a d with no budget run
         to the cap, the same runs and verdict as :meth:`__call__`, but that a failed d's
-        other cases also run to their end. ``beside``: requests (budget LATER) the search will
-        probably make next under this d's :func:`settled_total`, run at the same time by
-        ``spread`` where other workers are free, to be taken as :meth:`prefetch` ed."""
+        other cases also run to their end. ``beside``: requests the search will probably make
+        next (a budget LATER, or caps named later: :func:`named_later` of this d's runs), run
+        at the same time by ``spread`` where other workers are free, to be taken as
+        :meth:`prefetch` ed."""
         if self.spread is None:
             runs = list(self.pool.map(self.local, range(self.cases), [d] * self.cases, caps))
         else:
@@ -455,7 +456,7 @@ class _Runs:
     def locked(self, request: Request, resolve: Resolve | None = None) -> Outcome:
         """``request``'s lockstep runs here, as :class:`CaseRun`; not counted in ``count``
         and ``work`` until the search takes them (:meth:`__call__`), whoever ran them.
-        ``resolve``: where a budget named LATER comes from."""
+        ``resolve``: where what is named later (a budget LATER, or caps) comes from."""
         runs, verdict, _ = self._lockstep(request, resolve)
         return [CaseRun.of(run) for run in runs], verdict
 
@@ -582,8 +583,10 @@ class Verdict:
     """How a d's runs ended: ``done`` (every case settled, diverged or reached its cap),
     ``failed`` (a case diverged or reached its cap unsettled), ``lost`` (it cannot win;
     ``total``: the steps it would take at least, from its steps and predictions at the
-    deciding milestone) or ``settles`` (every case predicted within its cap). ``predicted``:
-    each case's predicted steps (:func:`predicted_steps`) when the decision came from them."""
+    deciding milestone), ``settles`` (every case predicted within its cap) or ``dropped`` (a
+    request run ahead whose caps were named None: the search will not make it).
+    ``predicted``: each case's predicted steps (:func:`predicted_steps`) when the decision
+    came from them."""
 
     outcome: str
     total: float = 0.0
