@@ -22,7 +22,15 @@ from rq.serializers import JSONSerializer
 
 import fpm
 from fpm.fitting.calibration import calibrate
-from fpm.fitting.damping import CHUNK, CONFIRM, CONFIRM_PRUNE, LATER, Request, _Runs
+from fpm.fitting.damping import (
+    CHUNK,
+    CONFIRM,
+    CONFIRM_PRUNE,
+    LATER,
+    Request,
+    _Runs,
+    lockstep_cpu,
+)
 from fpm.model.stiffness import model_stiffness
 from service.limits import dump_spec
 from store import graph, keys, records
@@ -158,6 +166,21 @@ def test_caps_named_later_give_the_verdict_of_the_caps_known(named_after, short,
         assert [(r.steps, r.finished) for r in later] == [(c, False) for c in caps]
     _, how = runs.locked(request, lambda: {"caps": None})  # the search asks none
     assert how.outcome == "dropped"
+
+
+def test_a_lockstep_counts_the_cpu_its_pool_threads_spent(predicted_runs):
+    """A request run on the damping job's thread runs its pieces on the pool's threads: the
+    thread's own CPU seconds and those it is credited with (lockstep_cpu) are together the
+    process's, so the request's span neither loses them nor the damping job's counts them
+    twice."""
+    runs, predicted = predicted_runs
+    request = Request(0.11 / CONFIRM, tuple(r.steps for r in predicted), None, to_cap=True)
+    process, own, pooled = time.process_time(), time.thread_time(), lockstep_cpu()
+    runs.locked(request)
+    process = time.process_time() - process
+    own, pooled = time.thread_time() - own, lockstep_cpu() - pooled
+    assert pooled > own > 0  # the pieces ran on the pool, this thread decided
+    assert 0.9 * process <= own + pooled <= process + 1e-3, (process, own, pooled)
 
 
 def submit(redis, spec):

@@ -357,7 +357,7 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
         _fail(redis, calibration_id, f"damping stage failed: {e}{hint}")
         return {"failed": True}
     scratch.save_damping_result(redis, calibration_id, stage.to_dict())
-    span.add_around(spreads[0].rounds if spreads else [])
+    span.add_around(spreads[0].rounds if spreads else [], spreads[0].cpu if spreads else 0.0)
     return {"d": stage.d, "depth": stage.depth, "runs": stage.damping_runs}
 
 
@@ -434,12 +434,13 @@ class _Span:
         span = self.as_dict(self.start, time.time(), time.process_time() - self.cpu, self.after)
         scratch.add_span(self.redis, self.calibration_id, span)
 
-    def add_around(self, rounds: list[tuple[float, float, list[str]]]) -> None:
+    def add_around(self, rounds: list[tuple[float, float, list[str]]], tasks_cpu: float) -> None:
         """The damping job, in segments around its hand-outs of tasks (``rounds``:
         :attr:`worker.spread.CaseSpread.rounds`): "<name>" up to the first, "<name> (k)"
         between hand-outs k - 1 and k, waiting for the tasks of the one before, "<name>
         (gather)" from the last on; with no hand-out one span. The job's CPU seconds go on the
-        first (its own threads' runs of tasks are counted in their spans as well)."""
+        first, less ``tasks_cpu``, those of the tasks it ran on its threads (their own spans
+        count them)."""
         if not rounds:
             self.add()
             return
@@ -447,7 +448,7 @@ class _Span:
         for k in range(len(rounds) + 1):
             start, end = edges[2 * k], edges[2 * k + 1]
             after = self.after if k == 0 else rounds[k - 1][2]
-            cpu = time.process_time() - self.cpu if k == 0 else 0.0
+            cpu = max(time.process_time() - self.cpu - tasks_cpu, 0.0) if k == 0 else 0.0
             span = self.as_dict(start, end, cpu, after)
             if k:
                 span["name"] = f"{self.name} ({'gather' if k == len(rounds) else k})"

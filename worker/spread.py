@@ -50,6 +50,7 @@ from fpm.fitting.damping import (
     Request,
     Resolve,
     Verdict,
+    lockstep_cpu,
     named_later,
     run_case,
     run_request,
@@ -163,11 +164,11 @@ def run_task(
     worker: str,
     run: Callable[[], tuple[list[CaseRun], Verdict | None]],
     clock: Callable[[], float] = time.process_time,
-) -> None:
+) -> float:
     """Run a claimed task (``run``: its runs and a request's verdict), store them and its
     span, its CPU seconds by ``clock`` (a case job's horse: its process; the damping job's
-    thread that ran it: ``time.thread_time``, which leaves out a whole d's lockstep threads);
-    on an error give the claim up (another may take the task) and raise."""
+    thread that ran it: :func:`task_clock`); return those CPU seconds. On an error give the
+    claim up (another may take the task) and raise."""
     start, cpu = time.time(), clock()
     try:
         with Holding(redis, calibration_id, task, holder):
@@ -176,15 +177,23 @@ def run_task(
         scratch.release_claim(redis, calibration_id, task)
         raise
     scratch.save_case_run(redis, calibration_id, task, *to_stored(runs, verdict))
+    cpu = clock() - cpu
     span = {
         "name": task_name(spec),
         "worker": worker,
         "start": start,
         "end": time.time(),
-        "cpu": clock() - cpu,
+        "cpu": cpu,
         "after": [spec["after"]],
     }
     scratch.add_span(redis, calibration_id, span)
+    return cpu
+
+
+def task_clock() -> float:
+    """A task run on one of the damping job's threads: that thread's CPU seconds and those
+    its lockstep runs spent on the pool's threads (:func:`fpm.fitting.damping.lockstep_cpu`)."""
+    return time.thread_time() + lockstep_cpu()
 
 
 def free_workers(redis: Redis, me: str, calibration_id: str) -> int:
@@ -212,6 +221,7 @@ class CaseSpread:
 
     Attributes:
         rounds: per hand-out: (Unix start, end, the tasks' span names).
+        cpu: the CPU seconds of the tasks run here (counted in their own spans).
     """
 
     def __init__(
@@ -228,6 +238,7 @@ class CaseSpread:
         self.holder = f"{worker}:{os.getpid()}"
         self.threads = os.cpu_count() or 1
         self.rounds: list[tuple[float, float, list[str]]] = []
+        self.cpu = 0.0
 
     def _after(self) -> str:
         """The span the next hand-out's tasks wait for (:meth:`worker.jobs._Span.add_around`)."""
@@ -317,12 +328,12 @@ class CaseSpread:
         if free:
             self._enqueue(tasks, specs)
         handed = set(range(min(free, len(tasks))))  # the first ones; this job takes the rest
-        futures: dict[int, Future[None]] = {}
+        futures: dict[int, Future[float]] = {}
         with ThreadPoolExecutor(min(self.threads, len(tasks))) as pool:
             while True:
                 for i, future in list(futures.items()):
                     if future.done():
-                        future.result()  # raises its error
+                        self.cpu += future.result()  # raises its error
                         del futures[i]
                 waiting = [
                     i for i, t in enumerate(tasks)
@@ -342,7 +353,7 @@ class CaseSpread:
                     if scratch.claim_case(self.redis, self.calibration_id, tasks[i], self.holder):
                         futures[i] = pool.submit(
                             run_task, self.redis, self.calibration_id, tasks[i], specs[i],
-                            self.holder, self.worker, local[i], time.thread_time,
+                            self.holder, self.worker, local[i], task_clock,
                         )  # fmt: skip
                 self.going_on()
                 time.sleep(POLL)

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
@@ -186,6 +187,29 @@ def _piece(run: DynamicRun, steps: int) -> int:
     while run.steps - start < steps and not run.advance(min(SAMPLE, steps - run.steps + start)):
         pass
     return run.steps - start
+
+
+def _timed_piece(run: DynamicRun, steps: int) -> tuple[int, float]:
+    """:func:`_piece` on a pool thread: (the steps taken, the CPU seconds that thread spent)."""
+    cpu = time.thread_time()
+    return _piece(run, steps), time.thread_time() - cpu
+
+
+_LOCKSTEP_CPU = threading.local()
+
+
+def lockstep_cpu() -> float:
+    """The CPU seconds that the lockstep runs started from this thread (:meth:`_Runs.locked`)
+    have spent on the pool's threads so far: added to the thread's own ``time.thread_time()``
+    it is what a request run here cost, wherever its pieces ran."""
+    return float(getattr(_LOCKSTEP_CPU, "seconds", 0.0))
+
+
+def _spent(future: Future[tuple[int, float]]) -> int:
+    """A piece's steps; its CPU seconds counted for the thread that started the lockstep."""
+    steps, cpu = future.result()
+    _LOCKSTEP_CPU.seconds = lockstep_cpu() + cpu
+    return steps
 
 
 @dataclass
@@ -456,7 +480,9 @@ class _Runs:
     def locked(self, request: Request, resolve: Resolve | None = None) -> Outcome:
         """``request``'s lockstep runs here, as :class:`CaseRun`; not counted in ``count``
         and ``work`` until the search takes them (:meth:`__call__`), whoever ran them.
-        ``resolve``: where what is named later (a budget LATER, or caps) comes from."""
+        ``resolve``: where what is named later (a budget LATER, or caps) comes from. The CPU
+        seconds its pieces spend on the pool's threads are credited to the calling thread
+        (:func:`lockstep_cpu`)."""
         runs, verdict, _ = self._lockstep(request, resolve)
         return [CaseRun.of(run) for run in runs], verdict
 
@@ -524,7 +550,7 @@ class _Runs:
         # runs more than a piece past the milestone still to be decided: a case slowed down by
         # a busy machine holds the others there, so a d that loses costs the same work however
         # the threads are scheduled.
-        running: dict[Future[int], DynamicRun] = {}
+        running: dict[Future[tuple[int, float]], DynamicRun] = {}
         milestone = CHUNK
         verdict = Verdict("running")
         while True:
@@ -534,7 +560,7 @@ class _Runs:
                 named = resolve()
                 if named is not None:  # the pieces under way end first: then nothing moves
                     for future in running:
-                        work += future.result()
+                        work += _spent(future)
                     running.clear()
                     if named.get("caps", caps) is None:  # the search will not ask for it
                         dropped: list[DynamicRun | CaseRun] = list(runs)
@@ -561,7 +587,7 @@ class _Runs:
             while waiting and verdict.outcome == "running" and len(running) < self.threads:
                 r, c = min(waiting, key=lambda rc: rc[0].steps)
                 waiting.remove((r, c))
-                running[self.pool.submit(_piece, r, min(CHUNK, c - r.steps))] = r
+                running[self.pool.submit(_timed_piece, r, min(CHUNK, c - r.steps))] = r
             if not running and pending:  # every case has ended or waits: wait for the names
                 time.sleep(LOOK)
                 continue
@@ -571,7 +597,7 @@ class _Runs:
                 return seen, verdict, work
             done, _ = wait(running, return_when=FIRST_COMPLETED)
             for future in done:
-                work += future.result()
+                work += _spent(future)
                 del running[future]
 
     def close(self) -> None:
