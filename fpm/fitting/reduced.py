@@ -33,7 +33,6 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import ExitStack
 from dataclasses import dataclass
 from functools import partial
 from typing import Any
@@ -50,7 +49,6 @@ from ..model.problem import Problem
 from ..model.stiffness import continuum_start, linear_parts, model_stiffness
 from .bounds import fit_depth, stiffness_bounds
 from .cost import StaticCost
-from .solver_process import SolverProcess, can_fork
 
 CONVERGED = 2e-3
 """The fit has converged when no parameter moved more than this (relative) in a round."""
@@ -504,7 +502,6 @@ def fit_reduced(
     bounds: tuple[np.ndarray, np.ndarray],
     progress: Callable[[dict[str, Any]], None] | None = None,
     threads: int = CASE_SOLVERS,
-    apart: bool = True,
 ) -> tuple[list[float], float, int]:
     """Minimise Eq. (2) of the nonlinear static equilibria within ``bounds`` from ``start``:
     reduced linear fits on ``basis`` with enrichment, corrected by the nonlinear defect until
@@ -512,35 +509,26 @@ def fit_reduced(
 
     Each round's full linear and static solves are split over static solvers
     (:data:`CASE_SOLVERS`), the solvers' shares at once on ``threads`` threads with the same
-    answer to the bit; with ``apart`` (and ``threads`` > 1, where the platform forks) every
-    solver but the cost's is in a child process of its own
-    (:class:`~fpm.fitting.solver_process.SolverProcess`), again the same answer to the bit,
-    so that the shares run at full speed on two cores. The static equilibria at the answer
-    are left as ``cost``'s warm starts, so a static solve there takes no Newton step.
-    ``progress`` gets {phase: "polish", round, evaluations} after each round.
+    answer to the bit. The static equilibria at the answer are left as ``cost``'s
+    warm starts, so a static solve there takes no Newton step. ``progress`` gets {phase:
+    "polish", round, evaluations} after each round.
 
     Returns (parameters, their normalised static cost (inf if a load case has no equilibrium),
     the full linear solves it made)."""
     problem = cost.problem
     model = ReducedLinearModel.of(problem, basis, cost.reference)
     n_cases = len(model.cases)
-    others = min(CASE_SOLVERS, n_cases) - 1
-    child = apart and threads > 1 and can_fork()
-    solvers: list[StaticSolver | SolverProcess] = [cost.solver]
-    solvers += [SolverProcess(problem) if child else StaticSolver(problem) for _ in range(others)]
+    solvers = [cost.solver] + [StaticSolver(problem) for _ in range(1, min(CASE_SOLVERS, n_cases))]
     # whose static equilibrium each solver finds (solver 0 also every linear response)
+    others = len(solvers) - 1
     statics = [0 if j == 0 or not others else 1 + (j - 1) % others for j in range(n_cases)]
-    model.attach([cost.solver] * n_cases, cost.depth)
+    model.attach([solvers[0]] * n_cases, cost.depth)
     lo, hi = np.log(bounds[0]), np.log(bounds[1])
     y = np.clip(np.log(np.asarray(start, dtype=float)), lo, hi)
     static = float("inf")
     step = FIRST_STEP
     solved: list[Equilibrium] = []
-    with ExitStack() as stack:
-        pool = stack.enter_context(ThreadPoolExecutor(threads, thread_name_prefix="reduced"))
-        for solver in solvers[1:]:
-            if isinstance(solver, SolverProcess):
-                stack.callback(solver.close)
+    with ThreadPoolExecutor(threads, thread_name_prefix="reduced") as pool:
         for rounds in range(1, DEFECT_ROUNDS + 1):
             previous = y
             y = _reduced_minimum(model, y, lo, hi, step)
@@ -551,7 +539,7 @@ def fit_reduced(
             tasks = [
                 partial(_solver_round, list(enumerate(responses)) if g == 0 else [],
                         [j for j in range(n_cases) if statics[j] == g], solver, stiffness,
-                        cost.depth, theta)
+                        cost.depth)
                 for g, solver in enumerate(solvers)
             ]  # fmt: skip
             linear: dict[int, np.ndarray] = {}
@@ -584,19 +572,16 @@ def fit_reduced(
 def _solver_round(
     responses: list[tuple[int, Callable[[], np.ndarray]]],
     statics: list[int],
-    solver: StaticSolver | SolverProcess,
+    solver: StaticSolver,
     stiffness: Stiffness,
     depth: int | None,
-    theta: np.ndarray,
 ) -> tuple[dict[int, np.ndarray], dict[int, Equilibrium]]:
     """One solver's share of a round of :func:`fit_reduced`, one solve after the other: the
     full linear responses of ``responses`` (load case j, the call from
     :meth:`ReducedLinearModel.responses`, which solves on this solver), then the static
-    equilibria of load cases ``statics`` at ``stiffness`` (that of ``theta``) on ``solver``
-    (in a child process: there). Returns ({j: response (3M,)}, {j: equilibrium})."""
+    equilibria of load cases ``statics`` at ``stiffness`` on ``solver``. Returns ({j: response
+    (3M,)}, {j: equilibrium})."""
     linear = {j: response() for j, response in responses}
-    if isinstance(solver, SolverProcess):
-        return linear, solver.solve(theta, statics, depth)
     return linear, {j: solver.solve(j, stiffness, depth) for j in statics}
 
 
