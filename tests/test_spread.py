@@ -36,6 +36,7 @@ from service.limits import dump_spec
 from store import graph, keys, records
 from store.status import CalibrationStatus
 from store.timeline import critical_path
+from worker.spread import local_threads
 
 SMALL = json.loads(
     (Path(__file__).resolve().parents[1] / "examples" / "small-box.json").read_text()
@@ -216,6 +217,31 @@ def case_spans(result: dict[str, Any]) -> list[dict[str, Any]]:
 def ahead_spans(result: dict[str, Any]) -> list[dict[str, Any]]:
     """The spans of the d run ahead (the confirming d, the margin's probes)."""
     return [s for s in result["jobs"] if s["name"].endswith(", all load cases")]
+
+
+@pytest.mark.redis
+def test_the_damping_job_leaves_the_cores_of_the_busy_workers_on_its_host(redis):
+    def register(name: str, host: str | None = None) -> Worker:
+        worker = Worker(["elsewhere"], connection=redis, name=name)
+        worker.hostname = host or worker.hostname
+        worker.register_birth()
+        return worker
+
+    register("me")
+    here = [register(f"here {i}") for i in range(3)]
+    away = register("away", host="another-host")
+    assert local_threads(redis, "me", 2) == 2  # every other worker idle
+    away.set_state("busy")
+    assert local_threads(redis, "me", 2) == 2  # a busy worker on another host
+    here[0].set_state("busy")
+    assert local_threads(redis, "me", 2) == 1
+    assert local_threads(redis, "me", 4) == 3
+    for worker in here[1:]:
+        worker.set_state("busy")
+    assert local_threads(redis, "me", 2) == 1  # at least one: its own
+    assert local_threads(redis, "me", 4) == 1
+    here[0].set_state("idle")
+    assert local_threads(redis, "me", 4) == 2
 
 
 @pytest.mark.redis

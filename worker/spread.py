@@ -29,6 +29,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import socket
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -41,6 +42,7 @@ import numpy as np
 from redis import Redis
 from rq import Worker, get_current_job
 from rq.job import Job
+from rq.worker import BaseWorker
 
 from fpm.dynamics.simulation import FpmModel
 from fpm.fitting.damping import (
@@ -208,6 +210,24 @@ def free_workers(redis: Redis, me: str, calibration_id: str) -> int:
     )  # fmt: skip
 
 
+def busy_here(workers: Sequence[BaseWorker], me: str, host: str | None) -> int:
+    """Of ``workers``, those other than ``me`` on the host ``host`` that are running a job."""
+    return sum(
+        1 for w in workers if w.name != me and w.hostname == host and w.get_state() == "busy"
+    )
+
+
+def local_threads(redis: Redis, me: str, cores: int) -> int:
+    """How many tasks the damping job runs at once on its own threads: this host's ``cores``
+    less the other workers here that are busy, at least one. Two tasks sharing the core another
+    worker leaves would each take twice as long (the kernel shares the cores between worker
+    processes evenly, not between threads), so the d whose runs they are would be known later
+    and every span on the critical path would stretch; in turn they end as soon as the work
+    allows. Workers on other hosts (or in containers of their own) are not counted."""
+    workers = Worker.all(connection=redis)
+    return max(1, cores - busy_here(workers, me, socket.gethostname()))
+
+
 class CaseSpread:
     """The damping job's :class:`fpm.fitting.damping.Spread`: its runs as tasks, handed to
     free workers and run here when nobody took them (the module docstring).
@@ -236,7 +256,7 @@ class CaseSpread:
         self.redis, self.calibration_id, self.plan = redis, calibration_id, plan
         self.worker, self.timeout, self.going_on = worker, timeout, going_on
         self.holder = f"{worker}:{os.getpid()}"
-        self.threads = os.cpu_count() or 1
+        self.threads = os.cpu_count() or 1  # at most; :func:`local_threads` at the time
         self.rounds: list[tuple[float, float, list[str]]] = []
         self.cpu = 0.0
 
@@ -345,12 +365,17 @@ class CaseSpread:
                     name_later, named_later = None, set()
                 if handed and time.time() > start + GRACE:
                     handed = set()  # not claimed by now: nobody took them
-                for i in waiting:  # in order: the longest runs (a d's cases) come first
-                    if i in futures or i in handed or i in named_later:
-                        continue
-                    if len(futures) >= self.threads:
-                        continue
+                ready = [  # in order: the longest runs (a d's cases) come first
+                    i for i in waiting if i not in futures and i not in handed | named_later
+                ]  # fmt: skip
+                room = 0
+                if ready and len(futures) < self.threads:
+                    room = local_threads(self.redis, self.worker, self.threads) - len(futures)
+                for i in ready:
+                    if room <= 0:
+                        break
                     if scratch.claim_case(self.redis, self.calibration_id, tasks[i], self.holder):
+                        room -= 1
                         futures[i] = pool.submit(
                             run_task, self.redis, self.calibration_id, tasks[i], specs[i],
                             self.holder, self.worker, local[i], task_clock,
