@@ -217,15 +217,16 @@ def busy_here(workers: Sequence[BaseWorker], me: str, host: str | None) -> int:
     )
 
 
-def local_threads(redis: Redis, me: str, cores: int) -> int:
+def local_threads(redis: Redis, me: str, cores: int, promised: int = 0) -> int:
     """How many tasks the damping job runs at once on its own threads: this host's ``cores``
-    less the other workers here that are busy, at least one. Two tasks sharing the core another
+    less the other workers here that are busy and the tasks ``promised`` to free workers (not
+    claimed yet), at least one. Two tasks sharing the core another
     worker leaves would each take twice as long (the kernel shares the cores between worker
     processes evenly, not between threads), so the d whose runs they are would be known later
     and every span on the critical path would stretch; in turn they end as soon as the work
     allows. Workers on other hosts (or in containers of their own) are not counted."""
     workers = Worker.all(connection=redis)
-    return max(1, cores - busy_here(workers, me, socket.gethostname()))
+    return max(1, cores - busy_here(workers, me, socket.gethostname()) - promised)
 
 
 class CaseSpread:
@@ -370,7 +371,8 @@ class CaseSpread:
                 ]  # fmt: skip
                 room = 0
                 if ready and len(futures) < self.threads:
-                    room = local_threads(self.redis, self.worker, self.threads) - len(futures)
+                    cores = local_threads(self.redis, self.worker, self.threads, len(handed))
+                    room = cores - len(futures)
                 for i in ready:
                     if room <= 0:
                         break
