@@ -23,7 +23,7 @@ from typing import Any
 
 from redis import Redis
 
-from . import keys
+from . import keys, records
 from .records import decode_hash, id_list
 from .status import CalibrationStatus
 
@@ -50,11 +50,11 @@ def dump(redis: Redis) -> Iterator[str]:
         for key in redis.scan_iter(match=keys.fem_meta("*"))
     )
     for fem_hash in fem:
-        raw = redis.get(keys.fem_reference(fem_hash))
-        if raw is None:  # failed or still running: nothing to keep
+        reference = records.get_fem_reference(redis, fem_hash)
+        if reference is None:  # failed or still running: nothing to keep
             continue
         meta = decode_hash(redis.hgetall(keys.fem_meta(fem_hash)))
-        data = {"meta": meta, "reference": json.loads(raw)}
+        data = {"meta": meta, "reference": reference}
         yield _line({"kind": "fem_reference", "id": fem_hash, "data": data})
     for calibration_id in sorted(id_list(redis.zrange(keys.calibrations(), 0, -1))):
         fields = decode_hash(redis.hgetall(keys.calibration(calibration_id)))
@@ -108,7 +108,8 @@ def _restore_one(redis: Redis, kind: str, ident: str, data: dict[str, Any]) -> b
     if kind == "fem_reference":
         if redis.exists(keys.fem_reference(ident)):
             return False
-        pipe.set(keys.fem_reference(ident), json.dumps(data["reference"]))
+        layout, arrays = records.pack_reference(data["reference"])
+        pipe.set(keys.fem_reference(ident), records.stored_reference(layout, arrays))
         pipe.delete(keys.fem_meta(ident))
         pipe.hset(keys.fem_meta(ident), mapping={str(k): str(v) for k, v in data["meta"].items()})
     elif kind == "calibration":

@@ -315,7 +315,7 @@ def store_supplied_reference(redis: Redis, spec: dict[str, Any], reference: dict
         "load_cases": reference["load_cases"],
         "model": "supplied",
     }
-    records.save_fem_reference(redis, digest, reference, meta)
+    records.save_fem_reference(redis, digest, *records.pack_reference(reference), meta)
     return digest
 
 

@@ -8,7 +8,10 @@ transaction on the calibration record.
 from __future__ import annotations
 
 import json
+import math
+import sys
 import time
+from array import array
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -257,21 +260,103 @@ def update_fem_meta(redis: Redis, fem_hash: str, fields: Mapping) -> None:
     redis.hset(keys.fem_meta(fem_hash), mapping=_flat_fields(fields))
 
 
+RAW_REFERENCE = b"fpm-fem-reference/raw-1\n"
+"""How a stored FEM reference's value starts: then its layout (the FemResult dict without
+``nodes`` and ``displacements``, with their ``shapes``) as one line of JSON, then the arrays as
+little-endian float64, nodes first. A value without it is the older form, the whole dict as
+JSON (still read). At 93,705 nodes the JSON took 1.5 s to write and 0.9 s to read in every job
+that read it; the raw arrays take milliseconds."""
+ARRAYS = ("nodes", "displacements")
+
+
 def save_fem_reference(
-    redis: Redis, fem_hash: str, reference: dict[str, Any], meta: Mapping
+    redis: Redis, fem_hash: str, layout: dict[str, Any], arrays: bytes, meta: Mapping
 ) -> None:
-    """Store a solved FEM reference (FemResult as a dict, no expiry) with its meta fields, in
-    one MULTI/EXEC."""
+    """Store a solved FEM reference (no expiry), ``layout`` and raw ``arrays`` as
+    :data:`RAW_REFERENCE` says (:meth:`fpm.fem.solution.FemResult.to_stored`, or
+    :func:`pack_reference`), with its meta fields, in one MULTI/EXEC."""
     pipe = redis.pipeline()
-    pipe.set(keys.fem_reference(fem_hash), json.dumps(reference))
+    pipe.set(keys.fem_reference(fem_hash), stored_reference(layout, arrays))
     pipe.hset(keys.fem_meta(fem_hash), mapping=_flat_fields(meta))
     pipe.execute()
 
 
+def stored_reference(layout: dict[str, Any], arrays: bytes) -> bytes:
+    """A reference's stored value (:data:`RAW_REFERENCE`)."""
+    return RAW_REFERENCE + json.dumps(layout).encode() + b"\n" + arrays
+
+
+def get_fem_arrays(redis: Redis, fem_hash: str) -> tuple[dict[str, Any], bytes] | None:
+    """The stored reference as (layout, raw arrays) (:data:`RAW_REFERENCE`;
+    :meth:`fpm.fem.solution.FemResult.from_stored` reads them), or None."""
+    value = redis.get(keys.fem_reference(fem_hash))
+    if not value:
+        return None
+    raw = value.encode() if isinstance(value, str) else bytes(value)
+    if not raw.startswith(RAW_REFERENCE):
+        return pack_reference(json.loads(raw))
+    line_end = raw.index(b"\n", len(RAW_REFERENCE))
+    return json.loads(raw[len(RAW_REFERENCE) : line_end]), raw[line_end + 1 :]
+
+
 def get_fem_reference(redis: Redis, fem_hash: str) -> dict[str, Any] | None:
-    """The stored FemResult dict, or None."""
-    raw = redis.get(keys.fem_reference(fem_hash))
-    return json.loads(raw) if raw else None
+    """The stored FemResult dict, arrays as nested lists (the service's answer, backups), or
+    None."""
+    stored = get_fem_arrays(redis, fem_hash)
+    return None if stored is None else unpack_reference(*stored)
+
+
+def pack_reference(reference: dict[str, Any]) -> tuple[dict[str, Any], bytes]:
+    """A FemResult dict whose ``nodes`` (N, 3) and ``displacements`` (L, N, 3) are nested
+    lists, m, as (layout, raw arrays) (:data:`RAW_REFERENCE`)."""
+    layout = {k: v for k, v in reference.items() if k not in ARRAYS}
+    layout["shapes"] = {name: _shape(reference[name]) for name in ARRAYS}
+    flat = array("d", (float(x) for name in ARRAYS for x in _flatten(reference[name])))
+    if sys.byteorder != "little":
+        flat.byteswap()
+    return layout, flat.tobytes()
+
+
+def unpack_reference(layout: dict[str, Any], arrays: bytes) -> dict[str, Any]:
+    """The FemResult dict of :func:`pack_reference`'s (layout, raw arrays)."""
+    flat = array("d")
+    flat.frombytes(arrays)
+    if sys.byteorder != "little":
+        flat.byteswap()
+    values = flat.tolist()
+    reference = {k: v for k, v in layout.items() if k != "shapes"}
+    start = 0
+    for name in ARRAYS:
+        shape = layout["shapes"][name]
+        size = math.prod(shape)
+        reference[name] = _nest(values[start : start + size], shape)
+        start += size
+    return reference
+
+
+def _shape(nested: Any) -> list[int]:
+    shape = []
+    while isinstance(nested, list | tuple):
+        shape.append(len(nested))
+        nested = nested[0] if nested else None
+    return shape
+
+
+def _flatten(nested: Any) -> Iterable[Any]:
+    if isinstance(nested, list | tuple):
+        for item in nested:
+            yield from _flatten(item)
+    else:
+        yield nested
+
+
+def _nest(values: list[float], shape: list[int]) -> Any:
+    if len(shape) <= 1:
+        return values
+    if not shape[0]:
+        return []
+    size = len(values) // shape[0]
+    return [_nest(values[i * size : (i + 1) * size], shape[1:]) for i in range(shape[0])]
 
 
 def save_mesh(redis: Redis, mesh_id: str, mesh: dict[str, Any]) -> bool:

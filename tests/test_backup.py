@@ -7,8 +7,12 @@ from pathlib import Path
 
 import pytest
 
+import fpm
+from fpm.fem.solution import FemResult
 from fpmcal.cli import main
-from store import keys
+from store import keys, records
+
+SMALL_BOX = Path(__file__).resolve().parents[1] / "examples" / "small-box.json"
 
 
 def test_a_dump_restored_into_an_empty_store_dumps_the_same_lines(
@@ -67,3 +71,15 @@ def test_a_file_it_cannot_restore_is_one_clear_line(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
     assert not redis.keys("*")
+
+
+def test_a_reference_stored_as_json_by_an_older_release_still_reads(redis):
+    old = fpm.solve_fem(fpm.load_problem(json.loads(SMALL_BOX.read_text()))).to_dict()
+    redis.set(keys.fem_reference("older"), json.dumps(old))
+    assert records.get_fem_reference(redis, "older") == old
+    stored = records.get_fem_arrays(redis, "older")
+    assert stored is not None
+    assert FemResult.from_stored(*stored).to_dict() == old
+    records.save_fem_reference(redis, "newer", *stored, {"status": "succeeded"})
+    assert redis.get(keys.fem_reference("newer")).startswith(records.RAW_REFERENCE)
+    assert records.get_fem_reference(redis, "newer") == old

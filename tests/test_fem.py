@@ -34,6 +34,7 @@ from fpm.fem.linear_solver import (
 from fpm.fem.reference import FemError, FemResult, solve_dirichlet
 from fpm.model.geometry import box_hexahedra
 from fpm.model.hexahedron import GAUSS_POINTS, NATURAL, shape_function_gradients, shape_functions
+from store import records
 
 E, NU = 2.0e5, 0.3
 
@@ -325,6 +326,19 @@ def test_result_round_trips_through_json():
     assert np.array_equal(back.nodes, result.nodes)
     assert back.residuals == result.residuals and back.method == result.method
     assert np.array_equal(back.positions, result.nodes + result.displacements)
+
+
+def test_result_round_trips_through_the_stores_raw_arrays():
+    result = fpm.solve_fem(fpm.load_problem(SPEC))
+    layout, raw = result.to_stored()
+    assert len(raw) == 8 * (result.nodes.size + result.displacements.size)
+    back = FemResult.from_stored(layout, raw)
+    assert np.array_equal(back.displacements, result.displacements)
+    assert np.array_equal(back.nodes, result.nodes)
+    assert back.to_dict() == result.to_dict()
+    # the store's own packing, without NumPy (a supplied reference, a restore): the same bytes
+    assert records.pack_reference(result.to_dict()) == (layout, raw)
+    assert records.unpack_reference(layout, raw) == result.to_dict()
 
 
 # --- problems the FEM refuses -----------------------------------------------------------------

@@ -45,7 +45,7 @@ from store.status import CalibrationStatus, FemStatus, Phase
 from store.timeline import critical_path
 
 from . import memory
-from .problems import problem_of
+from .problems import problem_of, reference_of
 from .spread import CaseSpread
 
 PROGRESS_INTERVAL = 0.5
@@ -120,7 +120,7 @@ def fem_reference(fem_hash: str) -> dict[str, Any]:
             "notes": result.notes,
         },
     }
-    records.save_fem_reference(redis, fem_hash, result.to_dict(), fields)
+    records.save_fem_reference(redis, fem_hash, *result.to_stored(), fields)
     return {"id": fem_hash, "cached": False, "n_nodes": len(result.nodes)}
 
 
@@ -158,8 +158,8 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
     job, redis, record = opened
     if scratch.has_chain_result(redis, calibration_id, chain):
         return {"skipped": True}
-    reference = records.get_fem_reference(redis, record.fem_hash)
-    if reference is None:
+    fem = reference_of(redis, record.fem_hash)
+    if fem is None:
         error = records.get_fem_meta(redis, record.fem_hash).get("error") or "not computed"
         _fail(redis, calibration_id, f"FEM reference failed: {error}")
         return {"failed": True}
@@ -174,7 +174,6 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
     )
     problem = problem_of(redis, record.spec)
     memory.check(problem.n_nodes)
-    fem = FemResult.from_dict(reference)
     try:
         check_reference(problem, fem)
     except ValueError as e:  # a units mistake: no annealing can fix it
@@ -295,12 +294,12 @@ def _chains_and_reference(
     if missing:
         _fail(redis, record.id, f"chain(s) {missing} did not finish")
         return None
-    reference = records.get_fem_reference(redis, record.fem_hash)
+    reference = reference_of(redis, record.fem_hash)
     if reference is None:
         _fail(redis, record.id, "the FEM reference is gone")
         return None
     chains = [ChainResult.from_dict(raw) for raw in raws]
-    return chains, FemResult.from_dict(reference)
+    return chains, reference
 
 
 def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
@@ -553,8 +552,8 @@ def export_parameter_set(parameter_set_id: str, fmt: str) -> dict[str, Any]:
             raise LookupError("the calibration that holds the parameter set's spec is gone")
         fem = None
         if fmt == "vtu":
-            stored = records.get_fem_reference(redis, str(provenance.get("fem_hash", "")))
-            fem = None if stored is None else stored["displacements"]
+            stored = reference_of(redis, str(provenance.get("fem_hash", "")))
+            fem = None if stored is None else stored.displacements
         body = export(problem_of(redis, record.spec), ps, fmt, fem=fem)
     except ExportError as e:
         error, invalid = str(e), True

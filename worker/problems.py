@@ -1,4 +1,5 @@
-"""The problem a job works on: its stored spec built, with the uploaded mesh its regions need.
+"""The problem a job works on: its stored spec built, with the uploaded mesh its regions need;
+and its stored FEM reference.
 
 A spec whose ``material.regions`` select by a cell tag of the uploaded mesh
 ``reference.mesh_id`` names (:func:`fpm.model.regions.tag_selectors`) is built with that mesh
@@ -13,6 +14,7 @@ from typing import Any
 from redis import Redis
 
 from fpm import load_problem
+from fpm.fem.solution import FemResult
 from fpm.model.problem import Problem
 from fpm.model.regions import tag_selectors
 from fpm.model.spec import ProblemSpec
@@ -44,3 +46,9 @@ def tagged_mesh(redis: Redis, spec: ProblemSpec) -> dict[str, Any] | None:
     if mesh is None:
         raise LookupError(f"reference.mesh_id: no uploaded mesh {mesh_id}")
     return mesh
+
+
+def reference_of(redis: Redis, fem_hash: str) -> FemResult | None:
+    """The stored FEM reference ``fem_hash`` (read from its raw arrays), or None."""
+    stored = records.get_fem_arrays(redis, fem_hash)
+    return None if stored is None else FemResult.from_stored(*stored)

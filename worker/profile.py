@@ -22,7 +22,7 @@ from fpm.model.stiffness import fitted_theta
 from store import records, scratch
 from store.status import CalibrationStatus
 
-from .problems import problem_of
+from .problems import problem_of, reference_of
 
 
 def profile_data(problem: Any, reference: Any, result: dict[str, Any]) -> list[dict[str, Any]]:
@@ -80,7 +80,7 @@ def calibration_profile(calibration_id: str) -> dict[str, Any]:
     if scratch.has_profile(redis, calibration_id):
         return {"skipped": True}
     record = records.get_calibration(redis, calibration_id)
-    reference = records.get_fem_reference(redis, record.fem_hash) if record else None
+    reference = reference_of(redis, record.fem_hash) if record else None
     error = None
     if record is None or record.status != CalibrationStatus.SUCCEEDED or not record.result:
         error = "the calibration has no result"
@@ -90,7 +90,7 @@ def calibration_profile(calibration_id: str) -> dict[str, Any]:
         assert record is not None and record.result is not None and reference is not None
         try:
             problem = problem_of(redis, record.spec)
-            cases = profile_data(problem, reference["displacements"], record.result)
+            cases = profile_data(problem, reference.displacements, record.result)
         except Exception as e:  # stored and shown: a retry would fail the same way
             error = f"{type(e).__name__}: {e}"
         else:

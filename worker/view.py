@@ -51,7 +51,7 @@ from fpm.model.stiffness import fitted_theta
 from store import records, scratch
 from store.hashing import VIEW_VERSION, view_hash
 
-from .problems import problem_of
+from .problems import problem_of, reference_of
 
 MAGIC = b"FPMV"
 """The first 4 bytes of a view body."""
@@ -329,14 +329,14 @@ def parameter_set_view(parameter_set_id: str) -> dict[str, Any]:
             raise LookupError(f"no parameter set {parameter_set_id!r}")
         if record is None or record.spec_hash != provenance.get("spec_hash"):
             raise LookupError("the calibration that holds the parameter set's spec is gone")
-        stored = records.get_fem_reference(redis, str(provenance.get("fem_hash", "")))
+        stored = reference_of(redis, str(provenance.get("fem_hash", "")))
         if stored is None:
             raise LookupError("the parameter set's FEM reference is no longer stored")
         full_depth = (record.result or {}).get("full_depth")
         body = view_body(
             problem_of(redis, record.spec),
             ps,
-            stored["displacements"],
+            stored.displacements,
             parameter_set_id=parameter_set_id,
             full_depth=None if full_depth is None else int(full_depth),
         )

@@ -88,6 +88,12 @@ class FemResult:
         return {
             "nodes": self.nodes.tolist(),
             "displacements": self.displacements.tolist(),
+            **self._fields(),
+        }
+
+    def _fields(self) -> dict[str, Any]:
+        """:meth:`to_dict` but for ``nodes`` and ``displacements``."""
+        return {
             "residuals": [float(r) for r in self.residuals],
             "load_cases": list(self.load_cases),
             "method": self.method,
@@ -104,6 +110,29 @@ class FemResult:
             "notes": list(self.notes),
             "iterations": [int(n) for n in self.iterations],
         }
+
+    def to_stored(self) -> tuple[dict[str, Any], bytes]:
+        """(layout, raw arrays) as the store keeps a reference
+        (:data:`store.records.RAW_REFERENCE`): :meth:`to_dict` without ``nodes`` and
+        ``displacements``, with their ``shapes``; the two as little-endian float64, nodes
+        first."""
+        arrays = {"nodes": self.nodes, "displacements": self.displacements}
+        layout = self._fields()
+        layout["shapes"] = {name: list(a.shape) for name, a in arrays.items()}
+        raw = b"".join(np.ascontiguousarray(a, dtype="<f8").tobytes() for a in arrays.values())
+        return layout, raw
+
+    @classmethod
+    def from_stored(cls, layout: dict[str, Any], raw: bytes) -> FemResult:
+        """Inverse of :meth:`to_stored`."""
+        shapes = layout["shapes"]
+        n = int(np.prod(shapes["nodes"]))
+        flat = np.frombuffer(raw, dtype="<f8").astype(float)
+        arrays = {
+            "nodes": flat[:n].reshape(shapes["nodes"]),
+            "displacements": flat[n:].reshape(shapes["displacements"]),
+        }
+        return cls.from_dict({**layout, **arrays})
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> FemResult:
