@@ -17,6 +17,7 @@ from fpm.dynamics.simulation import FpmModel
 from fpm.dynamics.voigt import SETTLED
 from fpm.fitting.damping import (
     CHUNK,
+    MARGIN_PROBES,
     PREDICT_AFTER,
     _piece,
     _Runs,
@@ -189,6 +190,9 @@ class _Edge:
         self.probed.append(d)
         return [], Verdict("settles" if d >= self.edge else "failed")
 
+    def prefetch(self, requests: list[Any]) -> None:
+        """Nothing runs ahead here."""
+
 
 @pytest.mark.parametrize("edge", [0.31, 0.52, 0.9])
 def test_the_margin_uses_the_searchs_own_runs_and_finds_the_edge(edge):
@@ -211,3 +215,31 @@ def test_the_margin_uses_the_searchs_own_runs_and_finds_the_edge(edge):
     if edge < 0.7:  # the tried d reach further down than a walk's first step (1.25x)
         assert len(with_runs.probed) < len(blind.probed)
     assert all(d < 1.0 for d in with_runs.probed)  # the fastest d itself is never run again
+
+
+@pytest.mark.parametrize("edge", [0.31, 0.52, 0.7, 0.8, 0.86, 0.95])
+def test_the_margin_from_the_reduced_steps_edge_probes_below_it_first(edge):
+    """The reduced steps' edge at 0.9 (the fastest d at 1.0, nothing tried below it): 12%
+    below it first, then a walk's step further where it settles (the edge itself is then not
+    run), else the edge; d_min is the smallest d found that settles, and where one probe
+    settles and the next below it does not, they bracket the true ``edge``."""
+    step = math.log(1.25)
+    steps = {0.0: [100, 100]}
+    runs = _Edge(edge)
+    predicted = math.log(0.9)
+    d_min = math.exp(
+        _smallest_settling(runs, steps, {}, 0.0, math.log(0.01), 1000, step, predicted)
+    )
+    below = 0.9 / math.exp(step / 2)
+    assert len(runs.probed) <= MARGIN_PROBES
+    assert d_min >= edge and all(d < 1.0 for d in runs.probed)
+    assert runs.probed[0] == pytest.approx(below)
+    if edge <= below:
+        assert not any(d == pytest.approx(0.9) for d in runs.probed)
+        assert d_min <= below * (1 + 1e-9)
+        further = below / 1.25
+        assert runs.probed[1] == pytest.approx(further)
+        assert d_min == pytest.approx(below if edge > further else further)
+    else:  # below failed: the edge itself
+        assert runs.probed[1] == pytest.approx(0.9)
+        assert d_min == pytest.approx(0.9 if edge <= 0.9 else 1.0)

@@ -15,7 +15,8 @@ until the fewest total steps are bracketed) and refines by a few golden-section 
 the best d and its neighbours where they are still far apart. The margin (the smallest d that
 still settles every load case within MARGIN_CAP times its fastest steps: the stability margin,
 the fastest d sits near that edge and below it runs diverge or creep) starts from the reduced
-step's own estimate of that edge, confirmed by a probe on either side of it.
+step's own estimate of that edge: a probe 12% below it and one a walk's step further (the edge
+itself only if the first does not settle).
 
 Without a prediction (a lattice at rest that is a mechanism, e.g. 'axis' springs), from two
 critical-damping estimates (:func:`critical_damping`): critical damping of a mode with nodal
@@ -91,12 +92,13 @@ PREDICT_AFTER = 3 * CHUNK
 PRUNE = 1.1
 """A d is dropped once its predicted total exceeds this times the best total (a margin probe:
 once a case's predicted steps exceed this times its cap); the slack absorbs prediction error."""
-MARGIN_PROBES = 3
-"""With a prediction, the margin search makes at most this many probe runs (the reduced
-step's edge, 12% below it, one more step or bisection): d_min is then the smallest d found
-that settles, at most a bracket's width above the edge. On the 93,705-node organ the open walk
-down had taken 5 probes of up to 2 x 2,400 steps per load case, more than the fastest d's own
-runs."""
+MARGIN_PROBES = 2
+"""With a prediction, the margin search makes at most this many probe runs: 12% below the
+reduced step's edge and a walk's step (1.25x) below that, or the edge itself where the first
+does not settle (:func:`_first_probes`). d_min is then the smallest d found that settles,
+usually bracketed to 1.25x. On the 93,705-node organ the open walk down had taken 5 probes of
+up to 2 x 2,400 steps per load case, more than the fastest d's own runs; the edge, 12% below
+it and a step further took 3, and gave the same d_min and bracket as these 2."""
 CONFIRM = 1.04
 """The runs that confirm a predicted d sit this factor below and above it."""
 CONFIRM_PRUNE = 1.0
@@ -830,10 +832,9 @@ def _search(
             None if models is None else _predicted_edge(models, math.exp(key(mid)), lo, max_steps)
         )
         if edge is not None:
-            probes = dict.fromkeys(_margin_probes(edge, lo, math.log(BRACKET_STEP)))
             beside += [
                 Request(math.exp(y), caps, None, estimate=True, caps_later=True)
-                for y in probes if y < key(mid)
+                for y in _first_probes(edge, lo, math.log(BRACKET_STEP)) if y < key(mid)
             ]  # fmt: skip
         # The predicted d runs to the cap: early in a long run its decay is no guide (on a
         # slender bar it predicted 3-8 times the steps the run took).
@@ -982,14 +983,14 @@ def _smallest_settling(
     """log d of the smallest d whose runs all settle within MARGIN_CAP times their steps at the
     fastest d. The d tried by the search answer first, from their settled steps or from the
     predictions they were stopped on (``forecast``): from the smallest that settles, the
-    largest below it that does not brackets the edge. ``edge`` (log d; the reduced steps'
-    estimate) is probed next, and then ``step / 2`` below it if it settles: on the prediction
-    that is usually the whole margin search. Without a bracket the walk goes down by ``step``
-    while d settles; bisection narrows the bracket to ``step / 2`` (log); with an ``edge`` at
-    most MARGIN_PROBES probes in all (d_min is then the smallest d found that settles). A
-    probe stops once its decay
-    predicts the answer (past PREDICT_AFTER steps): d_min is an estimate where runs are long,
-    exact where they settle sooner."""
+    largest below it that does not brackets the edge. With ``edge`` (log d; the reduced
+    steps' estimate) the probes of :func:`_first_probes` come next: ``step / 2`` below it,
+    and if that settles the walk goes on from there (its next step was run at once where
+    workers are free), else the edge itself is probed. Without a bracket the walk goes down
+    by ``step`` while d settles; bisection narrows the bracket to ``step / 2`` (log); with an
+    ``edge`` at most MARGIN_PROBES probes in all (d_min is then the smallest d found that
+    settles). A probe stops once its decay predicts the answer (past PREDICT_AFTER steps):
+    d_min is an estimate where runs are long, exact where they settle sooner."""
     fastest = steps[y_best] or []
     caps = [min(max_steps, MARGIN_CAP * s) for s in fastest]
 
@@ -1022,27 +1023,30 @@ def _smallest_settling(
     y_ok = min(y for y, ok in answers.items() if ok)
     failing = [y for y, ok in answers.items() if ok is False and y < y_ok]
     y_fail = max(failing) if failing else None
+
+    def open_(y: float) -> bool:
+        """y lies inside the bracket (y_fail, y_ok)."""
+        return y < y_ok and (y_fail is None or y > y_fail)
+
     if edge is not None:
-        edge, below, further = _margin_probes(edge, lo, step)
-        if edge < y_ok and (y_fail is None or edge > y_fail):
-            # The probes below the edge at once where other workers are free (wasted if the
-            # edge, or the first below it, does not settle): the walk's next step from there.
-            then = below < edge and (y_fail is None or below > y_fail)
-            on = then and MARGIN_PROBES > 2 and further < below
-            ahead = [edge, below, further] if on else [edge, below] if then else [edge]
-            runs.prefetch(
-                [Request(math.exp(y), tuple(caps), None, estimate=True)
-                 for y in ahead if answers.get(y) is None]
-            )  # fmt: skip
-            if settles(edge):
-                y_ok = edge
-                if then:
-                    if settles(below):
-                        y_ok = below
-                    else:
-                        y_fail = below
-            else:
-                y_fail = edge
+        first = _first_probes(edge, lo, step)
+        first = [y for y in first if open_(y)] if open_(first[0]) else []
+        # At once where other workers are free (the second wasted if the first does not
+        # settle): the walk's next step from there.
+        runs.prefetch(
+            [Request(math.exp(y), tuple(caps), None, estimate=True)
+             for y in first if answers.get(y) is None]
+        )  # fmt: skip
+        if first and settles(first[0]):
+            y_ok = first[0]
+        elif first:
+            y_fail = first[0]
+            edge = round(edge, 12)
+            if open_(edge):  # below the edge did not settle: the edge itself
+                if settles(edge):
+                    y_ok = edge
+                else:
+                    y_fail = edge
     limit = MARGIN_PROBES if edge is not None else math.inf
     if y_fail is None:
         while y_ok > lo and probes[0] < limit:
@@ -1060,12 +1064,20 @@ def _smallest_settling(
     return y_ok
 
 
-def _margin_probes(edge: float, lo: float, step: float) -> tuple[float, float, float]:
-    """log d of the margin's probes from the reduced steps' edge (:func:`_smallest_settling`):
-    the edge, ``step / 2`` below it and a walk's ``step`` below that (within ``lo``)."""
+def _first_probes(edge: float, lo: float, step: float) -> list[float]:
+    """log d of the margin's first probes from the reduced steps' edge (log d;
+    :func:`_smallest_settling`): ``step / 2`` below it, where it usually still settles (the
+    reduced steps put the edge high), and the walk's next ``step`` below that (within
+    ``lo``); the edge itself where it is ``lo``. Where the first
+    settles, so does every d between it and the fastest (the runs settle the faster the
+    nearer the fastest d), so the edge need not be run: on the 93,705-node organ that probe
+    cost 20 of the search's 190 CPU s."""
     edge = round(edge, 12)
     below = round(max(edge - step / 2, lo), 12)
-    return edge, below, round(max(below - step, lo), 12)
+    further = round(max(below - step, lo), 12)
+    if below >= edge:
+        return [edge]
+    return [below, further] if further < below else [below]
 
 
 PROBE_STEPS = 20
