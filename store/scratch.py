@@ -181,6 +181,11 @@ def claim_case(redis: Redis, calibration_id: str, task: str, holder: str) -> boo
     return bool(redis.set(claim, holder, nx=True, ex=CLAIM_TTL))
 
 
+def is_claimed(redis: Redis, calibration_id: str, task: str) -> bool:
+    """Someone holds the task now (:func:`claim_case`)."""
+    return bool(redis.exists(keys.case_claim(calibration_id, task)))
+
+
 def renew_claim(redis: Redis, calibration_id: str, task: str, holder: str) -> bool:
     """Extend ``holder``'s claim by CLAIM_TTL seconds; False if it no longer holds it."""
     claim = keys.case_claim(calibration_id, task)

@@ -325,6 +325,12 @@ class CaseSpread:
         done = self._round(specs, [partial(_one_request, local, r) for r in requests], free)
         return [None if verdict is None else (runs, verdict) for runs, verdict in done]
 
+    def _claimed(self, task: str) -> bool:
+        """Someone runs the task, or it has run."""
+        return scratch.is_claimed(self.redis, self.calibration_id, task) or scratch.has_case_run(
+            self.redis, self.calibration_id, task
+        )
+
     def _resolve(self, task: str) -> Resolve:
         """Where request task ``task`` run here learns its budget named later."""
         return partial(scratch.named_later, self.redis, self.calibration_id, task)
@@ -339,8 +345,10 @@ class CaseSpread:
         """Store the tasks ``specs``, hand them to ``free`` workers and run the rest here
         (``local[i]`` runs task i), wait for every one; their stored runs in order.
         ``later``: (called while waiting until it has named what requests learn later (True),
-        those requests' tasks): this job runs those only once it has (its threads would
-        otherwise wait on tasks that they hold up)."""
+        those requests' tasks): this job starts those only once every other task is claimed
+        (a request that waits for its name must not keep a thread from the runs it waits for).
+        Here at most :func:`local_threads` tasks run at once, but a task the others wait for
+        is always taken once nothing else here can run (its holder died, say)."""
         name_later, named_later = later if later is not None else (None, set())
         start = time.time()
         tasks = [task_digest(s) for s in specs]
@@ -350,7 +358,7 @@ class CaseSpread:
             self._enqueue(tasks, specs)
         handed = set(range(min(free, len(tasks))))  # the first ones; this job takes the rest
         futures: dict[int, Future[float]] = {}
-        with ThreadPoolExecutor(min(self.threads, len(tasks))) as pool:
+        with ThreadPoolExecutor(len(tasks)) as pool:
             while True:
                 for i, future in list(futures.items()):
                     if future.done():
@@ -366,18 +374,23 @@ class CaseSpread:
                     name_later, named_later = None, set()
                 if handed and time.time() > start + GRACE:
                     handed = set()  # not claimed by now: nobody took them
+                first = [i for i in waiting if i not in named_later]
                 ready = [  # in order: the longest runs (a d's cases) come first
-                    i for i in waiting if i not in futures and i not in handed | named_later
+                    i for i in waiting if i not in futures and i not in handed
+                    and (i not in named_later or all(self._claimed(tasks[k]) for k in first))
                 ]  # fmt: skip
                 room = 0
-                if ready and len(futures) < self.threads:
+                if ready:
                     cores = local_threads(self.redis, self.worker, self.threads, len(handed))
                     room = cores - len(futures)
+                # whatever runs here waits for its name: a task it waits for may go beyond room
+                held = all(i in named_later for i in futures)
                 for i in ready:
-                    if room <= 0:
-                        break
+                    if room <= 0 and not (held and i not in named_later):
+                        continue
                     if scratch.claim_case(self.redis, self.calibration_id, tasks[i], self.holder):
                         room -= 1
+                        held = held and i in named_later
                         futures[i] = pool.submit(
                             run_task, self.redis, self.calibration_id, tasks[i], specs[i],
                             self.holder, self.worker, local[i], task_clock,
