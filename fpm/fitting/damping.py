@@ -93,12 +93,13 @@ PRUNE = 1.1
 """A d is dropped once its predicted total exceeds this times the best total (a margin probe:
 once a case's predicted steps exceed this times its cap); the slack absorbs prediction error."""
 MARGIN_PROBES = 2
-"""With a prediction, the margin search makes at most this many probe runs: 12% below the
+"""With a prediction, the margin search asks for at most this many probes: 12% below the
 reduced step's edge and a walk's step (1.25x) below that, or the edge itself where the first
-does not settle (:func:`_first_probes`). d_min is then the smallest d found that settles,
-usually bracketed to 1.25x. On the 93,705-node organ the open walk down had taken 5 probes of
-up to 2 x 2,400 steps per load case, more than the fastest d's own runs; the edge, 12% below
-it and a step further took 3, and gave the same d_min and bracket as these 2."""
+does not settle (:func:`_first_probes`; where workers are free the walk's step runs at once
+with the first, wasted if that does not settle). d_min is then the smallest d found that
+settles, bracketed to 1.12x or 1.25x. On the 93,705-node organ the open walk down had taken
+5 probes of up to 2 x 2,400 steps per load case, more than the fastest d's own runs; the edge,
+12% below it and a step further took 3, and gave the same d_min and bracket as these 2."""
 CONFIRM = 1.04
 """The runs that confirm a predicted d sit this factor below and above it."""
 CONFIRM_PRUNE = 1.0
@@ -1066,12 +1067,13 @@ def _smallest_settling(
 
 def _first_probes(edge: float, lo: float, step: float) -> list[float]:
     """log d of the margin's first probes from the reduced steps' edge (log d;
-    :func:`_smallest_settling`): ``step / 2`` below it, where it usually still settles (the
-    reduced steps put the edge high), and the walk's next ``step`` below that (within
-    ``lo``); the edge itself where it is ``lo``. Where the first
-    settles, so does every d between it and the fastest (the runs settle the faster the
-    nearer the fastest d), so the edge need not be run: on the 93,705-node organ that probe
-    cost 20 of the search's 190 CPU s."""
+    :func:`_smallest_settling`): ``step / 2`` below it and the walk's next ``step`` below
+    that (within ``lo``); the edge itself where it is ``lo``. Where the first settles, so does
+    every d between it and the fastest (the runs settle the faster the nearer the fastest
+    d), so the edge need not be run: on the 93,705-node organ (the reduced edge 12-40% high)
+    that saved a probe of 20 CPU s. Where it does not (the organ at 3 and 5 mm: the edge
+    itself is the margin), the edge is probed next: the same two probes in one process as
+    edge-first, one more in a row where workers ran the first two at once."""
     edge = round(edge, 12)
     below = round(max(edge - step / 2, lo), 12)
     further = round(max(below - step, lo), 12)
