@@ -1068,12 +1068,13 @@ def _smallest_settling(
 def _first_probes(edge: float, lo: float, step: float) -> list[float]:
     """log d of the margin's first probes from the reduced steps' edge (log d;
     :func:`_smallest_settling`): ``step / 2`` below it and the walk's next ``step`` below
-    that (within ``lo``); the edge itself where it is ``lo``. Where the first settles, so does
-    every d between it and the fastest (the runs settle the faster the nearer the fastest
-    d), so the edge need not be run: on the 93,705-node organ (the reduced edge 12-40% high)
-    that saved a probe of 20 CPU s. Where it does not (the organ at 3 and 5 mm: the edge
-    itself is the margin), the edge is probed next: the same two probes in one process as
-    edge-first, one more in a row where workers ran the first two at once."""
+    that (within ``lo``); the edge itself where it is ``lo``. Where the first settles, every d
+    between it and the fastest is taken to settle too (the runs settle the sooner the nearer
+    the fastest d, as on every organ measured), so the edge is not run: on the 93,705-node
+    organ (the reduced edge 12-40% high) that saved a probe of 20 CPU s. Where it does not
+    (the organ at 3 and 5 mm: the edge itself is the margin), the edge is probed next: the
+    same two probes in one process as edge-first, one more in a row where workers ran the
+    first two at once."""
     edge = round(edge, 12)
     below = round(max(edge - step / 2, lo), 12)
     further = round(max(below - step, lo), 12)
