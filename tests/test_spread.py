@@ -9,7 +9,9 @@ import copy
 import json
 import re
 import signal
+import threading
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -21,22 +23,26 @@ from rq.registry import StartedJobRegistry
 from rq.serializers import JSONSerializer
 
 import fpm
+from fpm.dynamics.voigt import SETTLED
 from fpm.fitting.calibration import calibrate
 from fpm.fitting.damping import (
     CHUNK,
     CONFIRM,
     CONFIRM_PRUNE,
     LATER,
+    CaseRun,
     Request,
+    Verdict,
     _Runs,
     lockstep_cpu,
 )
+from fpm.fitting.damping_stage import DampingPlan
 from fpm.model.stiffness import model_stiffness
 from service.limits import dump_spec
-from store import graph, keys, records
+from store import graph, keys, records, scratch
 from store.status import CalibrationStatus
 from store.timeline import critical_path
-from worker.spread import local_threads
+from worker.spread import CaseSpread, local_threads, task_digest, to_stored
 
 SMALL = json.loads(
     (Path(__file__).resolve().parents[1] / "examples" / "small-box.json").read_text()
@@ -243,6 +249,55 @@ def test_the_damping_job_leaves_the_cores_of_the_busy_workers_on_its_host(redis)
     assert local_threads(redis, "me", 4) == 1
     here[0].set_state("idle")
     assert local_threads(redis, "me", 4) == 2
+
+
+@pytest.mark.redis
+def test_a_request_waiting_for_its_name_starts_once_the_cases_are_claimed(redis):
+    """One core here: load case 0 held by another worker (its run stored after 1 s), case 1
+    and a request named once both cases have run. The request starts here as soon as case 1
+    has run, not once case 0 has (the damping job had sat idle that long); it is named once
+    both are stored."""
+    plan = DampingPlan([1.0], 2, 1e-3)
+    spread = CaseSpread(redis, "calibration", plan, "me", 60, lambda: None)
+    spread.threads = 1
+    specs = [{**asdict(plan), "d": 0.1, "load_case": j, "cap": 100, "after": "damping"}
+             for j in (0, 1)]  # fmt: skip
+    specs.append({**asdict(plan), "request": {"d": 0.2, "budget": LATER}, "after": "damping"})
+    tasks = [task_digest(spec) for spec in specs]
+    assert scratch.claim_case(redis, "calibration", tasks[0], "another worker")
+    run = CaseRun(
+        steps=10, state=SETTLED, settle_force=1.0, history=[], displacements=np.zeros((2, 3))
+    )
+    stored_at: list[float] = []
+
+    def other_worker() -> None:
+        time.sleep(1.0)
+        stored_at.append(time.monotonic())
+        scratch.save_case_run(redis, "calibration", tasks[0], *to_stored([run], None))
+
+    started: dict[str, float] = {}
+
+    def named() -> bool:
+        if not all(scratch.has_case_run(redis, "calibration", t) for t in tasks[:2]):
+            return False
+        started["named"] = time.monotonic()
+        return True
+
+    def request() -> tuple[list[CaseRun], Verdict]:
+        started["request"] = time.monotonic()
+        while "named" not in started:  # as a request waits for its name
+            time.sleep(0.05)
+        return [], Verdict("lost", 20.0)
+
+    thread = threading.Thread(target=other_worker)
+    thread.start()
+    done = spread._round(
+        specs, [lambda: pytest.fail("case 0 is the other's"), lambda: ([run], None), request],
+        0, (named, {2}),
+    )  # fmt: skip
+    thread.join()
+    assert started["request"] < stored_at[0] < started["named"]
+    assert [len(runs) for runs, _ in done] == [1, 1, 0] and done[2][1] == Verdict("lost", 20.0)
 
 
 @pytest.mark.redis
