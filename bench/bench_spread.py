@@ -1,12 +1,14 @@
 """One calibration over 1, 2 and 3 workers (issue 32, item 3): wall time, critical path and
 the timeline of the organ at h = 3 mm (``python -m bench spread``; ``spread 5`` for h = 5 mm;
-``spread 1.75`` for the 93,705-node organ on 2 workers, against issue 32's 180 s wall and 120 s
-critical path).
+``spread 1.75`` for the 93,705-node organ on 2 workers, against issue 32's 180 s wall, 120 s
+critical path and 3 GB per worker).
 
 Each run starts its own redis-server and ``python -m worker`` processes, submits the organ
 (families+volume, the bench's spec) through the job graph and reads the result's jobs and
-critical path (worker.spread, store.timeline). The fitted parameters must be identical to the
-bit whatever the number of workers.
+critical path (worker.spread, store.timeline), while a thread samples each worker's memory
+(the PSS of its process and of its work horse, from /proc, every SAMPLE seconds: a peak between
+two looks is missed). The fitted parameters must be identical to the bit whatever the number of
+workers.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -24,13 +27,71 @@ ROOT = Path(__file__).resolve().parents[1]
 WORKERS = (1, 2, 3)
 LARGE_WALL_GOAL, LARGE_PATH_GOAL = 180.0, 120.0
 """Issue 32, ``spread 1.75`` (the 93,705-node organ): wall with 2 workers, critical path, s."""
+MEMORY_GOAL = 3e9
+"""Issue 32: bytes per worker (its process and its work horse together, PSS)."""
+SAMPLE = 0.5
+"""Seconds between the memory sampler's looks."""
+
+
+def pss(pid: int) -> int:
+    """Proportional set size of process ``pid``, bytes (0 once it has gone): shared pages
+    split between the processes sharing them, so a worker's and its forked horse's add up."""
+    try:
+        with open(f"/proc/{pid}/smaps_rollup") as f:
+            return next(int(line.split()[1]) * 1024 for line in f if line.startswith("Pss:"))
+    except (OSError, StopIteration, ValueError):
+        return 0
+
+
+def children(pid: int) -> list[int]:
+    """Processes whose parent is ``pid`` (a worker's work horse)."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    parent = int(f.read().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            if parent == pid:
+                found.append(int(entry))
+    return found
+
+
+class PeakMemory:
+    """Samples every SAMPLE seconds, on a thread, each worker process's PSS plus its
+    children's, and keeps each worker's peak (bytes); Linux /proc only (0 elsewhere)."""
+
+    def __init__(self, pids: list[int]):
+        self.peaks = dict.fromkeys(pids, 0)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self.stop.wait(SAMPLE):
+            for pid in self.peaks:
+                now = pss(pid) + sum(pss(child) for child in children(pid))
+                self.peaks[pid] = max(self.peaks[pid], now)
+
+    def __enter__(self) -> PeakMemory:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop.set()
+        self.thread.join()
+
+
 FITTED = ("k", "stiffness", "volume_stiffness", "d", "d_min", "depth", "settle_steps",
           "relative_discrepancy")  # fmt: skip
 
 
-def calibrate_on(redis_url: str, spec: dict[str, Any], workers: int) -> tuple[float, dict]:
-    """(wall s from submission to the end, the result) of one calibration on ``workers``
-    fresh worker processes (stopped afterwards)."""
+def calibrate_on(
+    redis_url: str, spec: dict[str, Any], workers: int
+) -> tuple[float, dict, list[int]]:
+    """(wall s from submission to the end, the result, each worker's peak PSS in bytes with
+    its work horse) of one calibration on ``workers`` fresh worker processes (stopped
+    afterwards)."""
     from redis import Redis
     from rq import Worker
 
@@ -48,21 +109,22 @@ def calibrate_on(redis_url: str, spec: dict[str, Any], workers: int) -> tuple[fl
         while len(Worker.all(connection=redis)) < workers:
             time.sleep(0.2)
         t0 = time.time()
-        record, _ = graph.submit_calibration(redis, spec, graph.JobOptions(retries=1))
-        while True:
-            done = records.get_calibration(redis, record.id)
-            assert done is not None
-            if done.status.terminal:
-                break
-            time.sleep(0.5)
-        wall = time.time() - t0
+        with PeakMemory([p.pid for p in started]) as memory:
+            record, _ = graph.submit_calibration(redis, spec, graph.JobOptions(retries=1))
+            while True:
+                done = records.get_calibration(redis, record.id)
+                assert done is not None
+                if done.status.terminal:
+                    break
+                time.sleep(0.5)
+            wall = time.time() - t0
     finally:
         for process in started:
             os.killpg(process.pid, 15)
             process.wait()
     if done.result is None:
         raise RuntimeError(f"the calibration {done.status}: {done.error}")
-    return wall, done.result
+    return wall, done.result, list(memory.peaks.values())
 
 
 def timeline(result: dict[str, Any]) -> None:
@@ -88,7 +150,7 @@ def main() -> None:
     fitted: dict[int, dict[str, Any]] = {}
     with RedisServer() as server:
         for n in workers:
-            wall, result = calibrate_on(server.url, spec, n)
+            wall, result, peaks = calibrate_on(server.url, spec, n)
             fitted[n] = {name: result[name] for name in FITTED}
             jobs = result["jobs"]
             damping = [s for s in jobs if s["name"].startswith("damping")]
@@ -100,12 +162,17 @@ def main() -> None:
             )
             print(f"     {'job':<38}{'worker':>9}{'start':>8}{'end':>8}{'s':>8}{'cpu s':>8}")
             timeline(result)
+            mib = " / ".join(f"{p / 2**20:,.0f}" for p in sorted(peaks, reverse=True))
+            print(f"     peak PSS per worker (its process and work horse, every {SAMPLE} s): "
+                  f"{mib} MiB")  # fmt: skip
             if h == 0.00175:
-                path = result["critical_path_seconds"]
+                path, most = result["critical_path_seconds"], max(peaks)
                 print(
                     f"  [{verdict(wall <= LARGE_WALL_GOAL)}] wall <= {LARGE_WALL_GOAL:.0f} s "
                     f"with 2 workers: {wall:.0f} s; [{verdict(path <= LARGE_PATH_GOAL)}] "
-                    f"critical path <= {LARGE_PATH_GOAL:.0f} s: {path:.0f} s"
+                    f"critical path <= {LARGE_PATH_GOAL:.0f} s: {path:.0f} s; "
+                    f"[{verdict(0 < most <= MEMORY_GOAL)}] <= 3 GB per worker: "
+                    f"{most / 1e9:.2f} GB"
                 )
     same = all(fitted[n] == fitted[workers[0]] for n in workers)
     print(f"\nsummary: identical parameters with {workers} workers: {verdict(same)}")
