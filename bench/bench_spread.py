@@ -60,10 +60,12 @@ def children(pid: int) -> list[int]:
 
 class PeakMemory:
     """Samples every SAMPLE seconds, on a thread, each worker process's PSS plus its
-    children's, and keeps each worker's peak (bytes); Linux /proc only (0 elsewhere)."""
+    children's, and keeps each worker's peak (bytes) and when it came (Unix s); Linux /proc
+    only (0 elsewhere)."""
 
     def __init__(self, pids: list[int]):
         self.peaks = dict.fromkeys(pids, 0)
+        self.when = dict.fromkeys(pids, 0.0)
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._run, daemon=True)
 
@@ -71,7 +73,8 @@ class PeakMemory:
         while not self.stop.wait(SAMPLE):
             for pid in self.peaks:
                 now = pss(pid) + sum(pss(child) for child in children(pid))
-                self.peaks[pid] = max(self.peaks[pid], now)
+                if now > self.peaks[pid]:
+                    self.peaks[pid], self.when[pid] = now, time.time()
 
     def __enter__(self) -> PeakMemory:
         self.thread.start()
@@ -88,10 +91,10 @@ FITTED = ("k", "stiffness", "volume_stiffness", "d", "d_min", "depth", "settle_s
 
 def calibrate_on(
     redis_url: str, spec: dict[str, Any], workers: int
-) -> tuple[float, dict, list[int]]:
+) -> tuple[float, dict, list[tuple[int, float]]]:
     """(wall s from submission to the end, the result, each worker's peak PSS in bytes with
-    its work horse) of one calibration on ``workers`` fresh worker processes (stopped
-    afterwards)."""
+    its work horse and when, Unix s) of one calibration on ``workers`` fresh worker processes
+    (stopped afterwards)."""
     from redis import Redis
     from rq import Worker
 
@@ -124,7 +127,7 @@ def calibrate_on(
             process.wait()
     if done.result is None:
         raise RuntimeError(f"the calibration {done.status}: {done.error}")
-    return wall, done.result, list(memory.peaks.values())
+    return wall, done.result, [(memory.peaks[p], memory.when[p]) for p in memory.peaks]
 
 
 def timeline(result: dict[str, Any]) -> None:
@@ -162,11 +165,13 @@ def main() -> None:
             )
             print(f"     {'job':<38}{'worker':>9}{'start':>8}{'end':>8}{'s':>8}{'cpu s':>8}")
             timeline(result)
-            mib = " / ".join(f"{p / 2**20:,.0f}" for p in sorted(peaks, reverse=True))
-            print(f"     peak PSS per worker (its process and work horse, every {SAMPLE} s): "
-                  f"{mib} MiB")  # fmt: skip
+            t0 = result["jobs"][0]["start"]
+            mib = " / ".join(
+                f"{p / 2**20:,.0f} MiB at {at - t0:.0f} s" for p, at in sorted(peaks, reverse=True)
+            )
+            print(f"     peak PSS per worker (its process and work horse, every {SAMPLE} s): {mib}")
             if h == 0.00175:
-                path, most = result["critical_path_seconds"], max(peaks)
+                path, most = result["critical_path_seconds"], max(p for p, _ in peaks)
                 print(
                     f"  [{verdict(wall <= LARGE_WALL_GOAL)}] wall <= {LARGE_WALL_GOAL:.0f} s "
                     f"with 2 workers: {wall:.0f} s; [{verdict(path <= LARGE_PATH_GOAL)}] "
