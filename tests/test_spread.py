@@ -42,7 +42,7 @@ from service.limits import dump_spec
 from store import graph, keys, records, scratch
 from store.status import CalibrationStatus
 from store.timeline import critical_path
-from worker.spread import CaseSpread, local_threads, task_digest, to_stored
+from worker.spread import VALIDATION_SPAN, CaseSpread, local_threads, task_digest, to_stored
 
 SMALL = json.loads(
     (Path(__file__).resolve().parents[1] / "examples" / "small-box.json").read_text()
@@ -50,13 +50,17 @@ SMALL = json.loads(
 
 FITTED = ("k", "stiffness", "volume_stiffness", "d", "d_min", "d_predicted", "depth", "dt",
           "settle_steps", "cost", "static_cost", "relative_discrepancy", "damping_runs",
-          "evaluations")  # fmt: skip
+          "evaluations", "validation_relative_discrepancy")  # fmt: skip
 
 
 def long_cases(spec: dict[str, Any]) -> dict[str, Any]:
-    """The small box with load-case runs of a second or so (dt 2e-6 s: ~500x the steps)."""
+    """The small box with load-case runs of a second or so (dt 2e-6 s: ~500x the steps), and a
+    validation case (the damping job hands it to an idle worker)."""
     spec = copy.deepcopy(spec)
     spec["fpm"].update(dt=2e-6, max_steps=1_000_000)
+    spec["validation_cases"] = [
+        {"name": "sideways", "forces": [{"node": 63, "vector": [0.01, 0, 0]}]}
+    ]
     return spec
 
 
@@ -303,7 +307,7 @@ def test_a_request_waiting_for_its_name_starts_once_the_cases_are_claimed(redis)
 @pytest.mark.redis
 def test_same_parameters_with_one_two_and_three_workers(redis, worker_processes):
     spec = long_cases(SMALL)
-    results, workers_of_cases, ahead = {}, {}, {}
+    results, workers_of_cases, ahead, validated_apart = {}, {}, {}, {}
     for n in (1, 2, 3):
         redis.flushdb()
         started = start_workers(redis, worker_processes, n)
@@ -315,6 +319,8 @@ def test_same_parameters_with_one_two_and_three_workers(redis, worker_processes)
         assert sorted(s["name"][-1] for s in cases) == ["0", "1"]  # one run per load case
         workers_of_cases[n] = {s["worker"] for s in cases}
         ahead[n] = len(ahead_spans(done.result))
+        worker_of = {s["name"]: s["worker"] for s in done.result["jobs"]}
+        validated_apart[n] = worker_of[VALIDATION_SPAN] != worker_of["damping"]
         names = [s["name"] for s in done.result["jobs"]]
         assert names[0] == "FEM reference" and names[-1] == "finalize"
         assert {"chain 0", "chain 1", "damping", "damping (gather)"} <= set(names)
@@ -334,6 +340,7 @@ def test_same_parameters_with_one_two_and_three_workers(redis, worker_processes)
     assert len(workers_of_cases[1]) == 1 and ahead[1] == 0  # nothing run ahead on one worker
     assert ahead[2] >= 2 and ahead[3] >= 2  # the confirming d at once
     assert len(workers_of_cases[3]) >= 2, workers_of_cases  # the other workers took cases
+    assert not validated_apart[1] and (validated_apart[2] or validated_apart[3])
 
 
 @pytest.mark.redis

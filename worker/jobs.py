@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import time
+from functools import partial
 from typing import Any
 
 from redis import Redis
@@ -38,6 +39,7 @@ from fpm.fitting.calibration import (
 from fpm.fitting.damping import DampingError
 from fpm.fitting.damping_stage import DampingPlan
 from fpm.fitting.reduced import ReducedBasis, first_basis
+from fpm.fitting.validation import validate
 from fpm.io.export import ExportError, export
 from store import keys, records, scratch
 from store.hashing import export_hash
@@ -46,7 +48,7 @@ from store.timeline import critical_path
 
 from . import memory
 from .problems import problem_of, reference_of
-from .spread import CaseSpread
+from .spread import CaseSpread, ValidationTask
 
 PROGRESS_INTERVAL = 0.5
 """Seconds between progress writes of a job (each also checks for a cancel)."""
@@ -326,13 +328,13 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
     reporter = _DampingProgress(job, calibration_id)
     span = _Span(job, calibration_id, "damping", [f"chain {c}" for c in range(record.chains)])
     spreads: list[CaseSpread] = []
+    timeout = job.timeout if isinstance(job.timeout, int) else SPREAD_TIMEOUT
 
     def spread(plan: DampingPlan) -> CaseSpread | None:
         """The d search's runs over the free workers (not a field's: its stiffness is not
         rebuilt from theta)."""
         if plan.field:
             return None
-        timeout = job.timeout if isinstance(job.timeout, int) else SPREAD_TIMEOUT
         spreads.append(
             CaseSpread(
                 redis, calibration_id, plan, span.worker, timeout,
@@ -341,11 +343,15 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
         )  # fmt: skip
         return spreads[-1]
 
+    validator = ValidationTask(
+        redis, calibration_id, span.worker, timeout, partial(validate, problem, reference)
+    )
     try:
         basis = _stored_basis(redis, calibration_id)
         stage = fit_damping(
-            problem, reference, chains, progress=reporter, spread=spread, basis=basis
-        )
+            problem, reference, chains, progress=reporter, spread=spread, basis=basis,
+            validator=validator,
+        )  # fmt: skip
         reporter.flush()
     except Canceled:
         return {"canceled": True}
@@ -356,7 +362,8 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
         _fail(redis, calibration_id, f"damping stage failed: {e}{hint}")
         return {"failed": True}
     scratch.save_damping_result(redis, calibration_id, stage.to_dict())
-    span.add_around(spreads[0].rounds if spreads else [], spreads[0].cpu if spreads else 0.0)
+    here = validator.cpu + (spreads[0].cpu if spreads else 0.0)  # tasks with spans of their own
+    span.add_around(spreads[0].rounds if spreads else [], here)
     return {"d": stage.d, "depth": stage.depth, "runs": stage.damping_runs}
 
 
@@ -429,8 +436,11 @@ class _Span:
         return {"name": self.name, "worker": self.worker, "start": start, "end": end,
                 "cpu": cpu, "after": after}  # fmt: skip
 
-    def add(self) -> None:
-        span = self.as_dict(self.start, time.time(), time.process_time() - self.cpu, self.after)
+    def add(self, less: float = 0.0) -> None:
+        """The span from its start to now; its CPU seconds are the process's less ``less``
+        (those of tasks run on its threads that have spans of their own)."""
+        cpu = max(time.process_time() - self.cpu - less, 0.0)
+        span = self.as_dict(self.start, time.time(), cpu, self.after)
         scratch.add_span(self.redis, self.calibration_id, span)
 
     def add_around(self, rounds: list[tuple[float, float, list[str]]], tasks_cpu: float) -> None:
@@ -441,7 +451,7 @@ class _Span:
         first, less ``tasks_cpu``, those of the tasks it ran on its threads (their own spans
         count them)."""
         if not rounds:
-            self.add()
+            self.add(tasks_cpu)
             return
         edges = [self.start] + [t for r in rounds for t in r[:2]] + [time.time()]
         for k in range(len(rounds) + 1):

@@ -58,12 +58,13 @@ from fpm.fitting.damping import (
     run_request,
 )
 from fpm.fitting.damping_stage import DampingPlan
+from fpm.fitting.validation import Validation, validate
 from fpm.model.stiffness import model_stiffness
 from store import graph, keys, records, scratch
 from store.text import escape
 
 from . import memory
-from .problems import problem_of
+from .problems import problem_of, reference_of
 
 POLL = 0.1
 """Seconds between the damping job's looks at its tasks."""
@@ -86,8 +87,13 @@ def task_digest(spec: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(exact(spec), sort_keys=True).encode()).hexdigest()[:32]
 
 
+VALIDATION_SPAN = "damping: validation cases"
+
+
 def task_name(spec: dict[str, Any]) -> str:
     """A task's span name (:mod:`store.timeline`)."""
+    if "validation" in spec:
+        return VALIDATION_SPAN
     if "request" in spec:
         r = spec["request"]
         within = {None: "", LATER: " within their total"}.get(r["budget"], f" within {r['budget']}")
@@ -129,6 +135,11 @@ def from_stored(data: dict[str, Any], raw: bytes) -> tuple[list[CaseRun], Verdic
     return runs, verdict
 
 
+def validation_stored(found: Validation) -> tuple[dict[str, Any], bytes]:
+    """A validation task's answer as stored (JSON; no arrays)."""
+    return {"validation": asdict(found)}, b""
+
+
 def request_of(spec: dict[str, Any]) -> Request:
     """A request task's :class:`Request` (JSON lists back to tuples)."""
     r = spec["request"]
@@ -164,21 +175,23 @@ def run_task(
     spec: dict[str, Any],
     holder: str,
     worker: str,
-    run: Callable[[], tuple[list[CaseRun], Verdict | None]],
+    run: Callable[[], Any],
     clock: Callable[[], float] = time.process_time,
+    stored: Callable[[Any], tuple[dict[str, Any], bytes]] = lambda found: to_stored(*found),
 ) -> float:
-    """Run a claimed task (``run``: its runs and a request's verdict), store them and its
-    span, its CPU seconds by ``clock`` (a case job's horse: its process; the damping job's
-    thread that ran it: :func:`task_clock`); return those CPU seconds. On an error give the
-    claim up (another may take the task) and raise."""
+    """Run a claimed task (``run``: its runs and a request's verdict, or what ``stored``
+    turns into its stored form), store them and its span, its CPU seconds by ``clock`` (a
+    case job's horse: its process; the damping job's thread that ran it: :func:`task_clock`);
+    return those CPU seconds. On an error give the claim up (another may take the task) and
+    raise."""
     start, cpu = time.time(), clock()
     try:
         with Holding(redis, calibration_id, task, holder):
-            runs, verdict = run()
+            found = run()
     except BaseException:
         scratch.release_claim(redis, calibration_id, task)
         raise
-    scratch.save_case_run(redis, calibration_id, task, *to_stored(runs, verdict))
+    scratch.save_case_run(redis, calibration_id, task, *stored(found))
     cpu = clock() - cpu
     span = {
         "name": task_name(spec),
@@ -406,23 +419,91 @@ class CaseSpread:
         return done
 
     def _enqueue(self, tasks: list[str], specs: list[dict[str, Any]]) -> None:
-        """A case job per task not run yet, on the priority queue (no failure callback: a case
-        job that fails loses nothing, the damping job runs its task)."""
-        record = records.get_calibration(self.redis, self.calibration_id)
-        name = escape(record.name) if record is not None else self.calibration_id
-        q = graph.priority_queue(self.redis)
-        for task, spec in zip(tasks, specs, strict=True):
-            if scratch.has_case_run(self.redis, self.calibration_id, task):
-                continue
-            q.enqueue_call(
-                keys.CASE_JOB,
-                args=(self.calibration_id, task),
-                job_id=keys.case_job_id(self.calibration_id, task),
-                timeout=self.timeout,
-                result_ttl=600,
-                failure_ttl=24 * 3600,
-                description=f"{name}: {task_name(spec)}",
-            )
+        enqueue(self.redis, self.calibration_id, tasks, specs, self.timeout)
+
+
+def enqueue(
+    redis: Redis, calibration_id: str, tasks: list[str], specs: list[dict[str, Any]], timeout: int
+) -> None:
+    """A case job per task not run yet, on the priority queue (no failure callback: a case job
+    that fails loses nothing, the damping job runs its task)."""
+    record = records.get_calibration(redis, calibration_id)
+    name = escape(record.name) if record is not None else calibration_id
+    q = graph.priority_queue(redis)
+    for task, spec in zip(tasks, specs, strict=True):
+        if scratch.has_case_run(redis, calibration_id, task):
+            continue
+        q.enqueue_call(
+            keys.CASE_JOB,
+            args=(calibration_id, task),
+            job_id=keys.case_job_id(calibration_id, task),
+            timeout=timeout,
+            result_ttl=600,
+            failure_ttl=24 * 3600,
+            description=f"{name}: {task_name(spec)}",
+        )
+
+
+class ValidationTask:
+    """The damping job's :data:`fpm.fitting.damping_stage.Validator`: the validation cases'
+    static solves as a task (like the d search's, the module docstring), handed to an idle
+    worker when there is one (while this job finds the slowest modes the other workers are
+    idle, and the solves' systems stay out of this job's memory: at 93,705 nodes about 0.9
+    GB, its peak), else run here on a thread of its own, as is a task nobody claimed within
+    GRACE or whose holder died. The answer is the same wherever it runs.
+
+    Args:
+        redis, calibration_id, worker, timeout: as :class:`CaseSpread`'s.
+        local: ``local(theta, depth)`` solves them here
+            (:func:`fpm.fitting.validation.validate` of the job's problem and reference).
+
+    Attributes:
+        cpu: the CPU seconds of a validation run here (counted in its own span).
+    """
+
+    def __init__(
+        self,
+        redis: Redis,
+        calibration_id: str,
+        worker: str,
+        timeout: int,
+        local: Callable[[list[float], int | None], Validation],
+    ):
+        self.redis, self.calibration_id, self.worker = redis, calibration_id, worker
+        self.timeout, self.local = timeout, local
+        self.holder = f"{worker}:{os.getpid()}"
+        self.cpu = 0.0
+
+    def __call__(self, theta: list[float], depth: int | None) -> Future[Validation]:
+        spec = {"validation": {"theta": [float(t) for t in theta], "depth": depth},
+                "after": "damping"}  # fmt: skip
+        task = task_digest(spec)
+        scratch.add_case_task(self.redis, self.calibration_id, task, spec)
+        handed = free_workers(self.redis, self.worker, self.calibration_id) > 0
+        if handed:
+            enqueue(self.redis, self.calibration_id, [task], [spec], self.timeout)
+        pool = ThreadPoolExecutor(1, thread_name_prefix="validation")
+        future = pool.submit(self._wait, task, spec, handed)
+        pool.shutdown(wait=False)
+        return future
+
+    def _wait(self, task: str, spec: dict[str, Any], handed: bool) -> Validation:
+        """The task's stored answer, once someone has run it (this thread, when nobody
+        claimed it within GRACE of a hand-out, or its holder died)."""
+        start = time.time()
+        while not scratch.has_case_run(self.redis, self.calibration_id, task):
+            if not handed or time.time() > start + GRACE:
+                if scratch.claim_case(self.redis, self.calibration_id, task, self.holder):
+                    theta, depth = spec["validation"]["theta"], spec["validation"]["depth"]
+                    self.cpu += run_task(
+                        self.redis, self.calibration_id, task, spec, self.holder, self.worker,
+                        partial(self.local, theta, depth), time.thread_time, validation_stored,
+                    )  # fmt: skip
+                    continue
+            time.sleep(POLL)
+        found = scratch.get_case_run(self.redis, self.calibration_id, task)
+        assert found is not None
+        return Validation(**found[0]["validation"])
 
 
 def _one_case(
@@ -461,6 +542,20 @@ def damping_case(calibration_id: str, task: str) -> dict[str, Any]:
     holder = f"{worker}:{os.getpid()}"
     if not scratch.claim_case(redis, calibration_id, task, holder):
         return {"skipped": True}
+    if "validation" in spec:
+        asked = spec["validation"]
+
+        def solve() -> Validation:
+            problem = problem_of(redis, record.spec)
+            memory.check(problem.n_nodes)
+            reference = reference_of(redis, record.fem_hash)
+            if reference is None:
+                raise LookupError("the FEM reference is gone")
+            return validate(problem, reference, asked["theta"], asked["depth"])
+
+        run_task(redis, calibration_id, task, spec, holder, worker, solve,
+                 stored=validation_stored)  # fmt: skip
+        return {"task": task, "name": task_name(spec)}
 
     def run() -> tuple[list[CaseRun], Verdict | None]:
         problem = problem_of(redis, record.spec)

@@ -188,6 +188,12 @@ def chain_to_polish(problem: Problem, chains: list[ChainResult]) -> ChainResult:
     return max(near, key=lambda c: stable_time_step(problem, model_stiffness(problem, c.x)))
 
 
+Validator = Callable[[list[float], "int | None"], "Future[Validation]"]
+"""Starts the validation cases' static solves (:func:`fpm.fitting.validation.validate`) at
+(theta, the depth finalize validates at) somewhere else than this thread, e.g. on another
+worker (:class:`worker.spread.ValidationTask`); their answer does not depend on where."""
+
+
 def fit_damping(
     problem: Problem,
     reference: Any,
@@ -196,6 +202,7 @@ def fit_damping(
     progress: Progress | None = None,
     spread: Callable[[DampingPlan], Spread | None] | None = None,
     basis: ReducedBasis | None = None,
+    validator: Validator | None = None,
 ) -> DampingStage:
     """Two-stage, after the chains: polish the best stiffness (at the depth the chains fitted
     at), resolve the depth, find d.
@@ -208,7 +215,8 @@ def fit_damping(
     ``spread``: given the :class:`DampingPlan` (what a run needs besides d and its caps),
     the :class:`~fpm.fitting.damping.Spread` that runs the predicted d's load cases and the
     d tried next over other processes (None: here); the worker hands them to free workers
-    (:mod:`worker.spread`). The answer does not depend on it.
+    (:mod:`worker.spread`). The answer does not depend on it. ``validator``: where the
+    validation cases are solved (None: on a thread beside the stage).
 
     With families, the polish starts from the better of the chains' best and the best single
     k (every family at one k, a 1-D search): one k is a point of the families' space, so a
@@ -216,7 +224,12 @@ def fit_damping(
     """
     side = ThreadPoolExecutor(1, thread_name_prefix="validation")
     try:
-        stage = _fit_damping(problem, reference, chains, progress, spread, side, basis)
+
+        def beside(theta: list[float], depth: int | None) -> Future[Validation]:
+            return side.submit(validate, problem, reference, theta, depth)
+
+        validating = beside if validator is None else validator
+        stage = _fit_damping(problem, reference, chains, progress, spread, validating, basis)
     except BaseException:  # a failed or canceled stage does not wait for its validation
         side.shutdown(wait=False, cancel_futures=True)
         raise
@@ -230,11 +243,11 @@ def _fit_damping(
     chains: list[ChainResult],
     progress: Progress | None,
     spread: Callable[[DampingPlan], Spread | None] | None,
-    side: ThreadPoolExecutor,
+    validator: Validator,
     basis: ReducedBasis | None,
 ) -> DampingStage:
-    """:func:`fit_damping`'s work; ``side`` runs the validation cases' static solves while
-    the stage goes on (they need the final stiffness and depth, not d), once the depth is
+    """:func:`fit_damping`'s work; ``validator`` starts the validation cases' static solves
+    while the stage goes on (they need the final stiffness and depth, not d), once the depth is
     chosen and the depth probes' systems are dropped, beside the slowest modes' prediction.
     (Started beside the depth probes, the validation's systems and theirs took the 93,705-node
     organ's peak from 2,740 to 3,448 MiB, over 3 GB.) A field's model is validated by
@@ -271,7 +284,7 @@ def _fit_damping(
     cost.solver.keep_only(depth)  # the depth probes' systems are not asked again
     checked = None if depth >= deepest else depth  # as finalize validates
     if checks and checked not in validating:
-        validating[checked] = side.submit(validate, problem, reference, list(theta), checked)
+        validating[checked] = validator(list(theta), checked)
     stiffness = model_stiffness(problem, theta)
     field = None
     if is_field(problem):  # the per-cell field on theta (the four parameters if it is refused)
