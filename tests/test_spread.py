@@ -241,12 +241,13 @@ def test_the_damping_job_leaves_the_cores_of_the_busy_workers_on_its_host(redis)
     here = [register(f"here {i}") for i in range(3)]
     away = register("away", host="another-host")
     assert local_threads(redis, "me", 2) == 2  # every other worker idle
-    assert local_threads(redis, "me", 2, promised=1) == 1  # a task left to an idle worker
+    assert local_threads(redis, "me", 2, queued=1) == 1  # a task an idle worker will take
     away.set_state("busy")
     assert local_threads(redis, "me", 2) == 2  # a busy worker on another host
     here[0].set_state("busy")
     assert local_threads(redis, "me", 2) == 1
     assert local_threads(redis, "me", 4) == 3
+    assert local_threads(redis, "me", 4, queued=5) == 1  # two idle workers take two of them
     for worker in here[1:]:
         worker.set_state("busy")
     assert local_threads(redis, "me", 2) == 1  # at least one: its own

@@ -223,23 +223,24 @@ def free_workers(redis: Redis, me: str, calibration_id: str) -> int:
     )  # fmt: skip
 
 
-def busy_here(workers: Sequence[BaseWorker], me: str, host: str | None) -> int:
-    """Of ``workers``, those other than ``me`` on the host ``host`` that are running a job."""
-    return sum(
-        1 for w in workers if w.name != me and w.hostname == host and w.get_state() == "busy"
-    )
+def here(workers: Sequence[BaseWorker], me: str, host: str | None, state: str) -> int:
+    """Of ``workers``, those other than ``me`` on the host ``host`` in ``state`` ("busy":
+    running a job, "idle")."""
+    return sum(1 for w in workers if w.name != me and w.hostname == host and w.get_state() == state)
 
 
-def local_threads(redis: Redis, me: str, cores: int, promised: int = 0) -> int:
+def local_threads(redis: Redis, me: str, cores: int, queued: int = 0) -> int:
     """How many tasks the damping job runs at once on its own threads: this host's ``cores``
-    less the other workers here that are busy and the tasks ``promised`` to free workers (not
-    claimed yet), at least one. Two tasks sharing the core another
-    worker leaves would each take twice as long (the kernel shares the cores between worker
-    processes evenly, not between threads), so the d whose runs they are would be known later
-    and every span on the critical path would stretch; in turn they end as soon as the work
-    allows. Workers on other hosts (or in containers of their own) are not counted."""
-    workers = Worker.all(connection=redis)
-    return max(1, cores - busy_here(workers, me, socket.gethostname()) - promised)
+    less the other workers here that are busy, and the idle ones that will take one of the
+    ``queued`` tasks (enqueued as jobs, not claimed yet), at least one. Two tasks sharing the
+    core another worker leaves would each take twice as long (the kernel shares the cores
+    between worker processes evenly, not between threads), so the d whose runs they are would
+    be known later and every span on the critical path would stretch; in turn they end as
+    soon as the work allows. Workers on other hosts (or in containers of their own) are not
+    counted."""
+    workers, host = Worker.all(connection=redis), socket.gethostname()
+    taking = min(here(workers, me, host, "idle"), queued)
+    return max(1, cores - here(workers, me, host, "busy") - taking)
 
 
 class CaseSpread:
@@ -370,6 +371,7 @@ class CaseSpread:
         if free:
             self._enqueue(tasks, specs)
         handed = set(range(min(free, len(tasks))))  # the first ones; this job takes the rest
+        enqueued = set(range(len(tasks))) if free else set()
         futures: dict[int, Future[float]] = {}
         with ThreadPoolExecutor(len(tasks)) as pool:
             while True:
@@ -394,7 +396,10 @@ class CaseSpread:
                 ]  # fmt: skip
                 room = 0
                 if ready:
-                    cores = local_threads(self.redis, self.worker, self.threads, len(handed))
+                    queued = sum(
+                        1 for i in waiting if i in enqueued and not self._claimed(tasks[i])
+                    )  # an idle worker will take one
+                    cores = local_threads(self.redis, self.worker, self.threads, queued)
                     room = cores - len(futures)
                 # whatever runs here waits for its name: a task it waits for may go beyond room
                 held = all(i in named_later for i in futures)
