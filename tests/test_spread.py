@@ -235,6 +235,7 @@ def test_the_damping_job_leaves_the_cores_of_the_busy_workers_on_its_host(redis)
         worker = Worker(["elsewhere"], connection=redis, name=name)
         worker.hostname = host or worker.hostname
         worker.register_birth()
+        worker.set_state("idle")
         return worker
 
     register("me")
