@@ -80,7 +80,8 @@ class DampingStage:
             theta before d; d, dt and ``final`` are then those of the model it returns.
         validation: the validation cases at (theta, the depth finalize validates at: None
             for full depth), :class:`fpm.fitting.validation.Validation` as a dict with that
-            "depth"; solved on a thread beside the stage (None: left to finalize).
+            "depth"; solved beside the stage, on a thread or by another worker (None: left to
+            finalize).
     """
 
     theta: list[float]
