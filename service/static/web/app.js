@@ -976,7 +976,7 @@
       root.append(bar);
     });
     let lx = m.left;
-    Object.entries({ fem: "FEM", chain: "chains", damping: "damping", case: "load cases", finalize: "finalize" }).forEach(([kind, label]) => {
+    Object.entries({ fem: "FEM", chain: "chains", damping: "damping", case: "damping tasks (runs, validation)", finalize: "finalize" }).forEach(([kind, label]) => {
       root.append(svg("rect", { x: lx, y: 6, width: 12, height: 12, fill: JOB_COLORS[kind] }),
         svg("text", { x: lx + 16, y: 16 }, label));
       lx += 30 + 8 * label.length;
