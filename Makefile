@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: venv test lint bench replicate demo run clean
+.PHONY: venv docs test lint bench replicate demo run clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -13,12 +13,18 @@ $(STAMP): pyproject.toml
 
 venv: $(STAMP)
 
-test: $(STAMP)
+# The manual (docs/ -> site/, served at /guide): --strict turns every warning (a broken link, an
+# unresolved reference) into a failure. `make test` builds it first, so CI (.ci/run) checks it
+# and the tests of /guide have a site to serve.
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict -q
+
+test: docs
 	$(PY) -m pytest -q
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check fpm fpmcal store worker service stack client tests bench
-	$(VENV)/bin/ruff format --check fpm fpmcal store worker service stack client tests bench
+	$(VENV)/bin/ruff check fpm fpmcal store worker service stack client tests bench manual
+	$(VENV)/bin/ruff format --check fpm fpmcal store worker service stack client tests bench manual
 	$(VENV)/bin/mypy fpm fpmcal store worker service stack client
 
 bench: $(STAMP)
@@ -34,4 +40,4 @@ run: $(STAMP)
 	$(VENV)/bin/fpmcal up
 
 clean:
-	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) site .pytest_cache .mypy_cache .ruff_cache

@@ -1,0 +1,1 @@
+"""The manual's build helpers (mkdocs.yml names :mod:`manual.hooks`); not installed."""
