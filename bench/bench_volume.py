@@ -23,17 +23,22 @@ Goals (all measured in this run; the load average is printed beside each part):
    validation cases), each in a fresh subprocess (bench_calibration's organ child); the 1.75 mm
    run is stopped after 900 s and reported with the time reached.
 
-Run: python -m bench volume (about 15-25 minutes on 2 cores).
+Run: python -m bench volume (about 15-25 minutes on 2 cores); ``python -m bench.bench_volume
+cube`` runs part 1 only (about a minute). Part 1's rows are recorded in
+``bench/results/volume.json`` (:mod:`bench.results`; the manual's benchmark pages and the
+README's headline figures are rendered from it).
 """
 
 from __future__ import annotations
 
 import json
+import sys
 import time
 from typing import Any
 
 import numpy as np
 
+from bench import results
 from bench.bench_calibration import ROOT, SPEC_A, load, run_organ, verdict
 
 CUBE_GOALS = {0.45: 5.0, 0.49: 10.0}
@@ -110,6 +115,23 @@ def cube() -> list[tuple[str, bool, str]]:
             f"{fmt(r.relative_discrepancy):>22} "
             f"{r.mean_relative_discrepancy:>6.2f} {fmt(r.validation_relative_discrepancy):>14} "
             f"{kappa:>10} {1e3 * (r.dt or 0):>7.3f} {wall:>7.2f}"
+        )
+        results.record(
+            "volume",
+            "cube",
+            poisson_ratio=nu,
+            stiffness_mode=model,
+            reference_integration=integration,
+            reference_material=material,
+            force_scale=scale,
+            stiffness=r.stiffness,
+            volume_stiffness=r.volume_stiffness,
+            relative_discrepancy=r.relative_discrepancy,
+            mean_relative_discrepancy=r.mean_relative_discrepancy,
+            validation_relative_discrepancy=r.validation_relative_discrepancy,
+            dt=r.dt,
+            settle_steps=r.settle_steps,
+            wall_s=wall,
         )
         if model != "families+volume" or (material, scale) != ("linear", 1.0):
             continue
@@ -206,15 +228,24 @@ def large() -> list[tuple[str, bool, str]]:
     return out
 
 
-def main() -> None:
+def main(parts: list[str] | None = None) -> None:
+    """Every part, or those named (``cube``, ``organ``, ``references``, ``large``)."""
+    wanted = set(parts or ["cube", "organ", "references", "large"])
     print(f"families+volume benchmark (root {ROOT.name})")
-    goals = cube() + organ_10mm()
-    organ_10mm_references()
-    goals += large()
+    goals = []
+    if "cube" in wanted:
+        goals += cube()
+    if "organ" in wanted:
+        goals += organ_10mm()
+    if "references" in wanted:
+        organ_10mm_references()
+    if "large" in wanted:
+        goals += large()
     print("\nsummary")
     for text, ok, value in goals:
         print(f"  [{verdict(ok)}] {text}: {value}")
 
 
 if __name__ == "__main__":
-    main()
+    main(sys.argv[1:] or None)
+    results.save("volume", "python -m bench.bench_volume " + " ".join(sys.argv[1:]))

@@ -5,17 +5,26 @@ annealing on dynamic runs, ``annealing.method = "paper"``) and, beside it, the d
 method; prints k, d, depth and the discrepancy per force: relative (the headline, scale-free),
 at the loaded nodes, and in % of h (the only unit the paper quotes: Choi et al. 2004, Table 1
 and Sec. 4.4).
+
+``--method two-stage`` (or ``paper``) runs one method only (the two-stage columns take a few
+seconds, the paper's minutes). Every column run is recorded in ``bench/results/replicate.json``
+(part ``table1-<method>``; :mod:`bench.results`), from which ``python -m bench.render`` renders
+the manual's Table 1 page and the README's headline figures.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 import fpm
+from bench import results as bench_results
 from fpm.fitting.calibration import calibrate
 from fpm.fitting.result import CalibrationResult
 
@@ -43,12 +52,50 @@ def _row(label: str, values: list[str]) -> str:
     return f"{label:<30}" + "".join(f"{v:>13}" for v in values)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m bench.replicate", description=__doc__)
+    parser.add_argument("--method", choices=["paper", "two-stage"], action="append")
+    methods = parser.parse_args(argv).method or ["paper", "two-stage"]
     results = {}
     for method in ("paper", "two-stage"):
+        if method not in methods:
+            continue
         for m in ("A", "B"):
             print(f"calibrating material {m}, {method} method ...", file=sys.stderr, flush=True)
             results[m, method] = run(m, method)
+            problem, r, wall = results[m, method]
+            bench_results.record(
+                "replicate",
+                f"table1-{method}",
+                material=m,
+                method=method,
+                k=r.k,
+                d=r.d,
+                d_min=r.d_min,
+                depth=r.depth,
+                full_depth=r.full_depth,
+                force_per_node=[
+                    float(np.linalg.norm(c.forces, axis=1).max()) for c in problem.load_cases
+                ],
+                relative_discrepancy=r.relative_discrepancy,
+                loaded_discrepancy=r.loaded_discrepancy,
+                discrepancy_h=r.discrepancy_h,
+                mean_relative_discrepancy=r.mean_relative_discrepancy,
+                settle_steps=r.settle_steps,
+                settled=r.settled,
+                dt=r.dt,
+                h=problem.h,
+                wall_s=wall,
+                paper=PAPER[m],
+            )
+    bench_results.save("replicate", "python -m bench.replicate " + " ".join(
+        f"--method {m}" for m in methods))  # fmt: skip
+    if len(methods) < 2:
+        for (m, method), (_, r, wall) in results.items():
+            per_force = ", ".join(f"{x:.3f}" for x in r.relative_discrepancy)
+            print(f"{m}, {method}: k = {r.k:.4g} N/m (paper {PAPER[m]['k']:g}), d = {r.d:.4g} "
+                  f"N s/m, relative % per force {per_force}, {wall:.1f} s")  # fmt: skip
+        return
     cols = [(m, method) for m in ("A", "B") for method in ("paper", "two-stage")]
     print("\n" + _row("", ["A, paper", "A, 2-stage", "B, paper", "B, 2-stage"]) + f"{'paper':>16}")
     for key, unit in (("k", "N/m"), ("d", "N s/m"), ("depth", "layers")):

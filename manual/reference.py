@@ -226,8 +226,11 @@ def settings() -> str:
             names = [c for c in choices if isinstance(c, str)] or names
         else:
             names = [prefix + field]
-        prop = schema["properties"].get(field, {})
-        default = "" if info.is_required() else f"`{json.dumps(prop.get('default'))}`"
+        prop = schema["properties"].get(field) or next(
+            (schema["properties"][n] for n in names if n in schema["properties"]), {}
+        )
+        value = info.get_default(call_default_factory=True)
+        default = "" if info.is_required() else f"`{json.dumps(value, default=str)}`"
         variables = " or ".join(f"`{n.upper()}`" for n in names)
         out.append(
             f"| {variables} | {_cell(_type(prop))} | {_cell(default)} | "
