@@ -1,7 +1,8 @@
 """Builds the FastAPI app: ``uvicorn service.main:app``.
 
 See /docs (Swagger UI) or /redoc for the OpenAPI document (with the paper's material A spec as
-the example body), served with no CDN; Prometheus metrics at /metrics.
+the example body), served with no CDN; the manual (``make docs``) at /guide; Prometheus metrics
+at /metrics.
 """
 
 from __future__ import annotations
