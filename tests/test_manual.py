@@ -9,7 +9,8 @@ aside). A block preceded by ``<!-- not run: REASON -->`` is only shown (e.g. ``d
 on several hosts); REASON is required, and those blocks are listed in the test's report.
 Other languages (``json``, ``text``, ``yaml``) are shown, not run.
 
-Pages that talk to the service (``<!-- manual: service -->`` anywhere on the page) run against
+The tutorial's three parts run in order in one directory, as one test against the service.
+How-to pages that talk to the service (``<!-- manual: service -->`` on the page) run against
 the test stack of tests/conftest.py (:func:`live_api`: uvicorn and one worker on the session's
 redis-server): the default address ``http://127.0.0.1:8000`` in their blocks is replaced by the
 test stack's, and ``REDIS_URL`` points at its Redis.
@@ -29,9 +30,14 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PAGES = sorted((ROOT / "docs" / "tutorial").glob("*.md")) + sorted(
-    (ROOT / "docs" / "howto").glob("*.md")
-)
+TUTORIAL = [
+    ROOT / "docs" / "tutorial" / f"{name}.md"
+    for name in ("paper-cube", "organ-mesh", "view-and-engine")
+]
+"""The tutorial's parts, in order: they run one after the other in one directory (part 3 uses
+what part 2 made)."""
+HOWTOS = sorted((ROOT / "docs" / "howto").glob("*.md"))
+PAGES = TUTORIAL + HOWTOS
 RUN = {"python", "sh"}
 SHOWN = {"json", "text", "yaml", "console", "toml", "xml"}
 DEFAULT_URL = "http://127.0.0.1:8000"
@@ -135,18 +141,22 @@ def needs_service(page: Path) -> bool:
     return "<!-- manual: service -->" in page.read_text()
 
 
-@pytest.mark.parametrize(
-    "page",
-    [p for p in PAGES if not needs_service(p)],
-    ids=lambda p: f"{p.parent.name}/{p.stem}",
-)
-def test_page_runs(page, workdir):
+def test_the_tutorial_lists_every_part():
+    assert sorted(TUTORIAL) == sorted((ROOT / "docs" / "tutorial").glob("*.md"))
+
+
+@pytest.mark.redis
+def test_the_tutorial_runs(workdir, live_api, redis_server):
+    for page in TUTORIAL:
+        run_page(page, workdir, live_api, redis_server.url.replace("/0", "/1"))
+
+
+@pytest.mark.parametrize("page", [p for p in HOWTOS if not needs_service(p)], ids=lambda p: p.stem)
+def test_howto_runs(page, workdir):
     run_page(page, workdir, None, None)
 
 
 @pytest.mark.redis
-@pytest.mark.parametrize(
-    "page", [p for p in PAGES if needs_service(p)], ids=lambda p: f"{p.parent.name}/{p.stem}"
-)
-def test_page_runs_against_the_service(page, workdir, live_api, redis_server):
+@pytest.mark.parametrize("page", [p for p in HOWTOS if needs_service(p)], ids=lambda p: p.stem)
+def test_howto_runs_against_the_service(page, workdir, live_api, redis_server):
     run_page(page, workdir, live_api, redis_server.url.replace("/0", "/1"))
