@@ -73,8 +73,8 @@ def numbers(text: str) -> np.ndarray:
 
 
 def plain_fpm(data: dict[str, Any], case: int) -> tuple[np.ndarray, int]:
-    """The FPM step written from the json export alone (README, *Using the parameters in your
-    engine*): node by node in perturbed-list order, semi-implicit Euler, implicit nodal
+    """The FPM step written from the json export alone (docs/howto/export.md, *The step in
+    NumPy*): node by node in perturbed-list order, semi-implicit Euler, implicit nodal
     damping; stops once the largest unbalanced force is below the settle tolerance times the
     largest applied force. Returns the displacements and the steps taken."""
     x0 = np.asarray(data["nodes"])
