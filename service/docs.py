@@ -62,7 +62,7 @@ class Guide:
                 f"<p>No built manual in <code>{html.escape(str(site))}</code>. Run "
                 "<code>make docs</code> in the project's directory (it writes "
                 "<code>site/</code>), then reload this page.</p>"
-                '<p>The API\'s own documentation is at <code>/docs</code>.</p>'
+                "<p>The API's own documentation is at <code>/docs</code>.</p>"
             )
             await HTMLResponse(page, status_code=503)(scope, receive, send)
             return
