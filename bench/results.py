@@ -57,14 +57,19 @@ def recorded(bench: str) -> list[dict[str, Any]]:
     return list(_records.get(bench, []))
 
 
+CODE_ONLY = [".", ":!docs", ":!tests", ":!*.md"]
+"""What "uncommitted changes" counts: tracked files other than the manual, the tests and Markdown
+(editing a page while a benchmark runs does not change what it measures)."""
+
+
 def commit() -> tuple[str, bool]:
-    """(HEAD's commit, whether tracked files differ from it); ("unknown", True) without git."""
+    """(HEAD's commit, whether tracked code differs from it); ("unknown", True) without git."""
     try:
         head = subprocess.run(
             ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
         ).stdout.strip()
         status = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", *CODE_ONLY],
             cwd=ROOT,
             capture_output=True,
             text=True,
