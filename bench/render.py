@@ -290,8 +290,9 @@ def headline(documents: dict[str, dict[str, Any]], bench_dir: str) -> list[str]:
         )
         out.append(
             f"- **Fast enough to refit per mesh**: that calibration takes {fv['wall_s']:.1f} s "
-            f"in one process on a shared {run['machine']['cores']}-core machine (the FEM "
-            f"solved before it, the compiled kernels loaded). "
+            f"in one process on a shared {run['machine']['cores']}-core machine (load average "
+            f"{run['load_average']['before'][0]:.1f} at the start; the FEM solved before it, "
+            f"the compiled kernels loaded). "
             f"[Volume page]({bench_dir}/volume.md)."
         )
     return out

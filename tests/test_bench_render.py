@@ -61,3 +61,17 @@ def test_a_changed_figure_is_caught(monkeypatch):
     changed["replicate"]["records"][0]["k"] *= 1.01
     monkeypatch.setattr(render, "results", lambda: changed)
     assert render.PAGES / "replicate.md" in render.stale()
+
+
+def test_the_readme_links_resolve_and_it_stays_short():
+    """The README is the front door (at most 250 lines); every relative link or picture in it
+    names a file of the repository (the manual's own links are checked by mkdocs --strict)."""
+    text = render.README.read_text()
+    assert len(text.splitlines()) <= 250
+    targets = re.findall(r"\]\(([^)\s]+)\)", text)
+    assert targets
+    for target in targets:
+        if re.match(r"[a-z]+://", target):
+            continue
+        path = (render.README.parent / target.split("#", 1)[0]).resolve()
+        assert path.exists(), target
