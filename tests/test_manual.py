@@ -7,7 +7,8 @@ and the project's ``.venv/bin`` first on PATH. A ``text`` block right after a co
 marked ``<!-- output -->`` must be exactly what that block printed (stdout, trailing spaces
 aside). A block preceded by ``<!-- not run: REASON -->`` is only shown (e.g. ``docker compose``
 on several hosts); REASON is required, and those blocks are listed in the test's report.
-Other languages (``json``, ``text``, ``yaml``) are shown, not run.
+Other languages (``json``, ``text``, ``yaml``) are shown, not run. ``FPM_MANUAL_TIMES=1`` (with
+``-s``) prints each block's seconds.
 
 The tutorial's three parts run in order in one directory, as one test against the service.
 How-to pages that talk to the service (``<!-- manual: service -->`` on the page) run against
@@ -24,6 +25,7 @@ import os
 import re
 import subprocess
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -115,6 +117,7 @@ def run_page(page: Path, workdir: Path, url: str | None, redis_url: str | None) 
         if block.not_run is not None:
             skipped.append(f"{where}: {block.not_run}")
             continue
+        started = time.perf_counter()
         if block.language == "python":
             out = io.StringIO()
             with contextlib.redirect_stdout(out):
@@ -134,6 +137,8 @@ def run_page(page: Path, workdir: Path, url: str | None, redis_url: str | None) 
             )
             assert done.returncode == 0, f"{where}: exit {done.returncode}\n{done.stderr}"
             printed = done.stdout
+        if os.environ.get("FPM_MANUAL_TIMES"):  # which blocks cost the test's time
+            print(f"{where}: {time.perf_counter() - started:.1f} s", file=sys.stderr)
     return skipped
 
 
