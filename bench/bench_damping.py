@@ -53,19 +53,21 @@ def grid_best(
     depth and dt (runs capped at 3x the result's steps per case); (d, total, every point)."""
     from fpm.dynamics.simulation import FpmModel
     from fpm.fitting.bounds import damping_bounds
+    from fpm.fitting.damping import settle_criterion
     from fpm.model.stiffness import fitted_theta, model_stiffness
 
     stiffness = model_stiffness(problem, fitted_theta(problem, result.to_dict()))
     model = FpmModel(problem)
     depth = None if result.depth >= result.full_depth else result.depth
     caps = [3 * s for s in result.settle_steps]
+    settle = result.settle_stiffness  # the criterion the calibration's runs settled on
     points: list[tuple[float, int | None]] = []
     for d in np.geomspace(*damping_bounds(problem), GRID_POINTS):
         runs = []
         for j, cap in enumerate(caps):
             run = model.run(
                 j, k=stiffness, d=float(d), depth=depth, dt=result.dt, max_steps=cap,
-                settle_tolerance=problem.spec.fpm.settle_tolerance,
+                **settle_criterion(problem, None if settle is None else settle[j]),
             )  # fmt: skip
             runs.append(run)
             if not run.settled:

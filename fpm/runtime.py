@@ -109,6 +109,9 @@ class Runtime:
         settle_tolerance: settled when the largest unbalanced nodal force is below this times
             the largest applied nodal force (of the step, or of the last loaded step when the
             forces are zero).
+        settle_stiffness: or when the 2-norm of the unbalanced nodal forces is below this
+            (N/m) times the 2-norm of the displacements (the distance criterion,
+            :mod:`fpm.dynamics.settle`; 0: none).
         gravity: (3,) m/s^2 (the weight m g joins the applied forces).
         x, v: (N, 3) positions (m) and velocities (m/s), the state :meth:`step` advances.
         steps: steps taken since the last :meth:`reset`.
@@ -128,6 +131,7 @@ class Runtime:
     d: float
     dt: float
     settle_tolerance: float
+    settle_stiffness: float = 0.0
     gravity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     x: np.ndarray = field(init=False)
     v: np.ndarray = field(init=False)
@@ -179,6 +183,7 @@ class Runtime:
             d=float(p["d"]),
             dt=float(p["dt"]),
             settle_tolerance=float(p["settle_tolerance"]),
+            settle_stiffness=float(p.get("settle_stiffness", 0.0)),
             gravity=np.asarray(p.get("gravity", (0.0, 0.0, 0.0)), dtype=float),
         )
 
@@ -245,7 +250,11 @@ class Runtime:
         load = float(np.sqrt(np.einsum("nd,nd->n", applied, applied))[~self.fixed].max(initial=0))
         if load > 0:
             self._load_scale = load
-        self.settled = self.unbalanced < self.settle_tolerance * self._load_scale
+        moved = float(np.linalg.norm(self.x - self.rest))
+        self.settled = bool(
+            self.unbalanced < self.settle_tolerance * self._load_scale
+            or np.linalg.norm(total) < self.settle_stiffness * moved
+        )
         a = (self.dt / self.masses)[:, None]
         self.v = (self.v + a * total) / (1.0 + a * self.d)
         self.v[self.fixed] = 0.0

@@ -13,6 +13,7 @@ import pytest
 
 import fpm
 from fpm.dynamics.equilibrium import StaticSolver, static_equilibrium
+from fpm.dynamics.settle import force_tolerance
 from fpm.dynamics.simulation import FpmModel
 from fpm.dynamics.voigt import SETTLED
 from fpm.fitting.damping import (
@@ -164,7 +165,7 @@ def test_the_decay_predicts_the_settle_steps(bar: fpm.Problem, d):
     runs = _Runs(bar, spring_stiffness(bar, K), None, 1e-3)
     try:
         run = runs.model.start(0, k=runs.stiffness, d=d, depth=None, dt=runs.dt,
-                               settle_tolerance=bar.spec.fpm.settle_tolerance)  # fmt: skip
+                               settle_tolerance=force_tolerance(bar.spec))  # fmt: skip
         taken = _piece(run, PREDICT_AFTER)
         assert not run.finished, "the case must still run when the prediction is made"
         predicted = predicted_steps(run)

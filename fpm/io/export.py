@@ -254,7 +254,7 @@ def to_json(
             "d": p.d,
             "dt": p.dt,
             "depth": p.depth,
-            "settle_tolerance": spec.fpm.settle_tolerance,
+            **settle_parameters(lattice),
             "max_steps": int(max_steps or resolved_max_steps(lattice)),
             "gravity": list(spec.fpm.gravity),
         },
@@ -280,6 +280,31 @@ def to_json(
             for case, layers in zip(problem.load_cases, lattice.layers, strict=True)
         ],
         **({"fit": fit} if fit else {}),
+    }
+
+
+def settle_parameters(lattice: Lattice) -> dict[str, float]:
+    """How a run of the export settles: ``settle_tolerance`` (the force criterion: the largest
+    unbalanced nodal force below it times the largest applied nodal force) and
+    ``settle_stiffness`` (N/m, the distance criterion of :mod:`fpm.dynamics.settle`: the
+    2-norm of the unbalanced nodal forces below it times the 2-norm of the displacements; 0
+    for none), as the fit's runs settled: the spec's settle_distance times the lattice's
+    mode stiffness (the smallest over the load cases' lists), or the force criterion."""
+    from ..dynamics.settle import FORCE_TOLERANCE, by_distance, force_tolerance
+
+    problem = lattice.problem
+    if not by_distance(problem.spec):
+        return {"settle_tolerance": force_tolerance(problem.spec), "settle_stiffness": 0.0}
+    from ..dynamics.modes import case_models
+
+    p = lattice.params
+    models = case_models(problem, model_stiffness(problem, p.theta(problem)), p.depth, p.dt)
+    if models is None:  # a mechanism at rest: no modes to read
+        return {"settle_tolerance": FORCE_TOLERANCE, "settle_stiffness": 0.0}
+    least = min(m.mode_stiffness for m in models)
+    return {
+        "settle_tolerance": 0.0,
+        "settle_stiffness": problem.spec.fpm.settle_distance * least,
     }
 
 
