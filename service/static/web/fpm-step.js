@@ -95,6 +95,7 @@ export class FpmModel {
     this.unbalanced = Infinity;
     this.settled = false;
     this.loadScale = 0;
+    this.movedScale = 0;
     this.reset();
   }
 
@@ -154,6 +155,7 @@ export class FpmModel {
     this.unbalanced = Infinity;
     this.settled = false;
     this.loadScale = 0;
+    this.movedScale = 0;
   }
 
   /** (3 N) the nodal forces of the export's load case `c`, N (into `out` when given). */
@@ -375,7 +377,8 @@ export class FpmModel {
    * Sets unbalanced (the largest |F_i| over the free nodes at the start of the step) and
    * settled (unbalanced under settleTolerance times the largest applied nodal force of this
    * step, or of the last loaded step when the forces are zero; or the 2-norm of the unbalanced
-   * forces under settleStiffness times the 2-norm of the displacements), as Runtime does.
+   * forces under settleStiffness times the 2-norm of the displacements, of the last loaded
+   * step when the forces are zero), as Runtime does.
    * @returns {Float64Array} the positions after the step (the model's own array: read only)
    */
   step(forces = null) {
@@ -394,7 +397,7 @@ export class FpmModel {
     const external = forces !== null && forces !== undefined;
     let worst = 0;
     let total = 0;
-    let moved = 0;
+    let moved = 0; // the displacements' squared 2-norm at the step's start
     let load = 0;
     const rest = this.rest;
     const n = this.nNodes;
@@ -436,10 +439,13 @@ export class FpmModel {
     }
     this.unbalanced = Math.sqrt(worst);
     load = Math.sqrt(load);
-    if (load > 0) this.loadScale = load;
+    if (load > 0) {
+      this.loadScale = load;
+      this.movedScale = Math.sqrt(moved); // unloaded, the equilibrium is rest: keep the last
+    }
     this.settled =
       this.unbalanced < this.settleTolerance * this.loadScale ||
-      Math.sqrt(total) < this.settleStiffness * Math.sqrt(moved);
+      Math.sqrt(total) < this.settleStiffness * this.movedScale;
     this.steps += 1;
     return x;
   }
