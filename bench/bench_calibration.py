@@ -89,7 +89,9 @@ def organ_settings(h: float, stiffness: str = "single") -> tuple[dict[str, Any],
     from fpm.model.stiffness import spring_stiffness
 
     if stiffness in ("families+volume", "field"):  # the default model (and the field on it)
-        settings = {"max_steps": 20_000, "settle_tolerance": 1e-6, "stiffness": stiffness}
+        # as a user sends it: no fpm setting but the model (the defaults settle on the
+        # distance criterion, max_steps 'auto')
+        settings = {} if stiffness == "families+volume" else {"stiffness": stiffness}
         return ellipsoid_spec(h, validation=True, fpm=settings), float("nan")
     problem = fpm.load_problem(ellipsoid_spec(h, fpm={"stiffness": "single"}))
     k = DT_RULE_K * problem.spec.material.youngs_modulus * h

@@ -6,15 +6,16 @@ busy machine the wall times are those of a busy machine):
 
 1. The paper's cube (material A, ``examples/paper-material-a.json``: one k, dt 1 ms, explicit
    max_steps 2000) and the soft organ at h = 5 mm (``bench/organ.py``, the default model
-   families+volume, dt 'auto', settle_tolerance 1e-6): the two-stage calibration in-process,
-   FEM solved outside the timing. Its d's total settle steps against the fewest on a 30-point
-   log grid of d over :func:`fpm.fitting.bounds.damping_bounds` (same stiffness, depth and dt;
-   a grid run is stopped at 3 times the returned d's steps, where it cannot be the best within
-   5%). Goal: ratio <= 1.05. Printed beside it: the predicted d, the damping stage's seconds,
-   its dynamic runs and kernel steps, and the resolved max_steps. Material A's whole
-   calibration: goal <= 3 s.
+   families+volume, no fpm settings: dt and max_steps 'auto', the distance criterion): the
+   two-stage calibration in-process, FEM solved outside the timing. Its d's total settle
+   steps against the fewest on a 30-point log grid of d over
+   :func:`fpm.fitting.bounds.damping_bounds` (same stiffness, depth and dt; a grid run is
+   stopped at 3 times the returned d's steps, where it cannot be the best within 5%). Goal:
+   ratio <= 1.05. Printed beside it: the predicted d, the damping stage's seconds, its
+   dynamic runs and kernel steps, and the resolved max_steps. Material A's whole calibration:
+   goal <= 3 s.
 2. The organ at h = 3 mm (about 20k nodes) in a fresh subprocess (bench_calibration's organ
-   child, families+volume, dt auto, settle_tolerance 1e-6): goal <= 60 s wall; the damping
+   child, families+volume, no fpm settings): goal <= 60 s wall; the damping
    stage's seconds beside it. With ``large`` on the command line also h = 1.75 mm (93,705
    nodes): goal <= 180 s for the whole calibration. Every organ: peak RSS <= 3 GB (issue #32:
    per worker; here the whole calibration in one process). Beside the wall time, the child's
@@ -53,19 +54,21 @@ def grid_best(
     depth and dt (runs capped at 3x the result's steps per case); (d, total, every point)."""
     from fpm.dynamics.simulation import FpmModel
     from fpm.fitting.bounds import damping_bounds
+    from fpm.fitting.damping import settle_criterion
     from fpm.model.stiffness import fitted_theta, model_stiffness
 
     stiffness = model_stiffness(problem, fitted_theta(problem, result.to_dict()))
     model = FpmModel(problem)
     depth = None if result.depth >= result.full_depth else result.depth
     caps = [3 * s for s in result.settle_steps]
+    settle = result.settle_stiffness  # the criterion the calibration's runs settled on
     points: list[tuple[float, int | None]] = []
     for d in np.geomspace(*damping_bounds(problem), GRID_POINTS):
         runs = []
         for j, cap in enumerate(caps):
             run = model.run(
                 j, k=stiffness, d=float(d), depth=depth, dt=result.dt, max_steps=cap,
-                settle_tolerance=problem.spec.fpm.settle_tolerance,
+                **settle_criterion(problem, None if settle is None else settle[j]),
             )  # fmt: skip
             runs.append(run)
             if not run.settled:

@@ -180,9 +180,9 @@ class Kernel:
     def numba(self, k: float, d: float, dt: float, steps: int) -> tuple[int, int, float]:
         from fpm.dynamics.voigt import run_steps
 
-        taken, state, worst, _ = run_steps(
+        taken, state, worst, *_ = run_steps(
             self.order, self.ptr, self.neighbour, self.rest_length, self.factor, self.rest,
-            self.x, self.v, self.external, self.mass, k, d, dt, steps, 0.0, self.size,
+            self.x, self.v, self.external, self.mass, k, d, dt, steps, 0.0, 0.0, self.size,
             *NO_CELLS,
         )  # fmt: skip
         return taken, state, worst

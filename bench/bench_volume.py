@@ -19,9 +19,9 @@ Goals (all measured in this run; the load average is printed beside each part):
    Then (2b, no goal) how far the 8-node references are from the triquadratic hexahedron on
    the same voxels, per case.
 3. The organ at h = 3 mm (about 20k nodes; goal <= 90 s) and h = 1.75 mm (about 94k nodes;
-   goals <= 180 s and <= 3 GB peak RSS) with families+volume (dt auto, settle_tolerance 1e-6,
-   validation cases), each in a fresh subprocess (bench_calibration's organ child); the 1.75 mm
-   run is stopped after 900 s and reported with the time reached.
+   goals <= 180 s and <= 3 GB peak RSS) with families+volume (no fpm settings: dt auto, the
+   distance criterion; validation cases), each in a fresh subprocess (bench_calibration's
+   organ child); the 1.75 mm run is stopped after 900 s and reported with the time reached.
 
 Run: python -m bench volume (about 15-25 minutes on 2 cores); ``python -m bench.bench_volume
 cube`` runs part 1 only (about a minute). Part 1's rows are recorded in

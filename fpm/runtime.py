@@ -109,6 +109,10 @@ class Runtime:
         settle_tolerance: settled when the largest unbalanced nodal force is below this times
             the largest applied nodal force (of the step, or of the last loaded step when the
             forces are zero).
+        settle_stiffness: or when the 2-norm of the unbalanced nodal forces is below this
+            (N/m) times the 2-norm of the displacements (of the step, or of the last loaded
+            step when the forces are zero: the equilibrium is then rest) (the distance
+            criterion, :mod:`fpm.dynamics.settle`; 0: none).
         gravity: (3,) m/s^2 (the weight m g joins the applied forces).
         x, v: (N, 3) positions (m) and velocities (m/s), the state :meth:`step` advances.
         steps: steps taken since the last :meth:`reset`.
@@ -128,6 +132,7 @@ class Runtime:
     d: float
     dt: float
     settle_tolerance: float
+    settle_stiffness: float = 0.0
     gravity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     x: np.ndarray = field(init=False)
     v: np.ndarray = field(init=False)
@@ -135,6 +140,7 @@ class Runtime:
     unbalanced: float = field(init=False, default=float("inf"))
     settled: bool = field(init=False, default=False)
     _load_scale: float = field(init=False, default=0.0, repr=False)
+    _moved_scale: float = field(init=False, default=0.0, repr=False)
 
     def __post_init__(self) -> None:
         n, s = self.n_nodes, len(self.springs)
@@ -179,6 +185,7 @@ class Runtime:
             d=float(p["d"]),
             dt=float(p["dt"]),
             settle_tolerance=float(p["settle_tolerance"]),
+            settle_stiffness=float(p.get("settle_stiffness", 0.0)),
             gravity=np.asarray(p.get("gravity", (0.0, 0.0, 0.0)), dtype=float),
         )
 
@@ -191,6 +198,7 @@ class Runtime:
         self.x = self.rest.copy()
         self.v = np.zeros_like(self.rest)
         self.steps, self.unbalanced, self.settled, self._load_scale = 0, float("inf"), False, 0.0
+        self._moved_scale = 0.0
 
     def load_case_forces(self, export: dict[str, Any], case: int) -> np.ndarray:
         """(N, 3) the nodal forces of the export's load case ``case``, N."""
@@ -245,7 +253,12 @@ class Runtime:
         load = float(np.sqrt(np.einsum("nd,nd->n", applied, applied))[~self.fixed].max(initial=0))
         if load > 0:
             self._load_scale = load
-        self.settled = self.unbalanced < self.settle_tolerance * self._load_scale
+        if load > 0:  # unloaded, the equilibrium is rest: the distance is the displacement
+            self._moved_scale = float(np.linalg.norm(self.x - self.rest))  # the last loaded one
+        self.settled = bool(
+            self.unbalanced < self.settle_tolerance * self._load_scale
+            or np.linalg.norm(total) < self.settle_stiffness * self._moved_scale
+        )
         a = (self.dt / self.masses)[:, None]
         self.v = (self.v + a * total) / (1.0 + a * self.d)
         self.v[self.fixed] = 0.0

@@ -76,7 +76,9 @@ def plain_fpm(data: dict[str, Any], case: int) -> tuple[np.ndarray, int]:
     """The FPM step written from the json export alone (docs/howto/export.md, *The step in
     NumPy*): node by node in perturbed-list order, semi-implicit Euler, implicit nodal
     damping; stops once the largest unbalanced force is below the settle tolerance times the
-    largest applied force. Returns the displacements and the steps taken."""
+    largest applied force, or once the 2-norm of the unbalanced forces is below the case's
+    settle stiffness times the 2-norm of the displacements. Returns the displacements and the
+    steps taken."""
     x0 = np.asarray(data["nodes"])
     m = np.asarray(data["masses"])
     p = data["parameters"]
@@ -94,19 +96,21 @@ def plain_fpm(data: dict[str, Any], case: int) -> tuple[np.ndarray, int]:
     force[load["nodes"]] = load["forces"]
     order = np.concatenate(load["perturbed_layers"]).astype(int)
     settle = p["settle_tolerance"] * np.linalg.norm(force[order], axis=1).max()
+    stiffness = load["settle_stiffness"]
     x, v = x0.copy(), np.zeros_like(x0)
     for step in range(1, p["max_steps"] + 1):
-        worst = 0.0
+        worst = total = 0.0
         for n in order:
             s = slice(start[n], start[n + 1])
             r = x[other[s]] - x[n]
             length = np.linalg.norm(r, axis=1)
             f = force[n] + ((k[s] * (length - rest[s]) / length)[:, None] * r).sum(axis=0)
             worst = max(worst, float(np.linalg.norm(f)))
+            total += float(f @ f)
             a = dt / m[n]
             v[n] = (v[n] + a * f) / (1 + a * d)
             x[n] = x[n] + dt * v[n]
-        if worst < settle:
+        if worst < settle or np.sqrt(total) < stiffness * np.linalg.norm(x[order] - x0[order]):
             return x - x0, step
     return x - x0, p["max_steps"]
 

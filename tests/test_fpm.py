@@ -148,9 +148,9 @@ def test_hanging_chain_sags_by_the_weight_below_each_spring():
 def test_spring_forces_cancel_and_balance_the_applied_forces():
     k = 10.0
     problem = block_problem()
-    result = fpm.simulate(problem, k=k, d=0.1)
+    tol = 1e-5  # the force criterion, named
+    result = fpm.simulate(problem, k=k, d=0.1, settle_tolerance=tol)
     assert result.settled
-    tol = problem.spec.fpm.settle_tolerance
     applied = problem.load_cases[0].dense(problem.n_nodes)
     f_max = np.linalg.norm(applied, axis=1).max()
     x = problem.nodes + result.displacements
@@ -288,7 +288,7 @@ def test_the_layout_changes_no_bit_of_a_run():
     taken, *_ = run_steps(
         plist.order, a.ptr, a.neighbour, a.rest_length, stiffness.springs[a.spring],
         problem.nodes, x, v, problem.load_cases[0].dense(problem.n_nodes), problem.solid.masses,
-        1.0, 0.05, 2e-4, 400, 0.0, problem.size, cells.corners, cells.rest, cells.volume,
+        1.0, 0.05, 2e-4, 400, 0.0, 0.0, problem.size, cells.corners, cells.rest, cells.volume,
         np.ascontiguousarray(stiffness.volume[which]), np.zeros_like(x),
     )  # fmt: skip
     assert taken == result.steps == 400

@@ -26,6 +26,7 @@ from fpm.dynamics.simulation import FpmModel
 from fpm.dynamics.spring_system import Params
 from fpm.dynamics.stability import stable_time_step
 from fpm.fitting.bounds import damping_bounds
+from fpm.fitting.damping import settle_criterion
 from fpm.model.spec import FpmSettings
 from fpm.model.stiffness import continuum_start, model_stiffness
 
@@ -116,10 +117,14 @@ def exact_iteration(tangent, springs, masses, order_rank, d: float, dt: float) -
 @pytest.mark.parametrize("stiffness", ["single", "families+volume"])
 def test_the_predicted_d_is_the_exact_steps_fastest(stiffness):
     """On lattices small enough for the exact linearised step (every mode, the node-by-node
-    order, the cells all at once): the predicted fastest d is within 8% of the d with the
-    smallest spectral radius of that step (the prediction minimises the steps to the settle
-    force, which the slowest decay alone does not fix; measured 1-6% apart), and the kernel's
-    runs at the predicted d settle within 10% of the fewest steps on a fine grid of d."""
+    order, the cells all at once): the predicted fastest d is within 25% of the d with the
+    smallest spectral radius of that step (the prediction minimises the steps to settle,
+    which the slowest decay alone does not fix: measured 1-6% apart on the force criterion
+    at 1e-5, 20% with the distance criterion's default, whose runs settle in about 300 steps
+    here, where the transient still counts), and the kernel's runs at the predicted d settle
+    within 20% of the fewest steps on a fine grid of d (10% on the force criterion; the
+    distance criterion reads the residual's 2-norm, to which the fast modes the prediction
+    leaves out add early in a run: measured 18% on families+volume here)."""
     problem = box((5, 5, 5), stiffness)
     theta = theta_of(problem)
     stiffness_ = model_stiffness(problem, theta)
@@ -147,26 +152,28 @@ def test_the_predicted_d_is_the_exact_steps_fastest(stiffness):
     best = minimize_scalar(
         radius, bounds=(math.log(lo), math.log(hi)), method="bounded", options={"xatol": 5e-3}
     )
-    assert abs(math.log(prediction.d) - best.x) < math.log(1.08)
+    assert abs(math.log(prediction.d) - best.x) < math.log(1.25)
     # the reduced step's slowest decay there agrees with the exact step's
     assert models[0].radius(prediction.d) == pytest.approx(radius(math.log(prediction.d)), abs=0.01)
     # the kernel's runs: the predicted d against a fine grid of d
     model = FpmModel(problem)
-    tolerance = problem.spec.fpm.settle_tolerance
+    # the runs settle as the calibration's do: on the distance criterion, each case at its
+    # list's mode stiffness (fpm.dynamics.settle)
+    distance = problem.spec.fpm.settle_distance
+    settle = [settle_criterion(problem, distance * m.mode_stiffness) for m in models]
 
     def total(d: float) -> float:
         runs = [
-            model.run(j, k=stiffness_, d=d, depth=None, dt=dt, max_steps=50_000,
-                      settle_tolerance=tolerance)
+            model.run(j, k=stiffness_, d=d, depth=None, dt=dt, max_steps=50_000, **settle[j])
             for j in range(len(problem.load_cases))
         ]  # fmt: skip
         return sum(r.steps for r in runs) if all(r.settled for r in runs) else math.inf
 
     grid = np.geomspace(prediction.d / 1.3, prediction.d * 1.3, 13)
-    assert total(prediction.d) <= 1.1 * min(total(d) for d in grid)
+    assert total(prediction.d) <= 1.2 * min(total(d) for d in grid)
     # and the predicted steps are those of the runs within 25%
     runs = [model.run(j, k=stiffness_, d=prediction.d, depth=None, dt=dt, max_steps=50_000,
-                      settle_tolerance=tolerance) for j in range(2)]  # fmt: skip
+                      **settle[j]) for j in range(2)]  # fmt: skip
     for predicted, run in zip(prediction.steps, runs, strict=True):
         assert predicted == pytest.approx(run.steps, rel=0.25)
 
@@ -276,8 +283,9 @@ def test_a_default_calibration_no_longer_fails_for_want_of_steps():
     problem = slender_bar()
     assert problem.spec.fpm.max_steps == "auto"
     result = fpm.calibrate(problem)
-    assert result.settled
-    assert max(result.settle_steps) > 20_000  # the old default cap: it failed there
+    assert result.settled  # on the force criterion at 1e-5 it took over 20,000 steps, the
+    # old default cap, and failed there; on the distance criterion about 15,000
+    assert max(result.settle_distance_measured) < problem.spec.fpm.settle_distance
     assert result.max_steps is not None and result.max_steps >= max(result.settle_steps)
     assert result.d_predicted is not None
     assert result.d == pytest.approx(result.d_predicted, rel=0.1)
@@ -294,13 +302,15 @@ def test_a_default_calibration_no_longer_fails_for_want_of_steps():
 
 def test_the_paper_model_keeps_its_explicit_cap():
     """examples/paper-material-a.json names max_steps 2000: the fit reports that cap; the d
-    it finds from the prediction settles the three forces in Table 1's 962 steps (the steps
-    are flat, 962-963, for d from 0.192 to 0.202)."""
+    it finds from the prediction (0.2355 N s/m) settles the three forces in 636 steps on the
+    distance criterion, each state within 0.43% of its static equilibrium (on the force
+    criterion at 1e-5 it was d 0.1965 in 962 steps)."""
     problem = fpm.load_problem("examples/paper-material-a.json")
     assert problem.spec.fpm.max_steps == 2000
     result = fpm.calibrate(problem)
     assert result.max_steps == 2000
-    assert sum(result.settle_steps) == 962 and result.d == pytest.approx(0.1965, rel=0.01)
+    assert sum(result.settle_steps) == 636 and result.d == pytest.approx(0.2355, rel=0.01)
+    assert max(result.settle_distance_measured) < problem.spec.fpm.settle_distance
     assert result.d_predicted == pytest.approx(result.d, rel=0.05)
 
 

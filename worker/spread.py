@@ -569,11 +569,12 @@ def damping_case(calibration_id: str, task: str) -> dict[str, Any]:
         if "request" in spec:
             return run_request(
                 problem, stiffness, spec["depth"], spec["dt"], request_of(spec),
-                partial(_named, redis, calibration_id, task),
+                partial(_named, redis, calibration_id, task), spec.get("settle"),
             )  # fmt: skip
+        settle = spec.get("settle")
         one = run_case(
             FpmModel(problem), stiffness, spec["depth"], spec["dt"], spec["load_case"],
-            spec["d"], spec["cap"],
+            spec["d"], spec["cap"], None if settle is None else settle[spec["load_case"]],
         )  # fmt: skip
         return [one], None
 

@@ -67,6 +67,7 @@ from ..model.forces import Stiffness
 from ..model.problem import Problem
 from ..model.stiffness import model_stiffness
 from .predictor import ARMIJO, _galerkin, _largest, _Predictor, _Stats
+from .settle import force_tolerance
 from .spring_system import Params, SpringSystem, shared_system, spring_lists
 
 AMG_FROM_UNKNOWNS = 300
@@ -186,8 +187,9 @@ class StaticSolver:
         self.hierarchies_built = 0
 
     def default_tolerance(self) -> float:
-        """A tenth of the spec's settle_tolerance (1e-8 if that is 0)."""
-        settle = self.problem.spec.fpm.settle_tolerance
+        """A tenth of the force criterion's settle tolerance (1e-6 where the spec names none,
+        :func:`fpm.dynamics.settle.force_tolerance`; 1e-8 if it is 0)."""
+        settle = force_tolerance(self.problem.spec)
         return settle / 10 if settle > 0 else 1e-8
 
     def system(self, load_case: int, depth: int | None) -> tuple[SpringSystem, int]:

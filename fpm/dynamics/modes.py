@@ -82,6 +82,7 @@ from ..fem.linear_solver import SingularStiffnessError, v_cycle
 from ..model.forces import Stiffness
 from ..model.problem import Problem
 from .equilibrium import StaticSolver
+from .settle import by_distance, force_tolerance, mode_stiffness
 from .spring_system import Params, SpringSystem
 
 MODES = 16
@@ -553,6 +554,10 @@ class StepModel:
         start: (k,) q at rest, -Phi^T M u* (kg^1/2 m).
         residual: (c, 3, k) rows of K Phi at the followed nodes, N per unit q.
         settle_force: the settle test's force, N (0: never settles).
+        mode_stiffness: the list's mode stiffness, N/m (:func:`fpm.dynamics.settle.mode_stiffness`).
+        residual_gram: (k, k) (K Phi)^T (K Phi), N^2 per unit q^2: the settle test reads the
+            2-norm of the residual over the list (the distance criterion); None: its largest
+            nodal value at the followed nodes (the force criterion).
     """
 
     dt: float
@@ -562,6 +567,8 @@ class StepModel:
     start: np.ndarray
     residual: np.ndarray
     settle_force: float
+    mode_stiffness: float = 0.0
+    residual_gram: np.ndarray | None = None
     _powers: dict[float, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
 
     def iteration(self, d: float) -> np.ndarray:
@@ -616,7 +623,10 @@ class StepModel:
         return NEVER
 
     def _level(self, q: np.ndarray) -> np.ndarray:
-        """(n,) the largest nodal residual, N, of the reduced states q (n, k)."""
+        """(n,) what the settle test reads of the residual, N, of the reduced states q (n, k):
+        its 2-norm, or its largest nodal value (``residual_gram`` None)."""
+        if self.residual_gram is not None:
+            return np.sqrt(np.maximum(np.einsum("nk,kl,nl->n", q, self.residual_gram, q), 0.0))
         rows = self.residual.reshape(-1, self.residual.shape[2])  # (3c, k)
         r = (q @ rows.T).reshape(len(q), -1, 3)
         return np.sqrt((r * r).sum(axis=2)).max(axis=1)
@@ -632,6 +642,7 @@ def step_model(
     loads: np.ndarray,
     settle_force: float,
     displacement: np.ndarray | None = None,
+    norm: bool = False,
 ) -> StepModel:
     """The reduced step of one load case.
 
@@ -646,6 +657,8 @@ def step_model(
         settle_force: the settle test's force, N.
         displacement: (N, 3) the static equilibrium u*, m; None: the modes' linear response
             to ``loads`` (q = -Phi^T f / w^2).
+        norm: the settle test reads the residual's 2-norm (the distance criterion), not its
+            largest nodal value.
     """
     k = system.parameters(stiffness)
     rank = np.empty(system.n_free, dtype=np.int64)
@@ -670,6 +683,8 @@ def step_model(
         start=start,
         residual=kphi[followed],
         settle_force=float(settle_force),
+        mode_stiffness=mode_stiffness(modes.w2, phi),
+        residual_gram=_gram(modes.kshapes, modes.kshapes) if norm else None,
     )
 
 
@@ -806,7 +821,7 @@ def reduced_steps(
         SingularStiffnessError: the lattice at rest has a mode without stiffness.
     """
     found = {} if modes is None else modes
-    tolerance = problem.spec.fpm.settle_tolerance
+    spec = problem.spec
     models = []
     for j in range(len(problem.load_cases)) if cases is None else cases:
         system, _ = solver.system(j, depth)
@@ -837,7 +852,21 @@ def reduced_steps(
             found[key] = lowest
         plist = solver.lists.get(problem.load_cases[j].nodes, depth)
         loads = solver.loads(j)
-        force = tolerance * float(np.linalg.norm(loads[plist.order], axis=1).max())
+        distance = by_distance(spec)
+        if distance:  # the residual (1) of fpm.dynamics.settle at the equilibrium
+            shapes = found[key]
+            if static is None:  # the modes' linear response
+                f = loads[system.free].ravel()
+                moved = shapes.shapes @ ((shapes.shapes.T @ f) / shapes.w2)
+            else:
+                moved = static[j][system.free]
+            force = (
+                spec.fpm.settle_distance
+                * mode_stiffness(shapes.w2, shapes.shapes)
+                * float(np.linalg.norm(moved))
+            )
+        else:
+            force = force_tolerance(spec) * float(np.linalg.norm(loads[plist.order], axis=1).max())
         models.append(
             step_model(
                 system,
@@ -849,6 +878,7 @@ def reduced_steps(
                 loads,
                 force,
                 None if static is None else static[j],
+                distance,
             )  # fmt: skip
         )
     return models
@@ -857,6 +887,32 @@ def reduced_steps(
 def fixed_max_steps(value: int | str) -> int:
     """fpm.max_steps where nothing predicts it: the number, or FALLBACK_STEPS for 'auto'."""
     return FALLBACK_STEPS if value == "auto" else int(value)
+
+
+def case_models(
+    problem: Problem,
+    stiffness: Stiffness,
+    depth: int | None,
+    dt: float,
+    cases: list[int] | None = None,
+) -> list[StepModel] | None:
+    """The reduced steps of ``cases`` (None: every load case) at (``stiffness``, ``depth``,
+    ``dt`` s), each starting from the modes' linear response; None where there are none (the
+    lattice at rest a mechanism). The modes of the last stiffness asked for are kept on the
+    problem (``problem.cache["modes"]``)."""
+    from .equilibrium import static_solver
+
+    key = (stiffness.parameters().tobytes(), depth)
+    kept = problem.cache.get("modes")
+    if kept is None or kept[0] != key:
+        kept = problem.cache["modes"] = (key, {})
+    try:
+        with single_threaded_blas():
+            return reduced_steps(
+                problem, static_solver(problem), stiffness, depth, dt, cases=cases, modes=kept[1]
+            )
+    except (SingularStiffnessError, ValueError, ArithmeticError):
+        return None
 
 
 def predicted_max_steps(
@@ -868,21 +924,11 @@ def predicted_max_steps(
     cases: list[int] | None = None,
 ) -> int:
     """fpm.max_steps 'auto' for runs at (``stiffness``, ``d`` N s/m, ``depth``, ``dt`` s) of
-    ``cases`` (None: every load case): :func:`auto_max_steps` of the reduced steps' prediction
-    at d, each starting from the modes' linear response; FALLBACK_STEPS where there is none
-    (the lattice at rest a mechanism, d not settling). The modes of the last stiffness asked
-    for are kept on the problem (``problem.cache["modes"]``)."""
-    from .equilibrium import static_solver
-
-    key = (stiffness.parameters().tobytes(), depth)
-    kept = problem.cache.get("modes")
-    if kept is None or kept[0] != key:
-        kept = problem.cache["modes"] = (key, {})
-    try:
-        with single_threaded_blas():
-            models = reduced_steps(
-                problem, static_solver(problem), stiffness, depth, dt, cases=cases, modes=kept[1]
-            )
-            return auto_max_steps([m.steps(d, SCHEMA_MAX_STEPS) for m in models])
-    except (SingularStiffnessError, ValueError, ArithmeticError):
+    ``cases`` (None: every load case): :func:`auto_max_steps` of the reduced steps'
+    (:func:`case_models`) prediction at d; FALLBACK_STEPS where there is none (the lattice at
+    rest a mechanism, d not settling)."""
+    models = case_models(problem, stiffness, depth, dt, cases)
+    if models is None:
         return FALLBACK_STEPS
+    with single_threaded_blas():
+        return auto_max_steps([m.steps(d, SCHEMA_MAX_STEPS) for m in models])

@@ -14,6 +14,7 @@ from ..model.problem import Problem
 from ..model.spec import FpmSettings
 from ..model.stiffness import axis_factors, has_volume, model_stiffness
 from ..model.volume import Cells
+from .settle import by_distance, force_tolerance
 from .stability import auto_time_step
 from .voigt import DIVERGED, INVERTED, RUNNING, SETTLED, run_steps
 
@@ -141,6 +142,7 @@ class FpmModel:
         dt: float,
         max_steps: int,
         settle_tolerance: float,
+        settle_stiffness: float = 0.0,
     ) -> SimulationResult:
         """Simulate ``load_case`` from rest; see :func:`simulate`.
 
@@ -148,7 +150,10 @@ class FpmModel:
         the (S,) stiffness of every spring (:func:`fpm.model.stiffness.spring_stiffness`, scale
         included), or the model's :class:`~fpm.model.forces.Stiffness` (springs and volume).
         """
-        run = self.start(load_case, k=k, d=d, depth=depth, dt=dt, settle_tolerance=settle_tolerance)
+        run = self.start(
+            load_case, k=k, d=d, depth=depth, dt=dt, settle_tolerance=settle_tolerance,
+            settle_stiffness=settle_stiffness,
+        )  # fmt: skip
         run.advance(max_steps, buffers=(self._x, self._v))
         return run.result()
 
@@ -161,9 +166,13 @@ class FpmModel:
         depth: int | None,
         dt: float,
         settle_tolerance: float,
+        settle_stiffness: float = 0.0,
     ) -> DynamicRun:
         """A run of ``load_case`` from rest that advances in pieces (:class:`DynamicRun`);
-        arguments as :meth:`run`."""
+        arguments as :meth:`run`. It settles once its largest unbalanced nodal force is below
+        ``settle_tolerance`` times the largest applied nodal force, or once the 2-norm of its
+        unbalanced nodal forces is below ``settle_stiffness`` (N/m) times the 2-norm of its
+        displacements (:mod:`fpm.dynamics.settle`)."""
         p = self.problem
         plist = self.perturbed_list(load_case, depth)
         external = p.load_cases[load_case].dense(p.n_nodes)
@@ -194,6 +203,7 @@ class FpmModel:
             dt=float(dt),
             settle_force=settle_tolerance
             * float(np.linalg.norm(external[plist.order], axis=1).max()),
+            settle_stiffness=float(settle_stiffness),
             volume=volume,
         )
 
@@ -212,7 +222,12 @@ class DynamicRun:
     Attributes:
         steps: time steps taken so far.
         state: voigt.RUNNING, SETTLED or DIVERGED.
-        residual: largest unbalanced nodal force of the last sweep, N.
+        residual: what the settle test reads of the last sweep's unbalanced nodal forces, N:
+            the largest (the force criterion), or their 2-norm over the list (the distance
+            criterion, ``settle_stiffness`` > 0).
+        moved: the 2-norm of the last sweep's nodal displacements over the list, m.
+        settle_force: the residual the run settles below where it stands, N: the force
+            criterion's, or ``settle_stiffness`` (N/m) times ``moved``.
         history: (steps, residual) after every piece, for a caller that watches the decay.
     """
 
@@ -229,6 +244,7 @@ class DynamicRun:
         d: float,
         dt: float,
         settle_force: float,
+        settle_stiffness: float,
         volume: tuple[Cells, np.ndarray],
     ):
         p = model.problem
@@ -236,7 +252,9 @@ class DynamicRun:
         self.inverted_cell: int | None = None
         self.model, self.load_case, self.plist, self.layout = model, load_case, plist, layout
         self.external, self.factor = np.ascontiguousarray(external[layout.nodes]), factor
-        self.k, self.d, self.dt, self.settle_force = k, d, dt, settle_force
+        self.k, self.d, self.dt = k, d, dt
+        self.settle_force, self.settle_stiffness, self.moved = settle_force, settle_stiffness, 0.0
+        self._force_criterion = settle_force
         self.x: np.ndarray | None = None  # own buffers, made on the first piece
         self.v: np.ndarray | None = None
         self.steps, self.state, self.residual = 0, RUNNING, 0.0
@@ -268,12 +286,17 @@ class DynamicRun:
         a, p, c = self.layout.rows, self.model.problem, self.cells
         if self._force is None:
             self._force = np.zeros_like(self._rest) if len(c.volume) else np.zeros((0, 3))
-        taken, self.state, self.residual, inverted = run_steps(
+        taken, self.state, worst, inverted, norm, moved = run_steps(
             self.layout.order, a.ptr, a.neighbour, a.rest_length, self.factor, self._rest,
             self.x, self.v, self.external, self._mass, self.k, self.d, self.dt,
-            int(steps), self.settle_force, p.size,
+            int(steps), self._force_criterion, self.settle_stiffness, p.size,
             c.corners, c.rest, c.volume, self.kappa, self._force,
         )  # fmt: skip
+        self.moved = float(moved)
+        if self.settle_stiffness > 0:
+            self.residual, self.settle_force = float(norm), self.settle_stiffness * self.moved
+        else:
+            self.residual = float(worst)
         self.steps += int(taken)
         self.history.append((self.steps, float(self.residual)))
         if inverted >= 0:
@@ -332,7 +355,10 @@ def simulate(
             lattice's stability estimate at k, at most 1 ms; max_steps 'auto': three times the
             steps the lattice's slowest modes predict at k and d,
             :func:`fpm.dynamics.modes.predicted_max_steps`); ``settle_tolerance=0`` never
-            settles.
+            settles. Where neither names a settle_tolerance, the run settles on the spec's
+            settle_distance (:mod:`fpm.dynamics.settle`; the force criterion at
+            :data:`~fpm.dynamics.settle.FORCE_TOLERANCE` for the paper method or a lattice
+            that is a mechanism at rest).
     """
     s = problem.spec.fpm
     if not 0 <= load_case < len(problem.load_cases):
@@ -355,12 +381,20 @@ def simulate(
         s.model_dump() | {key: v for key, v in given.items() if v is not None}
     )
     step = auto_time_step(problem, stiffness) if settings.dt == "auto" else float(settings.dt)
-    cap = settings.max_steps
-    if cap == "auto":  # from the lattice's slowest modes (fpm.dynamics.modes)
-        from .modes import predicted_max_steps
+    cap, tolerance, settle = settings.max_steps, settings.settle_tolerance, 0.0
+    distance = tolerance is None and by_distance(problem.spec)
+    models = None
+    if cap == "auto" or distance:  # from the lattice's slowest modes (fpm.dynamics.modes)
+        from .modes import FALLBACK_STEPS, SCHEMA_MAX_STEPS, auto_max_steps, case_models
 
         model = stiffness if isinstance(stiffness, Stiffness) else model_stiffness(problem, k)
-        cap = predicted_max_steps(problem, model, d, depth, step, [load_case])
+        models = case_models(problem, model, depth, step, [load_case])
+    if distance and models is not None:
+        tolerance, settle = 0.0, settings.settle_distance * models[0].mode_stiffness
+    elif tolerance is None:  # the paper method, or a lattice with no modes at rest
+        tolerance = force_tolerance(problem.spec)
+    if cap == "auto":
+        cap = auto_max_steps([models[0].steps(d, SCHEMA_MAX_STEPS)]) if models else FALLBACK_STEPS
     return fpm_model(problem).run(
         load_case,
         k=stiffness,
@@ -368,5 +402,6 @@ def simulate(
         depth=depth,
         dt=step,
         max_steps=int(cap),
-        settle_tolerance=settings.settle_tolerance,
+        settle_tolerance=tolerance,
+        settle_stiffness=settle,
     )

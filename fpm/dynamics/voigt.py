@@ -173,28 +173,33 @@ def run_steps(
     dt: float,
     max_steps: int,
     settle_force: float,
+    settle_stiffness: float,
     max_move: float,
     corners: np.ndarray,
     rest_coefficients: np.ndarray,
     rest_volume: np.ndarray,
     kappa: np.ndarray,
     volume_force: np.ndarray,
-) -> tuple[int, int, float, int]:
+) -> tuple[int, int, float, int, float, float]:
     """Advance ``x``, ``v`` (N, 3) in place by up to ``max_steps`` steps over ``order`` (M,).
 
     ``external`` (N, 3) is F_i, N; ``mass`` (N,) kg; ``stiffness_factor`` (2S,) or empty (all 1);
     ``rest`` (N, 3) the rest positions. The volume term's cells (``corners`` (C, 8) ... ``kappa``
     as :func:`volume_forces`; C = 0: none) add their forces, kept in ``volume_force`` (N, 3).
-    Stops early once the largest |F_i + F_s| of a sweep is below ``settle_force`` (N), once a
-    node is non-finite or further than ``max_move`` (m) from rest (DIVERGED; two nodes at one
-    place give a non-finite force, NumPy's error model, rather than an exception), or once a
-    cell inverts (INVERTED). Returns (steps taken, RUNNING/SETTLED/DIVERGED/INVERTED, largest
-    |F_i + F_s| of the last sweep, the inverted cell or -1).
+    Stops early (SETTLED) once the largest |F_i + F_s| of a sweep is below ``settle_force``
+    (N; the force criterion), or once the 2-norm of the sweep's F_i + F_s over the list is
+    below ``settle_stiffness`` (N/m) times the 2-norm of its x_i - rest_i (the distance
+    criterion of :mod:`fpm.dynamics.settle`; 0 for none); once a node is non-finite or further
+    than ``max_move`` (m) from rest (DIVERGED; two nodes at one place give a non-finite force,
+    NumPy's error model, rather than an exception), or once a cell inverts (INVERTED). Returns
+    (steps taken, RUNNING/SETTLED/DIVERGED/INVERTED, largest |F_i + F_s| of the last sweep,
+    the inverted cell or -1, the 2-norms of the last sweep's F_i + F_s (N) and x_i - rest_i
+    (m)).
     """
     scaled = stiffness_factor.shape[0] > 0
     cells = corners.shape[0] > 0
     limit2 = max_move * max_move
-    worst = 0.0
+    worst = norm = moved = 0.0
     most = 0
     for i in order:
         most = max(most, ptr[i + 1] - ptr[i])
@@ -203,12 +208,14 @@ def run_steps(
     r2s = np.empty(most)
     for step in range(1, max_steps + 1):
         worst2 = 0.0
+        total2 = 0.0
+        moved2 = 0.0
         if cells:
             inverted = volume_forces(
                 corners, rest_coefficients, rest_volume, kappa, x, order, volume_force
             )
             if inverted >= 0:
-                return step, INVERTED, worst, inverted
+                return step, INVERTED, worst, inverted, norm, moved
         for i in order:
             xi0, xi1, xi2 = x[i, 0], x[i, 1], x[i, 2]
             f0, f1, f2 = external[i, 0], external[i, 1], external[i, 2]
@@ -258,6 +265,7 @@ def run_steps(
             f2sum = f0 * f0 + f1 * f1 + f2 * f2
             if f2sum > worst2:
                 worst2 = f2sum
+            total2 += f2sum
             a = dt / mass[i]
             damp = 1.0 / (1.0 + a * d)
             v0 = (v[i, 0] + a * f0) * damp
@@ -269,9 +277,13 @@ def run_steps(
             xi2 += dt * v2
             x[i, 0], x[i, 1], x[i, 2] = xi0, xi1, xi2
             u0, u1, u2 = xi0 - rest[i, 0], xi1 - rest[i, 1], xi2 - rest[i, 2]
-            if not (u0 * u0 + u1 * u1 + u2 * u2 <= limit2):  # also catches NaN
-                return step, DIVERGED, np.sqrt(worst2), -1
+            u2sum = u0 * u0 + u1 * u1 + u2 * u2
+            if not (u2sum <= limit2):  # also catches NaN
+                return step, DIVERGED, np.sqrt(worst2), -1, np.sqrt(total2), np.sqrt(moved2)
+            moved2 += u2sum
         worst = np.sqrt(worst2)
-        if worst < settle_force:
-            return step, SETTLED, worst, -1
-    return max_steps, RUNNING, worst, -1
+        norm = np.sqrt(total2)
+        moved = np.sqrt(moved2)
+        if worst < settle_force or norm < settle_stiffness * moved:
+            return step, SETTLED, worst, -1, norm, moved
+    return max_steps, RUNNING, worst, -1, norm, moved

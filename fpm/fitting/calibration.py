@@ -197,6 +197,9 @@ def finalize(
         discrepancy_h=final.h_percent,
         settle_steps=final.settle_steps,
         settled=final.settled,
+        settle_stiffness=None if damping is None else damping.settle,
+        settle_distance_estimated=final.settle_estimated,
+        settle_distance_measured=final.settle_measured,
         evaluations=sum(c.evaluations for c in chains)
         + (damping.polish_evaluations if damping else 0),
         damping_runs=damping.damping_runs if damping else 0,

@@ -59,6 +59,7 @@ from ..dynamics.modes import (
     StepModel,
     fixed_max_steps,
 )
+from ..dynamics.settle import force_tolerance
 from ..dynamics.simulation import DynamicRun, FpmModel
 from ..dynamics.stability import auto_time_step, time_step
 from ..dynamics.voigt import DIVERGED, INVERTED, RUNNING, SETTLED
@@ -140,6 +141,7 @@ class DampingFit:
             search started from the critical-damping estimates).
         predicted_steps: (L,) the steps predicted per load case at ``predicted``.
         max_steps: the cap on each run's steps (the spec's, or 'auto' resolved).
+        residuals: (L,) the largest unbalanced nodal force of each case's last sweep at d, N.
     """
 
     d: float
@@ -153,6 +155,7 @@ class DampingFit:
     predicted: float | None = None
     predicted_steps: list[float] = field(default_factory=list)
     max_steps: int = 0
+    residuals: list[float] = field(default_factory=list)
 
     @property
     def total_steps(self) -> int:
@@ -291,18 +294,28 @@ def run_case(
     load_case: int,
     d: float,
     cap: int,
+    settle_stiffness: float | None = None,
 ) -> CaseRun:
     """Load case ``load_case`` at (``stiffness``, ``d`` N s/m, ``depth``, ``dt`` s) from rest
     to its end: settled, diverged or ``cap`` steps; advanced in the same pieces of CHUNK steps
     as the lockstep runs of :class:`_Runs`, so the very same floating-point sequence whatever
-    process runs it."""
-    s = model.problem.spec.fpm
+    process runs it. ``settle_stiffness``: the distance criterion's, N/m
+    (:mod:`fpm.dynamics.settle`); None: the force criterion."""
     run = model.start(
-        load_case, k=stiffness, d=d, depth=depth, dt=dt, settle_tolerance=s.settle_tolerance
-    )
+        load_case, k=stiffness, d=d, depth=depth, dt=dt,
+        **settle_criterion(model.problem, settle_stiffness),
+    )  # fmt: skip
     while not run.finished and run.steps < cap:
         _piece(run, min(CHUNK, cap - run.steps))
     return CaseRun.of(run)
+
+
+def settle_criterion(problem: Problem, settle_stiffness: float | None) -> dict[str, float]:
+    """A run's settle arguments (:meth:`FpmModel.start`): the distance criterion's
+    ``settle_stiffness`` (N/m) alone, or, for None, the force criterion's tolerance."""
+    if settle_stiffness is None:
+        return {"settle_tolerance": force_tolerance(problem.spec), "settle_stiffness": 0.0}
+    return {"settle_tolerance": 0.0, "settle_stiffness": float(settle_stiffness)}
 
 
 Resolve = Callable[[], dict[str, Any] | None]
@@ -318,11 +331,12 @@ def run_request(
     dt: float,
     request: Request,
     resolve: Resolve | None = None,
+    settle: Sequence[float] | None = None,
 ) -> Outcome:
     """One d's lockstep runs (:meth:`_Runs.locked`) at (``stiffness``, ``depth``, ``dt`` s)
     in this process, for another's search; ``resolve``: where what is named later (a budget
-    LATER, or caps) comes from."""
-    runs = _Runs(problem, stiffness, depth, dt)
+    LATER, or caps) comes from; ``settle``: each case's settle stiffness (as :class:`_Runs`)."""
+    runs = _Runs(problem, stiffness, depth, dt, settle=settle)
     try:
         return runs.locked(request, resolve)
     finally:
@@ -413,7 +427,8 @@ class _Runs:
     ``spread``: runs the predicted d's cases (no budget, to the cap: each case's run
     independent of the others') and the d the search will probably try next
     (:meth:`prefetch`) over other processes (:class:`Spread`; None: the cases on these
-    threads, nothing ahead)."""
+    threads, nothing ahead). ``settle``: each load case's settle stiffness, N/m (the distance
+    criterion, :mod:`fpm.dynamics.settle`); None: the force criterion."""
 
     def __init__(
         self,
@@ -422,8 +437,11 @@ class _Runs:
         depth: int | None,
         dt: float,
         spread: Spread | None = None,
+        *,
+        settle: Sequence[float] | None = None,
     ):
         self.problem = problem
+        self.settle = None if settle is None else [float(s) for s in settle]
         self.stiffness = stiffness
         self.depth = depth
         self.dt = dt
@@ -439,7 +457,14 @@ class _Runs:
 
     def local(self, load_case: int, d: float, cap: int) -> CaseRun:
         """Load case ``load_case`` at d run on its own to its end in this process."""
-        return run_case(self.model, self.stiffness, self.depth, self.dt, load_case, d, cap)
+        return run_case(
+            self.model, self.stiffness, self.depth, self.dt, load_case, d, cap,
+            self.case_settle(load_case),
+        )  # fmt: skip
+
+    def case_settle(self, load_case: int) -> float | None:
+        """Load case ``load_case``'s settle stiffness, N/m (None: the force criterion)."""
+        return None if self.settle is None else self.settle[load_case]
 
     def separate(
         self, d: float, caps: list[int], beside: Sequence[Request] = ()
@@ -535,7 +560,6 @@ class _Runs:
             raise ValueError("what is named later needs where to learn it")
         looked = -math.inf
         estimate, prune, to_cap = request.estimate, request.prune, request.to_cap
-        s = self.problem.spec.fpm
         runs = [
             self.model.start(
                 j,
@@ -543,7 +567,7 @@ class _Runs:
                 d=d,
                 depth=self.depth,
                 dt=self.dt,
-                settle_tolerance=s.settle_tolerance,
+                **settle_criterion(self.problem, self.case_settle(j)),
             )  # fmt: skip
             for j in range(self.cases)
         ]
@@ -695,6 +719,7 @@ def fastest_damping(
     max_steps: int | None = None,
     auto: bool = False,
     spread: Spread | None = None,
+    settle: Sequence[float] | None = None,
 ) -> DampingFit:
     """The d in ``bounds`` that settles every load case in the fewest total steps.
 
@@ -720,6 +745,8 @@ def fastest_damping(
         spread: runs the predicted d's load cases, each on its own, and the d tried next
             over other processes (:class:`Spread`; None: here); the answer is the same
             whatever runs them.
+        settle: each load case's settle stiffness, N/m: its runs settle on the distance
+            criterion (:mod:`fpm.dynamics.settle`); None: on the force criterion.
 
     Raises:
         DampingError: no d in the bounds settles every load case within max_steps.
@@ -731,7 +758,7 @@ def fastest_damping(
     step = time_step(problem, stiffness) if dt is None else dt
     for attempt in range(RETRIES + 1):
         last = not auto or attempt == RETRIES or max_steps >= SCHEMA_MAX_STEPS
-        runs = _Runs(problem, stiffness, depth, step, spread)
+        runs = _Runs(problem, stiffness, depth, step, spread, settle=settle)
         runs.max_steps = max_steps
         try:
             return _search(
@@ -771,7 +798,8 @@ def _search(
     slower: dict[float, int] = {}  # log d -> steps taken when stopped (at least the best total)
     # log d -> predicted steps per case, for a d stopped on its prediction
     forecast: dict[float, tuple[float, ...]] = {}
-    best: list[Any] = []  # [log d, displacements (L, N, 3)] of the fewest total steps so far
+    # [log d, displacements (L, N, 3), residuals (L,) N] of the fewest total steps so far
+    best: list[Any] = []
     short: dict[float, float] = {}  # log d -> steps it needs, for a d stopped by the cap
 
     def key(y: float) -> float:
@@ -807,7 +835,11 @@ def _search(
                 settled = [r.steps for r in results]
                 steps[y] = settled
                 if not best or sum(settled) < _total(steps[best[0]]):
-                    best[:] = [y, np.stack([r.result().displacements for r in results])]
+                    best[:] = [
+                        y,
+                        np.stack([r.result().displacements for r in results]),
+                        [r.history[-1][1] if r.history else 0.0 for r in results],
+                    ]
             else:
                 steps[y] = None
             if progress is not None:
@@ -889,7 +921,7 @@ def _search(
         if y is None:
             break
         total(y)
-    y_best, displacements = best
+    y_best, displacements, residuals = best
     edge = None
     if models is not None:
         edge = _predicted_edge(models, math.exp(y_best), lo, max_steps)
@@ -912,6 +944,7 @@ def _search(
         predicted=None if prediction is None else prediction.d,
         predicted_steps=[] if prediction is None else list(prediction.steps),
         max_steps=max_steps,
+        residuals=[float(r) for r in residuals],
     )
 
 

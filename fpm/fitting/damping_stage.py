@@ -22,7 +22,7 @@ import math
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -34,6 +34,7 @@ from ..dynamics.modes import (
     predict_damping,
     single_threaded_blas,
 )
+from ..dynamics.settle import by_distance
 from ..dynamics.stability import stable_time_step, time_step
 from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
 from ..model.forces import Stiffness
@@ -82,6 +83,8 @@ class DampingStage:
             for full depth), :class:`fpm.fitting.validation.Validation` as a dict with that
             "depth"; solved beside the stage, on a thread or by another worker (None: left to
             finalize).
+        settle: each load case's settle stiffness, N/m, its runs settled on (the distance
+            criterion, :mod:`fpm.dynamics.settle`); None: the force criterion.
     """
 
     theta: list[float]
@@ -101,6 +104,7 @@ class DampingStage:
     max_steps: int | None = None
     field: dict[str, Any] | None = None
     validation: dict[str, Any] | None = None
+    settle: list[float] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -114,13 +118,15 @@ class DampingStage:
 class DampingPlan:
     """What one dynamic run of the d search needs besides d and its cap (JSON-able): the
     stiffness theta (N/m; kappa Pa) the model is built from (:func:`model_stiffness`), the
-    depth, the time step dt (s), and whether a stiffness field replaced theta's model (its
-    runs are not handed to other processes)."""
+    depth, the time step dt (s), whether a stiffness field replaced theta's model (its
+    runs are not handed to other processes), and each load case's settle stiffness (N/m, the
+    distance criterion of :mod:`fpm.dynamics.settle`; None: the force criterion)."""
 
     theta: list[float]
     depth: int
     dt: float
     field: bool = False
+    settle: list[float] | None = None
 
 
 def resolve_depth(
@@ -301,7 +307,7 @@ def _fit_damping(
         progress({"phase": "damping"})
     dt = time_step(problem, stiffness)
     plan = DampingPlan([float(t) for t in theta], int(depth), dt, field is not None)
-    fit = find_damping(
+    fit, plan = find_damping(
         problem,
         cost.solver,
         stiffness,
@@ -309,9 +315,13 @@ def _fit_damping(
         static,
         dt,
         None if progress is None else (lambda i: progress({"phase": "damping", **i})),
-        None if spread is None else spread(plan),
+        plan,
+        spread,
     )
-    final = final_run(cost, stiffness, depth, fit.displacements, fit.steps, settled=True)
+    final = final_run(
+        cost, stiffness, depth, fit.displacements, fit.steps, settled=True,
+        residuals=fit.residuals, settle=plan.settle, statics=static,
+    )  # fmt: skip
     validation = None
     if checks:
         found = validating[checked].result()
@@ -334,6 +344,7 @@ def _fit_damping(
         max_steps=fit.max_steps,
         field=None if field is None else field.to_dict(),
         validation=validation,
+        settle=plan.settle,
     )
 
 
@@ -394,31 +405,45 @@ def find_damping(
     static: np.ndarray,
     dt: float,
     progress: Any = None,
-    spread: Spread | None = None,
-) -> DampingFit:
+    plan: DampingPlan | None = None,
+    spread: Callable[[DampingPlan], Spread | None] | None = None,
+) -> tuple[DampingFit, DampingPlan]:
     """The fastest-settling d at (``stiffness``, ``depth``, ``dt`` s), from ``static`` (L, N,
-    3) the static equilibria, m: the search of :func:`fpm.fitting.damping.fastest_damping`
+    3) the static equilibria, m, and ``plan`` (None: made of ``stiffness``' parameters) with
+    each case's settle stiffness: the distance criterion's (:mod:`fpm.dynamics.settle`) read
+    from the modes of the prediction, or None for the force criterion (the spec names a
+    settle_tolerance, or there are no modes). The search of
+    :func:`fpm.fitting.damping.fastest_damping`
     started at the d the lattice's slowest modes predict
     (:func:`fpm.dynamics.modes.predict_damping`), with fpm.max_steps 'auto' taken from the
     steps predicted there (:func:`fpm.dynamics.modes.auto_max_steps`). Where the lattice at
     rest has no modes to predict from (a mechanism, e.g. 'axis' springs) or no d settles in
     the reduced steps, from the two critical-damping estimates of :func:`damping_guesses`,
-    'auto' then being FALLBACK_STEPS. ``spread``: runs the search's runs over other
-    processes (:func:`fpm.fitting.damping.fastest_damping`)."""
+    'auto' then being FALLBACK_STEPS. ``spread``: given the plan, runs the search's runs over
+    other processes (:func:`fpm.fitting.damping.fastest_damping`). Returns the fit and the
+    plan its runs followed."""
     bounds = damping_bounds(problem)
     asked = problem.spec.fpm.max_steps
+    if plan is None:
+        plan = DampingPlan([float(t) for t in stiffness.parameters()], int(depth), dt)
     try:
         prediction, models = predict_damping(problem, solver, stiffness, depth, dt, bounds, static)
     except (ValueError, SingularStiffnessError, NegativeCurvature, np.linalg.LinAlgError):
         guesses = damping_guesses(problem, solver, stiffness, depth, static)
         cap = FALLBACK_STEPS if asked == "auto" else int(asked)
-        return fastest_damping(
+        fit = fastest_damping(
             problem, stiffness, depth, bounds, guesses, dt=dt, progress=progress, max_steps=cap,
-            auto=asked == "auto", spread=spread,
+            auto=asked == "auto", spread=None if spread is None else spread(plan),
         )  # fmt: skip
+        return fit, plan
+    if by_distance(problem.spec):
+        distance = problem.spec.fpm.settle_distance
+        plan = replace(plan, settle=[distance * m.mode_stiffness for m in models])
     cap = auto_max_steps(prediction.steps) if asked == "auto" else int(asked)
-    return fastest_damping(
+    fit = fastest_damping(
         problem, stiffness, depth, bounds, (prediction.d, prediction.d), dt=dt,
         progress=progress, prediction=prediction, models=models, max_steps=cap,
-        auto=asked == "auto", spread=spread,
+        auto=asked == "auto", spread=None if spread is None else spread(plan),
+        settle=plan.settle,
     )  # fmt: skip
+    return fit, plan

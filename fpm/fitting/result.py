@@ -189,6 +189,25 @@ class CalibrationResult(BaseModel):
     )
     settle_steps: list[int] = Field(description="time steps to settle, per load case")
     settled: bool = Field(description="every load case settled within max_steps")
+    settle_stiffness: list[float] | None = Field(
+        None,
+        description="per load case, the settle criterion's stiffness, N/m: a run settled once "
+        "its largest unbalanced nodal force was below this times its largest nodal "
+        "displacement (fpm.settle_distance times the stiffness of the lattice's softest mode); "
+        "null on the force criterion (fpm.settle_tolerance named, the paper method)",
+    )
+    settle_distance_estimated: list[float] | None = Field(
+        None,
+        description="per load case, the settled state's distance from its static equilibrium "
+        "as its run estimated it (residual through the softest mode's stiffness), relative "
+        "to its largest displacement; null on the force criterion",
+    )
+    settle_distance_measured: list[float] | None = Field(
+        None,
+        description="per load case, the settled state's distance from its static equilibrium, "
+        "measured against that equilibrium solved: the largest nodal difference over the "
+        "equilibrium's largest nodal displacement; null on the force criterion",
+    )
     evaluations: int = Field(description="cost evaluations over all chains (and the polish)")
     damping_runs: int = Field(description="dynamic runs of the d search")
     seconds: dict[str, float] = Field(

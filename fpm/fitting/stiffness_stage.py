@@ -36,6 +36,7 @@ import numpy as np
 from scipy.optimize import minimize, minimize_scalar
 
 from ..dynamics.modes import single_threaded_blas
+from ..dynamics.settle import force_tolerance
 from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
 from ..model.problem import Problem
 from ..model.stiffness import (
@@ -198,7 +199,7 @@ def _run_chain(
         # An unsettled FPM is still moving: its cost measures a transient, not the model.
         # Such a candidate is rejected like a divergent one, unless the spec asks never to
         # settle (settle_tolerance 0).
-        settling = problem.spec.fpm.settle_tolerance > 0
+        settling = force_tolerance(problem.spec) > 0
 
         def objective(x: list[float]) -> State:
             ev = dynamic(x[:n], x[n], stop_unsettled=settling)

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from ..dynamics.settle import PROMISE, estimated_distance, measured_distance
 from ..model.problem import Problem
 from .cost import StaticCost, Theta, discrepancies
 
@@ -96,7 +97,14 @@ class FinalRun:
         cost: Eq. (2) of the dynamic run, m; static_cost: of the static equilibria, m.
         settle_steps: (L,) steps to settle; settled: every load case settled.
         relative, loaded, h_percent: the discrepancies (:class:`fpm.fitting.cost.Discrepancies`).
-        notes: warnings (did not settle; dynamic and static costs disagree).
+        notes: warnings (did not settle; dynamic and static costs disagree; a settled state
+            further from its static equilibrium than promised).
+        settle_estimated: (L,) per load case, the settled state's distance from its static
+            equilibrium as its run estimated it (:func:`fpm.dynamics.settle.estimated_distance`,
+            relative to its displacement); None without the distance criterion.
+        settle_measured: (L,) the same distance measured against the static equilibrium
+            (:func:`fpm.dynamics.settle.measured_distance`); None without the distance
+            criterion.
     """
 
     cost: float
@@ -107,6 +115,8 @@ class FinalRun:
     loaded: list[float]
     h_percent: list[float]
     notes: list[str]
+    settle_estimated: list[float] | None = None
+    settle_measured: list[float] | None = None
 
 
 def final_run(
@@ -116,17 +126,51 @@ def final_run(
     displacements: np.ndarray,
     steps: list[int],
     settled: bool,
+    *,
+    residuals: list[float] | None = None,
+    settle: list[float] | None = None,
+    statics: np.ndarray | None = None,
 ) -> FinalRun:
     """Check dynamic displacements (L, N, 3) at (theta, d, depth) against the reference and
-    the static equilibria at (theta, depth): they must agree within 0.1% of the cost."""
+    the static equilibria at (theta, depth).
+
+    On the force criterion (``settle`` None) the dynamic and static costs must agree within
+    0.1% of the cost. On the distance criterion (``settle``: each case's settle stiffness,
+    N/m, with ``residuals`` (L,) N the 2-norms of the runs' last unbalanced forces) each
+    settled state must be within :data:`fpm.dynamics.settle.PROMISE` times the spec's
+    settle_distance of its static equilibrium (``statics`` (L, N, 3) m; None: solved here),
+    measured; the estimate the runs stopped on is reported beside it."""
     problem = static.problem
     static_ev = static(theta, depth)
     cost = float(sum(static.case_cost(j, u) for j, u in enumerate(displacements)))
     figures = discrepancies(problem, displacements, static.reference)
     notes = []
+    estimated = measured = None
+    if settled and settle is not None and residuals is not None:
+        if statics is None:
+            statics = np.stack(
+                [static.displacements(theta, j, depth).displacements for j in range(len(steps))]
+            )
+        distance = problem.spec.fpm.settle_distance
+        estimated = [
+            estimated_distance(r, float(np.linalg.norm(u)), s / distance)
+            for r, u, s in zip(residuals, displacements, settle, strict=True)
+        ]
+        measured = [measured_distance(u, v) for u, v in zip(displacements, statics, strict=True)]
+        far = [
+            f"{case.name} {m:.2%}"
+            for case, m in zip(problem.load_cases, measured, strict=True)
+            if m > PROMISE * distance
+        ]
+        if far:
+            notes.append(
+                f"settled states further than {PROMISE * distance:.2%} of their displacement "
+                f"from the static equilibrium: {', '.join(far)}; a smaller fpm.settle_distance "
+                "helps"
+            )
     if not settled:
         notes.append("the last dynamic run did not settle every load case within max_steps")
-    elif abs(cost - static_ev.cost) > max(
+    elif estimated is None and abs(cost - static_ev.cost) > max(
         STATIC_AGREEMENT * static_ev.cost, SETTLE_RESOLUTION * static.reference_cost
     ):
         notes.append(
@@ -143,6 +187,8 @@ def final_run(
         loaded=figures.loaded,
         h_percent=figures.h_percent,
         notes=notes,
+        settle_estimated=estimated,
+        settle_measured=measured,
     )
 
 

@@ -225,6 +225,7 @@ def to_json(
     calibration result's ``max_steps``; None: :func:`resolved_max_steps`)."""
     problem, p = lattice.problem, lattice.params
     spec, solid = problem.spec, problem.solid
+    settle = settle_parameters(lattice)
     springs = [
         [int(i), int(j), float(length), float(k)]
         for (i, j), length, k in zip(
@@ -254,7 +255,7 @@ def to_json(
             "d": p.d,
             "dt": p.dt,
             "depth": p.depth,
-            "settle_tolerance": spec.fpm.settle_tolerance,
+            **{k: v for k, v in settle.items() if k != "cases"},
             "max_steps": int(max_steps or resolved_max_steps(lattice)),
             "gravity": list(spec.fpm.gravity),
         },
@@ -276,11 +277,41 @@ def to_json(
                 "nodes": case.nodes.tolist(),
                 "forces": case.forces.tolist(),
                 "perturbed_layers": [layer.tolist() for layer in layers],
+                "settle_stiffness": stiffness,
             }
-            for case, layers in zip(problem.load_cases, lattice.layers, strict=True)
+            for case, layers, stiffness in zip(
+                problem.load_cases, lattice.layers, settle["cases"], strict=True
+            )
         ],
         **({"fit": fit} if fit else {}),
     }
+
+
+def settle_parameters(lattice: Lattice) -> dict[str, Any]:
+    """How a run of the export settles, as the fit's runs settled: ``settle_tolerance`` (the
+    force criterion: the largest unbalanced nodal force below it times the largest applied
+    nodal force) and ``settle_stiffness`` (N/m, the distance criterion of
+    :mod:`fpm.dynamics.settle`: the 2-norm of the unbalanced nodal forces below it times the
+    2-norm of the displacements; 0 for none): the spec's settle_distance times the mode
+    stiffness of each load case's list (``cases``, (L,)), the smallest of them for forces of
+    the engine's own (``settle_stiffness``); or the force criterion."""
+    from ..dynamics.settle import FORCE_TOLERANCE, by_distance, force_tolerance
+
+    problem = lattice.problem
+    cases = len(problem.load_cases)
+    models = None
+    distance = by_distance(problem.spec)
+    if distance:
+        from ..dynamics.modes import case_models
+
+        p = lattice.params
+        stiffness = model_stiffness(problem, p.theta(problem))
+        models = case_models(problem, stiffness, p.depth, p.dt)
+    if models is None:  # the force criterion (named, the paper method, or no modes at rest)
+        tolerance = FORCE_TOLERANCE if distance else force_tolerance(problem.spec)
+        return {"settle_tolerance": tolerance, "settle_stiffness": 0.0, "cases": [0.0] * cases}
+    each = [problem.spec.fpm.settle_distance * m.mode_stiffness for m in models]
+    return {"settle_tolerance": 0.0, "settle_stiffness": min(each), "cases": each}
 
 
 def resolved_max_steps(lattice: Lattice) -> int:

@@ -64,6 +64,8 @@ export class FpmModel {
    * @param {number} p.d nodal damping, N s/m
    * @param {number} p.dt time step, s
    * @param {number} p.settleTolerance settled below this times the largest applied force
+   * @param {number} [p.settleStiffness] or once the 2-norm of the unbalanced forces is below
+   *   this (N/m) times the 2-norm of the displacements (the distance criterion; 0: none)
    * @param {number[]} [p.gravity] m/s^2
    */
   constructor(p) {
@@ -79,6 +81,7 @@ export class FpmModel {
     this.d = p.d;
     this.dt = p.dt;
     this.settleTolerance = p.settleTolerance;
+    this.settleStiffness = p.settleStiffness || 0;
     this.gravity = Float64Array.from(p.gravity || [0, 0, 0]);
     this.nNodes = this.masses.length;
     this.nSprings = this.restLengths.length;
@@ -92,6 +95,7 @@ export class FpmModel {
     this.unbalanced = Infinity;
     this.settled = false;
     this.loadScale = 0;
+    this.movedScale = 0;
     this.reset();
   }
 
@@ -138,6 +142,7 @@ export class FpmModel {
       d: Number(p.d),
       dt: Number(p.dt),
       settleTolerance: Number(p.settle_tolerance),
+      settleStiffness: Number(p.settle_stiffness || 0),
       gravity: p.gravity || [0, 0, 0],
     });
   }
@@ -150,6 +155,7 @@ export class FpmModel {
     this.unbalanced = Infinity;
     this.settled = false;
     this.loadScale = 0;
+    this.movedScale = 0;
   }
 
   /** (3 N) the nodal forces of the export's load case `c`, N (into `out` when given). */
@@ -370,7 +376,9 @@ export class FpmModel {
    * Advance one step under the external nodal `forces` (Float64Array(3 N), N; null: none).
    * Sets unbalanced (the largest |F_i| over the free nodes at the start of the step) and
    * settled (unbalanced under settleTolerance times the largest applied nodal force of this
-   * step, or of the last loaded step when the forces are zero), as Runtime does.
+   * step, or of the last loaded step when the forces are zero; or the 2-norm of the unbalanced
+   * forces under settleStiffness times the 2-norm of the displacements, of the last loaded
+   * step when the forces are zero), as Runtime does.
    * @returns {Float64Array} the positions after the step (the model's own array: read only)
    */
   step(forces = null) {
@@ -388,7 +396,10 @@ export class FpmModel {
     const g0 = this.gravity[0], g1 = this.gravity[1], g2 = this.gravity[2];
     const external = forces !== null && forces !== undefined;
     let worst = 0;
+    let total = 0;
+    let moved = 0; // the displacements' squared 2-norm at the step's start
     let load = 0;
+    const rest = this.rest;
     const n = this.nNodes;
     for (let i = 0; i < n; i++) {
       if (fixed[i]) continue; // total 0, v 0: x stays at rest
@@ -409,6 +420,9 @@ export class FpmModel {
       const t0 = p0 + i0, t1 = p1 + i1, t2 = p2 + i2;
       const f2 = t0 * t0 + t1 * t1 + t2 * t2;
       if (f2 > worst) worst = f2;
+      total += f2;
+      const u0 = x[k] - rest[k], u1 = x[k + 1] - rest[k + 1], u2 = x[k + 2] - rest[k + 2];
+      moved += u0 * u0 + u1 * u1 + u2 * u2;
       const l2 = p0 * p0 + p1 * p1 + p2 * p2;
       if (l2 > load) load = l2;
       const a = dt / mi;
@@ -425,8 +439,13 @@ export class FpmModel {
     }
     this.unbalanced = Math.sqrt(worst);
     load = Math.sqrt(load);
-    if (load > 0) this.loadScale = load;
-    this.settled = this.unbalanced < this.settleTolerance * this.loadScale;
+    if (load > 0) {
+      this.loadScale = load;
+      this.movedScale = Math.sqrt(moved); // unloaded, the equilibrium is rest: keep the last
+    }
+    this.settled =
+      this.unbalanced < this.settleTolerance * this.loadScale ||
+      Math.sqrt(total) < this.settleStiffness * this.movedScale;
     this.steps += 1;
     return x;
   }
