@@ -1,0 +1,374 @@
+"""The lattice's slowest modes: ``K phi = w^2 M phi`` for a perturbed list's tangent at rest
+(:mod:`fpm.dynamics.modes` reads the FPM step off them).
+
+The k lowest (:func:`lowest_modes`), as Phi (3M, k) M-orthonormal (Phi^T M Phi = I; kg^-1/2)
+and w^2 (k,) 1/s^2. Dense up to :data:`DENSE_UP_TO` unknowns; above, LOBPCG (Knyazev 2001)
+preconditioned by one V-cycle of the static solver's multigrid hierarchy (an approximation of
+K^-1, :mod:`fpm.fem.linear_solver`), started from the eigenvectors of a coarse level of that
+hierarchy carried up to the lattice. The BLAS these dense products use is held to one thread
+while the annealing chains' threads run (:func:`single_threaded_blas`).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import threading
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+from numba import njit
+
+from ..fem.linear_solver import v_cycle
+
+MODES = 16
+"""Lowest modes the prediction keeps (measured: 12-24 agree on the fastest d within 3%; 4-6
+miss couplings that set it on the paper's cube)."""
+EXTRA = 4
+"""LOBPCG iterates this many vectors more than it keeps (the last ones converge slowest)."""
+DENSE_UP_TO = 600
+"""Unknowns up to which the modes come from a dense generalised eigensolve."""
+COARSE_UP_TO = 600
+"""LOBPCG starts from the eigenvectors of the finest multigrid level with at most this many
+unknowns (a dense eigensolve there), carried up to the lattice."""
+TOLERANCE = 0.1
+"""LOBPCG stops once every kept mode's residual |K x - w^2 M x| is below this times |K x|
+(the eigenvalues are then good to about its square; measured: the predicted fastest d moves
+by 0.2-0.5% from 0.01 to 0.1, by 1% at 0.3)."""
+SETTLED_VALUES = 1e-3
+"""LOBPCG also stops once no kept eigenvalue moved by more than this (relative) in an
+iteration."""
+MAX_ITERATIONS = 3
+"""LOBPCG iterations at most on each level. The prediction needs the slow modes' span more
+than converged vectors (the reduced step is a Galerkin model on whatever basis it gets):
+measured, the predicted fastest d with 2, 3, 4 and 6 iterations on the lattice against
+converged ones (residuals below 0.1): 1.1%, 1.5%, 0%, 0% apart on the soft organ at h = 5 mm,
+0.3%, 0.7%, 1.0%, 0.3% at h = 3 mm (converging took 6-9 iterations there and 13 on the
+93,705-node organ, each one costing 20 V-cycles of the lattice)."""
+
+_BLAS_LOCK = threading.Lock()
+_BLAS: list[tuple[Callable[[int], None], Callable[[], int]]] | None = None
+_BLAS_USERS = [0, 0]  # [threads inside single_threaded_blas, the thread count to restore]
+
+
+def _blas_controls() -> list[tuple[Callable[[int], None], Callable[[], int]]]:
+    """(set, get) of the number of threads of each OpenBLAS loaded in this process (found in
+    /proc/self/maps; none elsewhere)."""
+    found: list[tuple[Callable[[int], None], Callable[[], int]]] = []
+    try:
+        with open("/proc/self/maps") as f:
+            paths = sorted(
+                {
+                    line.split()[-1]
+                    for line in f
+                    if "openblas" in line.lower() and line.split()[-1].startswith("/")
+                }
+            )
+    except OSError:
+        return found
+    names = (
+        ("scipy_openblas_set_num_threads64_", "scipy_openblas_get_num_threads64_"),
+        ("scipy_openblas_set_num_threads", "scipy_openblas_get_num_threads"),
+        ("openblas_set_num_threads64_", "openblas_get_num_threads64_"),
+        ("openblas_set_num_threads", "openblas_get_num_threads"),
+    )
+    for path in paths:
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for setter, getter in names:
+            if hasattr(lib, setter) and hasattr(lib, getter):
+                set_threads, get_threads = getattr(lib, setter), getattr(lib, getter)
+                set_threads.argtypes, get_threads.restype = [ctypes.c_int], ctypes.c_int
+                found.append((set_threads, get_threads))
+                break
+    return found
+
+
+@contextmanager
+def single_threaded_blas() -> Iterator[None]:
+    """Run the block with OpenBLAS on one thread. Its threads wait on each other: on a busy
+    2-core machine a 600 x 600 generalised eigensolve took 3.2 s with two threads and 0.36 s
+    with one, a 60 x 60 one 29 ms and 0.6 ms (:func:`_gram` explains the tall products). The
+    dense algebra here is small or done in compiled loops, so one thread loses nothing."""
+    global _BLAS
+    with _BLAS_LOCK:
+        if _BLAS is None:
+            _BLAS = _blas_controls()
+        if _BLAS_USERS[0] == 0 and _BLAS:
+            _BLAS_USERS[1] = _BLAS[0][1]()
+            for set_threads, _ in _BLAS:
+                set_threads(1)
+        _BLAS_USERS[0] += 1
+    try:
+        yield
+    finally:
+        with _BLAS_LOCK:
+            _BLAS_USERS[0] -= 1
+            if _BLAS_USERS[0] == 0 and _BLAS:
+                for set_threads, _ in _BLAS:
+                    set_threads(_BLAS_USERS[1])
+
+
+@dataclass
+class Modes:
+    """The k lowest modes of a list's tangent at rest (see the module docstring).
+
+    Attributes:
+        free: (M,) the list's nodes (the static solver's system order: ascending).
+        w2: (k,) squared angular frequencies, 1/s^2, ascending.
+        shapes: (3M, k) M-orthonormal mode shapes (node-major unknowns), kg^-1/2.
+        kshapes: (3M, k) K times the shapes, N/m kg^-1/2 (the residual per unit amplitude).
+        iterations: LOBPCG iterations (0: dense).
+    """
+
+    free: np.ndarray
+    w2: np.ndarray
+    shapes: np.ndarray
+    kshapes: np.ndarray
+    iterations: int = 0
+
+    @property
+    def frequencies(self) -> np.ndarray:
+        """(k,) angular frequencies w, rad/s."""
+        return np.sqrt(np.maximum(self.w2, 0.0))
+
+
+def lowest_modes(
+    tangent: sp.spmatrix | sp.sparray,
+    masses: np.ndarray,
+    count: int = MODES,
+    *,
+    hierarchy: object | None = None,
+    free: np.ndarray | None = None,
+) -> Modes:
+    """The ``count`` lowest modes of ``tangent`` (3M, 3M) N/m, symmetric positive definite,
+    with lumped ``masses`` (M,) kg: K phi = w^2 M phi.
+
+    Dense up to :data:`DENSE_UP_TO` unknowns. Above, level by level up ``hierarchy`` (a
+    pyamg hierarchy of ``tangent``, required there; level l has the operator K_l = P^T K_{l-1}
+    P and the mass M_l = P^T M_{l-1} P): a dense solve on the finest level with at most
+    :data:`COARSE_UP_TO` unknowns, then on each finer level LOBPCG from the level below's
+    modes carried up, preconditioned by the V-cycle from that level down. The coarse levels
+    are cheap and their modes good starts, so the lattice itself needs few iterations
+    (``iterations`` counts those).
+    """
+    n = tangent.shape[0]
+    m = np.repeat(np.asarray(masses, float), 3)
+    count = min(count, n)
+    nodes = np.arange(n // 3) if free is None else np.asarray(free)
+    if n <= DENSE_UP_TO:
+        scale = 1.0 / np.sqrt(m)
+        a = tangent.toarray() * scale[:, None] * scale[None, :]
+        w2, v = sla.eigh(a, subset_by_index=[0, count - 1])
+        shapes = v * scale[:, None]
+        return Modes(nodes, w2, shapes, np.asarray(tangent @ shapes), 0)
+    if hierarchy is None:
+        raise ValueError(f"{n} unknowns: the modes need a multigrid hierarchy")
+    levels = hierarchy.levels  # type: ignore[attr-defined]
+    block = min(count + EXTRA, n)
+    masses_at = [sp.diags(m).tocsr()]
+    for lvl in levels[:-1]:
+        masses_at.append(sp.csr_matrix(lvl.P.T @ masses_at[-1] @ lvl.P))
+    bottom = next(
+        (i for i, lvl in enumerate(levels) if lvl.A.shape[0] <= COARSE_UP_TO), len(levels) - 1
+    )
+    take = min(block, levels[bottom].A.shape[0])
+    _, x = sla.eigh(
+        levels[bottom].A.toarray(), masses_at[bottom].toarray(), subset_by_index=[0, take - 1]
+    )
+    if take < block:  # a coarsest level too small: seeded random vectors fill the block
+        rng = np.random.default_rng(0)
+        x = np.hstack([x, rng.standard_normal((x.shape[0], block - take))])
+    w2, kx, iterations = np.zeros(0), x, 0
+    for level in range(bottom - 1, -1, -1):
+        a_l, m_l = levels[level].A, masses_at[level]
+
+        def precondition(r: np.ndarray, level: int = level) -> np.ndarray:
+            return _cycles(hierarchy, r, level)
+
+        def stiffness(y: np.ndarray, a_l: sp.spmatrix = a_l) -> np.ndarray:
+            return np.asarray(a_l @ y)
+
+        def mass(y: np.ndarray, m_l: sp.spmatrix = m_l) -> np.ndarray:
+            return np.asarray(m_l @ y)
+
+        w2, x, kx, iterations = _lobpcg(
+            stiffness,
+            mass,
+            precondition,
+            precondition(mass(np.asarray(levels[level].P @ x))),
+            count,
+            MAX_ITERATIONS,
+            m if level == 0 else None,  # the lattice's lumped masses: M is diagonal
+        )
+    return Modes(nodes, w2[:count], x[:, :count], kx[:, :count], iterations)
+
+
+CYCLE_THREADS = 2
+"""The V-cycles of a block (one per column) run on this many threads on levels of at least
+:data:`THREADED_FROM` unknowns (the compiled smoother and SciPy's sparse products release the
+GIL); each column's cycle is the same, bit for bit."""
+THREADED_FROM = 20_000
+"""Unknowns of a level from which its block's V-cycles are threaded (below, a cycle takes
+well under a millisecond and the threads cost more than they save)."""
+
+
+def _cycles(hierarchy: object, r: np.ndarray, level: int) -> np.ndarray:
+    """One V-cycle of ``hierarchy`` from ``level`` (:func:`fpm.fem.linear_solver.v_cycle`) on
+    each column of ``r`` (n, b): (n, b). The first column's cycle runs alone (it sets up the
+    coarsest level's solver, made on first use, before threads share it)."""
+    out = np.empty_like(r)
+
+    def one(j: int) -> None:
+        out[:, j] = v_cycle(hierarchy, np.ascontiguousarray(r[:, j]), level)  # type: ignore[arg-type]
+
+    one(0)
+    rest = range(1, r.shape[1])
+    if CYCLE_THREADS < 2 or r.shape[0] < THREADED_FROM or len(rest) < 2:
+        for j in rest:
+            one(j)
+    else:
+        with ThreadPoolExecutor(CYCLE_THREADS) as pool:
+            list(pool.map(one, rest))
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _gram(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """x^T y for tall x (n, a), y (n, b): (a, b). Compiled rather than BLAS: a threaded BLAS
+    on a busy 2-core machine took 6 s for what one thread does in 0.1 s (n = 280,000, a = b =
+    48; :func:`fpm.fem.linear_solver.conjugate_gradients` avoids it for the same reason)."""
+    out = np.zeros((x.shape[1], y.shape[1]))
+    _gram_into(out, x, y)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _gram_into(out: np.ndarray, x: np.ndarray, y: np.ndarray) -> None:
+    """out += x^T y, summed row after row (a sum continued over pieces of rows is the same, to
+    the bit, as over all of them at once); :func:`_gram` is it on zeros."""
+    n, a = x.shape
+    b = y.shape[1]
+    for i in range(n):
+        for p in range(a):
+            xp = x[i, p]
+            for q in range(b):
+                out[p, q] += xp * y[i, q]
+
+
+@njit(cache=True, nogil=True)
+def _weighted_gram(x: np.ndarray, m: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """x^T diag(m) y for tall x (n, a), y (n, b), m (n,): (a, b); the products m_i y_iq are
+    those of diag(m) @ y, summed as :func:`_gram` sums (the same bits as _gram(x, M y))."""
+    n, a = x.shape
+    b = y.shape[1]
+    out = np.zeros((a, b))
+    for i in range(n):
+        mi = m[i]
+        for p in range(a):
+            xp = x[i, p]
+            for q in range(b):
+                out[p, q] += xp * (mi * y[i, q])
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _combine(x: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """x c for tall x (n, a) and small c (a, b): (n, b), compiled (see :func:`_gram`)."""
+    n, a = x.shape
+    b = c.shape[1]
+    out = np.zeros((n, b))
+    for i in range(n):
+        for p in range(a):
+            xp = x[i, p]
+            for q in range(b):
+                out[i, q] += xp * c[p, q]
+    return out
+
+
+def _lobpcg(
+    apply: Callable[[np.ndarray], np.ndarray],
+    mass: Callable[[np.ndarray], np.ndarray],
+    precondition: Callable[[np.ndarray], np.ndarray],
+    x: np.ndarray,
+    count: int,
+    iterations: int = MAX_ITERATIONS,
+    diagonal: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Block LOBPCG for K x = w^2 M x (``apply``: K, ``mass``: M, on blocks of vectors):
+    Rayleigh-Ritz on [X, T R, P] each iteration (R the residuals, T the preconditioner, P the
+    last change of X orthogonal to X; K applied to the new directions T R only), until the
+    first ``count`` residuals are below :data:`TOLERANCE` relative, or ``iterations``.
+    ``diagonal``: M's diagonal (n,) when M is diagonal (the lattice's lumped masses): the
+    M-weighted Gram matrices are then summed without forming M s (:func:`_weighted_gram`,
+    the same sums; on the 93,705-node organ M s of the stacked block is 135 MB).
+    Returns (w^2, X, K X, iterations taken), ascending, X M-orthonormal."""
+    block = x.shape[1]
+
+    def m_gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """a^T M b."""
+        if diagonal is not None:
+            return _weighted_gram(a, diagonal, b)
+        return _gram(a, np.ascontiguousarray(mass(b)))
+
+    def orthonormalising(s: np.ndarray) -> np.ndarray:
+        """c with s c M-orthonormal (SVQB: the Gram matrix's eigenvectors, directions below
+        1e-10 of the largest dropped)."""
+        gram = m_gram(s, s)
+        d = np.sqrt(np.maximum(np.diag(gram), 1e-300))
+        e, v = np.linalg.eigh((gram + gram.T) / 2 / d[:, None] / d[None, :])
+        keep = e > 1e-10 * e.max()
+        return np.ascontiguousarray((v[:, keep] / np.sqrt(e[keep])[None, :]) / d[:, None])
+
+    def orthonormal(s: np.ndarray, ks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """s and K s made M-orthonormal."""
+        c = orthonormalising(s)
+        return _combine(s, c), _combine(ks, c)
+
+    def ritz(s: np.ndarray, ks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        a = _gram(s, ks)
+        w, c = np.linalg.eigh((a + a.T) / 2)
+        c = np.ascontiguousarray(c[:, :block])
+        return w[:block], _combine(s, c), _combine(ks, c)
+
+    x = np.ascontiguousarray(x)
+    w, x, kx = ritz(*orthonormal(x, np.ascontiguousarray(apply(x))))
+    p: np.ndarray | None = None
+    kp: np.ndarray | None = None
+    last: np.ndarray | None = None
+    taken = 0
+    for taken in range(1, iterations + 1):
+        r = kx - mass(x) * w[None, :]
+        relative = np.linalg.norm(r[:, :count], axis=0) / np.linalg.norm(kx[:, :count], axis=0)
+        settled = last is not None and np.all(np.abs(w[:count] / last - 1) <= SETTLED_VALUES)
+        if settled or np.all(relative <= TOLERANCE):
+            taken -= 1
+            break
+        last = w[:count].copy()
+        # Each tall block is dropped as soon as what follows no longer needs it (on the
+        # 93,705-node organ a column is 2.2 MB and a stacked block 60 of them).
+        t = np.ascontiguousarray(precondition(r))
+        del r
+        stacked = np.hstack([x, t] if p is None else [x, t, p])
+        kt = np.ascontiguousarray(apply(t))
+        del t
+        kstacked = np.hstack([kx, kt] if kp is None else [kx, kt, kp])
+        del kt
+        p = kp = None
+        c = orthonormalising(stacked)
+        s_c = _combine(stacked, c)
+        del stacked
+        ks_c = _combine(kstacked, c)
+        del kstacked
+        new_w, new_x, new_kx = ritz(s_c, ks_c)
+        del s_c, ks_c
+        change = np.ascontiguousarray(m_gram(x, new_x))
+        p, kp = new_x - _combine(x, change), new_kx - _combine(kx, change)
+        w, x, kx = new_w, new_x, new_kx
+    return w, x, kx, taken

@@ -1,0 +1,576 @@
+"""The d search's runs (:mod:`fpm.fitting.damping`): every load case at one d advanced in
+lockstep pieces on threads, the verdicts taken at each milestone, and the runs as other
+processes hand them back.
+
+A d's runs advance in pieces of CHUNK steps (:class:`fpm.dynamics.simulation.DynamicRun`),
+all load cases together (:class:`_Runs`). At each milestone every case has passed, a
+:class:`Verdict` (:func:`verdict_at`) decides whether the d is lost (its steps add up to the
+budget, or its cases' decays predict more than PRUNE times it: :func:`predicted_steps`),
+settled, or runs on. Decisions are taken only from each case's own state at the milestone, so
+a search repeats exactly however the threads interleave, and a case run on its own to its end
+by another process (:func:`run_case`, :class:`CaseRun`) replays to the same verdict
+(:func:`replay_verdict`). A :class:`Request` is one d's lockstep runs as the search asks for
+them; :func:`run_request` runs it for another process's search.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+from dataclasses import dataclass, field, replace
+from typing import Any, Protocol
+
+import numpy as np
+
+from ..dynamics.modes import fixed_max_steps
+from ..dynamics.settle import force_tolerance
+from ..dynamics.simulation import DynamicRun, FpmModel
+from ..dynamics.voigt import DIVERGED, INVERTED, RUNNING, SETTLED
+from ..model.forces import Stiffness
+from ..model.problem import Problem
+
+CHUNK = 200
+"""Time steps each load case advances between checks of a d's running total."""
+SAMPLE = 25
+"""Steps between the residual samples a run's decay is read from."""
+PREDICT_AFTER = 3 * CHUNK
+"""A run's remaining steps are predicted only once it has taken this many (past the transient)."""
+PRUNE = 1.1
+"""A d is dropped once its predicted total exceeds this times the best total (a margin probe:
+once a case's predicted steps exceed this times its cap); the slack absorbs prediction error."""
+LATER = -1
+"""A :class:`Request`'s budget that is named once the runs have started: the confirming d's,
+run beside the predicted d's whose total is their budget (:meth:`_Runs.separate`)."""
+LOOK = 0.2
+"""Seconds between a lockstep's looks for what is named later."""
+MARGIN_CAP = 2
+"""A d 'still settles' for the margin if every load case settles within this many times its
+steps at the fastest d (below the margin a run diverges or creeps; capping keeps the margin
+search as cheap as the rest)."""
+HOLD = PREDICT_AFTER + 2 * CHUNK
+"""Until what it needs is named, a lockstep's cases run at most this many steps and then wait:
+past PREDICT_AFTER, where the verdicts of the d run beside the predicted d's usually come
+(their cores go to the predicted d's cases meanwhile)."""
+
+
+def _piece(run: DynamicRun, steps: int) -> int:
+    """Advance ``run`` by ``steps``, in samples of SAMPLE steps (its residual history); returns
+    the steps taken."""
+    start = run.steps
+    while run.steps - start < steps and not run.advance(min(SAMPLE, steps - run.steps + start)):
+        pass
+    return run.steps - start
+
+
+def _timed_piece(run: DynamicRun, steps: int) -> tuple[int, float]:
+    """:func:`_piece` on a pool thread: (the steps taken, the CPU seconds that thread spent)."""
+    cpu = time.thread_time()
+    return _piece(run, steps), time.thread_time() - cpu
+
+
+_LOCKSTEP_CPU = threading.local()
+
+
+def lockstep_cpu() -> float:
+    """The CPU seconds that the lockstep runs started from this thread (:meth:`_Runs.locked`)
+    have spent on the pool's threads so far: added to the thread's own ``time.thread_time()``
+    it is what a request run here cost, wherever its pieces ran."""
+    return float(getattr(_LOCKSTEP_CPU, "seconds", 0.0))
+
+
+def _spent(future: Future[tuple[int, float]]) -> int:
+    """A piece's steps; its CPU seconds counted for the thread that started the lockstep."""
+    steps, cpu = future.result()
+    _LOCKSTEP_CPU.seconds = lockstep_cpu() + cpu
+    return steps
+
+
+@dataclass
+class CaseRun:
+    """One load case run on its own to its end (settled, diverged, or ``cap`` steps), as the
+    search reads it: what :func:`verdict_at` and :func:`predicted_steps` read of a
+    :class:`~fpm.dynamics.simulation.DynamicRun`, and the settled displacements. JSON-able but
+    for ``displacements``, which travels as raw float64 bytes (:mod:`fpm.fitting.case_runs`).
+
+    Attributes:
+        steps: time steps taken; state: voigt.RUNNING (reached its cap), SETTLED or DIVERGED
+            (or INVERTED); settle_force: the residual it settles below, N.
+        history: (steps, residual N) after every SAMPLE steps.
+        displacements: (N, 3) where it settled, m ((0, 3) unless settled).
+    """
+
+    steps: int
+    state: int
+    settle_force: float
+    history: list[tuple[int, float]]
+    displacements: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    @property
+    def diverged(self) -> bool:
+        return self.state in (DIVERGED, INVERTED)
+
+    @property
+    def finished(self) -> bool:
+        return self.state != RUNNING
+
+    def result(self) -> CaseRun:
+        """Itself (the search reads ``result().displacements`` of a run)."""
+        return self
+
+    @classmethod
+    def of(cls, run: DynamicRun | CaseRun) -> CaseRun:
+        """Where ``run`` stands (its displacements only if it settled)."""
+        if isinstance(run, CaseRun):
+            return run
+        settled = run.state == SETTLED
+        return cls(
+            steps=run.steps,
+            state=run.state,
+            settle_force=run.settle_force,
+            history=list(run.history),
+            displacements=run.result().displacements if settled else np.zeros((0, 3)),
+        )
+
+
+@dataclass(frozen=True)
+class Request:
+    """One d's lockstep runs as the search asks for them (:meth:`_Runs.__call__`'s
+    arguments): d (N s/m), each case's cap, the budget (None: none; LATER: named once the
+    runs have started), and how predictions decide; ``caps_later``: the caps are named once
+    the runs have started, within ``caps`` (a margin probe's, run beside the predicted d's
+    whose steps set them)."""
+
+    d: float
+    caps: tuple[int, ...]
+    budget: int | None
+    estimate: bool = False
+    prune: float = PRUNE
+    to_cap: bool = False
+    caps_later: bool = False
+
+
+Outcome = tuple[list["CaseRun"], "Verdict"]
+"""A d's runs (where each case stood when the d was decided) and its verdict."""
+
+
+def run_case(
+    model: FpmModel,
+    stiffness: Stiffness | np.ndarray,
+    depth: int | None,
+    dt: float,
+    load_case: int,
+    d: float,
+    cap: int,
+    settle_stiffness: float | None = None,
+) -> CaseRun:
+    """Load case ``load_case`` at (``stiffness``, ``d`` N s/m, ``depth``, ``dt`` s) from rest
+    to its end: settled, diverged or ``cap`` steps; advanced in the same pieces of CHUNK steps
+    as the lockstep runs of :class:`_Runs`, so the very same floating-point sequence whatever
+    process runs it. ``settle_stiffness``: the distance criterion's, N/m
+    (:mod:`fpm.dynamics.settle`); None: the force criterion."""
+    run = model.start(
+        load_case, k=stiffness, d=d, depth=depth, dt=dt,
+        **settle_criterion(model.problem, settle_stiffness),
+    )  # fmt: skip
+    while not run.finished and run.steps < cap:
+        _piece(run, min(CHUNK, cap - run.steps))
+    return CaseRun.of(run)
+
+
+def settle_criterion(problem: Problem, settle_stiffness: float | None) -> dict[str, float]:
+    """A run's settle arguments (:meth:`FpmModel.start`): the distance criterion's
+    ``settle_stiffness`` (N/m) alone, or, for None, the force criterion's tolerance."""
+    if settle_stiffness is None:
+        return {"settle_tolerance": force_tolerance(problem.spec), "settle_stiffness": 0.0}
+    return {"settle_tolerance": 0.0, "settle_stiffness": float(settle_stiffness)}
+
+
+Resolve = Callable[[], dict[str, Any] | None]
+"""Where a lockstep learns what is named later (None: not yet): {"budget": int or None} for
+a budget LATER, {"caps": [int per case], or None: drop the request} for caps named later
+(:func:`named_later`)."""
+
+
+def run_request(
+    problem: Problem,
+    stiffness: Stiffness | np.ndarray,
+    depth: int | None,
+    dt: float,
+    request: Request,
+    resolve: Resolve | None = None,
+    settle: Sequence[float] | None = None,
+) -> Outcome:
+    """One d's lockstep runs (:meth:`_Runs.locked`) at (``stiffness``, ``depth``, ``dt`` s)
+    in this process, for another's search; ``resolve``: where what is named later (a budget
+    LATER, or caps) comes from; ``settle``: each case's settle stiffness (as :class:`_Runs`)."""
+    runs = _Runs(problem, stiffness, depth, dt, settle=settle)
+    try:
+        return runs.locked(request, resolve)
+    finally:
+        runs.close()
+
+
+def settled_total(runs: list[CaseRun], caps: list[int]) -> int | None:
+    """The total steps of a d whose cases each ran on their own to their end, as the search
+    takes it for the best so far (:func:`replay_verdict` done and every case settled), else
+    None."""
+    if replay_verdict(runs, caps).outcome == "done" and all(r.state == SETTLED for r in runs):
+        return sum(r.steps for r in runs)
+    return None
+
+
+def named_later(request: Request, runs: list[CaseRun], caps: list[int]) -> dict[str, Any]:
+    """What ``request``, run beside a d's cases (``runs``, each to ``caps``), learns once
+    they have ended, as the search would make it with that d the best so far: a confirming
+    d's budget, their :func:`settled_total`; a margin probe's caps, MARGIN_CAP times each
+    case's steps within the request's own (None when they did not all settle: then the
+    search makes no such probe)."""
+    total = settled_total(runs, caps)
+    if not request.caps_later:
+        return {"budget": total}
+    if total is None:
+        return {"caps": None}
+    return {"caps": [min(c, MARGIN_CAP * r.steps) for r, c in zip(runs, request.caps, strict=True)]}
+
+
+def _capped(run: DynamicRun, cap: int) -> DynamicRun | CaseRun:
+    """``run`` as it would stand had it been capped at ``cap`` steps (a run that went on
+    past a cap named later): its state and residual history up to there (the kernel checks
+    settling every step, so a run that ended by the cap ended the same way)."""
+    if run.steps <= cap:
+        return run
+    return CaseRun(
+        steps=cap,
+        state=RUNNING,
+        settle_force=run.settle_force,
+        history=[(n, r) for n, r in run.history if n <= cap],
+    )
+
+
+class Spread(Protocol):
+    """How the search's runs may be spread over other processes (the worker's:
+    :class:`worker.spread.CaseSpread`). Whatever runs them, the runs are the same, so the
+    search's answer does not depend on it."""
+
+    def separate(
+        self,
+        d: float,
+        caps: list[int],
+        local: Callable[[int, float, int], CaseRun],
+        beside: list[Request],
+        local_request: Callable[[Request, Resolve], Outcome],
+    ) -> tuple[list[CaseRun], list[Outcome | None]]:
+        """Every load case of one d run on its own to its end, ``[CaseRun per case]``, where
+        ``local(j, d, cap)`` runs case j in this process (:func:`run_case`); and, only when
+        other workers are free, the requests ``beside`` at the same time, learning what
+        :func:`named_later` makes of the cases' runs (a budget LATER, or caps) once those
+        have all ended: their outcomes in order (None: not run), ``local_request(request,
+        resolve)`` running one here."""
+        ...
+
+    def ahead(
+        self, requests: list[Request], local: Callable[[Request], Outcome]
+    ) -> list[Outcome | None]:
+        """Requests the search will probably make next, at once (:meth:`_Runs.prefetch`):
+        their outcomes in order (None: not run), ``local`` running one here."""
+        ...
+
+
+def replay_verdict(runs: list[CaseRun], caps: list[int]) -> Verdict:
+    """The verdict the lockstep runs of :class:`_Runs` reach for a d run to its cap with no
+    budget (the predicted d's runs), from its cases run each to its end: the milestones every
+    CHUNK steps in turn, as the lockstep checks them, until one decides ``failed`` (a case
+    diverged or reached its cap unsettled by it) or every case ended before it (``done``)."""
+    verdict, milestone = Verdict("running"), CHUNK
+    while verdict.outcome == "running" and not all(r.steps < milestone for r in runs):
+        verdict = verdict_at(runs, caps, milestone, None, estimate=False, to_cap=True)
+        milestone += CHUNK
+    return Verdict("done") if verdict.outcome == "running" else verdict
+
+
+class _Runs:
+    """Runs every load case at one d, in pieces, on threads (the kernel releases the GIL).
+
+    ``spread``: runs the predicted d's cases (no budget, to the cap: each case's run
+    independent of the others') and the d the search will probably try next
+    (:meth:`prefetch`) over other processes (:class:`Spread`; None: the cases on these
+    threads, nothing ahead). ``settle``: each load case's settle stiffness, N/m (the distance
+    criterion, :mod:`fpm.dynamics.settle`); None: the force criterion."""
+
+    def __init__(
+        self,
+        problem: Problem,
+        stiffness: Stiffness | np.ndarray,
+        depth: int | None,
+        dt: float,
+        spread: Spread | None = None,
+        *,
+        settle: Sequence[float] | None = None,
+    ):
+        self.problem = problem
+        self.settle = None if settle is None else [float(s) for s in settle]
+        self.stiffness = stiffness
+        self.depth = depth
+        self.dt = dt
+        self.model = FpmModel(problem)
+        self.cases = len(problem.load_cases)
+        self.threads = min(self.cases, os.cpu_count() or 1)
+        self.pool = ThreadPoolExecutor(self.threads)
+        self.count = 0
+        self.work = 0
+        self.max_steps = fixed_max_steps(problem.spec.fpm.max_steps)  # each run's cap on steps
+        self.spread = spread
+        self.fetched: dict[Request, Outcome] = {}
+
+    def local(self, load_case: int, d: float, cap: int) -> CaseRun:
+        """Load case ``load_case`` at d run on its own to its end in this process."""
+        return run_case(
+            self.model, self.stiffness, self.depth, self.dt, load_case, d, cap,
+            self.case_settle(load_case),
+        )  # fmt: skip
+
+    def case_settle(self, load_case: int) -> float | None:
+        """Load case ``load_case``'s settle stiffness, N/m (None: the force criterion)."""
+        return None if self.settle is None else self.settle[load_case]
+
+    def separate(
+        self, d: float, caps: list[int], beside: Sequence[Request] = ()
+    ) -> tuple[list[CaseRun], Verdict]:
+        """Every load case at d, each run on its own to its end (by ``spread``), and the
+        verdict the lockstep would reach (:func:`replay_verdict`). For a d with no budget run
+        to the cap, the same runs and verdict as :meth:`__call__`, but that a failed d's
+        other cases also run to their end. ``beside``: requests the search will probably make
+        next (a budget LATER, or caps named later: :func:`named_later` of this d's runs), run
+        at the same time by ``spread`` where other workers are free, to be taken as
+        :meth:`prefetch` ed."""
+        if self.spread is None:
+            runs = list(self.pool.map(self.local, range(self.cases), [d] * self.cases, caps))
+        else:
+            runs, outcomes = self.spread.separate(d, caps, self.local, list(beside), self.locked)
+            for request, outcome in zip(beside, outcomes, strict=True):
+                named = named_later(request, runs, caps)
+                if "budget" in named:
+                    self._keep([replace(request, budget=named["budget"])], [outcome])
+                elif named["caps"] is not None:
+                    taken = replace(request, caps=tuple(named["caps"]), caps_later=False)
+                    self._keep([taken], [outcome])
+        self.count += self.cases
+        self.work += sum(r.steps for r in runs)
+        return runs, replay_verdict(runs, caps)
+
+    def prefetch(self, requests: list[Request]) -> None:
+        """Run ``requests`` at once by ``spread`` (none without it), to be taken by the calls
+        that make the very same requests (one that differs, e.g. in its budget, runs anew)."""
+        requests = [r for r in requests if r not in self.fetched]
+        if self.spread is None or not requests:
+            return
+        self._keep(requests, self.spread.ahead(requests, self.locked))
+
+    def _keep(self, requests: list[Request], outcomes: list[Outcome | None]) -> None:
+        """The outcomes of requests run ahead, for the calls that make them."""
+        for request, outcome in zip(requests, outcomes, strict=True):
+            if outcome is not None:
+                self.fetched[request] = outcome
+
+    def locked(self, request: Request, resolve: Resolve | None = None) -> Outcome:
+        """``request``'s lockstep runs here, as :class:`CaseRun`; not counted in ``count``
+        and ``work`` until the search takes them (:meth:`__call__`), whoever ran them.
+        ``resolve``: where what is named later (a budget LATER, or caps) comes from. The CPU
+        seconds its pieces spend on the pool's threads are credited to the calling thread
+        (:func:`lockstep_cpu`)."""
+        runs, verdict, _ = self._lockstep(request, resolve)
+        return [CaseRun.of(run) for run in runs], verdict
+
+    def __call__(
+        self,
+        d: float,
+        caps: list[int],
+        budget: int | None = None,
+        *,
+        estimate: bool = False,
+        prune: float = PRUNE,
+        to_cap: bool = False,
+    ) -> tuple[Sequence[DynamicRun | CaseRun], Verdict]:
+        """Every load case at d, case j for at most ``caps[j]`` steps, until every case has
+        settled, one has diverged or reached its cap unsettled, or a :class:`Verdict` of
+        :func:`verdict_at` ends it: at each milestone (every CHUNK steps) that every case has
+        passed, the d is ``lost`` once the steps taken up to there add up to ``budget`` (None:
+        no such limit), or once the predictions there exceed ``prune`` times the budget (PRUNE
+        times a cap; with ``to_cap`` a case runs on to its cap whatever its decay predicts);
+        with ``estimate`` it ``settles`` once every case is predicted within its cap.
+
+        Decisions are taken only from each case's own state at the milestone, so they do not
+        depend on how the threads happened to interleave: a search repeats exactly. A request
+        run ahead (:meth:`prefetch`) is taken from there."""
+        request = Request(d, tuple(caps), budget, estimate, prune, to_cap)
+        if request in self.fetched:
+            fetched, verdict = self.fetched.pop(request)
+            self.count += self.cases
+            self.work += sum(r.steps for r in fetched)
+            return fetched, verdict
+        runs, verdict, work = self._lockstep(request)
+        self.count += self.cases
+        self.work += work
+        return runs, verdict
+
+    def _lockstep(
+        self, request: Request, resolve: Resolve | None = None
+    ) -> tuple[list[DynamicRun | CaseRun], Verdict, int]:
+        """:meth:`__call__`'s runs of ``request``, and the steps they took. A budget LATER
+        or caps named later (by ``resolve``, looked at every LOOK seconds): until then the
+        cases run on undecided, up to HOLD steps, then the milestones they have passed are
+        decided in turn as they would have been with the budget or caps known (a case past
+        its cap as it stood there), so the verdict is the same."""
+        d, caps, budget = request.d, list(request.caps), request.budget
+        pending = budget == LATER or request.caps_later
+        if pending and resolve is None:
+            raise ValueError("what is named later needs where to learn it")
+        looked = -math.inf
+        estimate, prune, to_cap = request.estimate, request.prune, request.to_cap
+        runs = [
+            self.model.start(
+                j,
+                k=self.stiffness,
+                d=d,
+                depth=self.depth,
+                dt=self.dt,
+                **settle_criterion(self.problem, self.case_settle(j)),
+            )  # fmt: skip
+            for j in range(self.cases)
+        ]
+        work = 0
+        # Each free thread takes a piece of the case that has taken the fewest steps (so 3
+        # cases keep 2 threads busy), until every case is done or a milestone decides. No case
+        # runs more than a piece past the milestone still to be decided: a case slowed down by
+        # a busy machine holds the others there, so a d that loses costs the same work however
+        # the threads are scheduled.
+        running: dict[Future[tuple[int, float]], DynamicRun] = {}
+        milestone = CHUNK
+        verdict = Verdict("running")
+        while True:
+            if pending and time.monotonic() - looked >= LOOK:
+                assert resolve is not None
+                looked = time.monotonic()
+                named = resolve()
+                if named is not None:  # the pieces under way end first: then nothing moves
+                    for future in running:
+                        work += _spent(future)
+                    running.clear()
+                    if named.get("caps", caps) is None:  # the search will not ask for it
+                        dropped: list[DynamicRun | CaseRun] = list(runs)
+                        return dropped, Verdict("dropped"), work
+                    budget = named.get("budget", budget)
+                    caps, pending = list(named.get("caps", caps)), False
+            # (a run past a cap named later, as it stood at that cap)
+            seen = [_capped(r, c) for r, c in zip(runs, caps, strict=True)]
+            stopped = [r.finished or r.steps >= c for r, c in zip(seen, caps, strict=True)]
+            while verdict.outcome == "running" and not pending:
+                if all(stopped) and all(r.steps < milestone for r in seen):
+                    break  # every case ended before this milestone
+                if not all(e or r.steps >= milestone for e, r in zip(stopped, seen, strict=True)):
+                    break  # a case has not reached it yet
+                verdict = verdict_at(
+                    seen, caps, milestone, budget, estimate=estimate, prune=prune, to_cap=to_cap
+                )
+                milestone += CHUNK
+            waiting = [
+                (r, c) for r, c, e in zip(runs, caps, stopped, strict=True)
+                if not e and r not in running.values()
+                and r.steps < (HOLD if pending else milestone + CHUNK)
+            ]  # fmt: skip
+            while waiting and verdict.outcome == "running" and len(running) < self.threads:
+                r, c = min(waiting, key=lambda rc: rc[0].steps)
+                waiting.remove((r, c))
+                running[self.pool.submit(_timed_piece, r, min(CHUNK, c - r.steps))] = r
+            if not running and pending:  # every case has ended or waits: wait for the names
+                time.sleep(LOOK)
+                continue
+            if not running:
+                if verdict.outcome == "running":
+                    verdict = Verdict("done")
+                return seen, verdict, work
+            done, _ = wait(running, return_when=FIRST_COMPLETED)
+            for future in done:
+                work += _spent(future)
+                del running[future]
+
+    def close(self) -> None:
+        self.pool.shutdown()
+
+
+@dataclass
+class Verdict:
+    """How a d's runs ended: ``done`` (every case settled, diverged or reached its cap),
+    ``failed`` (a case diverged or reached its cap unsettled), ``lost`` (it cannot win;
+    ``total``: the steps it would take at least, from its steps and predictions at the
+    deciding milestone), ``settles`` (every case predicted within its cap) or ``dropped`` (a
+    request run ahead whose caps were named None: the search will not make it).
+    ``predicted``: each case's predicted steps (:func:`predicted_steps`) when the decision
+    came from them."""
+
+    outcome: str
+    total: float = 0.0
+    predicted: tuple[float, ...] = ()
+
+
+def predicted_steps(run: DynamicRun | CaseRun, at: int | None = None) -> float:
+    """The steps ``run`` will have taken when it settles, predicted from the decay of its
+    residual up to step ``at`` (None: its steps so far): the envelope (largest sample) over the
+    last CHUNK steps against that over the CHUNK steps before, extrapolated exponentially down
+    to the settle force. Its steps if it finished by then; ``at`` before PREDICT_AFTER, or
+    when the run never settles (settle force 0), no prediction: ``at`` itself; inf when the
+    envelope does not decay."""
+    at = run.steps if at is None else at
+    if run.finished and run.steps <= at:
+        return float(run.steps) if not run.diverged else math.inf
+    if at < PREDICT_AFTER or run.settle_force <= 0:
+        return float(at)
+    last = [r for n, r in run.history if at - CHUNK < n <= at]
+    before = [r for n, r in run.history if at - 2 * CHUNK < n <= at - CHUNK]
+    if not last or not before:
+        return float(at)
+    e1, e2 = max(before), max(last)
+    if not (0 < e2 < e1):
+        return math.inf
+    rate = math.log(e1 / e2) / CHUNK
+    return at + max(math.log(e2 / run.settle_force), 0.0) / rate
+
+
+def verdict_at(
+    runs: Sequence[DynamicRun | CaseRun],
+    caps: list[int],
+    at: int,
+    budget: int | None,
+    *,
+    estimate: bool,
+    prune: float = PRUNE,
+    to_cap: bool = False,
+) -> Verdict:
+    """The d's verdict at milestone ``at`` (every case ended or past it): ``failed`` if a case
+    diverged or reached its cap unsettled by ``at``; ``lost`` if the steps taken up to ``at``
+    add up to ``budget``, or (past PREDICT_AFTER) a case is predicted past PRUNE times its cap
+    or the predicted total past ``prune`` times ``budget``; ``settles`` (with ``estimate``) if
+    every case settled within its cap or is predicted within it; else ``running``."""
+    if any(
+        (r.diverged and r.steps <= at) or (not r.finished and c <= at and r.steps >= c)
+        for r, c in zip(runs, caps, strict=True)
+    ):
+        return Verdict("failed")
+    taken = sum(min(r.steps, at) for r in runs)
+    if budget is not None and taken >= budget:
+        return Verdict("lost", float(taken))
+    if at < PREDICT_AFTER:
+        return Verdict("running")
+    predicted = tuple(predicted_steps(r, at) for r in runs)
+    total = float(sum(predicted))
+    if not to_cap and any(p > PRUNE * c for p, c in zip(predicted, caps, strict=True)):
+        return Verdict("lost", total, predicted)
+    if budget is not None and total > prune * budget:
+        return Verdict("lost", total, predicted)
+    if estimate and all(p <= c for p, c in zip(predicted, caps, strict=True)):
+        return Verdict("settles", total, predicted)
+    return Verdict("running")
