@@ -187,3 +187,68 @@ def _network(g: NetworkGeometry) -> Solid:
     m = g.masses
     masses = np.asarray(m, dtype=float) if isinstance(m, list) else np.full(len(nodes), float(m))
     return Solid(nodes, None, springs, masses, np.zeros(len(springs), dtype=np.int8))
+
+
+# --------------------------------------------------- parts of a lattice one cell thick
+# Parts of a lattice one cell thick: where a spacing is too coarse for the organ.
+#
+# A lattice cell (8-node hexahedron) is *thin* when both of its faces across one of its local
+# axes (r-/r+, s-/s+ or t-/t+: :data:`fpm.model.hexahedron.NATURAL`) lie on the lattice's surface:
+# the solid is a single cell across there. One such cell alone is the staircase's bump at a tip of
+# the organ (the bench's organ has 1-6 of them in a group at every spacing from 10 to 2.5 mm);
+# :data:`THIN_PART_CELLS` or more of them joined together are a sheet or a rod of the solid one
+# cell thick (a thin flap, a lobe's edge), which the lattice cannot bend (one layer of cells has
+# no through-thickness gradient) and which the surface-conforming lattice
+# (:func:`fpm.io.meshes.conform_lattice`) squashes onto both its faces at once. A spec made from
+# an organ's mesh with such a part is refused (:func:`fpm.model.problem.load_problem`), naming
+# the cell and its place: a finer spacing resolves it.
+#
+# NumPy and SciPy only (the service checks specs with it).
+
+THIN_PART_CELLS = 8
+"""A group of at least this many thin cells sharing nodes is a part one cell thick."""
+
+
+def boundary_faces(hexahedra: np.ndarray) -> np.ndarray:
+    """(H, 6) bool: whether each local face (``2 * axis + (side > 0)``: r-, r+, s-, s+, t-, t+)
+    of ``hexahedra`` (H, 8) belongs to that hexahedron only (the lattice's surface)."""
+    hexahedra = np.asarray(hexahedra, dtype=np.int64)
+    faces = np.concatenate(
+        [
+            np.sort(hexahedra[:, NATURAL[:, axis] == side], axis=1)
+            for axis in range(3)
+            for side in (-1.0, 1.0)
+        ]
+    )  # (6H, 4), face-major
+    _, inverse, counts = np.unique(faces, axis=0, return_inverse=True, return_counts=True)
+    return (counts[inverse.ravel()] == 1).reshape(6, len(hexahedra)).T
+
+
+def thin_cells(hexahedra: np.ndarray) -> np.ndarray:
+    """(H,) bool: the cells of ``hexahedra`` (H, 8) with both faces across one local axis on
+    the surface (the solid is one cell thick there)."""
+    free = boundary_faces(hexahedra)
+    return (free[:, 0::2] & free[:, 1::2]).any(axis=1)
+
+
+def thin_parts(hexahedra: np.ndarray, min_cells: int = THIN_PART_CELLS) -> list[np.ndarray]:
+    """The parts one cell thick of the lattice ``hexahedra`` (H, 8): groups of thin cells
+    (:func:`thin_cells`) joined through shared nodes, of at least ``min_cells`` cells; each an
+    ascending array of cell indices, the largest group first."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    hexahedra = np.asarray(hexahedra, dtype=np.int64)
+    thin = np.flatnonzero(thin_cells(hexahedra))
+    if len(thin) < min_cells:
+        return []
+    n_nodes = int(hexahedra.max()) + 1
+    rows = np.repeat(np.arange(len(thin)), 8)
+    graph = coo_matrix(
+        (np.ones(len(rows)), (rows, len(thin) + hexahedra[thin].ravel())),
+        shape=(len(thin) + n_nodes, len(thin) + n_nodes),
+    )
+    labels = connected_components(graph, directed=False)[1][: len(thin)]
+    sizes = np.bincount(labels)
+    big = [g for g in np.argsort(-sizes, kind="stable") if sizes[g] >= min_cells]
+    return [thin[labels == g] for g in big]

@@ -17,7 +17,7 @@ from pydantic_core import InitErrorDetails, PydanticCustomError
 
 from .geometry import Solid, build_solid, lumped_masses, spring_lengths
 from .regions import RegionMap, check_material, lattice_regions
-from .spec import MeshGeometry, NetworkGeometry, ProblemSpec, Selector
+from .spec import BoxGeometry, MeshGeometry, NetworkGeometry, ProblemSpec, Selector
 
 Loc = tuple[str | int, ...]
 
@@ -177,6 +177,7 @@ def build_problem(spec: ProblemSpec, mesh: dict[str, Any] | None = None) -> Prob
     _check_supplied_reference(spec, len(solid.nodes), errors)
     _check_refine(spec, errors)
     errors.extend(check_material(spec))
+    _check_thin_parts(spec, solid, errors)
     regions = _material_regions(spec, solid, mesh, errors, finder.notes)
     if errors:
         raise SpecError(errors)
@@ -311,6 +312,42 @@ def _check_stiffness_mode(spec: ProblemSpec, errors: list[tuple[Loc, str]]) -> N
                 "connectivity, or use 'single' or 'families'",
             )
         )
+
+
+def _check_thin_parts(spec: ProblemSpec, solid: Solid, errors: list[tuple[Loc, str]]) -> None:
+    """A lattice made from an organ's mesh (``voxels`` or ``mesh`` geometry with the mesh in
+    ``reference.mesh`` or ``mesh_id``) must not be one cell thick over a part
+    (:func:`fpm.model.geometry.thin_parts`): refused at the first cell of the largest such part,
+    with its place and how to resolve it (a finer spacing)."""
+    from .geometry import thin_parts
+
+    g = spec.geometry
+    organ = spec.reference.mesh is not None or spec.reference.mesh_id is not None
+    hexahedra = solid.elements()
+    if not organ or isinstance(g, NetworkGeometry | BoxGeometry) or hexahedra is None:
+        return
+    parts = thin_parts(hexahedra)
+    if not parts:
+        return
+    part = parts[0]
+    centre = solid.nodes[hexahedra[part]].mean(axis=(0, 1))
+    cell = int(part[0])
+    spacing = np.median(np.ptp(solid.nodes[hexahedra], axis=1), axis=0)
+    if isinstance(g, MeshGeometry):
+        loc: Loc = ("geometry", "hexahedra", cell)
+    else:  # voxels: the cell's index in the occupancy grid
+        first = solid.nodes[hexahedra[cell]].mean(axis=0)
+        ijk = np.rint((first - np.asarray(g.origin)) / np.asarray(g.spacing) - 0.5).astype(int)
+        loc = ("geometry", "occupancy", *(int(i) for i in ijk))
+    errors.append(
+        (
+            loc,
+            f"the lattice is one cell thick over a part of {len(part)} cells around "
+            f"{_fmt(centre)} m (cell {cell} first; {len(parts)} such part(s)): the spacing "
+            f"{_fmt(spacing)} m is too coarse for the solid there (one layer of cells cannot "
+            "bend); make the spacing at most half of it, or leave that part out of the mesh",
+        )
+    )
 
 
 def _check_refine(spec: ProblemSpec, errors: list[tuple[Loc, str]]) -> None:

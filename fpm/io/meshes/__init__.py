@@ -40,6 +40,7 @@ from .conform import (  # noqa: F401
     conform_spec,
 )
 from .from_mesh import (  # noqa: F401
+    LATTICES,
     spec_from_mesh,
 )
 from .geometry import (  # noqa: F401

@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from ..errors import MeshError
 from .conform import conform_spec
 from .geometry import geometry_from_mesh
 from .reading import read_mesh
@@ -28,6 +29,7 @@ def spec_from_mesh(
     dt: float | str = "auto",
     voxel_reference: bool = False,
     conform: bool = False,
+    lattice: str | None = None,
 ) -> tuple[dict[str, Any], list[str]]:
     """A problem spec for a mesh file (or a ``meshio.Mesh``), and notes for the user.
 
@@ -45,11 +47,15 @@ def spec_from_mesh(
             hexahedra (the staircase) instead of on the tetrahedra; by default the spec keeps
             the tetrahedra in ``reference.mesh`` and the reference is solved on them with
             10-node tetrahedra (:mod:`fpm.fem.tet10`).
-        conform: for a tetrahedral mesh, the surface-conforming lattice instead of the voxels
-            (:func:`conform_spec`): the voxels' surface nodes moved onto the mesh's surface, a
-            hexahedral ``mesh`` geometry (the staircase costs the voxels 5-22% against the
-            tetrahedra on the organ of ``bench/tet_organ.py`` at h = 5 mm, the conforming
-            lattice 1-2%).
+        lattice: for a tetrahedral mesh, ``"conforming"`` (the default) or ``"voxels"``.
+            The conforming lattice (:func:`conform_spec`) is the voxels with their surface
+            nodes moved onto the mesh's surface, a hexahedral ``mesh`` geometry: the organ's
+            solid, not its staircase (as continua against the tetrahedra on the organ of
+            ``bench/tet_organ.py`` at h = 5 mm the voxels are 5-22% off, the conforming
+            lattice 1-2%; docs/real-organs.md). ``"voxels"``: the ``voxels`` occupancy grid
+            (the default before; also what ``voxel_reference`` gets, which has no mesh to
+            conform to). Hexahedral meshes and closed surfaces take no choice (None).
+        conform: ``True`` is ``lattice="conforming"`` (the flag of before the default).
 
     Raises:
         MeshError: the mesh cannot become a solid. ValueError: a bad selector or force.
@@ -80,9 +86,16 @@ def spec_from_mesh(
     }
     if made.tetrahedra is not None and not voxel_reference:
         spec["reference"] = {"mesh": made.tetrahedra}
+    chosen = _lattice(lattice, conform, made.kind, voxel_reference)
     conformed: list[str] = []
-    if conform:
+    if chosen == "conforming":
         spec, conformed = conform_spec(spec)
+    elif made.kind == "tetrahedra":
+        conformed = [
+            "lattice: the voxels (--lattice voxels"
+            + (", as --voxel-reference needs" if voxel_reference and lattice is None else "")
+            + "); the default follows the mesh's surface (conforming)"
+        ]
     problem = load_problem(spec)  # selectors checked against the nodes
     notes = made.notes + conformed + [f"{problem.n_nodes} nodes, h = {problem.h:.4g} m"]
     notes += problem.notes
@@ -102,3 +115,42 @@ def spec_from_mesh(
     else:
         spec["fpm"] = {"dt": float(dt)}
     return spec, notes
+
+
+LATTICES = ("conforming", "voxels")
+"""The lattices a tetrahedral mesh can become (:func:`spec_from_mesh`'s ``lattice``)."""
+
+
+def _lattice(lattice: str | None, conform: bool, kind: str, voxel_reference: bool) -> str | None:
+    """The lattice :func:`spec_from_mesh` builds: ``"conforming"`` or ``"voxels"`` for
+    tetrahedra, None for a mesh of another ``kind`` (its hexahedra, or a surface's voxels).
+
+    Raises:
+        MeshError: a lattice that this mesh cannot have.
+    """
+    if lattice is not None and lattice not in LATTICES:
+        raise MeshError(f"lattice {lattice!r}: use one of {', '.join(LATTICES)}")
+    if conform:
+        if lattice == "voxels":
+            raise MeshError("conform asks for the conforming lattice, lattice for the voxels")
+        lattice = "conforming"
+    if kind != "tetrahedra":
+        if lattice is not None and (lattice == "conforming" or kind == "hexahedra"):
+            raise MeshError(
+                f"a {lattice} lattice is made from a tetrahedral mesh (this one holds {kind}): "
+                + (
+                    "a conforming lattice moves a voxel lattice's surface onto its tetrahedral "
+                    "mesh's: give a tetrahedral mesh (not hexahedra, not a surface)"
+                    if lattice == "conforming"
+                    else "a hexahedral mesh is used as it is (--voxelise resamples it)"
+                )
+            )
+        return None
+    if lattice is None:
+        return "voxels" if voxel_reference else "conforming"
+    if lattice == "conforming" and voxel_reference:
+        raise MeshError(
+            "a conforming lattice moves a voxel lattice's surface onto its tetrahedral mesh's: "
+            "give a tetrahedral mesh (not hexahedra, not a surface, not --voxel-reference)"
+        )
+    return lattice

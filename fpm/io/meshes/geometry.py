@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import MeshError
-from .voxelise import _crop, face_pieces, one_piece, voxelise_surface, voxelise_tetrahedra
+from .voxelise import _crop, _fmt, face_pieces, one_piece, voxelise_surface, voxelise_tetrahedra
 
 VOLUME_CELLS = {"tetra": 4, "tetra10": 4, "wedge": 6, "wedge15": 6, "pyramid": 5, "pyramid13": 5}
 """meshio cell types voxelised as volumes, with their corner count (corners come first)."""
@@ -81,6 +81,7 @@ def geometry_from_mesh(
         g for (t, d), g in zip(blocks, block_tags, strict=True) if t in HEXAHEDRA and len(d)
     ]
     volumes = [(VOLUME_CELLS[t], d[:, : VOLUME_CELLS[t]]) for t, d in blocks if t in VOLUME_CELLS]
+    volume_names = [t for t, _ in blocks if t in VOLUME_CELLS]
     volume_tags = [g for (t, _), g in zip(blocks, block_tags, strict=True) if t in VOLUME_CELLS]
     surfaces = [
         (SURFACE_CELLS[t], d[:, : SURFACE_CELLS[t]]) for t, d in blocks if t in SURFACE_CELLS
@@ -99,10 +100,13 @@ def geometry_from_mesh(
             "(--spacing), e.g. a tenth of the solid's smallest extent"
         )
     volumes += [(8, h) for h in hexes]
+    volume_names += [t for t, d in blocks if t in HEXAHEDRA and len(d)]
     volume_tags += hex_tags
     tet_tags = None
+    repairs: list[str] = []
     if any(len(d) for _, d in volumes):
         tets = np.concatenate([d[:, _SPLIT[n]].reshape(-1, 4) for n, d in volumes if len(d)])
+        repairs = check_volume_cells(points, volumes, volume_names)
         if tag_name is not None:  # each tetrahedron keeps the tag of the cell it came from
             tet_tags = np.concatenate(
                 [
@@ -130,7 +134,7 @@ def geometry_from_mesh(
     notes = [
         f"voxelised {what} at h = {spacing:.4g} m: {cells} cells of a "
         f"{'x'.join(map(str, occupancy.shape))} lattice"
-    ]
+    ] + repairs
     if dropped:
         volume = dropped * spacing**3
         notes.append(
@@ -157,6 +161,56 @@ def geometry_from_mesh(
             'material.regions may select by it, {"selector": {"tag": t}}'
         )
     return MeshGeometry(geometry, kind, notes, reference)
+
+
+def check_volume_cells(
+    points: np.ndarray, volumes: list[tuple[int, np.ndarray]], names: list[str]
+) -> list[str]:
+    """Refuse a mesh with a degenerate (flat) volume cell; say how many are inverted.
+
+    ``volumes``: per cell block, (corners, (C, corners) node indices) on ``points`` (N, 3), m;
+    ``names`` its meshio cell type. A cell is *degenerate* when one of the tetrahedra it is
+    split into (:data:`_SPLIT`) has a volume of at most
+    :data:`fpm.model.tetrahedra.DEGENERATE` times its longest edge cubed (its corners on one
+    plane: it holds no solid, and a 10-node element on it has no stiffness); *inverted* when its
+    tetrahedra have negative volumes (numbered inside out), which is repaired (the reference's
+    tetrahedra are renumbered: :func:`_reference_mesh`; the voxelisation does not depend on the
+    order). Returns the notes (the repairs).
+
+    Raises:
+        MeshError: the first degenerate cell, by its index in its cell block and the reason.
+    """
+    from ...model.tetrahedra import DEGENERATE, EDGES, tetrahedron_volumes
+
+    inverted: list[str] = []
+    for (n, cells), name in zip(volumes, names, strict=True):
+        if not len(cells):
+            continue
+        if cells.min() < 0 or cells.max() >= len(points):
+            raise MeshError("a cell names a node that is not in the mesh")
+        tets = cells[:, _SPLIT[n]].reshape(-1, 4)
+        volume = tetrahedron_volumes(points, tets).reshape(len(cells), -1)
+        v = points[tets]
+        longest = np.linalg.norm(v[:, EDGES[:, 1]] - v[:, EDGES[:, 0]], axis=2).max(axis=1)
+        flat = (np.abs(volume) <= DEGENERATE * longest.reshape(len(cells), -1) ** 3).any(axis=1)
+        if flat.any():
+            c = int(np.flatnonzero(flat)[0])
+            total = float(np.abs(volume[c]).sum())
+            raise MeshError(
+                f"{name} cell {c} (of {len(cells)} in its block; {int(flat.sum())} such) is "
+                f"degenerate: volume {total:.3g} m^3 for its longest edge "
+                f"{longest.reshape(len(cells), -1)[c].max():.3g} m, its corners (nearly) on one "
+                f"plane at {_fmt(points[cells[c]].mean(axis=0))} m: it holds no solid; remove "
+                "it or repair the mesh"
+            )
+        bad = np.flatnonzero((volume < 0).all(axis=1))
+        if len(bad):
+            shown = ", ".join(map(str, bad[:5].tolist())) + (", ..." if len(bad) > 5 else "")
+            inverted.append(
+                f"{len(bad)} {name} cells numbered inside out (negative volume: {shown}) were "
+                "renumbered"
+            )
+    return inverted
 
 
 TAG_NAMES = ("gmsh:physical", "medit:ref", "CellEntityIds", "region", "regions", "tag", "tags")
