@@ -128,3 +128,80 @@ def test_bad_organ_specs_are_422_naming_the_field_over_rest(api):
     answer = api.post("/v1/calibrations", json=good)
     assert answer.status_code == 422, answer.text
     assert "reference.mesh.tetrahedra.7" in [e["field"] for e in answer.json()["errors"]]
+
+
+# --- 2. loads where the user puts them ---------------------------------------------------------
+
+
+def test_a_surface_point_spreads_by_shape_functions_with_linear_precision():
+    """On a box lattice and on the organ's conforming lattice: the weights are >= 0, sum to 1
+    and reproduce the nearest surface point (partition of unity, linear precision); a point at
+    a node gives that node alone; a point on the surface is its own nearest point."""
+    from fpm.fem.tet10 import nearest_on_boundary
+    from fpm.model.geometry import surface_point
+
+    rng = np.random.default_rng(3)
+    box = fpm.load_problem(
+        {
+            "material": MATERIAL,
+            "geometry": {"type": "box", "size": [0.04, 0.03, 0.02], "nodes": [5, 4, 3]},
+            "fixed": [{"face": "z-"}],
+            "load_cases": [{"forces": [{"face": "z+", "vector": [0, 0, 1]}]}],
+        }
+    )
+    hexahedra = box.solid.elements()
+    for _ in range(20):
+        size = np.array([0.04, 0.03, 0.02])
+        p = rng.uniform(0, 1, 3) * size
+        side = rng.integers(3)
+        p[side] = size[side] * rng.integers(2)  # on one of the box's sides
+        found = surface_point(box.nodes, hexahedra, p)
+        assert found.weights.min() >= 0 and found.weights.sum() == pytest.approx(1, abs=1e-14)
+        np.testing.assert_allclose(found.weights @ box.nodes[found.nodes], found.point, atol=1e-15)
+        assert found.distance < 1e-12
+    corner = surface_point(box.nodes, hexahedra, box.nodes[7])
+    assert corner.nodes[corner.weights > 0].tolist() == [7]
+    assert corner.weights.max() == 1.0
+    problem = fpm.load_problem(spec_from_mesh(organ(), **GIVEN)[0])
+    mesh = organ()
+    _, surface, _ = nearest_on_boundary(
+        mesh.points, mesh.cells[0].data, rng.uniform(-0.08, 0.08, (30, 3))
+    )
+    for p in surface:
+        found = surface_point(problem.nodes, problem.solid.elements(), p)
+        assert found.weights.min() >= 0 and found.weights.sum() == pytest.approx(1, abs=1e-14)
+        np.testing.assert_allclose(found.weights @ problem.nodes[found.nodes], found.point)
+        assert found.distance < 0.35 * 0.01  # the conforming lattice's surface is near the mesh's
+
+
+def test_a_force_at_a_point_acts_there_and_a_far_point_is_refused(api):
+    """The load case's nodal forces sum to the force and their moment is the point's (the
+    spread centroid is the surface point); a point 2 h from the organ is refused with its
+    distance, at load_cases.0.forces.0.point, by load_problem and over REST (422)."""
+    from fpm.fem.tet10 import nearest_on_boundary
+
+    mesh = organ()
+    at = nearest_on_boundary(mesh.points, mesh.cells[0].data, np.array([[0.02, 0.01, 0.04]]))[1][0]
+    force = "point:" + ",".join(map(repr, at.tolist())) + ":0,0,-0.01"
+    spec, _ = spec_from_mesh(mesh, **dict(GIVEN, forces=[force]))
+    assert spec["load_cases"][0]["forces"] == [{"point": at.tolist(), "vector": [0, 0, -0.01]}]
+    problem = fpm.load_problem(spec)
+    case = problem.load_cases[0]
+    assert 2 <= len(case.nodes) <= 4
+    np.testing.assert_allclose(case.forces.sum(axis=0), [0, 0, -0.01], atol=1e-17)
+    centroid = case.forces[:, 2] @ problem.nodes[case.nodes] / case.forces[:, 2].sum()
+    assert any("acts at" in n for n in problem.notes)
+    assert np.linalg.norm(centroid - at) < 0.1 * 0.01  # the lattice's surface near the mesh's
+    spec["load_cases"][0]["forces"][0]["point"] = [0.0, 0.0, 0.06]  # 2.6 cm above the top
+    with pytest.raises(ValidationError) as raised:
+        fpm.load_problem(spec)
+    error = raised.value.errors()[0]
+    assert error["loc"] == ("load_cases", 0, "forces", 0, "point")
+    assert "is 0.0258 m from the solid's surface" in error["msg"]
+    answer = api.post("/v1/calibrations", json=spec)
+    assert answer.status_code == 422, answer.text
+    assert "load_cases.0.forces.0.point" in [e["field"] for e in answer.json()["errors"]]
+    with pytest.raises(ValueError, match="'point' places a force"):
+        from fpm.io.meshes import parse_selector
+
+        parse_selector("point:0,0,0")

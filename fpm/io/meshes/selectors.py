@@ -10,7 +10,8 @@ from ...model.spec import FACES
 
 SELECTOR_HELP = "face:z- | node:I | at:X,Y,Z | nearest:X,Y,Z | box:X0,Y0,Z0:X1,Y1,Z1 (lengths in m)"
 FORCE_HELP = (
-    "SELECTOR:FX,FY,FZ[:distribute] (N; e.g. nearest:0,0,0.05:0,0,-0.5 or "
+    "SELECTOR:FX,FY,FZ[:distribute] or point:X,Y,Z:FX,FY,FZ (N; e.g. point:0,0,0.05:0,0,-0.5, "
+    "a force at that point of the surface spread over its cell's nodes, or "
     "face:z+:0,0,-2:distribute); several forces of one load case separated by ';'"
 )
 
@@ -39,7 +40,7 @@ def _selector(parts: list[str], text: str) -> tuple[dict[str, Any], list[str]]:
         except (IndexError, ValueError):
             raise ValueError(f"{text!r}: give a node index, e.g. node:12") from None
         return {"node": node}, parts[2:]
-    if kind in ("at", "nearest"):
+    if kind in ("at", "nearest", "point"):
         if len(parts) < 2:
             raise ValueError(f"{text!r}: give a point, e.g. {kind}:0.05,0.05,0.1")
         return {kind: _vector(parts[1], f"{text!r}: the point")}, parts[2:]
@@ -56,6 +57,11 @@ def parse_selector(text: str) -> dict[str, Any]:
     """A spec selector from its short form: ``face:z-``, ``node:12``, ``at:x,y,z``,
     ``nearest:x,y,z`` or ``box:x0,y0,z0:x1,y1,z1``."""
     selector, rest = _selector(text.split(":"), text)
+    if "point" in selector:
+        raise ValueError(
+            f"{text!r}: 'point' places a force (--force point:X,Y,Z:FX,FY,FZ); to select nodes "
+            "use at or nearest"
+        )
     if rest:
         raise ValueError(f"{text!r}: unexpected {':'.join(rest)!r} after the selector")
     return selector
@@ -74,6 +80,8 @@ def parse_force(text: str) -> list[dict[str, Any]]:
             raise ValueError(f"{one!r}: give the force after the selector, e.g. {one}:0,0,-1")
         force = {**selector, "vector": _vector(rest[0], f"{one!r}: the force")}
         flags = [r.strip().lower() for r in rest[1:]]
+        if flags and "point" in selector:
+            raise ValueError(f"{one!r}: a force at a point takes no ':distribute'")
         if flags and flags != ["distribute"]:
             raise ValueError(f"{one!r}: after the force only ':distribute' may follow")
         if flags:

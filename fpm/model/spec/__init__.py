@@ -32,6 +32,7 @@ from .base import (  # noqa: F401
     lame_constants,
 )
 from .geometry import (  # noqa: F401
+    FORCE_FIELDS,
     SELECTOR_FIELDS,
     BoxGeometry,
     Force,

@@ -155,9 +155,13 @@ class Selector(_Strict):
         return self.face is None and self.box is None
 
 
+FORCE_FIELDS = (*SELECTOR_FIELDS, "point")
+"""The ways a :class:`Force` says where it acts; give exactly one."""
+
+
 class Force(Selector):
     """A constant force, N, on the nodes of one selector (``node``, ``at``, ``nearest``,
-    ``face`` or ``box``: exactly one).
+    ``face`` or ``box``), or at a ``point`` of the solid's surface: exactly one.
 
     On a selector of several nodes, ``vector`` goes to each node, so the total force is
     ``vector`` times the number of nodes; with ``"distribute": true`` the vector is split
@@ -165,14 +169,43 @@ class Force(Selector):
     a face's or box's nodes take no share (they are reported in
     :attr:`fpm.model.problem.Problem.notes`); a force on a single fixed node, or on a selection that
     is all fixed, is an error.
+
+    ``point``: the force acts at that point of the solid's surface (m), not at a node: the
+    point is taken to the nearest point of the lattice's surface (within the lattice spacing h
+    of it, else an error with its distance) and the force is spread over the 4 nodes of the
+    surface cell face it falls on by their trilinear shape functions there
+    (:func:`fpm.model.geometry.surface_point`): the shares sum to the force and their
+    centroid is the point. The FEM reference sees the same nodal forces, each spread over its
+    node's share of the solid (:mod:`fpm.fem.loads`).
     """
 
+    point: Vector3 | None = Field(
+        None,
+        description="the force acts at this point of the solid's surface, m (within the "
+        "lattice spacing of it), spread over the nodes of the surface cell it falls on by "
+        "their shape functions",
+        exclude_if=lambda v: v is None,
+    )
     vector: Vector3 = Field(description="force, N (per node, or in total with distribute)")
     distribute: bool = Field(
         False,
         description="split vector evenly over the selected nodes (total force = vector); "
         "false: every selected node gets vector",
     )
+
+    @model_validator(mode="after")
+    def _exactly_one(self) -> Force:
+        given = [n for n in FORCE_FIELDS if getattr(self, n) is not None]
+        if len(given) != 1:
+            raise ValueError(
+                f"give exactly one of {', '.join(FORCE_FIELDS)} (got {', '.join(given) or 'none'})"
+            )
+        return self
+
+    @property
+    def kind(self) -> str:
+        """Where the force acts: ``"point"`` or the selector field given."""
+        return next(n for n in FORCE_FIELDS if getattr(self, n) is not None)
 
 
 class LoadCase(_Strict):
