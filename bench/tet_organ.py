@@ -144,3 +144,101 @@ def organ_spec(
 
         spec = conform_spec(spec)[0]
     return spec
+
+
+KIDNEY_AXES = np.array([0.06, 0.032, 0.026])
+"""Semi-axes of the kidney-like organ before it is bent and tapered, m."""
+
+
+def kidney_mesh(cells: tuple[int, int, int] = (6, 4, 3)) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) nodes, m, and (T, 4) positive tetrahedra of a second organ, unlike the first: a
+    bean 12 cm long, tapered to 0.55 of its thickness at x = +6 cm (its thin end) and bent
+    about z by 1.5 cm at its ends (a concave side, like a kidney's hilum), meshed as
+    :func:`organ_mesh` (``cells`` (6, 4, 3): 432 tetrahedra, an odd count along z so that no
+    node layer lies on z = 0). Every tetrahedron keeps a positive volume (checked)."""
+    nodes, tets = organ_mesh(cells, KIDNEY_AXES)
+    x = nodes[:, 0] / KIDNEY_AXES[0]  # -1 .. 1 along the bean
+    taper = 1.0 - 0.225 * (x + 1.0)  # 1 at x = -6 cm, 0.55 at +6 cm
+    bent = nodes.copy()
+    bent[:, 1] = nodes[:, 1] * taper + 0.015 * x**2
+    bent[:, 2] = nodes[:, 2] * taper
+    c = bent[tets]
+    volume = np.linalg.det(np.transpose(c[:, 1:] - c[:, :1], (0, 2, 1)))
+    assert np.all(volume > 0)
+    return bent, tets
+
+
+ORGANS = {
+    "organ": {
+        "mesh": lambda: organ_mesh((5, 4, 4)),
+        "held": "box:-1,-1,-1:1,1,0",  # its lower half, lying in its bed
+        "fitted": [("press top", [0.0, 0.0, 1.0], [0, 0, -0.02]),
+                   ("lateral", [0.0, 0.0, 1.0], [0.01, 0, 0])],
+        "validation": [("press off centre", [0.03, 0.0, 0.04], [0, 0, -0.02]),
+                       ("lateral y", [0.0, 0.05, 0.015], [0, 0.01, 0]),
+                       ("two presses", [[0.0, 0.0, 1.0], [0.03, 0.0, 0.04]], [0, 0, -0.01])],
+    },
+    "kidney": {
+        "mesh": kidney_mesh,
+        "held": "box:0.045,-1,-1:1,1,1",  # the thin end, its last 1.5 cm
+        "fitted": [("press middle", [0.0, 0.0, 0.04], [0, 0, -0.01]),
+                   ("pull far end", [-0.07, 0.015, 0.0], [0, 0.005, 0])],
+        "validation": [("press near end", [-0.035, 0.005, 0.04], [0, 0, -0.01]),
+                       ("push convex side", [-0.01, -0.05, 0.0], [0, 0.005, 0]),
+                       ("press and pull", [[0.0, 0.0, 0.04], [-0.07, 0.015, 0.0]],
+                        [0, 0.0035, -0.0035])],
+    },
+}  # fmt: skip
+"""The organs of ``python -m bench.bench_refine organs``: the bench's (480 tetrahedra, its lower
+half held) and a kidney-like bean (432 tetrahedra, held at its thin end: a cantilever), each
+with two fitted and three validation cases; every force at a point of the surface (the point
+nearest the aim given here, m, so an aim sits just off the surface where the force goes: an aim
+far away would take the surface's extreme point; an aim of several points puts one force at
+each), N."""
+
+
+def surface_spec(
+    organ: str, spacing: float, refine: int | str = "auto", lattice: str = "conforming"
+) -> dict:
+    """``organ`` (a key of :data:`ORGANS`) as ``spec_from_mesh`` makes it with the defaults (the
+    conforming lattice of ``spacing``, m; E 5 kPa, nu 0.45) and its forces at points of the
+    mesh's surface (``point:``, spread over their surface cells' nodes), the validation cases
+    added in the same form; ``reference.refine`` = ``refine``; ``lattice`` as
+    ``spec_from_mesh``'s (``"voxels"`` for the staircase, to compare)."""
+    import meshio
+
+    from fpm.fem.tet10 import nearest_on_boundary
+    from fpm.io.meshes import spec_from_mesh
+
+    made = ORGANS[organ]
+    nodes, tets = made["mesh"]()
+
+    def forces(aim: list, vector: list[float]) -> str:
+        aims = np.atleast_2d(np.asarray(aim, dtype=float))
+        at = nearest_on_boundary(nodes, tets, aims)[1]
+        return ";".join(
+            "point:" + ",".join(f"{v:.6f}" for v in p) + ":" + ",".join(map(str, vector))
+            for p in at
+        )
+
+    spec, _ = spec_from_mesh(
+        meshio.Mesh(nodes, [("tetra", tets)]),
+        fix=[made["held"]],
+        forces=[forces(aim, vector) for _, aim, vector in made["fitted"]],
+        youngs_modulus=5e3,
+        poisson_ratio=0.45,
+        density=1040.0,
+        spacing=spacing,
+        name=f"{organ}, {len(tets)} tetrahedra",
+        lattice=lattice,
+    )
+    for case, (name, _, _) in zip(spec["load_cases"], made["fitted"], strict=True):
+        case["name"] = name
+    from fpm.io.meshes import parse_force
+
+    spec["validation_cases"] = [
+        {"name": name, "forces": parse_force(forces(aim, vector))}
+        for name, aim, vector in made["validation"]
+    ]
+    spec["reference"]["refine"] = refine
+    return spec

@@ -78,8 +78,9 @@ def spec_from_mesh(
     ``"nearest:x,y,z"``, ...); ``forces``: one load case each, ``"SELECTOR:fx,fy,fz"`` (N; append
     ``":distribute"`` to share the vector over the selected nodes; ``;`` between forces of one
     load case). ``options``: ``connectivity``, ``scale`` (e.g. 0.001 for a mesh in mm),
-    ``voxelise``, ``name``, ``dt`` (s, or "auto"), ``conform`` (a tetrahedral mesh: the voxel
-    lattice's surface nodes moved onto its surface); see :func:`fpm.io.meshes.spec_from_mesh`.
+    ``voxelise``, ``name``, ``dt`` (s, or "auto"), ``lattice`` (a tetrahedral mesh:
+    ``"conforming"``, the default, the voxel lattice's surface nodes moved onto its surface; or
+    ``"voxels"``); see :func:`fpm.io.meshes.spec_from_mesh`.
     Raises :class:`fpm.io.meshes.MeshError` (e.g. an open surface) or ValueError (a bad selector).
     """
     from fpm.io.meshes import spec_from_mesh as build

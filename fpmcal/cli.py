@@ -263,6 +263,7 @@ def cmd_spec_from_mesh(args: argparse.Namespace) -> None:
         dt=dt,
         voxel_reference=args.voxel_reference,
         conform=args.conform,
+        lattice=args.lattice,
     )
     for note in notes:
         print(f"note: {note}", file=sys.stderr)
@@ -540,7 +541,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="a spec JSON from a mesh file (Gmsh .msh, VTK .vtu/.vtk, Abaqus .inp, STL, ...)",
         description="Hexahedral meshes are used as they are; tetrahedral meshes and closed "
         "triangle surfaces are voxelised at --spacing (a cell is solid when its centre lies "
-        "inside). A tetrahedral mesh is also kept in the spec (reference.mesh): the FEM "
+        "inside), and for tetrahedra the lattice's surface then follows the mesh's (--lattice). "
+        "A tetrahedral mesh is also kept in the spec (reference.mesh): the FEM "
         "reference is solved on it with 10-node tetrahedra and read at the lattice nodes "
         "(--voxel-reference: on the voxels instead). Lengths in m (see --scale), forces in N, "
         "E in Pa.",
@@ -567,10 +569,14 @@ def build_parser() -> argparse.ArgumentParser:
         "instead of on the tetrahedra, and leave the mesh out of the spec",
     )  # fmt: skip
     p.add_argument(
-        "--conform", action="store_true",
-        help="tetrahedral meshes: the voxel lattice's surface nodes moved onto the mesh's "
-        "surface (a hexahedral mesh geometry that is the mesh's solid, not its staircase; "
-        "face selectors become the boxes of the nodes within h/2 of the face)",
+        "--lattice", choices=["conforming", "voxels"], default=None,
+        help="tetrahedral meshes: 'conforming' (the default) moves the voxel lattice's surface "
+        "nodes onto the mesh's surface (a hexahedral mesh geometry that is the mesh's solid, not "
+        "its staircase; face selectors become the boxes of the nodes within h/2 of the face); "
+        "'voxels' keeps the voxels (the default of --voxel-reference)",
+    )  # fmt: skip
+    p.add_argument(
+        "--conform", action="store_true", help="the same as --lattice conforming (the default)"
     )  # fmt: skip
     p.add_argument("--name", default=None, help="the spec's name (default: the file name)")
     p.add_argument(

@@ -82,7 +82,7 @@ def test_every_field_error_is_a_line(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert lines == [
         f"{path}: material.density: Input should be greater than 0",
         f"{path}: fixed: Field required",
-        f"{path}: load_cases.0.forces.0: give exactly one of face, node, at, nearest, box "
+        f"{path}: load_cases.0.forces.0: give exactly one of face, node, at, nearest, box, point "
         "(got face, node)",
     ]
 

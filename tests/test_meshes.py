@@ -274,7 +274,8 @@ def test_spec_from_mesh_command_line_and_sdk_agree(tmp_path: Path, capsys):
     assert "voxelised" in err and "fpm.dt =" in err and "nearest: node" in err
     spec = json.loads(out.read_text())
     problem = fpm.load_problem(spec)
-    assert spec["geometry"]["type"] == "voxels" and problem.fixed.any()
+    # the default lattice follows the mesh's surface (a hexahedral mesh geometry)
+    assert spec["geometry"]["type"] == "mesh" and problem.fixed.any()
     assert [c.name for c in problem.load_cases] == [
         "nearest:0,0,0.03:0,0,-0.01",
         "face:z+:0.01,0,0:distribute",
@@ -388,7 +389,7 @@ def test_cells_joined_by_less_than_a_face_are_dropped_and_the_fem_holds_the_rest
     meshio.write(path, meshio.Mesh(points, [("tetra", tets)]))
     spec, notes = spec_from_mesh(
         path, fix=["face:z-"], forces=["face:z+:0,0,0.01:distribute"], youngs_modulus=5e3,
-        poisson_ratio=0.45, spacing=h,
+        poisson_ratio=0.45, spacing=h, lattice="voxels",
     )  # fmt: skip
     assert np.asarray(spec["geometry"]["occupancy"]).sum() == 4 * 4 * 3
     dropped = [n for n in notes if n.startswith("dropped")]
@@ -442,8 +443,9 @@ def test_the_conforming_lattice_lies_on_the_mesh_surface_and_calibrates(tmp_path
         fix=["face:z-"], forces=["nearest:0,0,0.035:0,0,-0.01", "nearest:0.07,0,0:0.005,0,0"],
         youngs_modulus=5e3, poisson_ratio=0.45, spacing=0.01,
     )  # fmt: skip
-    voxels, _ = spec_from_mesh(mesh, **given)
-    spec, notes = spec_from_mesh(mesh, conform=True, **given)
+    voxels, _ = spec_from_mesh(mesh, lattice="voxels", **given)
+    spec, notes = spec_from_mesh(mesh, **given)  # the default lattice
+    assert spec == spec_from_mesh(mesh, conform=True, **given)[0]
     assert spec["geometry"]["type"] == "mesh" and "box" in spec["fixed"][0]
     assert any("surface nodes moved onto the mesh's surface" in n for n in notes)
     before, after = fpm.load_problem(voxels), fpm.load_problem(spec)
@@ -459,7 +461,7 @@ def test_the_conforming_lattice_lies_on_the_mesh_surface_and_calibrates(tmp_path
         spec_from_mesh(mesh, conform=True, voxel_reference=True, **given)
     path, out = tmp_path / "organ.vtu", tmp_path / "organ.json"
     meshio.write(path, mesh)
-    argv = ["spec", "from-mesh", str(path), "--spacing", "0.01", "--fix", "face:z-", "--conform",
+    argv = ["spec", "from-mesh", str(path), "--spacing", "0.01", "--fix", "face:z-",
             "--E", "5000", "--nu", "0.45", "-o", str(out)]  # fmt: skip
     for force in given["forces"]:
         argv += ["--force", force]

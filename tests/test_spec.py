@@ -357,7 +357,7 @@ def test_fixed_nodes_of_a_loaded_face_take_no_force():
         (
             {"node": 20, "face": "z+", "vector": [0, 0, 1]},
             ("load_cases", 0, "forces", 0),
-            "exactly one of face, node, at, nearest, box (got face, node)",
+            "exactly one of face, node, at, nearest, box, point (got face, node)",
         ),
         ({"vector": [0, 0, 1]}, ("load_cases", 0, "forces", 0), "(got none)"),
         (

@@ -187,3 +187,147 @@ def _network(g: NetworkGeometry) -> Solid:
     m = g.masses
     masses = np.asarray(m, dtype=float) if isinstance(m, list) else np.full(len(nodes), float(m))
     return Solid(nodes, None, springs, masses, np.zeros(len(springs), dtype=np.int8))
+
+
+# --------------------------------------------------- parts of a lattice one cell thick
+# Parts of a lattice one cell thick: where a spacing is too coarse for the organ.
+#
+# A lattice cell (8-node hexahedron) is *thin* when both of its faces across one of its local
+# axes (r-/r+, s-/s+ or t-/t+: :data:`fpm.model.hexahedron.NATURAL`) lie on the lattice's surface:
+# the solid is a single cell across there. One such cell alone is the staircase's bump at a tip of
+# the organ (the bench's organ has 1-6 of them in a group at every spacing from 10 to 2.5 mm);
+# :data:`THIN_PART_CELLS` or more of them joined together are a sheet or a rod of the solid one
+# cell thick (a thin flap, a lobe's edge), which the lattice cannot bend (one layer of cells has
+# no through-thickness gradient) and which the surface-conforming lattice
+# (:func:`fpm.io.meshes.conform_lattice`) squashes onto both its faces at once. A spec made from
+# an organ's mesh with such a part is refused (:func:`fpm.model.problem.load_problem`), naming
+# the cell and its place: a finer spacing resolves it.
+#
+# NumPy and SciPy only (the service checks specs with it).
+
+THIN_PART_CELLS = 8
+"""A group of at least this many thin cells sharing nodes is a part one cell thick."""
+
+
+def boundary_faces(hexahedra: np.ndarray) -> np.ndarray:
+    """(H, 6) bool: whether each local face (``2 * axis + (side > 0)``: r-, r+, s-, s+, t-, t+)
+    of ``hexahedra`` (H, 8) belongs to that hexahedron only (the lattice's surface)."""
+    hexahedra = np.asarray(hexahedra, dtype=np.int64)
+    faces = np.concatenate(
+        [
+            np.sort(hexahedra[:, NATURAL[:, axis] == side], axis=1)
+            for axis in range(3)
+            for side in (-1.0, 1.0)
+        ]
+    )  # (6H, 4), face-major
+    _, inverse, counts = np.unique(faces, axis=0, return_inverse=True, return_counts=True)
+    return (counts[inverse.ravel()] == 1).reshape(6, len(hexahedra)).T
+
+
+def thin_cells(hexahedra: np.ndarray) -> np.ndarray:
+    """(H,) bool: the cells of ``hexahedra`` (H, 8) with both faces across one local axis on
+    the surface (the solid is one cell thick there)."""
+    free = boundary_faces(hexahedra)
+    return (free[:, 0::2] & free[:, 1::2]).any(axis=1)
+
+
+def thin_parts(hexahedra: np.ndarray, min_cells: int = THIN_PART_CELLS) -> list[np.ndarray]:
+    """The parts one cell thick of the lattice ``hexahedra`` (H, 8): groups of thin cells
+    (:func:`thin_cells`) joined through shared nodes, of at least ``min_cells`` cells; each an
+    ascending array of cell indices, the largest group first."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    hexahedra = np.asarray(hexahedra, dtype=np.int64)
+    thin = np.flatnonzero(thin_cells(hexahedra))
+    if len(thin) < min_cells:
+        return []
+    n_nodes = int(hexahedra.max()) + 1
+    rows = np.repeat(np.arange(len(thin)), 8)
+    graph = coo_matrix(
+        (np.ones(len(rows)), (rows, len(thin) + hexahedra[thin].ravel())),
+        shape=(len(thin) + n_nodes, len(thin) + n_nodes),
+    )
+    labels = connected_components(graph, directed=False)[1][: len(thin)]
+    sizes = np.bincount(labels)
+    big = [g for g in np.argsort(-sizes, kind="stable") if sizes[g] >= min_cells]
+    return [thin[labels == g] for g in big]
+
+
+# ------------------------------------------------------------- a point of the lattice's surface
+
+SURFACE_CANDIDATES = 24
+""":func:`surface_point` projects onto this many boundary faces nearest the point (by their
+centres) and keeps the closest projection."""
+
+
+@dataclass
+class SurfacePoint:
+    """Where a point of the solid's surface falls on the lattice's surface.
+
+    Attributes:
+        nodes: (4,) the lattice nodes of the surface cell face it falls on.
+        weights: (4,) their trilinear shape functions there (>= 0, sum 1).
+        point: (3,) the nearest point of the lattice's surface, m (the weights' centroid).
+        distance: from the given point to it, m.
+        cell: the hexahedron whose face it is.
+    """
+
+    nodes: np.ndarray
+    weights: np.ndarray
+    point: np.ndarray
+    distance: float
+    cell: int
+
+
+def surface_point(nodes: np.ndarray, hexahedra: np.ndarray, p: np.ndarray) -> SurfacePoint:
+    """The nearest point of the lattice's surface to ``p`` (3,), m, and the shape functions of
+    the face it falls on there.
+
+    The lattice is ``hexahedra`` (H, 8) on ``nodes`` (N, 3); its surface, the faces of one
+    hexahedron only (:func:`boundary_faces`), each a bilinear patch
+    ``x(u, v) = sum_a N_a(xi) x_a`` of its hexahedron's trilinear shape functions
+    (:func:`fpm.model.hexahedron.shape_functions`) with the face's natural coordinate held at
+    +-1. The nearest point of each of the :data:`SURFACE_CANDIDATES` faces nearest ``p`` is
+    found by Gauss-Newton in (u, v), clamped to the face; the closest wins. The weights are
+    the 8 shape functions there, which vanish off the face, so 4 remain: they sum to 1 and
+    reproduce the point (``weights @ nodes[face] == point``, linear precision), and a point
+    at a node gives that node alone.
+    """
+    from .hexahedron import shape_function_gradients, shape_functions
+
+    nodes = np.asarray(nodes, dtype=float)
+    hexahedra = np.asarray(hexahedra, dtype=np.int64)
+    p = np.asarray(p, dtype=float)
+    free = boundary_faces(hexahedra)  # (H, 6)
+    cell, face = np.nonzero(free)
+    axis, side = face // 2, np.where(face % 2 == 1, 1.0, -1.0)
+    coords = nodes[hexahedra[cell]]  # (F, 8, 3)
+    on_face = NATURAL[:, axis].T == side[:, None]  # (F, 8): the face's 4 corners
+    centre = (coords * on_face[:, :, None]).sum(axis=1) / 4
+    k = min(SURFACE_CANDIDATES, len(cell))
+    near = np.argpartition(np.linalg.norm(centre - p, axis=1), k - 1)[:k]
+    best: SurfacePoint | None = None
+    for f in near:
+        a, s, x = int(axis[f]), float(side[f]), coords[f]
+        others = [b for b in range(3) if b != a]
+        xi = np.zeros(3)
+        xi[a] = s
+        for _ in range(20):
+            r = shape_functions(xi) @ x - p
+            jac = (shape_function_gradients(xi).T @ x)[others].T  # (3, 2): dx / d(u, v)
+            step = np.linalg.lstsq(jac, -r, rcond=None)[0]
+            xi[others] = np.clip(xi[others] + step, -1.0, 1.0)
+            if np.abs(step).max() < 1e-12:
+                break
+        weights = shape_functions(xi)
+        at = weights @ x
+        distance = float(np.linalg.norm(at - p))
+        if best is None or distance < best.distance:
+            corners = np.flatnonzero(NATURAL[:, a] == s)
+            w = np.where(weights[corners] > 1e-12, weights[corners], 0.0)  # rounding's crumbs
+            best = SurfacePoint(
+                hexahedra[cell[f], corners], w / w.sum(), at, distance, int(cell[f])
+            )
+    assert best is not None
+    return best

@@ -7,6 +7,7 @@ Data flow: JSON -> :class:`fpm.model.spec.ProblemSpec` (schema checks) -> :func:
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -15,9 +16,9 @@ import numpy as np
 from pydantic import ValidationError
 from pydantic_core import InitErrorDetails, PydanticCustomError
 
-from .geometry import Solid, build_solid, lumped_masses, spring_lengths
+from .geometry import Solid, SurfacePoint, build_solid, lumped_masses, spring_lengths, surface_point
 from .regions import RegionMap, check_material, lattice_regions
-from .spec import MeshGeometry, NetworkGeometry, ProblemSpec, Selector
+from .spec import BoxGeometry, MeshGeometry, NetworkGeometry, ProblemSpec, Selector
 
 Loc = tuple[str | int, ...]
 
@@ -164,7 +165,7 @@ def build_problem(spec: ProblemSpec, mesh: dict[str, Any] | None = None) -> Prob
         errors.append((("geometry",), "a spring joins two nodes at the same point"))
         raise SpecError(errors)
     h = float(lengths.min())
-    finder = _NodeFinder(solid.nodes, tol=1e-3 * h)
+    finder = _NodeFinder(solid.nodes, tol=1e-3 * h, cells=solid.elements)
 
     fixed = np.zeros(len(solid.nodes), dtype=bool)
     for i, sel in enumerate(spec.fixed):
@@ -177,6 +178,7 @@ def build_problem(spec: ProblemSpec, mesh: dict[str, Any] | None = None) -> Prob
     _check_supplied_reference(spec, len(solid.nodes), errors)
     _check_refine(spec, errors)
     errors.extend(check_material(spec))
+    _check_thin_parts(spec, solid, errors)
     regions = _material_regions(spec, solid, mesh, errors, finder.notes)
     if errors:
         raise SpecError(errors)
@@ -235,6 +237,23 @@ def _load_cases(
         for f, force in enumerate(case.forces):
             loc: Loc = (field, c, "forces", f)
             where = _dotted((*loc, force.kind))
+            if force.point is not None:
+                spread = finder.surface(force.point, (*loc, "point"), errors)
+                if spread is None:
+                    continue
+                free = spread.weights * ~fixed[spread.nodes]
+                if not free.any():
+                    errors.append(((*loc, "point"), _all_fixed(spread.nodes)))
+                    continue
+                if not free.all():
+                    finder.notes.append(
+                        f"{where}: {100 * (1 - free.sum()):.3g}% of the force falls on fixed "
+                        "nodes of its cell and goes to the supports"
+                    )
+                keep = free > 0
+                idx.extend(spread.nodes[keep].tolist())
+                vec.extend(w * np.asarray(force.vector, dtype=float) for w in free[keep])
+                continue
             picked = finder.select(force, loc, errors)
             free = picked[~fixed[picked]]
             if len(picked) and not len(free):
@@ -311,6 +330,42 @@ def _check_stiffness_mode(spec: ProblemSpec, errors: list[tuple[Loc, str]]) -> N
                 "connectivity, or use 'single' or 'families'",
             )
         )
+
+
+def _check_thin_parts(spec: ProblemSpec, solid: Solid, errors: list[tuple[Loc, str]]) -> None:
+    """A lattice made from an organ's mesh (``voxels`` or ``mesh`` geometry with the mesh in
+    ``reference.mesh`` or ``mesh_id``) must not be one cell thick over a part
+    (:func:`fpm.model.geometry.thin_parts`): refused at the first cell of the largest such part,
+    with its place and how to resolve it (a finer spacing)."""
+    from .geometry import thin_parts
+
+    g = spec.geometry
+    organ = spec.reference.mesh is not None or spec.reference.mesh_id is not None
+    hexahedra = solid.elements()
+    if not organ or isinstance(g, NetworkGeometry | BoxGeometry) or hexahedra is None:
+        return
+    parts = thin_parts(hexahedra)
+    if not parts:
+        return
+    part = parts[0]
+    centre = solid.nodes[hexahedra[part]].mean(axis=(0, 1))
+    cell = int(part[0])
+    spacing = np.median(np.ptp(solid.nodes[hexahedra], axis=1), axis=0)
+    if isinstance(g, MeshGeometry):
+        loc: Loc = ("geometry", "hexahedra", cell)
+    else:  # voxels: the cell's index in the occupancy grid
+        first = solid.nodes[hexahedra[cell]].mean(axis=0)
+        ijk = np.rint((first - np.asarray(g.origin)) / np.asarray(g.spacing) - 0.5).astype(int)
+        loc = ("geometry", "occupancy", *(int(i) for i in ijk))
+    errors.append(
+        (
+            loc,
+            f"the lattice is one cell thick over a part of {len(part)} cells around "
+            f"{_fmt(centre)} m (cell {cell} first; {len(parts)} such part(s)): the spacing "
+            f"{_fmt(spacing)} m is too coarse for the solid there (one layer of cells cannot "
+            "bend); make the spacing at most half of it, or leave that part out of the mesh",
+        )
+    )
 
 
 def _check_refine(spec: ProblemSpec, errors: list[tuple[Loc, str]]) -> None:
@@ -437,9 +492,15 @@ class _NodeFinder:
     distance), as ``field.path: text`` lines.
     """
 
-    def __init__(self, nodes: np.ndarray, tol: float):
+    def __init__(
+        self,
+        nodes: np.ndarray,
+        tol: float,
+        cells: Callable[[], np.ndarray | None] = lambda: None,
+    ):
         self.nodes = nodes
         self.tol = tol
+        self.cells = cells  # the lattice's hexahedra, built only for a force at a point
         self.lo = nodes.min(axis=0)
         self.hi = nodes.max(axis=0)
         self.notes: list[str] = []
@@ -491,3 +552,32 @@ class _NodeFinder:
                 )
             )
         return picked
+
+    def surface(self, point: Any, loc: Loc, errors: list[tuple[Loc, str]]) -> SurfacePoint | None:
+        """Where ``point`` (m) falls on the lattice's surface
+        (:func:`fpm.model.geometry.surface_point`); None, with an error at ``loc``, when the
+        lattice has no cells or the point is more than the lattice spacing from its surface."""
+        hexahedra = self.cells()
+        if hexahedra is None:
+            errors.append((loc, "a force at a point needs a lattice of cells (not a network)"))
+            return None
+        found = surface_point(self.nodes, hexahedra, np.asarray(point, dtype=float))
+        x = self.nodes[hexahedra]
+        spacing = float(np.median(x.max(axis=1) - x.min(axis=1), axis=0).max())
+        if found.distance > spacing:
+            errors.append(
+                (
+                    loc,
+                    f"{_fmt(point)} is {found.distance:.3g} m from the solid's surface (nearest "
+                    f"surface point {_fmt(found.point)}), more than the lattice spacing "
+                    f"{spacing:.3g} m: a force at a point acts on the surface; give a point on "
+                    "it (lengths in m), or select a node (node, nearest)",
+                )
+            )
+            return None
+        self.notes.append(
+            f"{_dotted(loc)}: acts at {_fmt(found.point)} ({found.distance * 1e3:.3g} mm from "
+            f"the point given), spread over nodes {found.nodes.tolist()} by weights "
+            f"{_fmt(found.weights)}"
+        )
+        return found

@@ -1,0 +1,157 @@
+"""The surface-conforming lattice: a voxel lattice's surface nodes moved onto the surface of
+its tetrahedral mesh (m)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ..errors import MeshError
+
+KEPT_JACOBIAN = 0.1
+""":func:`conform_lattice` keeps every hexahedron's smallest Jacobian determinant at least this
+fraction of its voxel's."""
+
+
+def conform_lattice(
+    nodes: np.ndarray,
+    hexahedra: np.ndarray,
+    mesh_nodes: np.ndarray,
+    tets: np.ndarray,
+    *,
+    boxes: list[tuple[np.ndarray, np.ndarray]] | None = None,
+    tol: float = 0.0,
+) -> np.ndarray:
+    """(N, 3) a voxel lattice's ``nodes`` (N, 3), m, with its surface nodes (the corners of
+    its boundary faces, ``hexahedra`` (H, 8)) moved onto their nearest points on the surface
+    of the tetrahedra ``tets`` (T, 4) on ``mesh_nodes`` (M, 3): a surface-conforming lattice,
+    the mesh's solid instead of its staircase. Each node goes all the way unless a hexahedron
+    of it would keep less than :data:`KEPT_JACOBIAN` of its voxel's smallest Jacobian
+    determinant; those hexahedra's surface nodes go 0.8 of the way, then 0.8 of that, until
+    none does (every hexahedron stays positive).
+
+    The selectors stay true: a node inside one of the ``boxes`` (lo, hi) (within ``tol``, m)
+    moves only within it (its target clipped to the box); a node outside every box that
+    would end up in one does not move.
+    """
+    from ...fem.elasticity import min_jacobian_determinants
+    from ...fem.loads import lattice_surface
+    from ...fem.tet10 import nearest_on_boundary
+
+    x0 = np.asarray(nodes, dtype=float)
+    surface = np.flatnonzero(lattice_surface(hexahedra, len(x0)))
+    _, target, _ = nearest_on_boundary(
+        np.asarray(mesh_nodes, dtype=float), np.asarray(tets), x0[surface]
+    )
+    share = np.ones(len(surface))
+    boxes = [(np.asarray(lo, float), np.asarray(hi, float)) for lo, hi in boxes or []]
+
+    def inside(x: np.ndarray) -> np.ndarray:
+        """(B, S) each box's membership of the surface nodes at ``x`` (S, 3)."""
+        return np.array(
+            [np.all((x >= lo - tol) & (x <= hi + tol), axis=1) for lo, hi in boxes]
+        ).reshape(len(boxes), len(x))
+
+    held = inside(x0[surface])
+    for (lo, hi), member in zip(boxes, held, strict=True):
+        target[member] = np.clip(target[member], lo, hi)
+    where = np.full(len(x0), -1)
+    where[surface] = np.arange(len(surface))
+    before = min_jacobian_determinants(x0[hexahedra])
+    while True:
+        x = x0.copy()
+        x[surface] += share[:, None] * (target - x0[surface])
+        strayed = np.any(inside(x[surface]) != held, axis=0)
+        bad = min_jacobian_determinants(x[hexahedra]) < KEPT_JACOBIAN * before
+        if not bad.any() and not strayed.any():
+            return x
+        share[strayed] = 0.0
+        moved = where[np.unique(hexahedra[bad])]
+        share[moved[moved >= 0]] *= 0.8
+
+
+def conform_spec(spec: dict[str, Any]) -> tuple[dict[str, Any], list[str]]:
+    """``spec`` (a ``voxels`` geometry with its tetrahedra in ``reference.mesh``, as
+    :func:`spec_from_mesh` makes it) on the surface-conforming lattice
+    (:func:`conform_lattice`): a hexahedral ``mesh`` geometry, the same nodes and hexahedra,
+    the surface nodes on the mesh's surface; and notes.
+
+    Every selector keeps the nodes it had on the voxels: a ``face`` (a plane of the voxels'
+    bounding box, which a curved surface no longer has) becomes the box of the nodes within
+    h/2 of that plane or beyond it (what the tetrahedral reference holds or loads for the face,
+    :func:`fpm.fem.tet10.fixed_nodes`), an ``at`` the ``node`` it named; nodes in a box stay in
+    it and nodes out of every box stay out. ``nearest`` and ``node`` selectors are kept as
+    given.
+    """
+    from ...model.problem import load_problem
+
+    mesh = (spec.get("reference") or {}).get("mesh")
+    if spec["geometry"].get("type") != "voxels" or mesh is None:
+        raise MeshError(
+            "a conforming lattice moves a voxel lattice's surface onto its tetrahedral mesh's: "
+            "give a tetrahedral mesh (not hexahedra, not a surface, not --voxel-reference)"
+        )
+    problem = load_problem(spec)
+    x0 = problem.solid.nodes
+    hexahedra = problem.solid.elements()
+    assert hexahedra is not None
+    h = float(min(spec["geometry"]["spacing"]))
+    lo, hi = x0.min(axis=0), x0.max(axis=0)
+    margin = np.max(hi - lo) + h
+    boxes: list[tuple[np.ndarray, np.ndarray]] = []
+    notes: list[str] = []
+    rewritten: list[str] = []  # the selectors that had to change form
+
+    def kept(selector: dict[str, Any]) -> dict[str, Any]:
+        out = dict(selector)
+        rewritten.extend(key for key in ("face", "at") if key in out)
+        if "face" in out:
+            axis, side = "xyz".index(out["face"][0]), out.pop("face")[1]
+            box_lo, box_hi = lo - margin, hi + margin
+            if side == "-":
+                box_hi[axis] = lo[axis] + 0.499 * h
+            else:
+                box_lo[axis] = hi[axis] - 0.499 * h
+            out["box"] = [box_lo.tolist(), box_hi.tolist()]
+        if "at" in out:
+            found = np.linalg.norm(x0 - np.asarray(out.pop("at")), axis=1)
+            out["node"] = int(np.argmin(found))
+        if "box" in out:
+            boxes.append((np.asarray(out["box"][0]), np.asarray(out["box"][1])))
+        return out
+
+    conformed = dict(spec)
+    conformed["fixed"] = [kept(s) for s in spec["fixed"]]
+    for key in ("load_cases", "validation_cases"):
+        if key in spec:
+            conformed[key] = [
+                {**case, "forces": [kept(f) for f in case["forces"]]} for case in spec[key]
+            ]
+    if rewritten:
+        notes.append(
+            "conforming lattice: face selectors became the boxes of the nodes within h/2 of "
+            "the face (the surface no longer has flat faces), 'at' selectors the nodes they "
+            "named"
+        )
+    x = conform_lattice(
+        x0,
+        hexahedra,
+        np.asarray(mesh["nodes"], dtype=float),
+        np.asarray(mesh["tetrahedra"]),
+        boxes=boxes,
+        tol=1e-3 * h,
+    )
+    surface = np.any(x != x0, axis=1)
+    notes.append(
+        f"conforming lattice: {int(surface.sum())} surface nodes moved onto the mesh's surface "
+        f"(up to {np.linalg.norm(x - x0, axis=1).max() / h:.2g} h), every hexahedron keeping "
+        f"at least {KEPT_JACOBIAN:g} of its voxel's smallest Jacobian"
+    )
+    conformed["geometry"] = {
+        "type": "mesh",
+        "nodes": x.tolist(),
+        "hexahedra": hexahedra.tolist(),
+        "connectivity": spec["geometry"].get("connectivity", "full"),
+    }
+    return conformed, notes
