@@ -43,7 +43,7 @@ three validation cases, each force spread over its node's share of the solid.
    reference and the fit against it, the validation cases judged against
    :data:`ORGAN_GOALS` (<= 10% at about 2,000 nodes, <= 6% at half the spacing). Measured:
    docs/real-organs.md. ``python -m bench.bench_refine organ-case ORGAN H [LATTICE]`` is one
-   row as JSON.
+   row as JSON; ``organ-diagnose ORGAN H REFINE`` says where a row's error is (:func:`diagnose`).
 
 ``python -m bench.bench_refine auto|fit|check|organs`` runs one part (``fit`` about 20 min on 2 busy
 cores), ``python -m bench.bench_refine fit-case H LATTICE`` one row of part 2 (h in m) as JSON.
@@ -333,6 +333,65 @@ def organs() -> list[str]:
     return failures
 
 
+def diagnose(organ: str, spacing: float, refine: int) -> None:
+    """Where part 4's error is, printed (docs/real-organs.md, *What remains*): ``organ`` at
+    ``spacing`` (m) against a ``refine``-times refined reference (quicker than 'auto'), fitted
+    (families+volume, then the per-cell field); per fitted case the share of the relative
+    discrepancy from the nodes within 1, 2 and 3 h of the load; and the lattice's own
+    hexahedra as an FEM continuum (8-node, B-bar) with the same nodal forces, as they are and
+    refined once, against the reference (% per case)."""
+    import copy
+
+    import numpy as np
+
+    import fpm
+    from bench.tet_organ import surface_spec
+    from fpm.fem.refine import relative_change
+    from fpm.fitting.cost import StaticCost
+    from fpm.fitting.validation import reference_displacements
+    from fpm.model.stiffness import fitted_theta
+
+    spec = surface_spec(organ, spacing, refine=refine)
+    problem = fpm.load_problem(spec)
+    reference = fpm.solve_fem(problem)
+    truth = reference_displacements(reference, problem)
+    for mode in ("families+volume", "field"):
+        spec["fpm"]["stiffness"] = mode
+        fitted = fpm.load_problem(spec)
+        result = fpm.calibrate(fitted, reference=reference)
+        print(
+            f"{organ} {1e3 * spacing:g} mm, {fitted.n_nodes} nodes, {mode}: fitted "
+            f"{fmt(result.relative_discrepancy)}, validation "
+            f"{fmt(result.validation_relative_discrepancy)} %",
+            flush=True,
+        )
+        if mode == "field":
+            break
+        theta = fitted_theta(fitted, result)
+        static = StaticCost(fitted, truth, None)
+        for j, case in enumerate(fitted.load_cases):
+            u = static.displacements(theta, j).displacements
+            err = np.linalg.norm(u - truth[j], axis=1)
+            total = np.linalg.norm(truth[j], axis=1).sum()
+            near = np.linalg.norm(
+                fitted.nodes[:, None] - fitted.nodes[case.nodes][None], axis=2
+            ).min(axis=1)
+            shares = [
+                f"{int((near <= r * spacing).sum())} nodes within {r:g} h: "
+                f"{100 * err[near <= r * spacing].sum() / total:.1f}"
+                for r in (1.01, 2.01, 3.01)
+            ]
+            print(f"  {case.name}: {100 * err.sum() / total:.1f}% of which " + "; ".join(shares))
+    for level in (0, 1):
+        hexahedra = copy.deepcopy(spec)
+        del hexahedra["reference"]["mesh"]
+        hexahedra["reference"]["refine"] = level
+        hexahedra["fpm"]["stiffness"] = "families+volume"
+        solved = fpm.solve_fem(fpm.load_problem(hexahedra))
+        gap = relative_change(reference.displacements, solved.displacements)
+        print(f"  the lattice's hexahedra as a continuum, refined {level}x: {fmt(gap)} %")
+
+
 def continuum_gap(spacing: float, lattice: str, reference: Any) -> list[float]:
     """Relative difference, % per case, of the lattice's own hexahedra as an elastic solid
     (8-node, selective, ``refine: 2``: the loads spread, the second refinement within about
@@ -399,6 +458,8 @@ if __name__ == "__main__":
         print(json.dumps(run_auto()))
     elif sys.argv[1:2] == ["fit-case"] and len(sys.argv) == 4:
         print(json.dumps(run_fit(float(sys.argv[2]), sys.argv[3])))
+    elif sys.argv[1:2] == ["organ-diagnose"] and len(sys.argv) == 5:
+        diagnose(sys.argv[2], float(sys.argv[3]), int(sys.argv[4]))
     elif sys.argv[1:2] == ["organ-case"] and len(sys.argv) in (4, 5):
         print(json.dumps(run_organ(sys.argv[2], float(sys.argv[3]), *sys.argv[4:])))
     elif len(sys.argv) == 2 and sys.argv[1] in parts:

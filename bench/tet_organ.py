@@ -16,6 +16,8 @@ the plane z = 0.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 SEMI_AXES = np.array([0.07, 0.045, 0.035])
@@ -168,7 +170,7 @@ def kidney_mesh(cells: tuple[int, int, int] = (6, 4, 3)) -> tuple[np.ndarray, np
     return bent, tets
 
 
-ORGANS = {
+ORGANS: dict[str, dict[str, Any]] = {
     "organ": {
         "mesh": lambda: organ_mesh((5, 4, 4)),
         "held": "box:-1,-1,-1:1,1,0",  # its lower half, lying in its bed
