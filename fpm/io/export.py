@@ -295,20 +295,19 @@ def settle_parameters(lattice: Lattice) -> dict[str, Any]:
     2-norm of the displacements; 0 for none): the spec's settle_distance times the mode
     stiffness of each load case's list (``cases``, (L,)), the smallest of them for forces of
     the engine's own (``settle_stiffness``); or the force criterion."""
-    from ..dynamics.settle import FORCE_TOLERANCE, by_distance, force_tolerance
+    from ..dynamics.settle import by_distance, force_tolerance
 
     problem = lattice.problem
     cases = len(problem.load_cases)
     models = None
-    distance = by_distance(problem.spec)
-    if distance:
+    if by_distance(problem.spec):
         from ..dynamics.modes import case_models
 
         p = lattice.params
         stiffness = model_stiffness(problem, p.theta(problem))
         models = case_models(problem, stiffness, p.depth, p.dt)
     if models is None:  # the force criterion (named, the paper method, or no modes at rest)
-        tolerance = FORCE_TOLERANCE if distance else force_tolerance(problem.spec)
+        tolerance = force_tolerance(problem.spec)  # FORCE_TOLERANCE where none is named
         return {"settle_tolerance": tolerance, "settle_stiffness": 0.0, "cases": [0.0] * cases}
     each = [problem.spec.fpm.settle_distance * m.mode_stiffness for m in models]
     return {"settle_tolerance": 0.0, "settle_stiffness": min(each), "cases": each}
