@@ -155,6 +155,8 @@ NO_CELLS = (
     np.zeros((0, 3)),
 )
 """The kernel's volume-term arguments for a model without it (the C yardstick has none)."""
+NO_TARGET = (np.zeros((0, 3)), 0.0, 0.0)
+"""The kernel's target-criterion arguments for none (the C yardstick has none)."""
 
 
 class Kernel:
@@ -183,7 +185,7 @@ class Kernel:
         taken, state, worst, *_ = run_steps(
             self.order, self.ptr, self.neighbour, self.rest_length, self.factor, self.rest,
             self.x, self.v, self.external, self.mass, k, d, dt, steps, 0.0, 0.0, self.size,
-            *NO_CELLS,
+            *NO_CELLS, *NO_TARGET,
         )  # fmt: skip
         return taken, state, worst
 
@@ -566,8 +568,8 @@ def layout_step(failures: list[str]) -> None:
         x[:], v[:] = problem.nodes, 0.0
         run_steps(
             plist.order, a.ptr, a.neighbour, a.rest_length, factor, problem.nodes, x, v,
-            external, problem.solid.masses, 1.0, d, dt, steps, 0.0, problem.size,
-            cells.corners, cells.rest, cells.volume, kappa, force,
+            external, problem.solid.masses, 1.0, d, dt, steps, 0.0, 0.0, problem.size,
+            cells.corners, cells.rest, cells.volume, kappa, force, *NO_TARGET,
         )  # fmt: skip
 
     def own_numbering(steps: int) -> np.ndarray:

@@ -97,6 +97,11 @@ def reduced_basis(calibration_id: str) -> str:
     return f"{PREFIX}:calibration:{calibration_id}:reduced-basis"
 
 
+def damping_targets(calibration_id: str) -> str:
+    """The static equilibria the damping stage's runs settle towards (raw float64)."""
+    return f"{PREFIX}:calibration:{calibration_id}:damping-targets"
+
+
 def chain_checkpoint(calibration_id: str, chain: int) -> str:
     """String: JSON annealing state of one chain, so a retried chain resumes."""
     return f"{PREFIX}:calibration:{calibration_id}:checkpoint:{chain}"

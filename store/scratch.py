@@ -98,6 +98,25 @@ def get_reduced_basis(redis: Redis, calibration_id: str) -> tuple[dict[str, Any]
     return _json(layout), arrays.encode() if isinstance(arrays, str) else bytes(arrays)
 
 
+def save_damping_targets(redis: Redis, calibration_id: str, shape: list[int], raw: bytes) -> None:
+    """Store the static equilibria (``shape`` (L, N, 3), ``raw`` float64, m) that the damping
+    stage's runs settle towards (the target criterion of fpm.dynamics.settle), for its tasks on
+    other workers."""
+    key = keys.damping_targets(calibration_id)
+    pipe = redis.pipeline()
+    pipe.hset(key, mapping={"shape": json.dumps(shape), "arrays": raw})
+    pipe.expire(key, SCRATCH_TTL)
+    pipe.execute()
+
+
+def get_damping_targets(redis: Redis, calibration_id: str) -> tuple[list[int], bytes] | None:
+    """(shape, raw float64) of :func:`save_damping_targets`, or None (not stored)."""
+    shape, raw = redis.hmget(keys.damping_targets(calibration_id), ["shape", "arrays"])
+    if shape is None or raw is None:
+        return None
+    return _json(shape), raw.encode() if isinstance(raw, str) else bytes(raw)
+
+
 def save_chain_result(
     redis: Redis, calibration_id: str, chain: int, result: dict[str, Any], evaluations: int
 ) -> None:
@@ -136,6 +155,7 @@ def delete_stage_data(
     it happens with the write of the parameter set)."""
     pipe.delete(*[keys.chain_checkpoint(calibration_id, c) for c in range(chains)])
     pipe.delete(keys.reduced_basis(calibration_id))
+    pipe.delete(keys.damping_targets(calibration_id))
     pipe.delete(keys.damping_result(calibration_id))
     for task in tasks or []:
         pipe.delete(keys.case_run(calibration_id, task))

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import fpm
-from fpm.dynamics.equilibrium import static_equilibrium
+from fpm.dynamics.equilibrium import StaticSolver, static_equilibrium
+from fpm.dynamics.settle import FLOOR, SHARE
 from fpm.dynamics.simulation import FpmModel
 from fpm.fitting.annealing import AnnealingError, Checkpoint, Schedule, State, anneal, metropolis
 from fpm.fitting.bounds import damping_bounds
@@ -180,7 +181,8 @@ def test_chain_recovers_the_known_stiffness_and_repeats_exactly(small, method):
 
 def test_two_stage_calibration_recovers_k_and_the_fastest_settling_d(small):
     """k to 0.1% (the polish); d settles in at most 1.05x the fewest steps of a 30-point grid;
-    the last dynamic run reproduces the static cost within 0.1%."""
+    the last dynamic run's states are within their settle distances of the static equilibria
+    (the reference is the FPM's own: 'auto' takes the floor, 1e-4)."""
     problem, ref = small
     seen = []
     result = calibrate(problem, reference=ref, progress=seen.append)
@@ -189,21 +191,26 @@ def test_two_stage_calibration_recovers_k_and_the_fastest_settling_d(small):
     assert result.stiffness == {"axis": result.k, "face": result.k}
     assert result.settled and result.depth <= 10
     # the reference is the FPM's own, so the cost is near 0 and the settled states' own
-    # distance from equilibrium (the distance criterion's, within settle_distance, measured)
+    # distance from equilibrium (the target criterion's, within settle_distance, measured)
     # dominates the last dynamic run's
-    distance = problem.spec.fpm.settle_distance
-    assert max(result.settle_distance_measured) <= distance
-    assert abs(result.cost - result.static_cost) <= distance * np.linalg.norm(ref, axis=2).sum()
+    assert result.settle_distance == [FLOOR, FLOOR]
+    assert max(result.settle_distance_measured) <= FLOOR
+    assert abs(result.cost - result.static_cost) <= FLOOR * np.linalg.norm(ref, axis=2).sum()
     assert max(result.relative_discrepancy) < 1.0
     assert {s.get("phase") for s in seen} >= {"annealing", "polish", "damping", "finalize"}
     lo, hi = damping_bounds(problem)
     assert lo <= result.d_min <= result.d <= hi
     model, stiffness = FpmModel(problem), model_stiffness(problem, [result.k])
+    solver = StaticSolver(problem)
+    statics = [solver.solve(j, stiffness, result.depth).displacements for j in range(2)]
+    settle = [
+        settle_criterion(problem, result.settle_stiffness[j], statics[j], FLOOR) for j in range(2)
+    ]
 
     def total(d):
         runs = [
             model.run(j, k=stiffness, d=d, depth=result.depth, dt=result.dt, max_steps=2000,
-                      **settle_criterion(problem, result.settle_stiffness[j]))
+                      **settle[j])
             for j in range(2)
         ]  # fmt: skip
         return sum(r.steps for r in runs) if all(r.settled for r in runs) else math.inf
@@ -221,13 +228,14 @@ def test_two_stage_calibration_recovers_k_and_the_fastest_settling_d(small):
 def test_material_a_two_stage_matches_the_paper_method_and_its_statics():
     """The paper's cube, material A: k as the paper's joint annealing finds it (38.78 N/m,
     `make replicate`), a relative discrepancy of about 20% per force, and the last dynamic run
-    reproduces the static cost within 0.1%."""
+    reproduces the static cost within 5% (settle_distance 'auto': each case settles within
+    1/20 of its static discrepancy; measured 0.3%)."""
     problem = fpm.load_problem("examples/paper-material-a.json")
     result = calibrate(problem)
     assert result.k == pytest.approx(38.78, rel=0.005)
     assert all(19 < r < 21.5 for r in result.relative_discrepancy)
     assert result.settled and not [w for w in result.warnings if "static" in w]
-    assert abs(result.cost - result.static_cost) <= 1e-3 * result.static_cost
+    assert abs(result.cost - result.static_cost) <= SHARE * result.static_cost
     assert result.full_depth == 8 and result.depth == 10  # the spec asks for 10 layers
 
 

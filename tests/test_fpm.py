@@ -289,7 +289,7 @@ def test_the_layout_changes_no_bit_of_a_run():
         plist.order, a.ptr, a.neighbour, a.rest_length, stiffness.springs[a.spring],
         problem.nodes, x, v, problem.load_cases[0].dense(problem.n_nodes), problem.solid.masses,
         1.0, 0.05, 2e-4, 400, 0.0, 0.0, problem.size, cells.corners, cells.rest, cells.volume,
-        np.ascontiguousarray(stiffness.volume[which]), np.zeros_like(x),
+        np.ascontiguousarray(stiffness.volume[which]), np.zeros_like(x), np.zeros((0, 3)), 0.0, 0.0,
     )  # fmt: skip
     assert taken == result.steps == 400
     assert np.array_equal(x - problem.nodes, result.displacements)

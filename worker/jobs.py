@@ -21,6 +21,7 @@ import time
 from functools import partial
 from typing import Any
 
+import numpy as np
 from redis import Redis
 from rq import get_current_job
 from rq.job import Job
@@ -48,7 +49,7 @@ from store.timeline import critical_path
 
 from . import memory
 from .problems import problem_of, reference_of
-from .spread import CaseSpread, ValidationTask
+from .spread import CaseSpread, ValidationTask, save_targets
 
 PROGRESS_INTERVAL = 0.5
 """Seconds between progress writes of a job (each also checks for a cancel)."""
@@ -330,11 +331,13 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
     spreads: list[CaseSpread] = []
     timeout = job.timeout if isinstance(job.timeout, int) else SPREAD_TIMEOUT
 
-    def spread(plan: DampingPlan) -> CaseSpread | None:
+    def spread(plan: DampingPlan, targets: np.ndarray | None) -> CaseSpread | None:
         """The d search's runs over the free workers (not a field's: its stiffness is not
-        rebuilt from theta)."""
+        rebuilt from theta), with the static equilibria they settle towards."""
         if plan.field:
             return None
+        if targets is not None:
+            save_targets(redis, calibration_id, targets)
         spreads.append(
             CaseSpread(
                 redis, calibration_id, plan, span.worker, timeout,

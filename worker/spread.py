@@ -140,6 +140,26 @@ def validation_stored(found: Validation) -> tuple[dict[str, Any], bytes]:
     return {"validation": asdict(found)}, b""
 
 
+def save_targets(redis: Redis, calibration_id: str, targets: np.ndarray) -> None:
+    """The static equilibria (L, N, 3) m the d search's runs settle towards, for its tasks."""
+    data = np.ascontiguousarray(targets, dtype=np.float64)
+    scratch.save_damping_targets(redis, calibration_id, list(data.shape), data.tobytes())
+
+
+def targets_of(redis: Redis, calibration_id: str, spec: dict[str, Any]) -> np.ndarray | None:
+    """A task's static equilibria (L, N, 3) m (None: its runs do not settle towards them).
+
+    Raises:
+        LookupError: the plan names them but they are gone."""
+    if spec.get("distance") is None:
+        return None
+    found = scratch.get_damping_targets(redis, calibration_id)
+    if found is None:
+        raise LookupError("the damping stage's static equilibria are gone")
+    shape, raw = found
+    return np.frombuffer(raw, dtype=np.float64).reshape(shape).copy()
+
+
 def request_of(spec: dict[str, Any]) -> Request:
     """A request task's :class:`Request` (JSON lists back to tuples)."""
     r = spec["request"]
@@ -566,15 +586,18 @@ def damping_case(calibration_id: str, task: str) -> dict[str, Any]:
         problem = problem_of(redis, record.spec)
         memory.check(problem.n_nodes)
         stiffness = model_stiffness(problem, spec["theta"])
+        targets = targets_of(redis, calibration_id, spec)
+        settle, distance = spec.get("settle"), spec.get("distance")
         if "request" in spec:
             return run_request(
                 problem, stiffness, spec["depth"], spec["dt"], request_of(spec),
-                partial(_named, redis, calibration_id, task), spec.get("settle"),
+                partial(_named, redis, calibration_id, task), settle, targets, distance,
             )  # fmt: skip
-        settle = spec.get("settle")
+        j = spec["load_case"]
         one = run_case(
-            FpmModel(problem), stiffness, spec["depth"], spec["dt"], spec["load_case"],
-            spec["d"], spec["cap"], None if settle is None else settle[spec["load_case"]],
+            FpmModel(problem), stiffness, spec["depth"], spec["dt"], j, spec["d"], spec["cap"],
+            None if settle is None else settle[j], None if targets is None else targets[j],
+            None if distance is None else distance[j],
         )  # fmt: skip
         return [one], None
 

@@ -48,8 +48,11 @@ step feeds motion into modes the load does not excite (on the paper's cube the s
 excites one of the lowest four modes, yet the two lowest, sideways, set the fastest d). The
 residual of the settle test (largest |F_i + F_s| of a sweep, N) is ~ |(K Phi q)_i|, followed at
 the nodes where the modes' residuals peak and at the loaded nodes; the predicted steps are the
-first step it falls below the settle force. The fastest d (:func:`fastest_predicted`)
-minimises the predicted steps summed over the load cases.
+first step it falls below the settle force. On the target criterion of
+:mod:`fpm.dynamics.settle` the test reads the reach ``sqrt(q^T P q + |dq/dt|^2 / lambda)``
+(times the slowest mode's sum of nodal lengths over its 2-norm: the run sums nodal lengths),
+which the slowest modes hold: there the reduced step sees what the run reads. The fastest d
+(:func:`fastest_predicted`) minimises the predicted steps summed over the load cases.
 
 Measured (the modes and the reduced steps against the dynamic kernel): on the paper's cube
 (material A, k = 38.78 N/m, dt = 1 ms) the predicted total over a grid of d follows the runs'
@@ -82,7 +85,7 @@ from .eigen import SETTLED_VALUES as SETTLED_VALUES
 from .eigen import THREADED_FROM as THREADED_FROM
 from .eigen import TOLERANCE as TOLERANCE
 from .equilibrium import StaticSolver
-from .settle import by_distance, force_tolerance, mode_stiffness
+from .settle import by_distance, force_tolerance, mode_stiffness, nodal_size, nominal_distance
 from .spring_system import Params, SpringSystem
 
 PEAK_NODES = 8
@@ -210,6 +213,12 @@ class StepModel:
         residual_gram: (k, k) (K Phi)^T (K Phi), N^2 per unit q^2: the settle test reads the
             2-norm of the residual over the list (the distance criterion); None: its largest
             nodal value at the followed nodes (the force criterion).
+        slowness: 1 / lambda, m/N, > 0: the settle test reads the state's reach from the static
+            equilibrium (the target criterion of :mod:`fpm.dynamics.settle`), m, and
+            ``settle_force`` is its reach: read as ``spread * sqrt(|Phi q|^2 + |dq/dt|^2
+            slowness)``, with ``spread`` the slowest mode's sum of nodal lengths over its
+            2-norm (the reach is a sum of nodal lengths; late in a run the slowest mode holds
+            the error).
     """
 
     dt: float
@@ -221,6 +230,8 @@ class StepModel:
     settle_force: float
     mode_stiffness: float = 0.0
     residual_gram: np.ndarray | None = None
+    slowness: float = 0.0
+    spread: float = 1.0
     _powers: dict[float, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
 
     def iteration(self, d: float) -> np.ndarray:
@@ -253,15 +264,14 @@ class StepModel:
         for _ in range(block - 1):
             powers.append(jump @ powers[-1])
         stacked = np.stack(powers)  # (block, 2k, 2k)
-        k = len(self.start)
         state = np.concatenate([self.start, self.start])
-        last = float(self._level(state[None, :k])[0])
+        last = float(self._level(state[None, :])[0])
         if last < self.settle_force:
             return 0.0
         taken = 0
         while taken < cap:
             states = stacked @ state  # (block, 2k)
-            levels = self._level(states[:, :k])
+            levels = self._level(states)
             below = np.flatnonzero(levels < self.settle_force)
             if len(below):
                 i = int(below[0])
@@ -274,9 +284,17 @@ class StepModel:
             taken += CHECK_EVERY * block
         return NEVER
 
-    def _level(self, q: np.ndarray) -> np.ndarray:
-        """(n,) what the settle test reads of the residual, N, of the reduced states q (n, k):
-        its 2-norm, or its largest nodal value (``residual_gram`` None)."""
+    def _level(self, states: np.ndarray) -> np.ndarray:
+        """(n,) what the settle test reads of the reduced states (n, 2k) (q, q-): the reach
+        from the static equilibrium, m (``slowness`` > 0), or the residual's 2-norm, or its
+        largest nodal value (``residual_gram`` None), N."""
+        k = len(self.start)
+        q = states[:, :k]
+        if self.slowness > 0:
+            rate = (q - states[:, k:]) / self.dt
+            reach2 = np.einsum("nk,kl,nl->n", q, self.mobility, q)
+            kinetic = self.slowness * (rate * rate).sum(axis=1)
+            return self.spread * np.sqrt(np.maximum(reach2 + kinetic, 0.0))
         if self.residual_gram is not None:
             return np.sqrt(np.maximum(np.einsum("nk,kl,nl->n", q, self.residual_gram, q), 0.0))
         rows = self.residual.reshape(-1, self.residual.shape[2])  # (3c, k)
@@ -310,7 +328,8 @@ def step_model(
         displacement: (N, 3) the static equilibrium u*, m; None: the modes' linear response
             to ``loads`` (q = -Phi^T f / w^2).
         norm: the settle test reads the residual's 2-norm (the distance criterion), not its
-            largest nodal value.
+            largest nodal value; with ``displacement`` given, the state's reach from it (the
+            target criterion, ``settle_force`` then its reach, m).
     """
     k = system.parameters(stiffness)
     rank = np.empty(system.n_free, dtype=np.int64)
@@ -327,6 +346,8 @@ def step_model(
     peaks = np.argsort(-size, axis=0)[:PEAK_NODES].ravel()
     loaded = np.flatnonzero(np.abs(loads[system.free]).sum(axis=1) > 0)
     followed = np.unique(np.concatenate([peaks, loaded]))
+    lowest = mode_stiffness(modes.w2, phi)
+    slowest = phi[:, int(np.argmin(modes.w2))]
     return StepModel(
         dt=float(dt),
         mobility=_gram(phi, phi),
@@ -335,8 +356,10 @@ def step_model(
         start=start,
         residual=kphi[followed],
         settle_force=float(settle_force),
-        mode_stiffness=mode_stiffness(modes.w2, phi),
+        mode_stiffness=lowest,
         residual_gram=_gram(modes.kshapes, modes.kshapes) if norm else None,
+        slowness=1.0 / lowest if norm and displacement is not None else 0.0,
+        spread=nodal_size(slowest.reshape(-1, 3)) / float(np.linalg.norm(slowest)),
     )
 
 
@@ -423,13 +446,15 @@ def predict_damping(
     *,
     cap: int = 1_000_000,
     count: int = MODES,
+    distances: list[float] | None = None,
 ) -> tuple[Prediction, list[StepModel]]:
     """The predicted fastest d of ``problem``'s load cases at ``stiffness``, ``depth`` and
     ``dt``, within ``bounds`` (N s/m), and the reduced steps it came from.
 
     ``solver``: the problem's static solver (its systems, perturbed lists and multigrid
     hierarchies); ``static`` (L, N, 3): the static equilibria, m (None: the modes' linear
-    response). One set of modes per distinct list.
+    response); ``distances``: each case's settle distance towards them (None: the spec's,
+    :func:`fpm.dynamics.settle.nominal_distance`). One set of modes per distinct list.
 
     Raises:
         ValueError: no d in the bounds settles in the reduced steps (e.g. a tolerance of 0).
@@ -439,8 +464,9 @@ def predict_damping(
     found: dict[bytes, Modes] = {}
     with single_threaded_blas():
         models = reduced_steps(
-            problem, solver, stiffness, depth, dt, static, count=count, modes=found
-        )
+            problem, solver, stiffness, depth, dt, static, count=count, modes=found,
+            distances=distances,
+        )  # fmt: skip
         d, steps = fastest_predicted(models, bounds, cap)
         radius = [m.radius(d) for m in models]
     prediction = Prediction(
@@ -464,10 +490,14 @@ def reduced_steps(
     count: int = MODES,
     cases: list[int] | None = None,
     modes: dict[bytes, Modes] | None = None,
+    distances: list[float] | None = None,
 ) -> list[StepModel]:
     """:class:`StepModel` of each load case (``cases``: those only) at ``stiffness``,
     ``depth``, ``dt``; the modes of each distinct list computed once and kept in ``modes``
-    (keyed by the list's nodes; pass the same dict again for the same stiffness).
+    (keyed by the list's nodes; pass the same dict again for the same stiffness). On the
+    distance criteria of :mod:`fpm.dynamics.settle`: with ``static`` (L, N, 3) m the target
+    criterion at ``distances`` (None: the spec's nominal distance), else the bound (1) at
+    the nominal distance.
 
     Raises:
         SingularStiffnessError: the lattice at rest has a mode without stiffness.
@@ -505,18 +535,19 @@ def reduced_steps(
         plist = solver.lists.get(problem.load_cases[j].nodes, depth)
         loads = solver.loads(j)
         distance = by_distance(spec)
-        if distance:  # the residual (1) of fpm.dynamics.settle at the equilibrium
+        if distance:  # fpm.dynamics.settle: (1) at the modes' response, or (2) at static's
             shapes = found[key]
-            if static is None:  # the modes' linear response
+            if static is None:  # the modes' linear response, on the distance criterion (1)
                 f = loads[system.free].ravel()
                 moved = shapes.shapes @ ((shapes.shapes.T @ f) / shapes.w2)
-            else:
-                moved = static[j][system.free]
-            force = (
-                spec.fpm.settle_distance
-                * mode_stiffness(shapes.w2, shapes.shapes)
-                * float(np.linalg.norm(moved))
-            )
+                force = (
+                    nominal_distance(spec)
+                    * mode_stiffness(shapes.w2, shapes.shapes)
+                    * float(np.linalg.norm(moved))
+                )
+            else:  # the target criterion (2): its reach, m
+                share = nominal_distance(spec) if distances is None else distances[j]
+                force = share * nodal_size(static[j])
         else:
             force = force_tolerance(spec) * float(np.linalg.norm(loads[plist.order], axis=1).max())
         models.append(

@@ -14,7 +14,7 @@ from ..model.problem import Problem
 from ..model.spec import FpmSettings
 from ..model.stiffness import axis_factors, has_volume, model_stiffness
 from ..model.volume import Cells
-from .settle import by_distance, force_tolerance
+from .settle import by_distance, force_tolerance, nominal_distance
 from .stability import auto_time_step
 from .voigt import DIVERGED, INVERTED, RUNNING, SETTLED, run_steps
 
@@ -143,6 +143,9 @@ class FpmModel:
         max_steps: int,
         settle_tolerance: float,
         settle_stiffness: float = 0.0,
+        target: np.ndarray | None = None,
+        reach: float = 0.0,
+        slowness: float = 0.0,
     ) -> SimulationResult:
         """Simulate ``load_case`` from rest; see :func:`simulate`.
 
@@ -152,7 +155,7 @@ class FpmModel:
         """
         run = self.start(
             load_case, k=k, d=d, depth=depth, dt=dt, settle_tolerance=settle_tolerance,
-            settle_stiffness=settle_stiffness,
+            settle_stiffness=settle_stiffness, target=target, reach=reach, slowness=slowness,
         )  # fmt: skip
         run.advance(max_steps, buffers=(self._x, self._v))
         return run.result()
@@ -167,12 +170,17 @@ class FpmModel:
         dt: float,
         settle_tolerance: float,
         settle_stiffness: float = 0.0,
+        target: np.ndarray | None = None,
+        reach: float = 0.0,
+        slowness: float = 0.0,
     ) -> DynamicRun:
         """A run of ``load_case`` from rest that advances in pieces (:class:`DynamicRun`);
         arguments as :meth:`run`. It settles once its largest unbalanced nodal force is below
         ``settle_tolerance`` times the largest applied nodal force, or once the 2-norm of its
         unbalanced nodal forces is below ``settle_stiffness`` (N/m) times the 2-norm of its
-        displacements (:mod:`fpm.dynamics.settle`)."""
+        displacements (:mod:`fpm.dynamics.settle`); or, given ``target`` (N, 3) the static
+        equilibrium's displacements, m, once its reach from there (its distance plus what its
+        velocities carry, ``slowness`` m/N) is below ``reach`` m (the target criterion)."""
         p = self.problem
         plist = self.perturbed_list(load_case, depth)
         external = p.load_cases[load_case].dense(p.n_nodes)
@@ -205,6 +213,9 @@ class FpmModel:
             * float(np.linalg.norm(external[plist.order], axis=1).max()),
             settle_stiffness=float(settle_stiffness),
             volume=volume,
+            target=target,
+            reach=float(reach),
+            slowness=float(slowness),
         )
 
 
@@ -222,12 +233,13 @@ class DynamicRun:
     Attributes:
         steps: time steps taken so far.
         state: voigt.RUNNING, SETTLED or DIVERGED.
-        residual: what the settle test reads of the last sweep's unbalanced nodal forces, N:
-            the largest (the force criterion), or their 2-norm over the list (the distance
-            criterion, ``settle_stiffness`` > 0).
+        residual: what the settle test reads of the last sweep: the largest unbalanced nodal
+            force, N (the force criterion), their 2-norm over the list, N (the distance
+            criterion, ``settle_stiffness`` > 0), or its reach from the static equilibrium, m
+            (the target criterion, a ``target`` given).
         moved: the 2-norm of the last sweep's nodal displacements over the list, m.
-        settle_force: the residual the run settles below where it stands, N: the force
-            criterion's, or ``settle_stiffness`` (N/m) times ``moved``.
+        settle_force: the residual the run settles below where it stands: the force
+            criterion's (N), ``settle_stiffness`` (N/m) times ``moved``, or ``reach`` (m).
         history: (steps, residual) after every piece, for a caller that watches the decay.
     """
 
@@ -246,6 +258,9 @@ class DynamicRun:
         settle_force: float,
         settle_stiffness: float,
         volume: tuple[Cells, np.ndarray],
+        target: np.ndarray | None = None,
+        reach: float = 0.0,
+        slowness: float = 0.0,
     ):
         p = model.problem
         self.cells, self.kappa = volume
@@ -262,6 +277,11 @@ class DynamicRun:
         self._rest = np.ascontiguousarray(p.nodes[layout.nodes])
         self._mass = np.ascontiguousarray(p.solid.masses[layout.nodes])
         self._force: np.ndarray | None = None  # volume forces (N, 3), made on the first piece
+        self._target = np.zeros((0, 3))
+        self.slowness, self._reach = slowness, 0.0
+        if target is not None:  # the static equilibrium's positions, in the list's numbering
+            self._target = np.ascontiguousarray(self._rest + target[layout.nodes])
+            self.settle_force = self._reach = reach
 
     @property
     def diverged(self) -> bool:
@@ -290,10 +310,13 @@ class DynamicRun:
             self.layout.order, a.ptr, a.neighbour, a.rest_length, self.factor, self._rest,
             self.x, self.v, self.external, self._mass, self.k, self.d, self.dt,
             int(steps), self._force_criterion, self.settle_stiffness, p.size,
-            c.corners, c.rest, c.volume, self.kappa, self._force,
+            c.corners, c.rest, c.volume, self.kappa, self._force, self._target, self.slowness,
+            self._reach,
         )  # fmt: skip
         self.moved = float(moved)
-        if self.settle_stiffness > 0:
+        if len(self._target):
+            self.residual = float(norm)
+        elif self.settle_stiffness > 0:
             self.residual, self.settle_force = float(norm), self.settle_stiffness * self.moved
         else:
             self.residual = float(worst)
@@ -390,7 +413,7 @@ def simulate(
         model = stiffness if isinstance(stiffness, Stiffness) else model_stiffness(problem, k)
         models = case_models(problem, model, depth, step, [load_case])
     if distance and models is not None:
-        tolerance, settle = 0.0, settings.settle_distance * models[0].mode_stiffness
+        tolerance, settle = 0.0, nominal_distance(problem.spec) * models[0].mode_stiffness
     elif tolerance is None:  # the paper method, or a lattice with no modes at rest
         tolerance = force_tolerance(problem.spec)
     if cap == "auto":

@@ -180,6 +180,9 @@ def run_steps(
     rest_volume: np.ndarray,
     kappa: np.ndarray,
     volume_force: np.ndarray,
+    target: np.ndarray,
+    slowness: float,
+    reach: float,
 ) -> tuple[int, int, float, int, float, float]:
     """Advance ``x``, ``v`` (N, 3) in place by up to ``max_steps`` steps over ``order`` (M,).
 
@@ -189,7 +192,11 @@ def run_steps(
     Stops early (SETTLED) once the largest |F_i + F_s| of a sweep is below ``settle_force``
     (N; the force criterion), or once the 2-norm of the sweep's F_i + F_s over the list is
     below ``settle_stiffness`` (N/m) times the 2-norm of its x_i - rest_i (the distance
-    criterion of :mod:`fpm.dynamics.settle`; 0 for none); once a node is non-finite or further
+    criterion of :mod:`fpm.dynamics.settle`; 0 for none), or, with ``target`` (N, 3) the static
+    equilibrium's positions (m; (0, 3): none), once the sweep's *reach*
+    ``sum_i sqrt(|x_i - target_i|^2 + slowness m_i |v_i|^2)`` (m; ``slowness`` m/N) is below
+    ``reach`` (m; the target criterion of :mod:`fpm.dynamics.settle`; it is then the fifth
+    value returned, in place of the forces' 2-norm); once a node is non-finite or further
     than ``max_move`` (m) from rest (DIVERGED; two nodes at one place give a non-finite force,
     NumPy's error model, rather than an exception), or once a cell inverts (INVERTED). Returns
     (steps taken, RUNNING/SETTLED/DIVERGED/INVERTED, largest |F_i + F_s| of the last sweep,
@@ -198,6 +205,7 @@ def run_steps(
     """
     scaled = stiffness_factor.shape[0] > 0
     cells = corners.shape[0] > 0
+    targeted = target.shape[0] > 0
     limit2 = max_move * max_move
     worst = norm = moved = 0.0
     most = 0
@@ -210,6 +218,7 @@ def run_steps(
         worst2 = 0.0
         total2 = 0.0
         moved2 = 0.0
+        reached = 0.0
         if cells:
             inverted = volume_forces(
                 corners, rest_coefficients, rest_volume, kappa, x, order, volume_force
@@ -281,9 +290,16 @@ def run_steps(
             if not (u2sum <= limit2):  # also catches NaN
                 return step, DIVERGED, np.sqrt(worst2), -1, np.sqrt(total2), np.sqrt(moved2)
             moved2 += u2sum
+            if targeted:
+                e0, e1, e2 = xi0 - target[i, 0], xi1 - target[i, 1], xi2 - target[i, 2]
+                kinetic = slowness * mass[i] * (v0 * v0 + v1 * v1 + v2 * v2)
+                reached += np.sqrt(e0 * e0 + e1 * e1 + e2 * e2 + kinetic)
         worst = np.sqrt(worst2)
-        norm = np.sqrt(total2)
+        norm = reached if targeted else np.sqrt(total2)
         moved = np.sqrt(moved2)
-        if worst < settle_force or norm < settle_stiffness * moved:
+        if targeted:
+            if norm < reach:
+                return step, SETTLED, worst, -1, norm, moved
+        elif worst < settle_force or norm < settle_stiffness * moved:
             return step, SETTLED, worst, -1, norm, moved
     return max_steps, RUNNING, worst, -1, norm, moved

@@ -198,6 +198,7 @@ def finalize(
         settle_steps=final.settle_steps,
         settled=final.settled,
         settle_stiffness=None if damping is None else damping.settle,
+        settle_distance=final.settle_distance,
         settle_distance_estimated=final.settle_estimated,
         settle_distance_measured=final.settle_measured,
         evaluations=sum(c.evaluations for c in chains)

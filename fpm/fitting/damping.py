@@ -203,6 +203,8 @@ def fastest_damping(
     auto: bool = False,
     spread: Spread | None = None,
     settle: Sequence[float] | None = None,
+    targets: np.ndarray | None = None,
+    distances: Sequence[float] | None = None,
 ) -> DampingFit:
     """The d in ``bounds`` that settles every load case in the fewest total steps.
 
@@ -230,6 +232,9 @@ def fastest_damping(
             whatever runs them.
         settle: each load case's settle stiffness, N/m: its runs settle on the distance
             criterion (:mod:`fpm.dynamics.settle`); None: on the force criterion.
+        targets: (L, N, 3) each load case's static equilibrium displacements, m, and
+            ``distances`` (L,) their settle distances: with ``settle``, the runs settle on the
+            target criterion (``spread`` has them too).
 
     Raises:
         DampingError: no d in the bounds settles every load case within max_steps.
@@ -241,7 +246,8 @@ def fastest_damping(
     step = time_step(problem, stiffness) if dt is None else dt
     for attempt in range(RETRIES + 1):
         last = not auto or attempt == RETRIES or max_steps >= SCHEMA_MAX_STEPS
-        runs = _Runs(problem, stiffness, depth, step, spread, settle=settle)
+        runs = _Runs(problem, stiffness, depth, step, spread, settle=settle, targets=targets,
+                      distances=distances)  # fmt: skip
         runs.max_steps = max_steps
         try:
             return _search(

@@ -34,7 +34,7 @@ from ..dynamics.modes import (
     predict_damping,
     single_threaded_blas,
 )
-from ..dynamics.settle import by_distance
+from ..dynamics.settle import by_distance, case_distances, nominal_distance
 from ..dynamics.stability import stable_time_step, time_step
 from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
 from ..model.forces import Stiffness
@@ -119,14 +119,18 @@ class DampingPlan:
     """What one dynamic run of the d search needs besides d and its cap (JSON-able): the
     stiffness theta (N/m; kappa Pa) the model is built from (:func:`model_stiffness`), the
     depth, the time step dt (s), whether a stiffness field replaced theta's model (its
-    runs are not handed to other processes), and each load case's settle stiffness (N/m, the
-    distance criterion of :mod:`fpm.dynamics.settle`; None: the force criterion)."""
+    runs are not handed to other processes), each load case's settle stiffness (N/m, the
+    distance criterion of :mod:`fpm.dynamics.settle`; None: the force criterion), and each
+    load case's settle distance where the runs settle on the target criterion (None: they do
+    not; the static equilibria they settle towards travel beside the plan:
+    :func:`find_damping`'s ``static``)."""
 
     theta: list[float]
     depth: int
     dt: float
     field: bool = False
     settle: list[float] | None = None
+    distance: list[float] | None = None
 
 
 def resolve_depth(
@@ -207,7 +211,7 @@ def fit_damping(
     chains: list[ChainResult],
     *,
     progress: Progress | None = None,
-    spread: Callable[[DampingPlan], Spread | None] | None = None,
+    spread: Callable[[DampingPlan, np.ndarray | None], Spread | None] | None = None,
     basis: ReducedBasis | None = None,
     validator: Validator | None = None,
 ) -> DampingStage:
@@ -219,7 +223,8 @@ def fit_damping(
     calibration's first basis (built here when None: the same bits); its last round's static
     equilibria are the warm starts of the stage's static solves at the answer.
 
-    ``spread``: given the :class:`DampingPlan` (what a run needs besides d and its caps),
+    ``spread``: given the :class:`DampingPlan` (what a run needs besides d and its caps) and
+    the static equilibria (L, N, 3) m its runs settle towards (None: none),
     the :class:`~fpm.fitting.damping.Spread` that runs the predicted d's load cases and the
     d tried next over other processes (None: here); the worker hands them to free workers
     (:mod:`worker.spread`). The answer does not depend on it. ``validator``: where the
@@ -249,7 +254,7 @@ def _fit_damping(
     reference: Any,
     chains: list[ChainResult],
     progress: Progress | None,
-    spread: Callable[[DampingPlan], Spread | None] | None,
+    spread: Callable[[DampingPlan, np.ndarray | None], Spread | None] | None,
     validator: Validator,
     basis: ReducedBasis | None,
 ) -> DampingStage:
@@ -317,10 +322,11 @@ def _fit_damping(
         None if progress is None else (lambda i: progress({"phase": "damping", **i})),
         plan,
         spread,
+        disp,
     )
     final = final_run(
         cost, stiffness, depth, fit.displacements, fit.steps, settled=True,
-        residuals=fit.residuals, settle=plan.settle, statics=static,
+        residuals=fit.residuals, settle=plan.settle, statics=static, distances=plan.distance,
     )  # fmt: skip
     validation = None
     if checks:
@@ -406,10 +412,13 @@ def find_damping(
     dt: float,
     progress: Any = None,
     plan: DampingPlan | None = None,
-    spread: Callable[[DampingPlan], Spread | None] | None = None,
+    spread: Callable[[DampingPlan, np.ndarray | None], Spread | None] | None = None,
+    reference: np.ndarray | None = None,
 ) -> tuple[DampingFit, DampingPlan]:
     """The fastest-settling d at (``stiffness``, ``depth``, ``dt`` s), from ``static`` (L, N,
-    3) the static equilibria, m, and ``plan`` (None: made of ``stiffness``' parameters) with
+    3) the static equilibria, m, ``reference`` (L, N, 3) the reference's displacements at the
+    lattice nodes, m (the settle distances 'auto' read: :func:`fpm.dynamics.settle.case_distances`;
+    None: the nominal distance), and ``plan`` (None: made of ``stiffness``' parameters) with
     each case's settle stiffness: the distance criterion's (:mod:`fpm.dynamics.settle`) read
     from the modes of the prediction, or None for the force criterion (the spec names a
     settle_tolerance, or there are no modes). The search of
@@ -419,31 +428,39 @@ def find_damping(
     steps predicted there (:func:`fpm.dynamics.modes.auto_max_steps`). Where the lattice at
     rest has no modes to predict from (a mechanism, e.g. 'axis' springs) or no d settles in
     the reduced steps, from the two critical-damping estimates of :func:`damping_guesses`,
-    'auto' then being FALLBACK_STEPS. ``spread``: given the plan, runs the search's runs over
+    'auto' then being FALLBACK_STEPS. ``spread``: given the plan and the static equilibria its
+    runs settle towards (the target criterion; None: not), runs the search's runs over
     other processes (:func:`fpm.fitting.damping.fastest_damping`). Returns the fit and the
     plan its runs followed."""
     bounds = damping_bounds(problem)
     asked = problem.spec.fpm.max_steps
     if plan is None:
         plan = DampingPlan([float(t) for t in stiffness.parameters()], int(depth), dt)
+    distance = None
+    if by_distance(problem.spec):  # the target criterion: the runs settle towards static
+        distance = case_distances(problem.spec, static, reference)
     try:
-        prediction, models = predict_damping(problem, solver, stiffness, depth, dt, bounds, static)
+        prediction, models = predict_damping(
+            problem, solver, stiffness, depth, dt, bounds, static, distances=distance
+        )
     except (ValueError, SingularStiffnessError, NegativeCurvature, np.linalg.LinAlgError):
         guesses = damping_guesses(problem, solver, stiffness, depth, static)
         cap = FALLBACK_STEPS if asked == "auto" else int(asked)
         fit = fastest_damping(
             problem, stiffness, depth, bounds, guesses, dt=dt, progress=progress, max_steps=cap,
-            auto=asked == "auto", spread=None if spread is None else spread(plan),
+            auto=asked == "auto", spread=None if spread is None else spread(plan, None),
         )  # fmt: skip
         return fit, plan
-    if by_distance(problem.spec):
-        distance = problem.spec.fpm.settle_distance
-        plan = replace(plan, settle=[distance * m.mode_stiffness for m in models])
+    targets = None
+    if distance is not None:
+        each = [nominal_distance(problem.spec) * m.mode_stiffness for m in models]
+        plan = replace(plan, settle=each, distance=distance)
+        targets = static
     cap = auto_max_steps(prediction.steps) if asked == "auto" else int(asked)
     fit = fastest_damping(
         problem, stiffness, depth, bounds, (prediction.d, prediction.d), dt=dt,
         progress=progress, prediction=prediction, models=models, max_steps=cap,
-        auto=asked == "auto", spread=None if spread is None else spread(plan),
-        settle=plan.settle,
+        auto=asked == "auto", spread=None if spread is None else spread(plan, targets),
+        settle=plan.settle, targets=targets, distances=plan.distance,
     )  # fmt: skip
     return fit, plan

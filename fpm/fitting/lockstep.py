@@ -27,7 +27,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from ..dynamics.modes import fixed_max_steps
-from ..dynamics.settle import force_tolerance
+from ..dynamics.settle import run_criterion
 from ..dynamics.simulation import DynamicRun, FpmModel
 from ..dynamics.voigt import DIVERGED, INVERTED, RUNNING, SETTLED
 from ..model.forces import Stiffness
@@ -166,27 +166,34 @@ def run_case(
     d: float,
     cap: int,
     settle_stiffness: float | None = None,
+    static: np.ndarray | None = None,
+    distance: float | None = None,
 ) -> CaseRun:
     """Load case ``load_case`` at (``stiffness``, ``d`` N s/m, ``depth``, ``dt`` s) from rest
     to its end: settled, diverged or ``cap`` steps; advanced in the same pieces of CHUNK steps
     as the lockstep runs of :class:`_Runs`, so the very same floating-point sequence whatever
     process runs it. ``settle_stiffness``: the distance criterion's, N/m
-    (:mod:`fpm.dynamics.settle`); None: the force criterion."""
+    (:mod:`fpm.dynamics.settle`); None: the force criterion; with ``static`` (N, 3) m, the
+    case's static equilibrium, and its settle ``distance``, the target criterion."""
     run = model.start(
         load_case, k=stiffness, d=d, depth=depth, dt=dt,
-        **settle_criterion(model.problem, settle_stiffness),
+        **settle_criterion(model.problem, settle_stiffness, static, distance),
     )  # fmt: skip
     while not run.finished and run.steps < cap:
         _piece(run, min(CHUNK, cap - run.steps))
     return CaseRun.of(run)
 
 
-def settle_criterion(problem: Problem, settle_stiffness: float | None) -> dict[str, float]:
-    """A run's settle arguments (:meth:`FpmModel.start`): the distance criterion's
-    ``settle_stiffness`` (N/m) alone, or, for None, the force criterion's tolerance."""
-    if settle_stiffness is None:
-        return {"settle_tolerance": force_tolerance(problem.spec), "settle_stiffness": 0.0}
-    return {"settle_tolerance": 0.0, "settle_stiffness": float(settle_stiffness)}
+def settle_criterion(
+    problem: Problem,
+    settle_stiffness: float | None,
+    static: np.ndarray | None = None,
+    distance: float | None = None,
+) -> dict[str, Any]:
+    """A run's settle arguments (:func:`fpm.dynamics.settle.run_criterion`): the distance
+    criterion's ``settle_stiffness`` (N/m), with ``static`` (N, 3) m and ``distance`` the
+    target criterion's, or, for None, the force criterion's tolerance."""
+    return run_criterion(problem.spec, settle_stiffness, static, distance)
 
 
 Resolve = Callable[[], dict[str, Any] | None]
@@ -203,11 +210,14 @@ def run_request(
     request: Request,
     resolve: Resolve | None = None,
     settle: Sequence[float] | None = None,
+    targets: np.ndarray | None = None,
+    distances: Sequence[float] | None = None,
 ) -> Outcome:
     """One d's lockstep runs (:meth:`_Runs.locked`) at (``stiffness``, ``depth``, ``dt`` s)
     in this process, for another's search; ``resolve``: where what is named later (a budget
-    LATER, or caps) comes from; ``settle``: each case's settle stiffness (as :class:`_Runs`)."""
-    runs = _Runs(problem, stiffness, depth, dt, settle=settle)
+    LATER, or caps) comes from; ``settle``, ``targets``, ``distances``: each case's settle
+    stiffness, static equilibrium and settle distance (as :class:`_Runs`)."""
+    runs = _Runs(problem, stiffness, depth, dt, settle=settle, targets=targets, distances=distances)
     try:
         return runs.locked(request, resolve)
     finally:
@@ -299,7 +309,9 @@ class _Runs:
     independent of the others') and the d the search will probably try next
     (:meth:`prefetch`) over other processes (:class:`Spread`; None: the cases on these
     threads, nothing ahead). ``settle``: each load case's settle stiffness, N/m (the distance
-    criterion, :mod:`fpm.dynamics.settle`); None: the force criterion."""
+    criterion, :mod:`fpm.dynamics.settle`); None: the force criterion. ``targets``: (L, N, 3)
+    each load case's static equilibrium displacements, m, and ``distances`` (L,) their settle
+    distances: with ``settle``, the runs settle on the target criterion."""
 
     def __init__(
         self,
@@ -310,9 +322,13 @@ class _Runs:
         spread: Spread | None = None,
         *,
         settle: Sequence[float] | None = None,
+        targets: np.ndarray | None = None,
+        distances: Sequence[float] | None = None,
     ):
         self.problem = problem
         self.settle = None if settle is None else [float(s) for s in settle]
+        self.targets = targets if distances is not None else None
+        self.distances = None if distances is None else [float(s) for s in distances]
         self.stiffness = stiffness
         self.depth = depth
         self.dt = dt
@@ -330,12 +346,19 @@ class _Runs:
         """Load case ``load_case`` at d run on its own to its end in this process."""
         return run_case(
             self.model, self.stiffness, self.depth, self.dt, load_case, d, cap,
-            self.case_settle(load_case),
+            self.case_settle(load_case), *self.case_target(load_case),
         )  # fmt: skip
 
     def case_settle(self, load_case: int) -> float | None:
         """Load case ``load_case``'s settle stiffness, N/m (None: the force criterion)."""
         return None if self.settle is None else self.settle[load_case]
+
+    def case_target(self, load_case: int) -> tuple[np.ndarray | None, float | None]:
+        """Load case ``load_case``'s static equilibrium, (N, 3) m, and settle distance (None,
+        None: the runs do not settle towards it)."""
+        if self.targets is None or self.distances is None:
+            return None, None
+        return self.targets[load_case], self.distances[load_case]
 
     def separate(
         self, d: float, caps: list[int], beside: Sequence[Request] = ()
@@ -438,7 +461,7 @@ class _Runs:
                 d=d,
                 depth=self.depth,
                 dt=self.dt,
-                **settle_criterion(self.problem, self.case_settle(j)),
+                **settle_criterion(self.problem, self.case_settle(j), *self.case_target(j)),
             )  # fmt: skip
             for j in range(self.cases)
         ]

@@ -191,22 +191,32 @@ class CalibrationResult(BaseModel):
     settled: bool = Field(description="every load case settled within max_steps")
     settle_stiffness: list[float] | None = Field(
         None,
-        description="per load case, the settle criterion's stiffness, N/m: a run settled once "
-        "its largest unbalanced nodal force was below this times its largest nodal "
-        "displacement (fpm.settle_distance times the stiffness of the lattice's softest mode); "
-        "null on the force criterion (fpm.settle_tolerance named, the paper method)",
+        description="per load case, the settle criterion of a run that has no equilibrium to "
+        "read (an engine running the JSON export), N/m: settled once the 2-norm of its "
+        "unbalanced nodal forces is below this times the 2-norm of its displacements "
+        "(fpm.settle_distance, 0.01 for 'auto', times the stiffness of the lattice's softest "
+        "mode: a bound on the distance); null on the force criterion (fpm.settle_tolerance "
+        "named, the paper method)",
+    )
+    settle_distance: list[float] | None = Field(
+        None,
+        description="per load case, the distance from its static equilibrium the fit's runs "
+        "settled within, relative to its displacement (sums of nodal distances, as Eq. 2): "
+        "fpm.settle_distance, or for 'auto' 1/20 of the case's static discrepancy, between "
+        "1e-4 and 0.01; null on the force criterion",
     )
     settle_distance_estimated: list[float] | None = Field(
         None,
         description="per load case, the settled state's distance from its static equilibrium "
-        "as its run estimated it (residual through the softest mode's stiffness), relative "
-        "to its largest displacement; null on the force criterion",
+        "as its run read it where it stopped (with what its velocities still carry along the "
+        "softest mode), relative to the equilibrium's displacement; null on the force "
+        "criterion",
     )
     settle_distance_measured: list[float] | None = Field(
         None,
         description="per load case, the settled state's distance from its static equilibrium, "
-        "measured against that equilibrium solved: the largest nodal difference over the "
-        "equilibrium's largest nodal displacement; null on the force criterion",
+        "measured against that equilibrium solved: the sum of the nodal differences over the "
+        "sum of the equilibrium's nodal displacements; null on the force criterion",
     )
     evaluations: int = Field(description="cost evaluations over all chains (and the polish)")
     damping_runs: int = Field(description="dynamic runs of the d search")

@@ -20,7 +20,13 @@ from typing import Any
 
 import numpy as np
 
-from ..dynamics.settle import PROMISE, estimated_distance, measured_distance
+from ..dynamics.settle import (
+    PROMISE,
+    estimated_distance,
+    measured_distance,
+    nodal_size,
+    nominal_distance,
+)
 from ..model.problem import Problem
 from .cost import StaticCost, Theta, discrepancies
 
@@ -105,6 +111,8 @@ class FinalRun:
         settle_measured: (L,) the same distance measured against the static equilibrium
             (:func:`fpm.dynamics.settle.measured_distance`); None without the distance
             criterion.
+        settle_distance: (L,) the distance each case was promised within (its settle
+            distance); None without the distance criterion.
     """
 
     cost: float
@@ -117,6 +125,7 @@ class FinalRun:
     notes: list[str]
     settle_estimated: list[float] | None = None
     settle_measured: list[float] | None = None
+    settle_distance: list[float] | None = None
 
 
 def final_run(
@@ -130,6 +139,7 @@ def final_run(
     residuals: list[float] | None = None,
     settle: list[float] | None = None,
     statics: np.ndarray | None = None,
+    distances: list[float] | None = None,
 ) -> FinalRun:
     """Check dynamic displacements (L, N, 3) at (theta, d, depth) against the reference and
     the static equilibria at (theta, depth).
@@ -138,8 +148,10 @@ def final_run(
     0.1% of the cost. On the distance criterion (``settle``: each case's settle stiffness,
     N/m, with ``residuals`` (L,) N the 2-norms of the runs' last unbalanced forces) each
     settled state must be within :data:`fpm.dynamics.settle.PROMISE` times the spec's
-    settle_distance of its static equilibrium (``statics`` (L, N, 3) m; None: solved here),
-    measured; the estimate the runs stopped on is reported beside it."""
+    settle distance of its static equilibrium (``statics`` (L, N, 3) m; None: solved here),
+    measured; the estimate the runs stopped on is reported beside it. ``distances``: each
+    case's settle distance where the runs stopped on the target criterion (``residuals`` (L,)
+    m then their reach from ``statics``); None: the spec's nominal distance, on the bound."""
     problem = static.problem
     static_ev = static(theta, depth)
     cost = float(sum(static.case_cost(j, u) for j, u in enumerate(displacements)))
@@ -151,22 +163,24 @@ def final_run(
             statics = np.stack(
                 [static.displacements(theta, j, depth).displacements for j in range(len(steps))]
             )
-        distance = problem.spec.fpm.settle_distance
-        estimated = [
-            estimated_distance(r, float(np.linalg.norm(u)), s / distance)
-            for r, u, s in zip(residuals, displacements, settle, strict=True)
-        ]
+        if distances is not None:
+            estimated = [r / nodal_size(u) for r, u in zip(residuals, statics, strict=True)]
+        else:
+            distances = [nominal_distance(problem.spec)] * len(steps)
+            estimated = [
+                estimated_distance(r, float(np.linalg.norm(u)), s / share)
+                for r, u, s, share in zip(residuals, displacements, settle, distances, strict=True)
+            ]
         measured = [measured_distance(u, v) for u, v in zip(displacements, statics, strict=True)]
         far = [
-            f"{case.name} {m:.2%}"
-            for case, m in zip(problem.load_cases, measured, strict=True)
-            if m > PROMISE * distance
+            f"{case.name} {m:.2%} (promised {PROMISE * share:.2%})"
+            for case, m, share in zip(problem.load_cases, measured, distances, strict=True)
+            if m > PROMISE * share
         ]
         if far:
             notes.append(
-                f"settled states further than {PROMISE * distance:.2%} of their displacement "
-                f"from the static equilibrium: {', '.join(far)}; a smaller fpm.settle_distance "
-                "helps"
+                f"settled states further from the static equilibrium than promised, relative "
+                f"to their displacement: {', '.join(far)}; a smaller fpm.settle_distance helps"
             )
     if not settled:
         notes.append("the last dynamic run did not settle every load case within max_steps")
@@ -189,6 +203,7 @@ def final_run(
         notes=notes,
         settle_estimated=estimated,
         settle_measured=measured,
+        settle_distance=None if measured is None else distances,
     )
 
 

@@ -295,7 +295,7 @@ def settle_parameters(lattice: Lattice) -> dict[str, Any]:
     2-norm of the displacements; 0 for none): the spec's settle_distance times the mode
     stiffness of each load case's list (``cases``, (L,)), the smallest of them for forces of
     the engine's own (``settle_stiffness``); or the force criterion."""
-    from ..dynamics.settle import by_distance, force_tolerance
+    from ..dynamics.settle import by_distance, force_tolerance, nominal_distance
 
     problem = lattice.problem
     cases = len(problem.load_cases)
@@ -309,7 +309,7 @@ def settle_parameters(lattice: Lattice) -> dict[str, Any]:
     if models is None:  # the force criterion (named, the paper method, or no modes at rest)
         tolerance = force_tolerance(problem.spec)  # FORCE_TOLERANCE where none is named
         return {"settle_tolerance": tolerance, "settle_stiffness": 0.0, "cases": [0.0] * cases}
-    each = [problem.spec.fpm.settle_distance * m.mode_stiffness for m in models]
+    each = [nominal_distance(problem.spec) * m.mode_stiffness for m in models]
     return {"settle_tolerance": 0.0, "settle_stiffness": min(each), "cases": each}
 
 

@@ -54,16 +54,18 @@ class FpmSettings(_Strict):
         "(default): three times the steps the lattice's slowest modes predict at the fitted d, "
         "at least 1,000 (20,000 where nothing predicts it, e.g. the paper method)",
     )
-    settle_distance: float = Field(
-        0.01,
-        gt=0,
-        lt=1,
-        description="settled when the run's estimated distance from its static equilibrium "
-        "(the 2-norm of its unbalanced nodal forces over the stiffness of the lattice's "
-        "softest modes) is below this times the 2-norm of its displacements: default 0.01, "
-        "within 1% of the static equilibrium (the estimate is a bound; measured 0.03-0.1% on "
-        "organs of 4.6k and 19.7k nodes); scale-free, unlike settle_tolerance. Not used "
-        "where settle_tolerance is named, nor by the paper method",
+    settle_distance: float | Literal["auto"] = Field(
+        "auto",
+        description="settled when the run's distance from its static equilibrium is below "
+        "this times the 2-norm of its displacement (scale-free, unlike settle_tolerance), "
+        "0 < x < 1, or 'auto' (default): 1/20 of each load case's own static discrepancy "
+        "against the reference (so settling moves the fit's figures by at most 5% of "
+        "themselves), between 1e-4 and 0.01 (always within 1% of the static equilibrium). The "
+        "fit's runs measure the distance against the static equilibrium they have solved (with "
+        "what the velocities still carry along the softest mode); a run with no equilibrium to "
+        "read (fpm.simulate, an exported model) bounds it by its unbalanced forces over the "
+        "stiffness of the softest mode, at 0.01 for 'auto'. Not used where settle_tolerance is "
+        "named, nor by the paper method",
     )
     settle_tolerance: float | None = Field(
         None,
@@ -86,6 +88,13 @@ class FpmSettings(_Strict):
     def _positive_dt(cls, v: float | str) -> float | str:
         if not isinstance(v, str) and not v > 0:
             raise ValueError("dt must be > 0 (s) or 'auto'")
+        return v
+
+    @field_validator("settle_distance")
+    @classmethod
+    def _settle_distance_range(cls, v: float | str) -> float | str:
+        if not isinstance(v, str) and not 0 < v < 1:
+            raise ValueError("settle_distance must be between 0 and 1 (exclusive) or 'auto'")
         return v
 
     @field_validator("max_steps")
