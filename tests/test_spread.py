@@ -326,6 +326,11 @@ def test_same_parameters_with_one_two_and_three_workers(redis, worker_processes)
         names = [s["name"] for s in done.result["jobs"]]
         assert names[0] == "FEM reference" and names[-1] == "finalize"
         assert {"chain 0", "chain 1", "damping", "damping (gather)"} <= set(names)
+        damping = next(s for s in done.result["jobs"] if s["name"] == "damping")
+        phases = [p["phase"] for p in damping["phases"]]  # what it did alone, before hand-out
+        assert phases[0] == "load" and "polish" in phases and phases[-1] == "damping"
+        alone = sum(p["seconds"] for p in damping["phases"])
+        assert alone == pytest.approx(damping["end"] - damping["start"], abs=1e-6)
         assert len(set(names)) == len(names)  # each task ran once
         for s in done.result["jobs"]:
             assert s["start"] <= s["end"] and s["cpu"] >= 0 and s["worker"] != "?"
@@ -346,9 +351,18 @@ def test_same_parameters_with_one_two_and_three_workers(redis, worker_processes)
 
 
 @pytest.mark.redis
-def test_worker_killed_holding_a_load_case_loses_nothing(redis, worker_processes):
+@pytest.mark.parametrize(
+    ("task", "workers"),
+    [(r"load case \d$", 2), (r"within their total, all load cases$", 2), (r"validation cases$", 3)],
+)
+def test_worker_killed_holding_a_task_of_the_damping_stage_loses_nothing(
+    redis, worker_processes, task, workers
+):
+    """A load case at one d, a d run ahead (a request), the validation cases: the worker that
+    holds one is killed mid-run, its task runs again elsewhere, the parameters are those of
+    the calibration in-process."""
     spec = long_cases(SMALL)
-    started = start_workers(redis, worker_processes, 2)
+    started = start_workers(redis, worker_processes, workers)
     record, _ = submit(redis, spec)
     registry = StartedJobRegistry(keys.PRIORITY_QUEUE, connection=redis, serializer=JSONSerializer)
     prefix = f"{record.id}-case-"
@@ -357,12 +371,12 @@ def test_worker_killed_holding_a_load_case_loses_nothing(redis, worker_processes
     def load_case_job() -> str | None:
         for job_id in registry.get_job_ids(cleanup=False):
             job = Job.fetch(job_id, connection=redis, serializer=JSONSerializer)
-            if job_id.startswith(prefix) and re.search(r"load case \d$", job.description or ""):
+            if job_id.startswith(prefix) and re.search(task, job.description or ""):
                 return job_id
         return None
 
     while (held := load_case_job()) is None:
-        assert time.monotonic() < deadline, "no load-case job started on another worker"
+        assert time.monotonic() < deadline, f"no {task} job started on another worker"
         time.sleep(0.02)
     holder = next(w for w in Worker.all(connection=redis) if w.get_current_job_id() == held)
     (victim,) = [p for p in started if p.pid == holder.pid]
@@ -371,6 +385,5 @@ def test_worker_killed_holding_a_load_case_loses_nothing(redis, worker_processes
     assert done.status == CalibrationStatus.SUCCEEDED, done.error
     expected = calibrate(fpm.load_problem(spec)).to_dict()
     assert {name: done.result[name] for name in FITTED} == {name: expected[name] for name in FITTED}
-    cases = case_spans(done.result)
-    assert sorted(s["name"][-1] for s in cases) == ["0", "1"]
-    assert holder.name not in {s["worker"] for s in cases}  # its task was run again elsewhere
+    spans = [s for s in done.result["jobs"] if re.search(task, s["name"])]
+    assert spans and holder.name not in {s["worker"] for s in spans}  # run again elsewhere

@@ -261,11 +261,13 @@ class _DampingProgress(_Reporter):
     ``step`` is "polish", "depth" or "damping" (fpm.fitting.damping_stage.fit_damping's phases),
     written at once when it changes; ``runs`` counts the d values tried, ``d`` and
     ``total_steps`` are the last one's (total_steps None: some load case did not settle) and
-    ``best_*`` the fastest so far.
+    ``best_*`` the fastest so far. ``marks``: (step, Unix s, process CPU s) where each step
+    began (the damping span's phases, :meth:`_Span.add_around`).
     """
 
     def __init__(self, job: Job, calibration_id: str):
         super().__init__(job, calibration_id, keys.DAMPING_PROGRESS)
+        self.marks: list[tuple[str, float, float]] = []
         self.state: dict[str, Any] = {
             "step": None,
             "runs": 0,
@@ -279,6 +281,8 @@ class _DampingProgress(_Reporter):
         step = info.get("phase")
         changed = step != self.state["step"]
         self.state["step"] = step
+        if changed:
+            self.marks.append((str(step), time.time(), time.process_time()))
         if "d" in info:
             total = info.get("total_steps")
             self.state.update(runs=self.state["runs"] + 1, d=info["d"], total_steps=total)
@@ -366,7 +370,10 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
         return {"failed": True}
     scratch.save_damping_result(redis, calibration_id, stage.to_dict())
     here = validator.cpu + (spreads[0].cpu if spreads else 0.0)  # tasks with spans of their own
-    span.add_around(spreads[0].rounds if spreads else [], here)
+    first = spreads[0] if spreads else None
+    span.add_around(
+        first.rounds if first else [], here, reporter.marks, first.first_cpu if first else None
+    )
     return {"d": stage.d, "depth": stage.depth, "runs": stage.damping_runs}
 
 
@@ -446,22 +453,41 @@ class _Span:
         span = self.as_dict(self.start, time.time(), cpu, self.after)
         scratch.add_span(self.redis, self.calibration_id, span)
 
-    def add_around(self, rounds: list[tuple[float, float, list[str]]], tasks_cpu: float) -> None:
+    def add_around(
+        self,
+        rounds: list[tuple[float, float, list[str]]],
+        tasks_cpu: float,
+        marks: list[tuple[str, float, float]] | None = None,
+        first_cpu: float | None = None,
+    ) -> None:
         """The damping job, in segments around its hand-outs of tasks (``rounds``:
         :attr:`worker.spread.CaseSpread.rounds`): "<name>" up to the first, "<name> (k)"
         between hand-outs k - 1 and k, waiting for the tasks of the one before, "<name>
         (gather)" from the last on; with no hand-out one span. The job's CPU seconds go on the
         first, less ``tasks_cpu``, those of the tasks it ran on its threads (their own spans
-        count them)."""
+        count them). ``marks`` ((step, Unix s, CPU s) where each phase of the stage began):
+        the first segment's ``phases``, [{phase, seconds, cpu}] up to its end, which say what
+        the job did alone before its first hand-out (``first_cpu``: the process's CPU seconds
+        then) and on how many cores."""
         if not rounds:
             self.add(tasks_cpu)
             return
+        phases = []
+        handed = time.process_time() if first_cpu is None else first_cpu
+        marks = [("load", self.start, self.cpu), *(marks or [])]  # the problem, the chains
+        ends = [(t, c) for _, t, c in marks[1:]] + [(rounds[0][0], handed)]
+        for (step, t0, c0), (t1, c1) in zip(marks, ends, strict=True):
+            if t0 < rounds[0][0]:
+                end = min(t1, rounds[0][0])
+                phases.append({"phase": step, "seconds": end - t0, "cpu": max(c1 - c0, 0.0)})
         edges = [self.start] + [t for r in rounds for t in r[:2]] + [time.time()]
         for k in range(len(rounds) + 1):
             start, end = edges[2 * k], edges[2 * k + 1]
             after = self.after if k == 0 else rounds[k - 1][2]
             cpu = max(time.process_time() - self.cpu - tasks_cpu, 0.0) if k == 0 else 0.0
             span = self.as_dict(start, end, cpu, after)
+            if k == 0 and phases:
+                span["phases"] = phases
             if k:
                 span["name"] = f"{self.name} ({'gather' if k == len(rounds) else k})"
             scratch.add_span(self.redis, self.calibration_id, span)

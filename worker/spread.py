@@ -277,6 +277,7 @@ class CaseSpread:
     Attributes:
         rounds: per hand-out: (Unix start, end, the tasks' span names).
         cpu: the CPU seconds of the tasks run here (counted in their own spans).
+        first_cpu: the process's CPU seconds when the first hand-out began (None: none yet).
     """
 
     def __init__(
@@ -294,6 +295,7 @@ class CaseSpread:
         self.threads = os.cpu_count() or 1  # at most; :func:`local_threads` at the time
         self.rounds: list[tuple[float, float, list[str]]] = []
         self.cpu = 0.0
+        self.first_cpu: float | None = None
 
     def _after(self) -> str:
         """The span the next hand-out's tasks wait for (:meth:`worker.jobs._Span.add_around`)."""
@@ -385,6 +387,8 @@ class CaseSpread:
         is always taken once nothing else here can run (its holder died, say)."""
         name_later, named_later = later if later is not None else (None, set())
         start = time.time()
+        if self.first_cpu is None:
+            self.first_cpu = time.process_time()
         tasks = [task_digest(s) for s in specs]
         for task, spec in zip(tasks, specs, strict=True):
             scratch.add_case_task(self.redis, self.calibration_id, task, spec)
