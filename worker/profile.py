@@ -16,9 +16,8 @@ from typing import Any
 import numpy as np
 from rq import get_current_job
 
-from fpm import simulate
+from fpm.fitting.validation import replayed_run
 from fpm.io.plot import profile_line
-from fpm.model.stiffness import fitted_theta
 from store import records, scratch
 from store.status import CalibrationStatus
 
@@ -40,11 +39,10 @@ def profile_data(problem: Any, reference: Any, result: dict[str, Any]) -> list[d
         discrepancy_h, %) and the run's steps and settled flag.
     """
     reference = np.asarray(reference, dtype=float)
-    theta = fitted_theta(problem, result)
     out = []
     for j, case in enumerate(problem.load_cases):
         line, along, direction = profile_line(problem, j)
-        run = simulate(problem, k=theta, d=result["d"], depth=result["depth"], load_case=j)
+        run = replayed_run(problem, result, j)
         p, q = run.displacements, reference[j]
         out.append(
             {

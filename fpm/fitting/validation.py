@@ -10,7 +10,9 @@ it was solved for them (:func:`reference_displacements`, :func:`validation_refer
   steps (:class:`FinalRun`), and a warning when the dynamic and static costs disagree by more
   than STATIC_AGREEMENT;
 - :func:`validate`: the validation cases (never in the cost) at the fitted stiffness, by their
-  static equilibria (:class:`Validation`: relative discrepancy and % of h per case).
+  static equilibria (:class:`Validation`: relative discrepancy and % of h per case);
+- :func:`replayed_run`: a load case run again as the fit's last run ran it (the web view's
+  profile).
 """
 
 from __future__ import annotations
@@ -20,14 +22,19 @@ from typing import Any
 
 import numpy as np
 
+from ..dynamics.equilibrium import static_equilibrium
+from ..dynamics.modes import fixed_max_steps
 from ..dynamics.settle import (
     PROMISE,
     estimated_distance,
     measured_distance,
     nodal_size,
     nominal_distance,
+    run_criterion,
 )
+from ..dynamics.simulation import SimulationResult, fpm_model, simulate
 from ..model.problem import Problem
+from ..model.stiffness import fitted_theta, model_stiffness
 from .cost import StaticCost, Theta, discrepancies
 
 STATIC_AGREEMENT = 1e-3
@@ -238,3 +245,25 @@ def validate(problem: Problem, reference: Any, theta: Theta, depth: int | None) 
         if not e.converged
     ]
     return Validation(figures.relative, figures.h_percent, notes)
+
+
+def replayed_run(problem: Problem, record: dict[str, Any], load_case: int) -> SimulationResult:
+    """Load case ``load_case`` run from rest as the fit's last run ran it, from its stored
+    ``record`` (a calibration result as a dict): its stiffness, d, depth, dt and cap, and its
+    settle criterion: the target criterion towards the static equilibrium at that stiffness
+    where the record names settle distances (:mod:`fpm.dynamics.settle`), else as
+    :func:`fpm.simulate` settles. What the web view's profile shows."""
+    theta = fitted_theta(problem, record)
+    distances, settle = record.get("settle_distance"), record.get("settle_stiffness")
+    if not distances or not settle:
+        return simulate(problem, k=theta, d=record["d"], depth=record["depth"], load_case=load_case)
+    depth = record["depth"]
+    static = static_equilibrium(problem, k=theta, depth=depth, load_case=load_case)
+    criterion = run_criterion(
+        problem.spec, settle[load_case], static.displacements, distances[load_case]
+    )
+    cap = record.get("max_steps") or fixed_max_steps(problem.spec.fpm.max_steps)
+    return fpm_model(problem).run(
+        load_case, k=model_stiffness(problem, theta), d=record["d"], depth=depth,
+        dt=record["dt"], max_steps=int(cap), **criterion,
+    )  # fmt: skip

@@ -1,0 +1,189 @@
+"""An independent static solve of the JSON export (issue 43's check on organ-sized lattices).
+
+From the exported model alone (its nodes, springs, hexahedra with their volume stiffness and
+rest volumes, fixed nodes), written here from the export's documented energy and not from fpm's
+code: the static equilibrium of the export's energy (springs ``k/2 (|r| - l)^2``, cells
+``kappa/2 (V - V0)^2 / V0`` with V the trilinear hexahedron's volume by 2x2x2 Gauss quadrature
+of det J, exact for it), the fixed nodes and those beyond the perturbed list held: the model's
+stiffness at rest (springs ``k e e^T``, cells ``(kappa / V0) g g^T``, ``g = dV/dx``), assembled
+sparse and factorised once, iterated on the export's nodal forces. The loads are the user's
+(the export's load cases, or any other nodal forces).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+CORNERS = np.array(
+    [[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1],
+     [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], dtype=float,
+)  # fmt: skip
+"""The export's corner order (``hexahedra``: VTK's), in reference coordinates."""
+
+
+def volume_gradients(corners: np.ndarray) -> np.ndarray:
+    """(C, 8, 3) dV/dx of trilinear hexahedra with corners (C, 8, 3), m^2: at each of the
+    2x2x2 Gauss points, d det J / d x_n = cof(J) dN_n (dN_n the shape function's gradient in
+    reference coordinates, J = sum_n x_n dN_n^T / 8 ...), summed."""
+    g = 1 / np.sqrt(3)
+    out = np.zeros_like(corners)
+    for r in (-g, g):
+        for s in (-g, g):
+            for t in (-g, g):
+                a, b, c = CORNERS.T
+                dn = (
+                    np.stack(
+                        [
+                            a * (1 + s * b) * (1 + t * c),
+                            (1 + r * a) * b * (1 + t * c),
+                            (1 + r * a) * (1 + s * b) * c,
+                        ],
+                        axis=1,
+                    )
+                    / 8
+                )  # fmt: skip  (8, 3): dN_n / d(r, s, t)
+                jac = np.einsum("cni,nj->cij", corners, dn)  # (C, 3, 3)
+                cof = np.linalg.det(jac)[:, None, None] * np.linalg.inv(jac).transpose(0, 2, 1)
+                out += np.einsum("cij,nj->cni", cof, dn)
+    return out
+
+
+def volumes(corners: np.ndarray) -> np.ndarray:
+    """(C,) volumes of trilinear hexahedra with corners (C, 8, 3), m^3: 2x2x2 Gauss quadrature
+    of det J (exact for them)."""
+    g = 1 / np.sqrt(3)
+    a, b, c = CORNERS.T
+    out = np.zeros(len(corners))
+    for r in (-g, g):
+        for s in (-g, g):
+            for t in (-g, g):
+                dn = np.stack(
+                    [a * (1 + s * b) * (1 + t * c), (1 + r * a) * b * (1 + t * c),
+                     (1 + r * a) * (1 + s * b) * c], axis=1,
+                ) / 8  # fmt: skip
+                out += np.linalg.det(np.einsum("cni,nj->cij", corners, dn))
+    return out
+
+
+def internal_forces(model: dict[str, Any], u: np.ndarray) -> np.ndarray:
+    """(N, 3) the exported model's forces on its nodes displaced by ``u`` (N, 3) m, N: springs
+    ``k (|r| - l) r / |r|`` and cells ``-kappa (V - V0) / V0 dV/dx`` (the export's energy)."""
+    x = np.asarray(model["nodes"], dtype=float) + u
+    out = np.zeros_like(x)
+    springs = np.asarray(model["springs"], dtype=float)
+    i, j = springs[:, 0].astype(int), springs[:, 1].astype(int)
+    r = x[j] - x[i]
+    length = np.linalg.norm(r, axis=1)
+    pull = (springs[:, 3] * (length - springs[:, 2]) / length)[:, None] * r
+    np.add.at(out, i, pull)
+    np.add.at(out, j, -pull)
+    if model.get("volume_stiffness") is not None:
+        hexa = np.asarray(model["hexahedra"], dtype=int)
+        kappa = np.asarray(model["volume_stiffness"], dtype=float)
+        v0 = np.asarray(model["rest_volumes"], dtype=float)
+        pressure = kappa * (volumes(x[hexa]) - v0) / v0
+        np.add.at(out, hexa, -pressure[:, None, None] * volume_gradients(x[hexa]))
+    return out
+
+
+def stiffness(model: dict[str, Any]) -> sp.csr_matrix:
+    """(3N, 3N) the exported model's stiffness at rest, N/m."""
+    x = np.asarray(model["nodes"], dtype=float)
+    n = len(x)
+    springs = np.asarray(model["springs"], dtype=float)
+    i, j = springs[:, 0].astype(int), springs[:, 1].astype(int)
+    e = x[j] - x[i]
+    e /= np.linalg.norm(e, axis=1)[:, None]
+    blocks = springs[:, 3, None, None] * np.einsum("sa,sb->sab", e, e)
+    rows, cols, vals = [], [], []
+    for p, q, sign in ((i, i, 1.0), (j, j, 1.0), (i, j, -1.0), (j, i, -1.0)):
+        rr = 3 * p[:, None, None] + np.arange(3)[None, :, None]
+        cc = 3 * q[:, None, None] + np.arange(3)[None, None, :]
+        rows.append(np.broadcast_to(rr, blocks.shape).ravel())
+        cols.append(np.broadcast_to(cc, blocks.shape).ravel())
+        vals.append((sign * blocks).ravel())
+    if model.get("volume_stiffness") is not None:
+        hexa = np.asarray(model["hexahedra"], dtype=int)
+        kappa = np.asarray(model["volume_stiffness"], dtype=float)
+        v0 = np.asarray(model["rest_volumes"], dtype=float)
+        grad = volume_gradients(x[hexa]).reshape(len(hexa), 24)
+        dofs = (3 * hexa[:, :, None] + np.arange(3)).reshape(len(hexa), 24)
+        local = (kappa / v0)[:, None, None] * np.einsum("ca,cb->cab", grad, grad)
+        rows.append(np.broadcast_to(dofs[:, :, None], local.shape).ravel())
+        cols.append(np.broadcast_to(dofs[:, None, :], local.shape).ravel())
+        vals.append(local.ravel())
+    return sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n, 3 * n)
+    )
+
+
+def layers(model: dict[str, Any], loaded: np.ndarray, depth: int) -> list[np.ndarray]:
+    """The perturbed list of nodal forces on ``loaded`` nodes: layer 0 the loaded nodes, layer
+    i + 1 the nodes a spring joins to layer i not in an earlier one and not fixed (fixed nodes
+    pass no force on; breadth-first over the springs), ``depth`` layers after the first: the
+    export's ``perturbed_layers`` for its own load cases."""
+    springs = np.asarray(model["springs"], dtype=float)
+    i, j = springs[:, 0].astype(int), springs[:, 1].astype(int)
+    n = len(model["nodes"])
+    graph = sp.csr_matrix((np.ones(2 * len(i)), (np.r_[i, j], np.r_[j, i])), shape=(n, n))
+    seen = np.zeros(n, dtype=bool)
+    seen[np.asarray(model["fixed"], dtype=int)] = True  # fixed nodes pass no force on
+    loaded = np.unique(loaded[~seen[loaded]])
+    seen[loaded] = True
+    out = [loaded]
+    for _ in range(depth):
+        reached = np.flatnonzero((graph @ np.isin(np.arange(n), out[-1])) > 0)
+        new = reached[~seen[reached]]
+        if not len(new):
+            break
+        seen[new] = True
+        out.append(np.sort(new))
+    return out
+
+
+def solve(
+    model: dict[str, Any],
+    forces: np.ndarray,
+    depth: int | None = None,
+    *,
+    nonlinear: bool = True,
+    tolerance: float = 1e-9,
+) -> np.ndarray:
+    """(N, 3) displacements, m, of the exported model under nodal ``forces`` (N, 3) N, its
+    fixed nodes held, and with ``depth`` (layers) the nodes beyond its perturbed list
+    (:func:`layers`) held at rest too: the static equilibrium of the export's energy
+    (``nonlinear``: the stiffness at rest iterated on :func:`internal_forces` until the
+    unbalanced force is below ``tolerance`` times the applied one), or the model linearised
+    at rest."""
+    k = stiffness(model)
+    free = np.ones(len(forces), dtype=bool)
+    if depth is not None:
+        free[:] = False
+        free[np.concatenate(layers(model, np.flatnonzero(np.abs(forces).sum(axis=1)), depth))] = 1
+    free[np.asarray(model["fixed"], dtype=int)] = False
+    dofs = np.flatnonzero(np.repeat(free, 3))
+    factor = spla.splu(k[dofs][:, dofs].tocsc())
+    u = np.zeros(forces.size)
+    u[dofs] = factor.solve(forces.ravel()[dofs])
+    size = np.linalg.norm(forces.ravel()[dofs])
+    for _ in range(500 if nonlinear else 0):
+        residual = (forces + internal_forces(model, u.reshape(-1, 3))).ravel()[dofs]
+        if np.linalg.norm(residual) <= tolerance * size:
+            break
+        u[dofs] += factor.solve(residual)
+    else:
+        if nonlinear:
+            raise ArithmeticError("the export's equilibrium did not converge in 500 iterations")
+    return u.reshape(-1, 3)
+
+
+def relative(u: np.ndarray, reference: np.ndarray) -> float:
+    """Relative discrepancy, %: the sum of nodal distances over the reference's (paper Eq. 2
+    over its own size)."""
+    return float(
+        100 * np.linalg.norm(u - reference, axis=1).sum() / np.linalg.norm(reference, axis=1).sum()
+    )
