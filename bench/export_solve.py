@@ -6,7 +6,8 @@ code: the static equilibrium of the export's energy (springs ``k/2 (|r| - l)^2``
 ``kappa/2 (V - V0)^2 / V0`` with V the trilinear hexahedron's volume by 2x2x2 Gauss quadrature
 of det J, exact for it), the fixed nodes and those beyond the perturbed list held: the model's
 stiffness at rest (springs ``k e e^T``, cells ``(kappa / V0) g g^T``, ``g = dV/dx``), assembled
-sparse and factorised once, iterated on the export's nodal forces. The loads are the user's
+sparse, then Newton steps on its energy (a positive tangent: the springs' geometric stiffness
+where stretched, the cells' Gauss-Newton term) with a line search. The loads are the user's
 (the export's load cases, or any other nodal forces).
 """
 
@@ -90,15 +91,38 @@ def internal_forces(model: dict[str, Any], u: np.ndarray) -> np.ndarray:
     return out
 
 
-def stiffness(model: dict[str, Any]) -> sp.csr_matrix:
-    """(3N, 3N) the exported model's stiffness at rest, N/m."""
-    x = np.asarray(model["nodes"], dtype=float)
+def energy(model: dict[str, Any], u: np.ndarray) -> float:
+    """The exported model's stored energy at displacements ``u`` (N, 3) m, J: springs
+    ``k/2 (|r| - l)^2``, cells ``kappa/2 (V - V0)^2 / V0``."""
+    x = np.asarray(model["nodes"], dtype=float) + u
+    springs = np.asarray(model["springs"], dtype=float)
+    i, j = springs[:, 0].astype(int), springs[:, 1].astype(int)
+    stretch = np.linalg.norm(x[j] - x[i], axis=1) - springs[:, 2]
+    total = float(0.5 * (springs[:, 3] * stretch**2).sum())
+    if model.get("volume_stiffness") is not None:
+        hexa = np.asarray(model["hexahedra"], dtype=int)
+        kappa = np.asarray(model["volume_stiffness"], dtype=float)
+        v0 = np.asarray(model["rest_volumes"], dtype=float)
+        total += float(0.5 * (kappa * (volumes(x[hexa]) - v0) ** 2 / v0).sum())
+    return total
+
+
+def stiffness(model: dict[str, Any], u: np.ndarray | None = None) -> sp.csr_matrix:
+    """(3N, 3N) the exported model's stiffness, N/m: at rest, or at displacements ``u``
+    (N, 3) m a tangent that is positive semi-definite (springs ``k (e e^T + max(1 - l/|r|, 0)
+    (I - e e^T))``, cells ``(kappa / V0) g g^T`` without the pressure's curvature of V)."""
+    x = np.asarray(model["nodes"], dtype=float) + (0.0 if u is None else u)
     n = len(x)
     springs = np.asarray(model["springs"], dtype=float)
     i, j = springs[:, 0].astype(int), springs[:, 1].astype(int)
     e = x[j] - x[i]
-    e /= np.linalg.norm(e, axis=1)[:, None]
-    blocks = springs[:, 3, None, None] * np.einsum("sa,sb->sab", e, e)
+    length = np.linalg.norm(e, axis=1)
+    e /= length[:, None]
+    outer = np.einsum("sa,sb->sab", e, e)
+    blocks = springs[:, 3, None, None] * outer
+    if u is not None:  # the springs' geometric stiffness where they are stretched
+        slack = np.maximum(1 - springs[:, 2] / length, 0.0)[:, None, None]
+        blocks += springs[:, 3, None, None] * slack * (np.eye(3) - outer)
     rows, cols, vals = [], [], []
     for p, q, sign in ((i, i, 1.0), (j, j, 1.0), (i, j, -1.0), (j, i, -1.0)):
         rr = 3 * p[:, None, None] + np.arange(3)[None, :, None]
@@ -151,14 +175,17 @@ def solve(
     depth: int | None = None,
     *,
     nonlinear: bool = True,
-    tolerance: float = 1e-9,
+    tolerance: float = 1e-7,
 ) -> np.ndarray:
     """(N, 3) displacements, m, of the exported model under nodal ``forces`` (N, 3) N, its
     fixed nodes held, and with ``depth`` (layers) the nodes beyond its perturbed list
     (:func:`layers`) held at rest too: the static equilibrium of the export's energy
-    (``nonlinear``: the stiffness at rest iterated on :func:`internal_forces` until the
+    (``nonlinear``: Newton steps on it, each with a backtracking line search, until the
     unbalanced force is below ``tolerance`` times the applied one), or the model linearised
-    at rest."""
+    at rest.
+
+    Raises:
+        ArithmeticError: no equilibrium within 200 Newton steps."""
     k = stiffness(model)
     free = np.ones(len(forces), dtype=bool)
     if depth is not None:
@@ -166,18 +193,31 @@ def solve(
         free[np.concatenate(layers(model, np.flatnonzero(np.abs(forces).sum(axis=1)), depth))] = 1
     free[np.asarray(model["fixed"], dtype=int)] = False
     dofs = np.flatnonzero(np.repeat(free, 3))
-    factor = spla.splu(k[dofs][:, dofs].tocsc())
     u = np.zeros(forces.size)
-    u[dofs] = factor.solve(forces.ravel()[dofs])
+    if not nonlinear:
+        u[dofs] = spla.spsolve(k[dofs][:, dofs].tocsc(), forces.ravel()[dofs])
+        return u.reshape(-1, 3)
     size = np.linalg.norm(forces.ravel()[dofs])
-    for _ in range(500 if nonlinear else 0):
+
+    def total(v: np.ndarray) -> float:  # the potential energy, J
+        return energy(model, v.reshape(-1, 3)) - float(forces.ravel() @ v)
+
+    # Newton on the potential energy from rest, with a positive tangent and a backtracking
+    # line search (a soft organ's loads carry the linear solution far past equilibrium)
+    for _ in range(200):
         residual = (forces + internal_forces(model, u.reshape(-1, 3))).ravel()[dofs]
         if np.linalg.norm(residual) <= tolerance * size:
-            break
-        u[dofs] += factor.solve(residual)
-    else:
-        if nonlinear:
-            raise ArithmeticError("the export's equilibrium did not converge in 500 iterations")
+            return u.reshape(-1, 3)
+        tangent = stiffness(model, u.reshape(-1, 3))[dofs][:, dofs].tocsc()
+        step = np.zeros_like(u)
+        step[dofs] = spla.spsolve(tangent, residual)
+        here, slope, t = total(u), -float(residual @ step[dofs]), 1.0
+        while t > 1e-8 and not total(u + t * step) <= here + 1e-4 * t * slope:
+            t /= 2
+        if t <= 1e-8:  # the energy no longer resolves the step: the full one, if it helps
+            t = 1.0
+        u += t * step
+    raise ArithmeticError("the export's equilibrium did not converge in 200 Newton steps")
     return u.reshape(-1, 3)
 
 
