@@ -368,17 +368,20 @@ def test_worker_killed_holding_a_task_of_the_damping_stage_loses_nothing(
     prefix = f"{record.id}-case-"
     deadline = time.monotonic() + 120
 
-    def load_case_job() -> str | None:
+    def holding() -> Worker | None:
+        """The worker holding a started job of ``task`` now (None: none is, or it has just
+        ended: a request the search drops ends early)."""
         for job_id in registry.get_job_ids(cleanup=False):
             job = Job.fetch(job_id, connection=redis, serializer=JSONSerializer)
             if job_id.startswith(prefix) and re.search(task, job.description or ""):
-                return job_id
+                for w in Worker.all(connection=redis):
+                    if w.get_current_job_id() == job_id:
+                        return w
         return None
 
-    while (held := load_case_job()) is None:
+    while (holder := holding()) is None:
         assert time.monotonic() < deadline, f"no {task} job started on another worker"
         time.sleep(0.02)
-    holder = next(w for w in Worker.all(connection=redis) if w.get_current_job_id() == held)
     (victim,) = [p for p in started if p.pid == holder.pid]
     worker_processes.stop(victim, signal.SIGKILL)  # the worker and its work horse, mid-run
     done = wait_done(redis, record.id)
