@@ -52,9 +52,9 @@ def grid_best(
 ) -> tuple[float, int | None, list[tuple[float, int | None]]]:
     """The fewest total settle steps on a GRID_POINTS log grid of d at the result's stiffness,
     depth and dt (runs capped at 3x the result's steps per case); (d, total, every point)."""
+    from fpm.dynamics.settle import run_criterion
     from fpm.dynamics.simulation import FpmModel
     from fpm.fitting.bounds import damping_bounds
-    from fpm.fitting.damping import settle_criterion
     from fpm.model.stiffness import fitted_theta, model_stiffness
 
     stiffness = model_stiffness(problem, fitted_theta(problem, result.to_dict()))
@@ -68,7 +68,7 @@ def grid_best(
         for j, cap in enumerate(caps):
             run = model.run(
                 j, k=stiffness, d=float(d), depth=depth, dt=result.dt, max_steps=cap,
-                **settle_criterion(problem, None if settle is None else settle[j]),
+                **run_criterion(problem.spec, None if settle is None else settle[j]),
             )  # fmt: skip
             runs.append(run)
             if not run.settled:

@@ -11,13 +11,12 @@ import pytest
 
 import fpm
 from fpm.dynamics.equilibrium import StaticSolver, static_equilibrium
-from fpm.dynamics.settle import FLOOR, SHARE
+from fpm.dynamics.settle import FLOOR, SHARE, run_criterion
 from fpm.dynamics.simulation import FpmModel
 from fpm.fitting.annealing import AnnealingError, Checkpoint, Schedule, State, anneal, metropolis
 from fpm.fitting.bounds import damping_bounds
 from fpm.fitting.calibration import ChainResult, calibrate, finalize, pick_paper_state, run_chain
 from fpm.fitting.cost import CostFunction, Evaluation, StaticCost, discrepancies
-from fpm.fitting.damping import settle_criterion
 from fpm.fitting.damping_stage import resolve_depth
 from fpm.fitting.stiffness_stage import constrained_cost
 from fpm.model.spec import lundy_mees_moves
@@ -204,7 +203,7 @@ def test_two_stage_calibration_recovers_k_and_the_fastest_settling_d(small):
     solver = StaticSolver(problem)
     statics = [solver.solve(j, stiffness, result.depth).displacements for j in range(2)]
     settle = [
-        settle_criterion(problem, result.settle_stiffness[j], statics[j], FLOOR) for j in range(2)
+        run_criterion(problem.spec, result.settle_stiffness[j], statics[j], FLOOR) for j in range(2)
     ]
 
     def total(d):

@@ -22,12 +22,11 @@ from fpm.dynamics.modes import (
     predict_damping,
     single_threaded_blas,
 )
-from fpm.dynamics.settle import nominal_distance
+from fpm.dynamics.settle import nominal_distance, run_criterion
 from fpm.dynamics.simulation import FpmModel
 from fpm.dynamics.spring_system import Params
 from fpm.dynamics.stability import stable_time_step
 from fpm.fitting.bounds import damping_bounds
-from fpm.fitting.damping import settle_criterion
 from fpm.model.spec import FpmSettings
 from fpm.model.stiffness import continuum_start, model_stiffness
 
@@ -162,7 +161,7 @@ def test_the_predicted_d_is_the_exact_steps_fastest(stiffness):
     # equilibrium, each case at its list's mode stiffness (fpm.dynamics.settle)
     distance = nominal_distance(problem.spec)
     settle = [
-        settle_criterion(problem, distance * m.mode_stiffness, static[j], distance)
+        run_criterion(problem.spec, distance * m.mode_stiffness, static[j], distance)
         for j, m in enumerate(models)
     ]
 

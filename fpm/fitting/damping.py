@@ -86,7 +86,6 @@ from .lockstep import predicted_steps as predicted_steps
 from .lockstep import replay_verdict as replay_verdict
 from .lockstep import run_case as run_case
 from .lockstep import run_request as run_request
-from .lockstep import settle_criterion as settle_criterion
 from .lockstep import settled_total as settled_total
 from .lockstep import verdict_at as verdict_at
 

@@ -177,23 +177,11 @@ def run_case(
     case's static equilibrium, and its settle ``distance``, the target criterion."""
     run = model.start(
         load_case, k=stiffness, d=d, depth=depth, dt=dt,
-        **settle_criterion(model.problem, settle_stiffness, static, distance),
+        **run_criterion(model.problem.spec, settle_stiffness, static, distance),
     )  # fmt: skip
     while not run.finished and run.steps < cap:
         _piece(run, min(CHUNK, cap - run.steps))
     return CaseRun.of(run)
-
-
-def settle_criterion(
-    problem: Problem,
-    settle_stiffness: float | None,
-    static: np.ndarray | None = None,
-    distance: float | None = None,
-) -> dict[str, Any]:
-    """A run's settle arguments (:func:`fpm.dynamics.settle.run_criterion`): the distance
-    criterion's ``settle_stiffness`` (N/m), with ``static`` (N, 3) m and ``distance`` the
-    target criterion's, or, for None, the force criterion's tolerance."""
-    return run_criterion(problem.spec, settle_stiffness, static, distance)
 
 
 Resolve = Callable[[], dict[str, Any] | None]
@@ -461,7 +449,7 @@ class _Runs:
                 d=d,
                 depth=self.depth,
                 dt=self.dt,
-                **settle_criterion(self.problem, self.case_settle(j), *self.case_target(j)),
+                **run_criterion(self.problem.spec, self.case_settle(j), *self.case_target(j)),
             )  # fmt: skip
             for j in range(self.cases)
         ]
