@@ -626,6 +626,7 @@ def test_the_validation_figures_agree_with_an_independent_solve_of_the_export():
     reference = fpm.solve_fem(problem)
     result = fpm.calibrate(problem, reference=reference)
     model = json.loads(export(problem, result.to_dict(), "json"))
+    assert result.depth == result.full_depth and model["parameters"]["depth"] is None
     fitted = len(problem.load_cases)
     for case in problem.validation_cases:
         model["load_cases"].append(
@@ -660,3 +661,20 @@ def _write(body: bytes, suffix: str) -> Path:
     path = Path(tempfile.mkdtemp()) / f"export{suffix}"
     path.write_bytes(body)
     return path
+
+
+def test_a_fit_at_its_full_depth_exports_every_layer(problem):
+    """A depth at the fit's full depth means every layer (the validation cases were judged so:
+    a load elsewhere needs more layers than the fitted ones' lists): the export says null, and
+    its perturbed lists reach every free node; a shorter depth stays as it is."""
+    model = fpm_model(problem)
+    deepest = perturbed_list(model.adjacency, problem.load_cases[0].nodes, problem.fixed, None)
+    full = {**RECORD, "depth": deepest.layers, "full_depth": deepest.layers}
+    data = json.loads(export(problem, full, "json"))
+    assert data["parameters"]["depth"] is None
+    reached = np.concatenate(
+        [np.asarray(layer) for layer in data["load_cases"][0]["perturbed_layers"]]
+    )
+    assert len(reached) == problem.n_nodes - problem.fixed.sum()
+    short = json.loads(export(problem, {**full, "depth": deepest.layers - 1}, "json"))
+    assert short["parameters"]["depth"] == deepest.layers - 1

@@ -657,7 +657,7 @@ def static_equilibrium(
         k: spring stiffness, N/m: one value for every spring, or one per spring family
             (:func:`fpm.model.stiffness.spring_stiffness`; the spec's stiffness_scale applies);
             or the model's :class:`~fpm.model.forces.Stiffness` itself (a field fit's).
-        depth: penetration depth in layers; None = the spec's (its 'auto' means all layers).
+        depth: penetration depth in layers; None = the spec's ('full' and 'auto' mean all layers).
         load_case: index into the spec's load cases.
         tolerance: relative force tolerance; None = a tenth of the spec's settle_tolerance.
 
@@ -667,8 +667,8 @@ def static_equilibrium(
         raise ValueError(f"load_case must be in 0..{len(problem.load_cases) - 1}")
     if not np.all((k.springs if isinstance(k, Stiffness) else np.asarray(k, dtype=float)) > 0):
         raise ValueError("need k > 0")
-    if depth is None and problem.spec.fpm.depth != "auto":
-        depth = int(problem.spec.fpm.depth)
+    if depth is None:
+        depth = problem.spec.fpm.layers
     if depth is not None and depth < 0:
         raise ValueError("depth must be >= 0")
     stiffness = model_stiffness(problem, k)

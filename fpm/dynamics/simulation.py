@@ -372,7 +372,7 @@ def simulate(
             model's :class:`~fpm.model.forces.Stiffness` itself (a field fit's, every spring's
             and cell's own).
         d: nodal damping, N s/m.
-        depth: penetration depth in layers; None = the spec's (its 'auto' means all layers).
+        depth: penetration depth in layers; None = the spec's ('full' and 'auto' mean all layers).
         load_case: index into the spec's load cases.
         dt, max_steps, settle_tolerance: None = the spec's value (dt 'auto': half the
             lattice's stability estimate at k, at most 1 ms; max_steps 'auto': three times the
@@ -394,8 +394,8 @@ def simulate(
         if isinstance(k, Stiffness) or np.ndim(k) or has_volume(problem)
         else float(k)  # type: ignore[arg-type]
     )
-    if depth is None and s.depth != "auto":
-        depth = int(s.depth)
+    if depth is None:
+        depth = s.layers
     # Overrides pass the schema's own checks (dt > 0, max_steps >= 1, depth >= 0, ...).
     given = {"dt": dt, "max_steps": max_steps, "settle_tolerance": settle_tolerance}
     if depth is not None:

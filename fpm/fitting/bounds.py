@@ -7,8 +7,8 @@
 - d (:func:`damping_bounds`): the spec's ``annealing.bounds.d``, else [0.1, 5] sqrt(E h m) N s/m,
   m the mean node mass: sqrt(k m) is the damping scale of a node on springs of stiffness k ~ E h;
 - depth, layers of the perturbed list: the chains fit at the spec's integer depth, or at every
-  layer for 'auto' (:func:`fit_depth`); :func:`full_depth` is the deepest list over the load
-  cases, the top of the search for depth 'auto'.
+  layer for 'full' and 'auto' (:func:`fit_depth`); :func:`full_depth` is the deepest list over
+  the load cases, the top of the search for depth 'auto'.
 
 :func:`mode_notes` tells the user what the kappa bound means below Poisson's ratio 1/4.
 
@@ -58,9 +58,9 @@ def damping_bounds(problem: Problem) -> tuple[float, float]:
 
 
 def fit_depth(problem: Problem) -> int | None:
-    """The depth chains fit at: the spec's integer, or None (every layer) for 'auto'."""
-    depth = problem.spec.fpm.depth
-    return None if depth == "auto" else int(depth)
+    """The depth chains fit at: the spec's integer, or None (every layer) for 'full' and
+    'auto'."""
+    return problem.spec.fpm.layers
 
 
 def full_depth(problem: Problem) -> int:

@@ -55,7 +55,8 @@ from ..model.problem import Problem
 from ..model.stiffness import has_volume, stiffness_dict, volume_stiffness
 from .bounds import damping_bounds, fit_depth, full_depth, mode_notes, stiffness_bounds
 from .cost import CostFunction, StaticCost, dynamic_time_step
-from .damping_stage import DampingStage, fit_damping, resolve_depth
+from .damping_stage import DampingStage, fit_damping
+from .depth import resolve_depth
 from .field import field_parts
 from .reduced import first_basis
 from .result import CalibrationResult, ChainSummary
@@ -136,11 +137,12 @@ def finalize(
     else:
         static = StaticCost(problem, disp, None)
         theta, d = pick_paper_state(chains)
-        asked = fit_depth(problem)
-        if asked is None:
+        deepest = full_depth(problem)
+        if problem.spec.fpm.depth == "auto":
             depth, deepest, _ = resolve_depth(static, theta, problem.spec.fpm.auto_depth_tolerance)
         else:
-            depth, deepest = asked, full_depth(problem)
+            asked = fit_depth(problem)
+            depth = deepest if asked is None else asked
         dynamic = CostFunction(problem, disp, depth)
         runs = [dynamic.displacements(theta, d, j) for j in range(len(problem.load_cases))]
         final = final_run(

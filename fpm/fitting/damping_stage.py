@@ -4,8 +4,8 @@ stiffness field,) then d.
 :func:`fit_damping` (the service's damping job) polishes the chains' best stiffness theta (N/m;
 kappa in Pa) on static equilibria (:func:`fpm.fitting.stiffness_stage.polish`; with families,
 from the better of the chains' best and the best single k), resolves depth 'auto'
-(:func:`resolve_depth`, galloping down from full depth on static solves; the paper method's
-finalize uses it too), with ``fpm.stiffness: "field"`` fits the per-cell field at that depth
+(:func:`fpm.fitting.depth.resolve_depth`; the paper method's finalize uses it too), with
+``fpm.stiffness: "field"`` fits the per-cell field at that depth
 (:func:`fpm.fitting.field.fit_field`), and finds the fastest-settling nodal damping d (N s/m)
 at the dt of theta (or of the field):
 :func:`find_damping`: :func:`fpm.fitting.damping.fastest_damping` from the d the lattice's
@@ -18,7 +18,6 @@ last dynamic run.
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -43,6 +42,7 @@ from ..model.stiffness import has_volume, is_extended, is_field, model_stiffness
 from .bounds import damping_bounds, fit_depth, full_depth, stiffness_bounds
 from .cost import StaticCost
 from .damping import DampingFit, Spread, critical_damping, fastest_damping
+from .depth import resolve_depth
 from .field import fit_field
 from .reduced import ReducedBasis, first_basis, fit_reduced
 from .stiffness_stage import (
@@ -131,53 +131,6 @@ class DampingPlan:
     field: bool = False
     settle: list[float] | None = None
     distance: list[float] | None = None
-
-
-def resolve_depth(
-    cost: StaticCost, theta: list[float], tolerance: float, progress: Progress | None = None
-) -> tuple[int, int, dict[int, list[float]]]:
-    """Depth 'auto': the smallest depth whose static cost, in every load case, is within
-    ``tolerance`` (relative) of full depth's, at the stiffness ``theta`` fitted at full depth.
-
-    Galloping down from full depth (full - 1, full - 2, full - 4, ...) until a depth fails, then
-    bisection between it and the last that passed; each probe is a static solve per load case,
-    started from full depth's equilibrium on the probe's list, and the returned depth always
-    passes the test. The answer is usually close to full depth
-    (32 of 33 layers on the organ at h = 3 mm: 2 probes where bisection from 0 takes 6, each of
-    the deepest, costliest lists). Returns (depth, full depth, {depth probed: case costs, m}).
-    """
-    full = cost(theta, None)
-    deepest = full_depth(cost.problem)
-    probed = {deepest: full.case_costs}
-    stiffness = model_stiffness(cost.problem, theta)
-    # each probe starts from full depth's equilibria (a warm solve returns them as they are)
-    cases = range(len(cost.problem.load_cases)) if math.isfinite(full.cost) else range(0)
-    shapes = [cost.displacements(theta, j, None).displacements for j in cases]
-
-    def passes(depth: int) -> bool:
-        if progress is not None:
-            progress({"phase": "depth", "depth": depth})
-        for j, u in enumerate(shapes):
-            cost.solver.seed(j, stiffness, depth, u)
-        ev = cost(theta, depth)
-        probed[depth] = ev.case_costs
-        return math.isfinite(ev.cost) and all(
-            c <= f * (1 + tolerance) for c, f in zip(ev.case_costs, full.case_costs, strict=True)
-        )
-
-    fail, ok, gap = -1, deepest, 1
-    while ok - gap > fail:
-        if not passes(ok - gap):
-            fail = ok - gap
-            break
-        ok, gap = ok - gap, 2 * gap
-    while ok - fail > 1:
-        mid = (fail + ok) // 2
-        if passes(mid):
-            ok = mid
-        else:
-            fail = mid
-    return ok, deepest, probed
 
 
 SAME_FIT = 0.001
@@ -285,14 +238,15 @@ def _fit_damping(
     static_cost = cost(theta).cost / cost.reference_cost
     evaluations = cost.evaluations + solves
     depth = fit_depth(problem)
-    if progress is not None:
-        progress({"phase": "depth"})
-    if depth is None:
+    deepest = full_depth(problem)
+    if problem.spec.fpm.depth == "auto":
+        if progress is not None:
+            progress({"phase": "depth"})
         depth, deepest, _ = resolve_depth(
             cost, theta, problem.spec.fpm.auto_depth_tolerance, progress
         )
-    else:
-        deepest = full_depth(problem)
+    elif depth is None:
+        depth = deepest
     cost.solver.keep_only(depth)  # the depth probes' systems are not asked again
     checked = None if depth >= deepest else depth  # as finalize validates
     if checks and checked not in validating:

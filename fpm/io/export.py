@@ -8,8 +8,9 @@ lattice is rebuilt from the spec they were fitted on. Formats:
   stiffness]`` (each spring's assembled stiffness; a field fit's per-cell factors included,
   ``fpm.stiffness: "field"``), the hexahedra with their volume stiffness
   kappa and rest volume (the volume term; null in the spring-only models), lumped masses, fixed
-  nodes, the model's energy in words, d, dt, depth, and per load case the nodal forces and the
-  perturbed list's layers (the paper's lookup table): from it alone another program rebuilds
+  nodes, the model's energy in words, d, dt, depth (null: every layer), and per load case the
+  nodal forces and the perturbed list's layers (the paper's lookup table): from it alone
+  another program rebuilds
   the model's static equilibrium (tests/test_export.py does, with its own linear solve);
 - ``vtu``: the hexahedra and the springs (VTK_LINE cells) with, per load case, the FPM's and
   the FEM's displacements, the error between them and the perturbed list's layer as point
@@ -88,13 +89,15 @@ SOFA_NO_VOLUME = (
 @dataclass
 class Parameters:
     """What a fit hands over: k per spring family present (N/m), d (N s/m), the depth
-    (layers), the time step d was fitted at (s), the volume stiffness kappa (Pa; None for
-    the spring-only models) and, for ``fpm.stiffness: "field"``, the field (its per-cell
-    factors: every spring's and cell's stiffness is then its own)."""
+    (layers; None: every layer, what a fit at its full depth means: a load anywhere else
+    moves the whole lattice, as the validation cases were judged), the time step d was
+    fitted at (s), the volume stiffness kappa (Pa; None for the spring-only models) and, for
+    ``fpm.stiffness: "field"``, the field (its per-cell factors: every spring's and cell's
+    stiffness is then its own)."""
 
     stiffness: dict[str, float]
     d: float
-    depth: int
+    depth: int | None
     dt: float
     volume_stiffness: float | None = None
     field: dict[str, Any] | None = None
@@ -102,12 +105,16 @@ class Parameters:
     @classmethod
     def from_record(cls, problem: Problem, record: dict[str, Any]) -> Parameters:
         """From a calibration result or a parameter set (both carry ``stiffness``, ``d`` (or
-        ``damping``) and ``depth``; a parameter set also ``dt``, else the spec's); checked
-        against the lattice the spec builds."""
+        ``damping``) and ``depth``; a parameter set also ``dt``, else the spec's; a depth at
+        or beyond the result's ``full_depth``, or null, is every layer); checked against the
+        lattice the spec builds."""
         try:
             stiffness = record.get("stiffness") or {"axis": float(record["k"])}
             d = float(record["d"] if "d" in record else record["damping"])
-            depth = int(record["depth"])
+            full = record.get("full_depth")
+            depth = None if record["depth"] is None else int(record["depth"])
+            if depth is not None and full is not None and depth >= int(full):
+                depth = None
         except (KeyError, TypeError, ValueError):
             raise ExportError(
                 "the parameters need stiffness (or k), d (or damping) and depth: give a "

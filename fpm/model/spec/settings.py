@@ -18,17 +18,22 @@ from .base import StiffnessMode, Vector3, _Strict
 class FpmSettings(_Strict):
     """FPM settings (paper Sec. 3; physics.md)."""
 
-    depth: int | Literal["auto"] = Field(
-        "auto",
-        description="penetration depth in layers; 'auto' = the smallest depth whose Eq. 2 cost "
-        "at the stiffness fitted at full depth is within auto_depth_tolerance of full depth's",
+    depth: int | Literal["full", "auto"] = Field(
+        "full",
+        description="penetration depth in layers; 'full' = every layer a load reaches (the "
+        "default: a load the fit never saw moves the whole organ as the FEM does); 'auto' = "
+        "the smallest depth that keeps, within auto_depth_tolerance, both the Eq. 2 cost of "
+        "every load case and the model's own response to each case's forces turned along x, "
+        "y and z (a real-time list shorter than the organ, judged also for loads not fitted)",
     )
     auto_depth_tolerance: float = Field(
         0.01,
         ge=0,
         le=1,
         description="depth 'auto': allowed relative rise of the cost over full depth's (0.01 = "
-        "the relative discrepancy may grow by 1% of itself); larger trades realism for speed",
+        "the relative discrepancy may grow by 1% of itself), and allowed change of the model's "
+        "own response as a share of the case's relative discrepancy; larger trades realism "
+        "for speed",
     )
     stiffness: StiffnessMode = Field(
         "families+volume",
@@ -108,8 +113,14 @@ class FpmSettings(_Strict):
     @classmethod
     def _depth_nonneg(cls, v: int | str) -> int | str:
         if isinstance(v, int) and v < 0:
-            raise ValueError("depth must be >= 0 or 'auto'")
+            raise ValueError("depth must be >= 0, 'full' or 'auto'")
         return v
+
+    @property
+    def layers(self) -> int | None:
+        """The spec's integer depth, layers; None for 'full' and 'auto' (every layer: 'auto'
+        is resolved after the stiffness is fitted at full depth)."""
+        return None if isinstance(self.depth, str) else int(self.depth)
 
     @field_validator("stiffness_scale")
     @classmethod

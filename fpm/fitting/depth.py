@@ -1,0 +1,202 @@
+"""Depth 'auto': the shortest perturbed list that keeps the fitted model what it is (the paper's
+penetration depth, Sec. 3, chosen after the stiffness; docs/explanation/physics/fpm.md).
+
+The stiffness is fitted at full depth; 'auto' then asks how far each load case's list can be
+cut. A depth passes when, in every load case, at that stiffness:
+
+- **the cost test**: the case's Eq. 2 cost is within (1 + tolerance) of full depth's (the loads
+  the fit saw are met as well);
+- **the response test**: the model's own response to the case's forces turned along x, y and z
+  (each loaded node's force magnitude along one axis; the lattice linearised at rest) changes
+  from full depth's by at most tolerance times the case's relative discrepancy at full depth,
+  in Eq. 2's norm (the sum of nodal lengths, relative to full depth's response). A load at the
+  same place in another direction, which the fit never saw, then changes by at most what the
+  cost test lets the fitted loads lose. With the cost test alone, the organ at h = 6.5 mm
+  (docs/explanation/organs-conforming.md) was cut to 10 of its 11 layers, where its response
+  along x changes by 2.8% against an allowance of 0.19%, and its unseen lateral press lost
+  8.3 points.
+
+A truncated list holds the nodes beyond it at rest, so the share of full depth's response
+beyond the list is a lower bound of the change: a depth whose share exceeds the allowance fails
+with no solve. Load cases with the same force pattern (the same nodes, proportional
+magnitudes) share their responses: the response is linear. Where the lattice at rest is a
+mechanism (the paper's 'axis' springs have no linear response), the cost test decides alone.
+
+The answer is the smallest depth that passes, found by galloping down from full depth (full - 1,
+full - 2, full - 4, ...) until a depth fails, then bisecting between it and the last that
+passed; a depth passes or fails the same way wherever it is asked.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..dynamics.simulation import fpm_model
+from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
+from ..model.forces import Stiffness
+from ..model.stiffness import model_stiffness
+from .bounds import full_depth
+from .cost import StaticCost
+from .stiffness_stage import Progress
+
+
+def resolve_depth(
+    cost: StaticCost, theta: list[float], tolerance: float, progress: Progress | None = None
+) -> tuple[int, int, dict[int, list[float]]]:
+    """Depth 'auto' at the stiffness ``theta`` fitted at full depth: the smallest depth that
+    passes the cost and the response tests (module docstring) with ``tolerance`` (relative).
+
+    Each cost probe is a static solve per load case, started from full depth's equilibrium on
+    the probe's list. The answer is usually close to full depth (32 of 33 layers on the organ at
+    h = 3 mm with the cost test alone: 2 probes where bisection from 0 takes 6, each of the
+    deepest, costliest lists). Returns (depth, full depth, {depth probed: case costs, m}; a
+    depth the response test's bound refused has no costs).
+    """
+    full = cost(theta, None)
+    deepest = full_depth(cost.problem)
+    probed: dict[int, list[float]] = {deepest: full.case_costs}
+    stiffness = model_stiffness(cost.problem, theta)
+    # each probe starts from full depth's equilibria (a warm solve returns them as they are)
+    cases = range(len(cost.problem.load_cases)) if math.isfinite(full.cost) else range(0)
+    shapes = [cost.displacements(theta, j, None).displacements for j in cases]
+    responses = OwnResponses.at_full_depth(cost, stiffness, full.case_costs, tolerance)
+
+    def passes(depth: int) -> bool:
+        if progress is not None:
+            progress({"phase": "depth", "depth": depth})
+        if responses is not None and not responses.may_keep(depth):
+            probed[depth] = []
+            return False
+        for j, u in enumerate(shapes):
+            cost.solver.seed(j, stiffness, depth, u)
+        ev = cost(theta, depth)
+        probed[depth] = ev.case_costs
+        if not math.isfinite(ev.cost) or any(
+            c > f * (1 + tolerance) for c, f in zip(ev.case_costs, full.case_costs, strict=True)
+        ):
+            return False
+        return responses is None or responses.keeps(depth)
+
+    fail, ok, gap = -1, deepest, 1
+    while ok - gap > fail:
+        if not passes(ok - gap):
+            fail = ok - gap
+            break
+        ok, gap = ok - gap, 2 * gap
+    while ok - fail > 1:
+        mid = (fail + ok) // 2
+        if passes(mid):
+            ok = mid
+        else:
+            fail = mid
+    return ok, deepest, probed
+
+
+@dataclass
+class _Pattern:
+    """The load cases that share one force pattern: the first of them (its list and solver
+    systems), the nodal force magnitudes (N,) N, the response along each axis at full depth
+    ((3, N, 3) m), each node's layer in the full list (N,; -1 off it), the allowance (the
+    smallest of its cases': a relative change) and the changes measured so far by depth."""
+
+    case: int
+    magnitudes: np.ndarray
+    full: np.ndarray
+    layer: np.ndarray
+    allowed: float
+    changes: dict[int, float] = field(default_factory=dict)
+
+    def beyond(self, depth: int) -> float:
+        """The largest share, over the axes, of full depth's response on nodes beyond
+        ``depth`` (a lower bound of the change at that depth)."""
+        out = (self.layer > depth) | (self.layer < 0)
+        lengths = np.linalg.norm(self.full, axis=2)  # (3, N)
+        return float(max(lengths[a, out].sum() / lengths[a].sum() for a in range(3)))
+
+
+class OwnResponses:
+    """The response test of depth 'auto' (module docstring) on one :class:`StaticCost`'s
+    solver (not thread-safe, as the solver)."""
+
+    def __init__(self, cost: StaticCost, stiffness: Stiffness, patterns: list[_Pattern]):
+        self.cost = cost
+        self.stiffness = stiffness
+        self.patterns = patterns
+
+    @classmethod
+    def at_full_depth(
+        cls, cost: StaticCost, stiffness: Stiffness, case_costs: list[float], tolerance: float
+    ) -> OwnResponses | None:
+        """The full-depth responses of every distinct force pattern, the allowances from the
+        cases' costs at full depth (m); None where the lattice at rest has no linear response
+        (a mechanism) or a cost is not finite."""
+        problem = cost.problem
+        if len(case_costs) != len(problem.load_cases) or not all(map(math.isfinite, case_costs)):
+            return None
+        model = fpm_model(problem)
+        found: dict[bytes, _Pattern] = {}
+        for j, case in enumerate(problem.load_cases):
+            size = float(np.linalg.norm(cost.reference[j], axis=1).sum())
+            allowed = tolerance * case_costs[j] / size if size > 0 else math.inf
+            magnitudes = np.linalg.norm(case.dense(problem.n_nodes), axis=1)
+            key = np.round(magnitudes / magnitudes.max(), 12).tobytes()
+            if key in found:
+                found[key].allowed = min(found[key].allowed, allowed)
+                continue
+            listed = model.perturbed_list(j, None)
+            layer = np.full(problem.n_nodes, -1)
+            for i in range(listed.layers + 1):
+                layer[listed.layer(i)] = i
+            try:
+                full = np.stack(cls._solve(cost, stiffness, j, None, magnitudes, None))
+            except (SingularStiffnessError, NegativeCurvature):
+                return None
+            found[key] = _Pattern(j, magnitudes, full, layer, allowed)
+        return cls(cost, stiffness, list(found.values()))
+
+    def may_keep(self, depth: int) -> bool:
+        """Whether ``depth`` can pass: no pattern's response beyond it exceeds its allowance."""
+        return all(p.beyond(depth) <= p.allowed for p in self.patterns)
+
+    def keeps(self, depth: int) -> bool:
+        """Whether every pattern's response at ``depth`` is within its allowance of full
+        depth's (three linear solves per pattern, each started from full depth's answer)."""
+        for p in self.patterns:
+            if depth not in p.changes:
+                solved = self._solve(self.cost, self.stiffness, p.case, depth, p.magnitudes, p.full)
+                p.changes[depth] = max(_relative(u, f) for u, f in zip(solved, p.full, strict=True))
+            if p.changes[depth] > p.allowed:
+                return False
+        return True
+
+    @staticmethod
+    def _solve(
+        cost: StaticCost,
+        stiffness: Stiffness,
+        j: int,
+        depth: int | None,
+        magnitudes: np.ndarray,
+        guesses: np.ndarray | None,
+    ) -> list[np.ndarray]:
+        """Load case ``j``'s list at ``depth`` linearised at rest under ``magnitudes`` (N,) N
+        along x, y and z: three (N, 3) displacements, m (one tangent for the three)."""
+        solver = cost.solver
+        system, _ = solver.system(j, depth)
+        tangent = system.tangent(
+            np.zeros((system.n_free, 3)), system.parameters(Stiffness.of(stiffness)), modified=True
+        )
+        out = []
+        for a in range(3):
+            loads = np.zeros((len(magnitudes), 3))
+            loads[:, a] = magnitudes
+            guess = None if guesses is None else guesses[a]
+            out.append(solver.linear_solve(j, depth, tangent, loads, guess=guess))
+        return out
+
+
+def _relative(u: np.ndarray, full: np.ndarray) -> float:
+    """sum_i |u_i - full_i| / sum_i |full_i| (Eq. 2's norm; (N, 3) arrays)."""
+    return float(np.linalg.norm(u - full, axis=1).sum() / np.linalg.norm(full, axis=1).sum())
