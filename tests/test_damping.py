@@ -181,11 +181,12 @@ def test_the_decay_predicts_the_settle_steps(bar: fpm.Problem, d):
 
 class _Edge:
     """Stands in for _Runs in the margin search: every d >= ``edge`` settles within the caps;
-    records the d probed."""
+    records the d probed and the d asked to run ahead."""
 
     def __init__(self, edge: float):
         self.edge = edge
         self.probed: list[float] = []
+        self.ahead: list[float] = []
 
     def __call__(self, d: float, caps: list[int], *, estimate: bool = False) -> tuple[list, Any]:
         from fpm.fitting.damping import Verdict
@@ -194,7 +195,8 @@ class _Edge:
         return [], Verdict("settles" if d >= self.edge else "failed")
 
     def prefetch(self, requests: list[Any]) -> None:
-        """Nothing runs ahead here."""
+        """Nothing runs ahead here; the d asked for are recorded."""
+        self.ahead += [r.d for r in requests]
 
 
 @pytest.mark.parametrize("edge", [0.31, 0.52, 0.9])
@@ -225,7 +227,9 @@ def test_the_margin_from_the_reduced_steps_edge_probes_below_it_first(edge):
     """The reduced steps' edge at 0.9 (the fastest d at 1.0, nothing tried below it): 12%
     below it first, then a walk's step further where it settles (the edge itself is then not
     run), else the edge; d_min is the smallest d found that settles, and where one probe
-    settles and the next below it does not, they bracket the true ``edge``."""
+    settles and the next below it does not, they bracket the true ``edge``. The first probe
+    and the edge are asked to run ahead together (where workers are free): when the first
+    fails, the probe that follows it is already under way."""
     step = math.log(1.25)
     steps = {0.0: [100, 100]}
     runs = _Edge(edge)
@@ -237,6 +241,7 @@ def test_the_margin_from_the_reduced_steps_edge_probes_below_it_first(edge):
     assert len(runs.probed) <= MARGIN_PROBES
     assert d_min >= edge and all(d < 1.0 for d in runs.probed)
     assert runs.probed[0] == pytest.approx(below)
+    assert runs.ahead == pytest.approx([below, 0.9])
     if edge <= below:
         assert not any(d == pytest.approx(0.9) for d in runs.probed)
         assert d_min <= below * (1 + 1e-9)

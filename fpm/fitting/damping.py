@@ -106,8 +106,8 @@ total steps (the steps-versus-d curve is flat there)."""
 MARGIN_PROBES = 2
 """With a prediction, the margin search asks for at most this many probes: 12% below the
 reduced step's edge and a walk's step (1.25x) below that, or the edge itself where the first
-does not settle (:func:`_first_probes`; where workers are free the walk's step runs at once
-with the first, wasted if that does not settle). d_min is then the smallest d found that
+does not settle (:func:`_first_probes`; where workers are free the edge runs at once with the
+first, wasted if that settles). d_min is then the smallest d found that
 settles, bracketed to 1.12x or 1.25x. On the 93,705-node organ the open walk down had taken
 5 probes of up to 2 x 2,400 steps per load case, more than the fastest d's own runs; the edge,
 12% below it and a step further took 3, and gave the same d_min and bracket as these 2."""
@@ -507,8 +507,8 @@ def _smallest_settling(
     predictions they were stopped on (``forecast``): from the smallest that settles, the
     largest below it that does not brackets the edge. With ``edge`` (log d; the reduced
     steps' estimate) the probes of :func:`_first_probes` come next: ``step / 2`` below it,
-    and if that settles the walk goes on from there (its next step was run at once where
-    workers are free), else the edge itself is probed. Without a bracket the walk goes down
+    and if that settles the walk goes on from there, else the edge itself is probed (run at
+    once with the first where workers are free). Without a bracket the walk goes down
     by ``step`` while d settles; bisection narrows the bracket to ``step / 2`` (log); with an
     ``edge`` at most MARGIN_PROBES probes in all (d_min is then the smallest d found that
     settles). A probe stops once its decay predicts the answer (past PREDICT_AFTER steps):
@@ -553,8 +553,7 @@ def _smallest_settling(
     if edge is not None:
         first = _first_probes(edge, lo, step)
         first = [y for y in first if open_(y)] if open_(first[0]) else []
-        # At once where other workers are free (the second wasted if the first does not
-        # settle): the walk's next step from there.
+        # At once where other workers are free (the edge wasted if the first settles).
         runs.prefetch(
             [Request(math.exp(y), tuple(caps), None, estimate=True)
              for y in first if answers.get(y) is None]
@@ -588,20 +587,18 @@ def _smallest_settling(
 
 def _first_probes(edge: float, lo: float, step: float) -> list[float]:
     """log d of the margin's first probes from the reduced steps' edge (log d;
-    :func:`_smallest_settling`): ``step / 2`` below it and the walk's next ``step`` below
-    that (within ``lo``); the edge itself where it is ``lo``. Where the first settles, every d
-    between it and the fastest is taken to settle too (the runs settle the sooner the nearer
-    the fastest d, as on every organ measured), so the edge is not run: on the 93,705-node
-    organ (the reduced edge 12-40% high) that saved a probe of 20 CPU s. Where it does not
-    (the organ at 3 and 5 mm: the edge itself is the margin), the edge is probed next: the
-    same two probes in one process as edge-first, one more in a row where workers ran the
-    first two at once."""
+    :func:`_smallest_settling`): ``step / 2`` below it (within ``lo``), and the edge itself,
+    which the first's failure asks for; the edge alone where it is ``lo``. Where the first
+    settles, every d between it and the fastest is taken to settle too (the runs settle the
+    sooner the nearer the fastest d, as on every organ measured), so the edge is not needed
+    and the walk goes on below the first. Where workers are free both run at once: on the
+    target criterion the first probe does not settle on the organ at 3 mm nor at 93,705
+    nodes (measured), and the edge probe that used to follow it alone, after every other run,
+    was the damping job's last 4.4 and 13 s (the 'gather' span); the walk's next step, run
+    at once in its place before, was wasted there (27 CPU s at 93,705 nodes)."""
     edge = round(edge, 12)
     below = round(max(edge - step / 2, lo), 12)
-    further = round(max(below - step, lo), 12)
-    if below >= edge:
-        return [edge]
-    return [below, further] if further < below else [below]
+    return [below, edge] if below < edge else [edge]
 
 
 PROBE_STEPS = 20
