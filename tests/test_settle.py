@@ -120,17 +120,23 @@ def test_the_target_criterion_settles_within_its_distance_and_stays(nodes_x, slo
     assert worst < distance
 
 
-def test_auto_distance_is_a_share_of_the_case_discrepancy():
+def test_auto_distance_is_a_share_of_the_cases_discrepancy_together():
+    """SHARE of sum |u* - u_ref| / sum |u*| over every case, the same for each: a case fitted
+    exactly settles no closer than the others; clipped to [FLOOR, NOMINAL]."""
     problem = bar(11)
     static = np.zeros((3, problem.n_nodes, 3))
     static[:, :, 2] = -1e-3
+    static[2] *= 2.0  # twice the displacement: twice the weight
     reference = static.copy()
-    reference[0] *= 1.10  # 10% off: 5% of it
-    reference[1] *= 1.0000001  # a perfect fit: the floor
-    reference[2] *= 2.0  # 100% off: capped at 1%
+    reference[0] *= 1.10  # 10% off
+    reference[1] *= 1.0000001  # a perfect fit
+    reference[2] *= 1.05  # 5% off
+    together = (0.10 * 1 + 1e-7 * 1 + 0.05 * 2) / (1 + 1 + 2)
     assert case_distances(problem.spec, static, reference) == pytest.approx(
-        [SHARE * 0.10, FLOOR, NOMINAL]
+        [SHARE * together] * 3
     )
+    assert case_distances(problem.spec, static, static * 1.0000001) == pytest.approx([FLOOR] * 3)
+    assert case_distances(problem.spec, static, static * 2.0) == pytest.approx([NOMINAL] * 3)
     assert case_distances(problem.spec, static, None) == [NOMINAL] * 3
     spec = problem.spec.model_dump()
     spec["fpm"]["settle_distance"] = 0.002

@@ -41,10 +41,14 @@ carry each node along the slowest mode (for that mode, the square of its swing's
 so a run that passes through the equilibrium on its way to an overshoot is not called settled.
 In this norm the triangle inequality bounds what settling adds to the fit's figures: a case
 settled at distance delta has a cost within delta * sum |u*| of its static cost. So the default
-distance ('auto', :func:`case_distances`) is :data:`SHARE` of the case's own static
-discrepancy against the reference, sum |u* - u_ref| / sum |u*|: the settled cost is within
-(1 + SHARE) of the static cost, whatever the lattice's size or the load, and never more than
-:data:`NOMINAL` (1%) from the static equilibrium.
+distance ('auto', :func:`case_distances`) is :data:`SHARE` of the load cases' static
+discrepancy against the reference, together, ``sum_j sum |u*_j - u_ref_j| / sum_j sum |u*_j|``,
+the same for every case: the settled cost (paper Eq. 2, a sum over the cases) is within
+(1 + SHARE) of the static cost, whatever the lattice's size or the load, and no case is more
+than :data:`NOMINAL` (1%) from its static equilibrium. One distance for all, not each case's
+own share: a case the model fits closely would otherwise settle the more closely and take the
+longest (the shear case of the 93,705-node organ, fitted to 0.38%, settled to 0.019% in 3,489
+steps, the calibration's longest run, while the presses settled to 0.1%).
 
 The estimate is what the run knows; the damping stage also *measures* the settled state's
 distance against the static equilibrium it has solved (:func:`measured_distance`), and the
@@ -77,9 +81,10 @@ PROMISE = 1.0
 equilibrium, measured; the result warns where it is not."""
 
 SHARE = 0.05
-"""settle_distance 'auto': a load case's settle distance is this share of its static
-equilibrium's discrepancy against the reference, relative (``|u* - u_ref| / |u*|``): the
-settled state is then within (1 + SHARE) times the static discrepancy of the reference."""
+"""settle_distance 'auto': the load cases' settle distance is this share of their static
+equilibria's discrepancy against the reference, relative and together
+(``sum |u* - u_ref| / sum |u*|`` over every case): the settled cost is then within
+(1 + SHARE) times the static cost."""
 NOMINAL, FLOOR = 0.01, 1e-4
 """settle_distance 'auto': at most NOMINAL (also its value where there is no reference to read:
 fpm.simulate, an exported model), at least FLOOR (a fit that matches its reference exactly
@@ -102,18 +107,17 @@ def nodal_size(u: np.ndarray) -> float:
 def case_distances(
     spec: ProblemSpec, static: np.ndarray, reference: np.ndarray | None
 ) -> list[float]:
-    """Each load case's settle distance: the spec's settle_distance, or for 'auto' SHARE of its
-    static discrepancy ``sum |u* - u_ref| / sum |u*|`` (:func:`nodal_size` of ``static`` and
-    ``reference``, (L, N, 3) m; None: :data:`NOMINAL`), clipped to [FLOOR, NOMINAL]."""
+    """Each load case's settle distance: the spec's settle_distance, or for 'auto' SHARE of the
+    cases' static discrepancy together, ``sum_j sum |u*_j - u_ref_j| / sum_j sum |u*_j|``
+    (:func:`nodal_size` of ``static`` and ``reference``, (L, N, 3) m; None: :data:`NOMINAL`),
+    clipped to [FLOOR, NOMINAL], the same for every case."""
     value = spec.fpm.settle_distance
     if value != "auto" or reference is None:
         return [nominal_distance(spec)] * len(static)
-    out = []
-    for u, ref in zip(static, reference, strict=True):
-        size = nodal_size(u)
-        share = SHARE * nodal_size(u - ref) / size if size > 0 else NOMINAL
-        out.append(float(min(max(share, FLOOR), NOMINAL)))
-    return out
+    size = sum(nodal_size(u) for u in static)
+    off = sum(nodal_size(u - ref) for u, ref in zip(static, reference, strict=True))
+    share = SHARE * off / size if size > 0 else NOMINAL
+    return [float(min(max(share, FLOOR), NOMINAL))] * len(static)
 
 
 def force_tolerance(spec: ProblemSpec) -> float:

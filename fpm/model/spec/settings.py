@@ -63,9 +63,9 @@ class FpmSettings(_Strict):
         "auto",
         description="settled when the run's distance from its static equilibrium is below "
         "this times the 2-norm of its displacement (scale-free, unlike settle_tolerance), "
-        "0 < x < 1, or 'auto' (default): 1/20 of each load case's own static discrepancy "
-        "against the reference (so settling moves the fit's figures by at most 5% of "
-        "themselves), between 1e-4 and 0.01 (always within 1% of the static equilibrium). The "
+        "0 < x < 1, or 'auto' (default): 1/20 of the load cases' static discrepancy against "
+        "the reference, taken together (so settling moves the fit's cost by at most 5% of "
+        "itself), the same for every case, between 1e-4 and 0.01 (always within 1% of the static equilibrium). The "
         "fit's runs measure the distance against the static equilibrium they have solved (with "
         "what the velocities still carry along the softest mode); a run with no equilibrium to "
         "read (fpm.simulate, an exported model) bounds it by its unbalanced forces over the "
