@@ -223,13 +223,13 @@ def test_the_margin_uses_the_searchs_own_runs_and_finds_the_edge(edge):
 
 
 @pytest.mark.parametrize("edge", [0.31, 0.52, 0.7, 0.8, 0.86, 0.95])
-def test_the_margin_from_the_reduced_steps_edge_probes_below_it_first(edge):
-    """The reduced steps' edge at 0.9 (the fastest d at 1.0, nothing tried below it): 12%
-    below it first, then a walk's step further where it settles (the edge itself is then not
-    run), else the edge; d_min is the smallest d found that settles, and where one probe
-    settles and the next below it does not, they bracket the true ``edge``. The first probe
-    and the edge are asked to run ahead together (where workers are free): when the first
-    fails, the probe that follows it is already under way."""
+def test_the_margin_from_the_reduced_steps_edge_probes_it_first(edge):
+    """The reduced steps' edge at 0.9 (the fastest d at 1.0, nothing tried below it): the edge
+    first, asked to run ahead alone (where a worker is free); where it settles, 12% below it,
+    and where that settles too, nothing more (MARGIN_PROBES); where it does not, no probe
+    below it. d_min is the smallest d found that settles, and where one probe settles and
+    the next below it does not (or the fastest d and a failing edge), they bracket the true
+    ``edge``."""
     step = math.log(1.25)
     steps = {0.0: [100, 100]}
     runs = _Edge(edge)
@@ -240,14 +240,11 @@ def test_the_margin_from_the_reduced_steps_edge_probes_below_it_first(edge):
     below = 0.9 / math.exp(step / 2)
     assert len(runs.probed) <= MARGIN_PROBES
     assert d_min >= edge and all(d < 1.0 for d in runs.probed)
-    assert runs.probed[0] == pytest.approx(below)
-    assert runs.ahead == pytest.approx([below, 0.9])
-    if edge <= below:
-        assert not any(d == pytest.approx(0.9) for d in runs.probed)
-        assert d_min <= below * (1 + 1e-9)
-        further = below / 1.25
-        assert runs.probed[1] == pytest.approx(further)
-        assert d_min == pytest.approx(below if edge > further else further)
-    else:  # below failed: the edge itself
-        assert runs.probed[1] == pytest.approx(0.9)
-        assert d_min == pytest.approx(0.9 if edge <= 0.9 else 1.0)
+    assert runs.probed[0] == pytest.approx(0.9)
+    assert runs.ahead == pytest.approx([0.9])
+    if edge <= 0.9:  # the edge settles: 12% below it next
+        assert runs.probed[1:] == pytest.approx([below])
+        assert d_min == pytest.approx(below if edge <= below else 0.9)
+    else:  # the edge fails: nothing below it is run
+        assert runs.probed == pytest.approx([0.9])
+        assert d_min == pytest.approx(1.0)

@@ -15,8 +15,8 @@ until the fewest total steps are bracketed) and refines by a few golden-section 
 the best d and its neighbours where they are still far apart. The margin (the smallest d that
 still settles every load case within MARGIN_CAP times its fastest steps: the stability margin,
 the fastest d sits near that edge and below it runs diverge or creep) starts from the reduced
-step's own estimate of that edge: a probe 12% below it and one a walk's step further (the edge
-itself only if the first does not settle).
+step's own estimate of that edge: a probe at the edge, and 12% below it only if the edge
+settles.
 
 Without a prediction (a lattice at rest that is a mechanism, e.g. 'axis' springs), from two
 critical-damping estimates (:func:`critical_damping`): critical damping of a mode with nodal
@@ -104,13 +104,15 @@ FLAT = 0.02
 """The refinement stops once both neighbours of the best d settle within this fraction of its
 total steps (the steps-versus-d curve is flat there)."""
 MARGIN_PROBES = 2
-"""With a prediction, the margin search asks for at most this many probes: 12% below the
-reduced step's edge and a walk's step (1.25x) below that, or the edge itself where the first
-does not settle (:func:`_first_probes`; where workers are free the edge runs at once with the
-first, wasted if that settles). d_min is then the smallest d found that
-settles, bracketed to 1.12x or 1.25x. On the 93,705-node organ the open walk down had taken
-5 probes of up to 2 x 2,400 steps per load case, more than the fastest d's own runs; the edge,
-12% below it and a step further took 3, and gave the same d_min and bracket as these 2."""
+"""With a prediction, the margin search asks for at most this many probes: the reduced step's
+edge (run at once beside the predicted d's runs where a worker is free), and half a walk's step
+(12%) below it only where the edge settles. d_min is then the smallest d found that settles,
+bracketed to 1.12x or by the tried d above the edge. On the 93,705-node organ the open walk
+down had taken 5 probes of up to 2 x 2,400 steps per load case, more than the fastest d's own
+runs; the edge, 12% below it and a step further took 3. On the target criterion the runs 12%
+below the edge do not settle within the caps, neither on the organ at 3 mm nor at 93,705 nodes
+(measured, round 5): probed first, with the edge beside it, that probe cost 27 CPU s there and
+told nothing the edge's own failure does not."""
 CONFIRM = 1.04
 """The runs that confirm a predicted d sit this factor below and above it."""
 CONFIRM_PRUNE = 1.0
@@ -352,11 +354,9 @@ def _search(
         edge = (
             None if models is None else _predicted_edge(models, math.exp(key(mid)), lo, max_steps)
         )
-        if edge is not None:
-            beside += [
-                Request(math.exp(y), caps, None, estimate=True, caps_later=True)
-                for y in _first_probes(edge, lo, math.log(BRACKET_STEP)) if y < key(mid)
-            ]  # fmt: skip
+        if edge is not None and round(edge, 12) < key(mid):
+            beside.append(Request(math.exp(round(edge, 12)), caps, None, estimate=True,
+                                  caps_later=True))  # fmt: skip
         # The predicted d runs to the cap: early in a long run its decay is no guide (on a
         # slender bar it predicted 3-8 times the steps the run took).
         f_mid = total(mid, to_cap=True, beside=beside)
@@ -506,9 +506,8 @@ def _smallest_settling(
     fastest d. The d tried by the search answer first, from their settled steps or from the
     predictions they were stopped on (``forecast``): from the smallest that settles, the
     largest below it that does not brackets the edge. With ``edge`` (log d; the reduced
-    steps' estimate) the probes of :func:`_first_probes` come next: ``step / 2`` below it,
-    and if that settles the walk goes on from there, else the edge itself is probed (run at
-    once with the first where workers are free). Without a bracket the walk goes down
+    steps' estimate) the edge itself is probed next (run ahead where a worker is free), and
+    where it settles, ``step / 2`` below it. Without a bracket the walk goes down
     by ``step`` while d settles; bisection narrows the bracket to ``step / 2`` (log); with an
     ``edge`` at most MARGIN_PROBES probes in all (d_min is then the smallest d found that
     settles). A probe stops once its decay predicts the answer (past PREDICT_AFTER steps):
@@ -550,24 +549,20 @@ def _smallest_settling(
         """y lies inside the bracket (y_fail, y_ok)."""
         return y < y_ok and (y_fail is None or y > y_fail)
 
-    if edge is not None:
-        first = _first_probes(edge, lo, step)
-        first = [y for y in first if open_(y)] if open_(first[0]) else []
-        # At once where other workers are free (the edge wasted if the first settles).
-        runs.prefetch(
-            [Request(math.exp(y), tuple(caps), None, estimate=True)
-             for y in first if answers.get(y) is None]
-        )  # fmt: skip
-        if first and settles(first[0]):
-            y_ok = first[0]
-        elif first:
-            y_fail = first[0]
-            edge = round(edge, 12)
-            if open_(edge):  # below the edge did not settle: the edge itself
-                if settles(edge):
-                    y_ok = edge
+    if edge is not None and open_(round(edge, 12)):
+        edge = round(edge, 12)
+        if answers.get(edge) is None:  # at once where another worker is free
+            runs.prefetch([Request(math.exp(edge), tuple(caps), None, estimate=True)])
+        if settles(edge):  # then half a walk's step below it
+            y_ok = edge
+            below = round(max(edge - step / 2, lo), 12)
+            if open_(below):
+                if settles(below):
+                    y_ok = below
                 else:
-                    y_fail = edge
+                    y_fail = below
+        else:
+            y_fail = edge
     limit = MARGIN_PROBES if edge is not None else math.inf
     if y_fail is None:
         while y_ok > lo and probes[0] < limit:
@@ -583,22 +578,6 @@ def _smallest_settling(
         else:
             y_fail = middle
     return y_ok
-
-
-def _first_probes(edge: float, lo: float, step: float) -> list[float]:
-    """log d of the margin's first probes from the reduced steps' edge (log d;
-    :func:`_smallest_settling`): ``step / 2`` below it (within ``lo``), and the edge itself,
-    which the first's failure asks for; the edge alone where it is ``lo``. Where the first
-    settles, every d between it and the fastest is taken to settle too (the runs settle the
-    sooner the nearer the fastest d, as on every organ measured), so the edge is not needed
-    and the walk goes on below the first. Where workers are free both run at once: on the
-    target criterion the first probe does not settle on the organ at 3 mm nor at 93,705
-    nodes (measured), and the edge probe that used to follow it alone, after every other run,
-    was the damping job's last 4.4 and 13 s (the 'gather' span); the walk's next step, run
-    at once in its place before, was wasted there (27 CPU s at 93,705 nodes)."""
-    edge = round(edge, 12)
-    below = round(max(edge - step / 2, lo), 12)
-    return [below, edge] if below < edge else [edge]
 
 
 PROBE_STEPS = 20
