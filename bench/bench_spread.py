@@ -189,7 +189,7 @@ def main() -> None:
                 settle_distance_measured=result["settle_distance_measured"],
                 relative_discrepancy=result["relative_discrepancy"],
                 validation_relative_discrepancy=result["validation_relative_discrepancy"],
-                d=result["d"], warnings=result["warnings"],
+                d=result["d"], d_min=result["d_min"], warnings=result["warnings"],
             )  # fmt: skip
             if h == 0.00175:
                 path, most = result["critical_path_seconds"], max(p for p, _ in peaks)
