@@ -64,6 +64,22 @@ def long_cases(spec: dict[str, Any]) -> dict[str, Any]:
     return spec
 
 
+VALIDATION_CASES = 400
+"""Validation cases that make the small box's validation task last about a second."""
+
+
+def many_validation_cases(spec: dict[str, Any]) -> dict[str, Any]:
+    """``spec`` with VALIDATION_CASES sideways pushes at node 63, each in its own direction
+    in the xy plane."""
+    spec = copy.deepcopy(spec)
+    angles = np.linspace(0, 2 * np.pi, VALIDATION_CASES, endpoint=False)
+    spec["validation_cases"] = [
+        {"name": f"push {i}", "forces": [{"node": 63, "vector": [0.01 * c, 0.01 * s, 0]}]}
+        for i, (c, s) in enumerate(zip(np.cos(angles), np.sin(angles), strict=True))
+    ]
+    return spec
+
+
 def test_critical_path_is_the_longest_chain_of_waits():
     spans = [
         {"name": "fem", "start": 0, "end": 2, "after": []},
@@ -353,17 +369,23 @@ def test_same_parameters_with_one_two_and_three_workers(redis, worker_processes)
 @pytest.mark.redis
 @pytest.mark.parametrize(
     ("task", "workers"),
-    [(r"load case \d$", 2), (r"within their total, all load cases$", 2)],
+    [
+        (r"load case \d$", 2),
+        (r"within their total, all load cases$", 2),
+        (r"validation cases$", 3),
+    ],
 )
 def test_worker_killed_holding_a_task_of_the_damping_stage_loses_nothing(
     redis, worker_processes, task, workers
 ):
-    """A load case at one d, a d run ahead (a request): the worker that holds one is killed
-    mid-run, its task runs again elsewhere, the parameters are those of the calibration
-    in-process. (The validation cases' task of this small box lasts tens of milliseconds: a
-    kill aimed at it lands after it ended or between its stored answer and its span, so it
-    is not parametrised here.)"""
+    """A load case at one d, a d run ahead (a request), the validation cases: the worker that
+    holds one is killed mid-run, its task runs again elsewhere, the parameters are those of
+    the calibration in-process. (One validation case of the small box takes a few ms, so that
+    the kill lands while its task runs, not after it ended or between its stored answer and
+    its span, it is given VALIDATION_CASES of them: about a second.)"""
     spec = long_cases(SMALL)
+    if "validation" in task:
+        spec = many_validation_cases(spec)
     started = start_workers(redis, worker_processes, workers)
     record, _ = submit(redis, spec)
     registry = StartedJobRegistry(keys.PRIORITY_QUEUE, connection=redis, serializer=JSONSerializer)
