@@ -134,3 +134,19 @@ def organ_export(h: float) -> dict[str, Any]:
     from bench.organ import ellipsoid_spec
 
     return exported(ellipsoid_spec(h, fpm={"stiffness": "families+volume", "dt": "auto"}))
+
+
+def conforming_spec(h: float) -> dict[str, Any]:
+    """The 480-tetrahedron organ (bench/tet_organ.py) as ``spec_from_mesh`` makes it with the
+    defaults: the surface-conforming lattice of spacing ``h`` m (hexahedra of every shape)."""
+    import sys
+
+    if str(ROOT) not in sys.path:
+        sys.path.insert(0, str(ROOT))
+    from bench.tet_organ import surface_spec
+
+    spec: dict[str, Any] = surface_spec("organ", h)
+    assert spec["geometry"]["type"] == "mesh"  # the conforming lattice, not voxels
+    del spec["reference"], spec["validation_cases"]
+    return spec
+

@@ -28,6 +28,8 @@ STEPS = 1000
 CHECKPOINTS = (1, 10, 100, 500, 1000)
 ORGAN_H = 0.006
 """The organ's spacing for the agreement test, m (2,820 nodes: Runtime's 1,000 steps in ~4 s)."""
+CONFORMING_H = 0.012
+"""The 480-tetrahedron organ's conforming lattice spacing, m (439 nodes)."""
 LOADED = 944
 """A loaded node of the cube (top face, load case 0)."""
 
@@ -69,10 +71,13 @@ def call(page: browser.Browser, function: str, *args: Any) -> Any:
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The exports, as the page fetches them: cube.json, organ.json, box.json (springs only)."""
+    """The exports, as the page fetches them: cube.json, organ.json, conforming.json (the
+    tetrahedral organ's conforming lattice), box.json (springs only)."""
     folder = tmp_path_factory.mktemp("live")
     (folder / "cube.json").write_text(json.dumps(live_page.cube_export()))
     (folder / "organ.json").write_text(json.dumps(live_page.organ_export(ORGAN_H)))
+    conforming = live_page.exported(live_page.conforming_spec(CONFORMING_H))
+    (folder / "conforming.json").write_text(json.dumps(conforming))
     spec = json.loads((live_page.ROOT / "examples/small-box.json").read_text())
     spec["fpm"] = {"stiffness": "single"}
     box = live_page.exported(spec)
@@ -120,7 +125,8 @@ def test_forces_equal_the_runtime_s(page, data):
 
 
 @pytest.mark.parametrize(
-    ("name", "gravity"), [("cube.json", None), ("organ.json", [0.0, 0.0, -9.81])]
+    ("name", "gravity"),
+    [("cube.json", None), ("organ.json", [0.0, 0.0, -9.81]), ("conforming.json", None)],
 )
 def test_steps_agree_with_the_runtime(page, data, name, gravity):
     """1,000 steps, forces changing every step (and gravity on the organ): the same positions

@@ -43,6 +43,17 @@ def cube():
     return exported(spec)
 
 
+@pytest.fixture(scope="module")
+def conforming():
+    """The 480-tetrahedron organ on its conforming lattice (``spec_from_mesh``'s default:
+    439 nodes, hexahedra of every shape), families+volume, settling tight."""
+    from live_page import conforming_spec
+
+    spec = conforming_spec(0.012)
+    spec["fpm"].update(stiffness="families+volume", settle_tolerance=1e-12)
+    return exported(spec)
+
+
 def test_the_runtime_is_standalone():
     """The recipe an engine ports: NumPy and SciPy only, nothing else of ours."""
     tree = ast.parse((ROOT / "fpm/runtime.py").read_text())
@@ -95,6 +106,22 @@ def test_the_static_equilibrium_is_at_rest_in_the_runtime(cube):
     rt = Runtime.from_export(doc)
     eq = static_equilibrium(problem, k=theta, depth=None, load_case=1, tolerance=1e-12)
     forces = rt.load_case_forces(doc, 1)
+    residual = rt.internal_forces(problem.nodes + eq.displacements) + forces
+    residual[rt.fixed] = 0.0
+    assert np.abs(residual).max() <= 1e-9 * np.abs(forces).max()
+
+
+def test_a_conforming_lattice_is_at_rest_at_its_static_equilibrium_in_the_runtime(conforming):
+    """The lattice a tetrahedral organ gets by default: the export's volume term is the
+    model's on its irregular hexahedra, and the static solver's answer leaves no unbalanced
+    force in the runtime."""
+    problem, theta, _, doc = conforming
+    rt = Runtime.from_export(doc)
+    volume, _ = hexahedron_volumes(problem.nodes, rt.hexahedra)
+    assert volume == pytest.approx(np.asarray(doc["rest_volumes"]), rel=1e-13)
+    assert np.ptp(volume) > 0.5 * volume.mean()  # not a regular lattice
+    eq = static_equilibrium(problem, k=theta, depth=None, load_case=0, tolerance=1e-12)
+    forces = rt.load_case_forces(doc, 0)
     residual = rt.internal_forces(problem.nodes + eq.displacements) + forces
     residual[rt.fixed] = 0.0
     assert np.abs(residual).max() <= 1e-9 * np.abs(forces).max()

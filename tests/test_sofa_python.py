@@ -51,10 +51,17 @@ class Node:
         return child
 
 
-@pytest.fixture(scope="module")
-def scene():
-    """(problem, the parsed JSON export, the scene module run against the stand-in Sofa)."""
-    spec = json.loads((ROOT / "examples/small-box.json").read_text())
+@pytest.fixture(scope="module", params=["small box", "conforming organ"])
+def scene(request):
+    """(problem, the parsed JSON export, the scene module run against the stand-in Sofa): the
+    small box, and the 480-tetrahedron organ on the conforming lattice a tetrahedral mesh
+    gets by default (hexahedra of every shape)."""
+    if request.param == "small box":
+        spec = json.loads((ROOT / "examples/small-box.json").read_text())
+    else:
+        from live_page import conforming_spec
+
+        spec = conforming_spec(0.012)
     spec["fpm"] = {"stiffness": "families+volume"}
     problem = load_problem(spec)
     theta = continuum_start(problem)
