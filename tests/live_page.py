@@ -149,4 +149,3 @@ def conforming_spec(h: float) -> dict[str, Any]:
     assert spec["geometry"]["type"] == "mesh"  # the conforming lattice, not voxels
     del spec["reference"], spec["validation_cases"]
     return spec
-

@@ -132,9 +132,7 @@ def test_auto_distance_is_a_share_of_the_cases_discrepancy_together():
     reference[1] *= 1.0000001  # a perfect fit
     reference[2] *= 1.05  # 5% off
     together = (0.10 * 1 + 1e-7 * 1 + 0.05 * 2) / (1 + 1 + 2)
-    assert case_distances(problem.spec, static, reference) == pytest.approx(
-        [SHARE * together] * 3
-    )
+    assert case_distances(problem.spec, static, reference) == pytest.approx([SHARE * together] * 3)
     assert case_distances(problem.spec, static, static * 1.0000001) == pytest.approx([FLOOR] * 3)
     assert case_distances(problem.spec, static, static * 2.0) == pytest.approx([NOMINAL] * 3)
     assert case_distances(problem.spec, static, None) == [NOMINAL] * 3
