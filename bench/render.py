@@ -313,7 +313,8 @@ def headline(documents: dict[str, dict[str, Any]], bench_dir: str) -> list[str]:
                 if same and same["identical"]
                 else ""
             )
-            + "; every load case settles within 1/20 of the load cases' static discrepancy taken together (the default "
+            + "; every load case settles within 1/20 of the load cases' static discrepancy "
+            "taken together (the default "
             f"settle_distance; the settled cost {two['settled_over_static_cost']:.3f} times the "
             "static one). "
             f"[Spread page]({bench_dir}/spread.md), measured {run['date'][:10]}."
