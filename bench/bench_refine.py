@@ -43,7 +43,9 @@ three validation cases, each force spread over its node's share of the solid.
    reference and the fit against it, the validation cases judged against
    :data:`ORGAN_GOALS` (<= 10% at about 2,000 nodes, <= 6% at half the spacing). Measured:
    docs/real-organs.md. ``python -m bench.bench_refine organ-case ORGAN H [LATTICE]`` is one
-   row as JSON; ``organ-diagnose ORGAN H REFINE`` says where a row's error is (:func:`diagnose`).
+   row as JSON; ``organ-diagnose ORGAN H REFINE`` says where a row's error is (:func:`diagnose`,
+   with :func:`near_field_imposed`: what a lattice refined only near the loads could at best
+   do).
 
 ``python -m bench.bench_refine auto|fit|check|organs`` runs one part (``fit`` about 20 min on 2 busy
 cores), ``python -m bench.bench_refine fit-case H LATTICE`` one row of part 2 (h in m) as JSON.
@@ -423,6 +425,7 @@ def diagnose(organ: str, spacing: float, refine: int) -> None:
         if mode == "field":
             break
         theta = fitted_theta(fitted, result)
+        near_field_imposed(fitted, theta, reference, spacing)
         static = StaticCost(fitted, truth, None)
         for j, case in enumerate(fitted.load_cases):
             u = static.displacements(theta, j).displacements
@@ -445,6 +448,68 @@ def diagnose(organ: str, spacing: float, refine: int) -> None:
         solved = fpm.solve_fem(fpm.load_problem(hexahedra))
         gap = relative_change(reference.displacements, solved.displacements)
         print(f"  the lattice's hexahedra as a continuum, refined {level}x: {fmt(gap)} %")
+
+
+NEAR = 3.01
+"""What :func:`near_field_imposed` calls near a load: lattice nodes within this many h of a
+loaded node."""
+
+
+def near_field_imposed(problem: Any, theta: Any, reference: Any, spacing: float) -> None:
+    """Whether a lattice refined only near the loads could do: per case (fitted, then
+    validation), the relative discrepancy (% of the case's whole displacement sum) of the
+    lattice nodes further than NEAR h from a loaded node, as the fitted lattice solves the
+    case, and with the reference's displacements imposed on the nodes within (a perfect near
+    field: what any refinement there could at best give), then with the parameters refitted
+    for that far field (Nelder-Mead on their logarithms). Linear: the lattice's tangent at rest
+    (:class:`fpm.dynamics.spring_system.SpringSystem`), the loads being small."""
+    import numpy as np
+    import scipy.sparse.linalg as spla
+    from scipy.optimize import minimize
+
+    from fpm.dynamics.spring_system import SpringSystem
+    from fpm.model.stiffness import model_stiffness
+
+    truth = np.asarray(reference.displacements)
+    forces = np.stack([case.dense(problem.n_nodes) for case in problem.all_cases])
+    free = np.flatnonzero(~problem.fixed)
+    system = SpringSystem(problem, free)
+    rest = np.zeros((len(free), 3))
+    local = np.full(problem.n_nodes, -1)
+    local[free] = np.arange(len(free))
+
+    def dofs(nodes: np.ndarray) -> np.ndarray:
+        return (3 * local[nodes][:, None] + np.arange(3)).ravel()
+
+    def far_field(log_theta: np.ndarray, imposed: bool) -> list[float]:
+        stiffness = model_stiffness(problem, list(np.exp(log_theta)))
+        k = system.tangent(rest, system.parameters(stiffness)).tocsr()
+        out = []
+        for j, f in enumerate(forces):
+            loaded = problem.nodes[np.any(f != 0, axis=1)]
+            gap = np.linalg.norm(problem.nodes[:, None] - loaded[None], axis=2).min(axis=1)
+            near = gap <= NEAR * spacing
+            far = np.flatnonzero(~near & ~problem.fixed)
+            if imposed:
+                held = np.flatnonzero(near & ~problem.fixed)
+                rhs = f[far].ravel() - k[dofs(far)][:, dofs(held)] @ truth[j, held].ravel()
+                u = spla.spsolve(k[dofs(far)][:, dofs(far)].tocsc(), rhs).reshape(-1, 3)
+            else:
+                u = spla.spsolve(k.tocsc(), f[free].ravel()).reshape(-1, 3)[local[far]]
+            error = np.linalg.norm(u - truth[j, far], axis=1).sum()
+            out.append(100 * error / np.linalg.norm(truth[j], axis=1).sum())
+        return out
+
+    start = np.log(np.asarray(theta, dtype=float))
+    fitted = len(problem.load_cases)
+    best = minimize(
+        lambda p: float(np.mean(far_field(p, True)[:fitted])), start, method="Nelder-Mead",
+        options={"maxiter": 200, "xatol": 1e-3, "fatol": 1e-3},
+    )  # fmt: skip
+    print(f"  beyond {NEAR:.0f} h of the loads, % of each case (fitted, then validation):")
+    print(f"    as the lattice solves it:          {fmt(far_field(start, False))}")
+    print(f"    the reference imposed within:      {fmt(far_field(start, True))}")
+    print(f"    ... and the parameters refitted:   {fmt(far_field(best.x, True))}", flush=True)
 
 
 def continuum_gap(spacing: float, lattice: str, reference: Any) -> list[float]:

@@ -80,7 +80,8 @@ def spec_from_mesh(
     load case). ``options``: ``connectivity``, ``scale`` (e.g. 0.001 for a mesh in mm),
     ``voxelise``, ``name``, ``dt`` (s, or "auto"), ``lattice`` (a tetrahedral mesh:
     ``"conforming"``, the default, the voxel lattice's surface nodes moved onto its surface; or
-    ``"voxels"``); see :func:`fpm.io.meshes.spec_from_mesh`.
+    ``"voxels"``), ``stiffness`` (``fpm.stiffness``; by default ``"field"`` for a tetrahedral
+    organ loaded in two force patterns or more); see :func:`fpm.io.meshes.spec_from_mesh`.
     Raises :class:`fpm.io.meshes.MeshError` (e.g. an open surface) or ValueError (a bad selector).
     """
     from fpm.io.meshes import spec_from_mesh as build

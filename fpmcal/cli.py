@@ -13,7 +13,7 @@ import json
 import os
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args
 
 from pydantic import ValidationError
 
@@ -264,6 +264,7 @@ def cmd_spec_from_mesh(args: argparse.Namespace) -> None:
         voxel_reference=args.voxel_reference,
         conform=args.conform,
         lattice=args.lattice,
+        stiffness=args.stiffness,
     )
     for note in notes:
         print(f"note: {note}", file=sys.stderr)
@@ -533,6 +534,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_calibrate)
 
     from fpm.io.meshes import FORCE_HELP, SELECTOR_HELP
+    from fpm.model.spec.base import StiffnessMode
 
     p = sub.add_parser("spec", help="make a problem spec (spec from-mesh FILE ...)")
     spec_sub = p.add_subparsers(dest="spec_command", required=True)
@@ -577,6 +579,12 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     p.add_argument(
         "--conform", action="store_true", help="the same as --lattice conforming (the default)"
+    )  # fmt: skip
+    p.add_argument(
+        "--stiffness", choices=list(get_args(StiffnessMode)), default=None,
+        help="fpm.stiffness; default: 'field' (a stiffness factor per cell, returned only where "
+        "it predicts a left-out load better) for a tetrahedral organ loaded in two force "
+        "patterns or more, else the schema's default (families+volume)",
     )  # fmt: skip
     p.add_argument("--name", default=None, help="the spec's name (default: the file name)")
     p.add_argument(

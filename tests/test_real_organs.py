@@ -58,6 +58,37 @@ def test_a_tetrahedral_mesh_gets_the_conforming_lattice_and_voxels_by_name(tmp_p
     assert fpm.load_problem(str(tmp_path / "v.json")).spec.geometry.type == "voxels"
 
 
+def test_an_organ_loaded_in_two_patterns_gets_the_stiffness_field(tmp_path: Path):
+    """The stiffness default of a spec made from a tetrahedral organ: the field where there is
+    another load to judge it on (it is returned only where it predicts a left-out pattern
+    better), families+volume for one pattern (a scaled copy is the same pattern), and what
+    the user names, by the library, the SDK and the CLI."""
+    mesh = organ()
+    one = dict(GIVEN, forces=[GIVEN["forces"][0], "nearest:0,0,0.035:0,0,-0.02"])
+    spec, notes = spec_from_mesh(mesh, **one)
+    assert "stiffness" not in spec["fpm"]  # the schema's default: families+volume
+    assert any("one force pattern" in n for n in notes)
+    two = dict(GIVEN, forces=[GIVEN["forces"][0], "nearest:0,0,0.035:0.01,0,0"])
+    spec, notes = spec_from_mesh(mesh, **two)
+    assert spec["fpm"]["stiffness"] == "field"
+    assert any("fpm.stiffness = 'field'" in n for n in notes)
+    assert fpm.load_problem(spec).spec.fpm.stiffness == "field"
+    named, _ = spec_from_mesh(mesh, stiffness="families", **two)
+    assert named["fpm"]["stiffness"] == "families"
+    voxels, _ = spec_from_mesh(mesh, voxel_reference=True, **two)  # no tetrahedra to judge on
+    assert "stiffness" not in voxels["fpm"]
+    path = tmp_path / "organ.vtu"
+    meshio.write(path, mesh)
+    assert sdk_spec_from_mesh(path, **two)["fpm"]["stiffness"] == "field"
+    assert sdk_spec_from_mesh(path, stiffness="single", **two)["fpm"]["stiffness"] == "single"
+    argv = ["spec", "from-mesh", str(path), "--spacing", "0.01", "--fix", "face:z-",
+            "--E", "5000", "--nu", "0.45", "--stiffness", "families+volume",
+            "-o", str(tmp_path / "s.json")]  # fmt: skip
+    argv += [a for f in two["forces"] for a in ("--force", f)]
+    assert main(argv) == 0
+    assert fpm.load_problem(str(tmp_path / "s.json")).spec.fpm.stiffness == "families+volume"
+
+
 def test_inverted_tetrahedra_are_renumbered_with_a_note():
     mesh = organ()
     tets = mesh.cells[0].data.copy()

@@ -30,6 +30,7 @@ def spec_from_mesh(
     voxel_reference: bool = False,
     conform: bool = False,
     lattice: str | None = None,
+    stiffness: str | None = None,
 ) -> tuple[dict[str, Any], list[str]]:
     """A problem spec for a mesh file (or a ``meshio.Mesh``), and notes for the user.
 
@@ -56,6 +57,10 @@ def spec_from_mesh(
             (the default before; also what ``voxel_reference`` gets, which has no mesh to
             conform to). Hexahedral meshes and closed surfaces take no choice (None).
         conform: ``True`` is ``lattice="conforming"`` (the flag of before the default).
+        stiffness: ``fpm.stiffness`` (a :data:`fpm.model.spec.settings.StiffnessMode`); None:
+            ``"field"`` for an organ, a tetrahedral mesh whose reference is its tetrahedra,
+            loaded in two force patterns or more (:func:`default_stiffness`), else the
+            schema's default (families+volume).
 
     Raises:
         MeshError: the mesh cannot become a solid. ValueError: a bad selector or force.
@@ -114,7 +119,39 @@ def spec_from_mesh(
         )
     else:
         spec["fpm"] = {"dt": float(dt)}
+    chosen_stiffness, why = (
+        default_stiffness(spec, problem) if stiffness is None else (stiffness, "")
+    )
+    if chosen_stiffness is not None:
+        spec["fpm"]["stiffness"] = chosen_stiffness
+        load_problem(spec)  # the mode checked against the material
+    if why:
+        notes.append(why)
     return spec, notes
+
+
+def default_stiffness(spec: dict[str, Any], problem: Any) -> tuple[str | None, str]:
+    """``fpm.stiffness`` for a spec made from a mesh, and a note saying why: ``"field"`` (a
+    factor per cell on the families' springs and on kappa, chosen by cross-validation and
+    returned only where it predicts a left-out load better: docs/explanation/physics/
+    stiffness-field.md) for an organ whose reference is its own tetrahedra, loaded in two
+    force patterns or more; else None (the schema's default, families+volume). Why: on the
+    organs of ``bench/tet_organ.py`` at about 2,000 lattice nodes the four parameters leave
+    18-20% on unseen presses, the field 10-14% (docs/explanation/organs-conforming.md);
+    with one pattern there is nothing to cross-validate, so it would never be returned."""
+    from ...fitting.field import load_patterns
+
+    if "mesh" not in spec.get("reference", {}):
+        return None, ""
+    if len(load_patterns(problem)) < 2:
+        return None, (
+            "fpm.stiffness: families+volume (the load cases are one force pattern: a "
+            "stiffness field would have no other load to be judged on)"
+        )
+    return "field", (
+        "fpm.stiffness = 'field': a stiffness factor per cell, returned only where it predicts "
+        "each left-out force pattern better than the four parameters (--stiffness to choose)"
+    )
 
 
 LATTICES = ("conforming", "voxels")
