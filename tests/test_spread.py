@@ -42,6 +42,7 @@ from service.limits import dump_spec
 from store import graph, keys, records, scratch
 from store.status import CalibrationStatus
 from store.timeline import critical_path
+from worker.jobs import numbered
 from worker.spread import VALIDATION_SPAN, CaseSpread, local_threads, task_digest, to_stored
 
 SMALL = json.loads(
@@ -94,6 +95,20 @@ def test_critical_path_is_the_longest_chain_of_waits():
     assert path == ["fem", "chain 0", "damping", "case 1", "gather"]
     assert seconds == 2 + 8 + 1 + 8 + 1  # durations only: the queueing second is left out
     assert critical_path([]) == (0.0, [])
+
+
+def test_distinct_tasks_named_alike_are_numbered_and_a_task_run_twice_is_not():
+    spans = [
+        {"name": "damping", "task": None},
+        {"name": "damping: d 0.1, all load cases", "task": "a"},
+        {"name": "damping: d 0.1, all load cases", "task": "b"},  # other caps, say
+        {"name": "damping: d 0.1, all load cases", "task": "a"},  # run again
+        {"name": "damping: d 0.1, all load cases", "task": "c"},
+        {"name": "finalize"},
+    ]
+    names = [s["name"] for s in numbered(spans)]
+    d = "damping: d 0.1, all load cases"
+    assert names == ["damping", d, f"{d} [2]", d, f"{d} [3]", "finalize"]
 
 
 @pytest.mark.parametrize("cap", [1_000_000, 3 * CHUNK, 3 * CHUNK + 50])
@@ -347,7 +362,9 @@ def test_same_parameters_with_one_two_and_three_workers(redis, worker_processes)
         assert phases[0] == "load" and "polish" in phases and phases[-1] == "damping"
         alone = sum(p["seconds"] for p in damping["phases"])
         assert alone == pytest.approx(damping["end"] - damping["start"], abs=1e-6)
-        assert len(set(names)) == len(names)  # each task ran once
+        tasks = [s["task"] for s in done.result["jobs"] if s.get("task") is not None]
+        assert len(set(tasks)) == len(tasks)  # each task ran once
+        assert len(set(names)) == len(names)  # and each span has a name of its own
         for s in done.result["jobs"]:
             assert s["start"] <= s["end"] and s["cpu"] >= 0 and s["worker"] != "?"
         seconds, path = critical_path(done.result["jobs"])

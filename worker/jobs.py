@@ -493,11 +493,29 @@ class _Span:
             scratch.add_span(self.redis, self.calibration_id, span)
 
 
+def numbered(spans: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """``spans`` with the names of distinct tasks that share one told apart: the second task
+    named ``n`` becomes ``n [2]``, and so on (two requests at one d whose caps differ, say, are
+    named alike by :func:`worker.spread.task_name`; the critical path goes by names). A task
+    run twice keeps its name."""
+    tasks: dict[str, list[str]] = {}  # name -> the digests of the tasks so named, in order
+    for span in spans:
+        task = span.get("task")
+        if task is None:
+            continue
+        seen = tasks.setdefault(span["name"], [])
+        if task not in seen:
+            seen.append(task)
+        if (n := seen.index(task)) > 0:
+            span["name"] = f"{span['name']} [{n + 1}]"
+    return spans
+
+
 def _timeline(redis: Redis, record: records.CalibrationRecord, own: _Span) -> dict[str, Any]:
     """The result's ``jobs`` (the FEM job's span when it ran for this calibration, every
     span in start order, finalize's last) and ``critical_path`` / ``critical_path_seconds``
     (:func:`store.timeline.critical_path`)."""
-    spans = scratch.get_spans(redis, record.id)
+    spans = numbered(scratch.get_spans(redis, record.id))
     meta = records.get_fem_meta(redis, record.fem_hash)
     if not record.fem_cached and meta.get("started") and meta.get("finished"):
         fem = {"name": FEM_SPAN, "worker": meta.get("worker") or "?",

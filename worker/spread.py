@@ -220,6 +220,7 @@ def run_task(
         "end": time.time(),
         "cpu": cpu,
         "after": [spec["after"]],
+        "task": task,
     }
     scratch.add_span(redis, calibration_id, span)
     return cpu

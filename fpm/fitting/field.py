@@ -64,7 +64,7 @@ from ..dynamics.equilibrium import StaticSolver
 from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
 from ..model.forces import Stiffness
 from ..model.hexahedron import NATURAL
-from ..model.problem import Problem
+from ..model.problem import Problem, load_patterns
 from ..model.stiffness import (
     axis_factors,
     cell_shares,
@@ -472,23 +472,6 @@ class FieldStage:
         if self.returned:
             return self.field_stiffness(problem)
         return model_stiffness(problem, self.theta)
-
-
-def load_patterns(problem: Problem) -> list[list[int]]:
-    """The load cases grouped by force pattern: cases whose nodal forces are positive multiples
-    of one another (the same nodes, proportional vectors) form one group, in spec order.
-    Leaving one of a group out tests only the force's size, never another load, so the
-    cross-validation leaves a whole group out at a time."""
-    groups: list[tuple[np.ndarray, np.ndarray, list[int]]] = []
-    for j, case in enumerate(problem.load_cases):
-        shape = case.forces / max(float(np.linalg.norm(case.forces)), 1e-300)
-        for nodes, other, members in groups:
-            if np.array_equal(nodes, case.nodes) and np.allclose(shape, other, atol=1e-9):
-                members.append(j)
-                break
-        else:
-            groups.append((case.nodes, shape, [j]))
-    return [members for _, _, members in groups]
 
 
 def fit_field(

@@ -87,6 +87,11 @@ class JobSpan(BaseModel):
     end: float = Field(description="Unix time it ended, s")
     cpu: float = Field(description="CPU seconds it used, all its threads, s")
     after: list[str] = Field([], description="the jobs it waited for (names)")
+    task: str | None = Field(
+        None,
+        description="a damping-stage task's digest (worker.spread.task_digest): two spans "
+        "with one digest are one task run twice; None for the other jobs",
+    )
 
 
 class CalibrationResult(BaseModel):

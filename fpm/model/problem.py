@@ -122,6 +122,23 @@ class Problem:
         return found
 
 
+def load_patterns(problem: Problem) -> list[list[int]]:
+    """The load cases grouped by force pattern: cases whose nodal forces are positive multiples
+    of one another (the same nodes, proportional vectors) form one group, in spec order.
+    Leaving one of a group out tests only the force's size, never another load, so the
+    cross-validation leaves a whole group out at a time."""
+    groups: list[tuple[np.ndarray, np.ndarray, list[int]]] = []
+    for j, case in enumerate(problem.load_cases):
+        shape = case.forces / max(float(np.linalg.norm(case.forces)), 1e-300)
+        for nodes, other, members in groups:
+            if np.array_equal(nodes, case.nodes) and np.allclose(shape, other, atol=1e-9):
+                members.append(j)
+                break
+        else:
+            groups.append((case.nodes, shape, [j]))
+    return [members for _, _, members in groups]
+
+
 def load_problem(
     spec: dict[str, Any] | str | Path | ProblemSpec, mesh: dict[str, Any] | None = None
 ) -> Problem:

@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from ...model.problem import load_patterns
 from ..errors import MeshError
 from .conform import conform_spec
 from .geometry import geometry_from_mesh
@@ -139,8 +140,6 @@ def default_stiffness(spec: dict[str, Any], problem: Any) -> tuple[str | None, s
     organs of ``bench/tet_organ.py`` at about 2,000 lattice nodes the four parameters leave
     18-20% on unseen presses, the field 10-14% (docs/explanation/organs-conforming.md);
     with one pattern there is nothing to cross-validate, so it would never be returned."""
-    from ...fitting.field import load_patterns
-
     if "mesh" not in spec.get("reference", {}):
         return None, ""
     if len(load_patterns(problem)) < 2:
