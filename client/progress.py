@@ -25,7 +25,12 @@ PHASE_LABELS = {"annealing": {"two-stage": "stiffness", "paper": "annealing"}}
 """Short phase names for the bar: the two-stage method's annealing is its stiffness search."""
 
 
-DAMPING_STEPS = {"polish": "polish", "depth": "depth", "damping": "d search"}
+DAMPING_STEPS = {
+    "polish": "polish",
+    "depth": "depth",
+    "field": "stiffness field",
+    "damping": "d search",
+}
 """The damping stage's steps as the bar shows them."""
 
 

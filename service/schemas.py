@@ -50,10 +50,11 @@ class ChainProgress(BaseModel):
 class DampingProgress(BaseModel):
     """Latest report of the damping stage (two-stage method, stage 2)."""
 
-    step: Literal["polish", "depth", "damping"] | None = Field(
+    step: Literal["polish", "depth", "field", "damping"] | None = Field(
         None,
         description="'polish' (local search of the stiffness from the best chain's), 'depth' "
-        "(depth 'auto' on static equilibria), 'damping' (the fastest-settling d)",
+        "(depth 'auto' on static equilibria), 'field' (fpm.stiffness 'field': the per-cell "
+        "factors and their smoothness, by cross-validation), 'damping' (the fastest-settling d)",
     )
     runs: int = Field(0, description="d values tried (each a dynamic run of every load case)")
     last_d: float | None = Field(None, description="the last d tried, N s/m")

@@ -111,10 +111,10 @@ def test_progress_bar_names_the_stage():
     assert render(calibration).endswith("damping   starting")
     stream = io.StringIO()
     bar = ProgressBar(stream)
-    for step in ("polish", "depth", "damping", "damping"):
+    for step in ("polish", "depth", "field", "damping", "damping"):
         calibration["progress"]["damping"] = {"step": step, "runs": 0}
         bar.update(calibration)
-    assert len(stream.getvalue().splitlines()) == 3  # one line per step of the damping stage
+    assert len(stream.getvalue().splitlines()) == 4  # one line per step of the damping stage
 
 
 RESULT = {

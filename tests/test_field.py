@@ -6,7 +6,7 @@ reproduced by an independent solve."""
 from __future__ import annotations
 
 import json
-from typing import Any
+from typing import Any, get_args
 
 import numpy as np
 import pytest
@@ -17,6 +17,7 @@ from fpm.dynamics.equilibrium import StaticSolver
 from fpm.fitting import field as F
 from fpm.io.export import export
 from fpm.model.stiffness import continuum_start, field_stiffness, fitted_theta, model_stiffness
+from service.schemas import DampingProgress
 from tests.test_export import independent_linear_solve
 
 FAST = (4, 4, 6)
@@ -427,8 +428,13 @@ def test_calibrate_fits_a_field_on_regions_and_the_export_carries_it():
     spec = region_block()
     spec["annealing"] = {"chains": 1}
     problem = fpm.load_problem(spec)
-    result = fpm.calibrate(problem, threads=1)
+    phases: set[str] = set()
+    result = fpm.calibrate(problem, threads=1, progress=lambda info: phases.add(info["phase"]))
     assert result.stiffness_mode == "field"
+    # the service reports every phase of the damping stage (a 'field' step it did not know
+    # answered 422 to a client polling a field calibration)
+    steps = set(get_args(get_args(DampingProgress.model_fields["step"].annotation)[0]))
+    assert "field" in phases and phases - {"fem", "annealing", "finalize"} <= steps
     assert [r["name"] for r in result.regions] == ["base", "stiff"]
     field = result.field
     cells = problem.regions.cells

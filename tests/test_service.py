@@ -117,6 +117,13 @@ def test_progress_names_each_stage(api, redis, small_spec):
     assert damping["stage"] == "stage 2 of 2: damping (finding the fastest-settling d)"
     assert damping["damping"]["runs"] == 3 and damping["damping"]["best_d"] == 0.1
     assert [c["chain"] for c in damping["chains"]] == [0, 1]  # the chain reports stay
+    for step, doing in [
+        ("polish", "polishing the stiffness"),
+        ("depth", "choosing the depth"),
+        ("field", "fitting the stiffness field"),
+    ]:  # every phase of the stage
+        redis.hset(progress_key, keys.DAMPING_PROGRESS, json.dumps({**report, "step": step}))
+        assert view("damping")["stage"] == f"stage 2 of 2: damping ({doing})"
     assert view("finalize")["stage"] == "final dynamic run and figures"
 
     small_spec["annealing"].update(method="paper", seed=5)

@@ -258,7 +258,8 @@ class _ChainProgress(_Reporter):
 class _DampingProgress(_Reporter):
     """The damping stage's progress: {step, runs, d, total_steps, best_d, best_total_steps}.
 
-    ``step`` is "polish", "depth" or "damping" (fpm.fitting.damping_stage.fit_damping's phases),
+    ``step`` is "polish", "depth", "field" or "damping" (fpm.fitting.damping_stage.fit_damping's
+    phases),
     written at once when it changes; ``runs`` counts the d values tried, ``d`` and
     ``total_steps`` are the last one's (total_steps None: some load case did not settle) and
     ``best_*`` the fastest so far. ``marks``: (step, Unix s, process CPU s) where each step

@@ -39,6 +39,7 @@ MAX_OFFSET = 10**9
 DAMPING_STEPS = {
     "polish": "polishing the stiffness",
     "depth": "choosing the depth",
+    "field": "fitting the stiffness field",
     "damping": "finding the fastest-settling d",
 }
 LEGACY_RESULT = (
