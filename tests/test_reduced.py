@@ -225,31 +225,3 @@ def test_stage_two_validates_beside_the_search():
     assert stage.validation["relative"] == alone.relative
     result = finalize(problem, reference, [chain], stage)
     assert result.validation_relative_discrepancy == alone.relative
-
-
-def test_a_static_solve_seeded_with_the_models_prediction_needs_fewer_newton_steps():
-    """The model's prediction (reduced linear displacements plus the defect correction) is the
-    static equilibrium where the correction was taken, and near it a better start than rest:
-    fit_reduced seeds each round's static solves with it."""
-    problem, cost = problem_and_cost(force=0.3)
-    model = ReducedLinearModel.of(problem, first_basis(problem), cost.reference)
-    model.attach([cost.solver] * len(model.cases), None)
-    theta = np.array(continuum_start(problem)) * np.array([0.8, 1.2, 30.0, 0.9])
-    model.enrich(theta)
-    stiffness = model_stiffness(problem, theta)
-    nearby = theta * np.array([1.05, 0.97, 1.1, 1.02])
-    for j, case in enumerate(model.cases):
-        here = StaticSolver(problem, warm=False).solve(j, stiffness, None)
-        assert here.iterations >= 2  # loaded beyond the linear range
-        case.set_correction(here.displacements[case.free] - case.linear(theta).reshape(-1, 3))
-        predicted = model.prediction(j, theta)
-        assert predicted is not None
-        largest = np.abs(here.displacements).max()
-        assert np.abs(predicted - here.displacements).max() < 10 * RTOL * largest
-        cold = StaticSolver(problem).solve(j, model_stiffness(problem, nearby), None)
-        seeded = StaticSolver(problem)
-        seeded.seed(j, model_stiffness(problem, nearby), None, model.prediction(j, nearby))
-        warm = seeded.solve(j, model_stiffness(problem, nearby), None)
-        assert warm.converged and warm.start == "predicted"
-        assert warm.iterations < cold.iterations, (warm.iterations, cold.iterations)
-        assert np.abs(warm.displacements - cold.displacements).max() < 1e-6 * largest

@@ -381,19 +381,6 @@ class ReducedLinearModel:
         """Add the full linear responses at ``theta`` to every load case's basis."""
         self.add(self.responses(theta))
 
-    def prediction(self, j: int, theta: np.ndarray) -> np.ndarray | None:
-        """(N, 3) m: load case j's static equilibrium at ``theta`` as this model predicts it
-        (the reduced linear displacements plus the defect correction; 0 off the case's free
-        nodes), or None before its basis has a column."""
-        case = self.cases[j]
-        if not case.basis.shape[1]:
-            return None
-        u = np.zeros((self.problem.n_nodes, 3))
-        u[case.free] = case.linear(self.coefficients(theta)).reshape(-1, 3)
-        if case.correction is not None:
-            u[case.free] += case.correction
-        return u
-
     def responses(self, theta: np.ndarray) -> list[Callable[[], np.ndarray]]:
         """Per load case, the full linear solve at ``theta`` as a call returning its response
         (3M,) over the case's free nodes (CG from the reduced model's answer): a call touches
@@ -522,11 +509,8 @@ def fit_reduced(
 
     Each round's full linear and static solves are split over static solvers
     (:data:`CASE_SOLVERS`), the solvers' shares at once on ``threads`` threads with the same
-    answer to the bit; each static solve's Newton starts from the model's prediction
-    (:meth:`ReducedLinearModel.prediction`; on the 93,705-node organ the first round's three
-    solves took 11 Newton steps instead of 14, the polish 47 s instead of 54). The static
-    equilibria at the answer are left as ``cost``'s warm starts, so a static solve there takes
-    no Newton step. ``progress`` gets {phase:
+    answer to the bit. The static equilibria at the answer are left as ``cost``'s
+    warm starts, so a static solve there takes no Newton step. ``progress`` gets {phase:
     "polish", round, evaluations} after each round.
 
     Returns (parameters, their normalised static cost (inf if a load case has no equilibrium),
@@ -552,10 +536,6 @@ def fit_reduced(
             theta = np.exp(y)
             stiffness = model_stiffness(problem, theta)
             responses = model.responses(theta)
-            for j, g in enumerate(statics):  # Newton starts from the model's prediction
-                predicted = model.prediction(j, theta)
-                if predicted is not None:
-                    solvers[g].seed(j, stiffness, cost.depth, predicted)
             tasks = [
                 partial(_solver_round, list(enumerate(responses)) if g == 0 else [],
                         [j for j in range(n_cases) if statics[j] == g], solver, stiffness,
