@@ -233,7 +233,8 @@ def cmd_calibrate(args: argparse.Namespace) -> None:
     progress = None if args.quiet else _Bar(chains, a.moves)
     result = calibrate(problem, chains=chains, progress=progress, reference=reference)
     _warn([w for w in getattr(result, "warnings", None) or [] if w not in warned])
-    if args.json:
+    if args.json:  # the table still for the person watching: on stderr
+        print(result_table(problem, result), file=sys.stderr)
         print(json.dumps(result.to_dict()))
     else:
         print(result_table(problem, result))
@@ -521,7 +522,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("spec", help="problem spec JSON file")
     p.add_argument("--chains", type=int, default=None, help="annealing chains (default: spec)")
     p.add_argument("--plot", default=None, metavar="OUT.png", help="save profiles + cost history")
-    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.add_argument(
+        "--json", action="store_true", help="print the result as JSON (the table goes to stderr)"
+    )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.add_argument(
         "--reference",

@@ -139,8 +139,11 @@ def test_the_cli_reads_a_supplied_field_from_json_or_vtu(tmp_path, capsys):
     for path in (as_json, as_vtu):
         capsys.readouterr()
         assert main(["calibrate", str(spec), "--reference", str(path), "--json", "-q"]) == 0
-        result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        printed = capsys.readouterr()
+        result = json.loads(printed.out.strip().splitlines()[-1])  # stdout: the JSON only
+        assert len(printed.out.strip().splitlines()) == 1
         assert result["reference"] == "supplied"
+        assert f"{result['k']:.3f} N/m" in printed.err  # the table, for the person, on stderr
         ks.append(result["k"])
     assert ks[0] == pytest.approx(ks[1], rel=1e-9)
     short = tmp_path / "short.json"
