@@ -9,7 +9,8 @@ after it, and ``damping (gather)`` after the tasks.
 
 The critical path is the longest chain of spans each waiting for the one before, by the sum of
 their durations: what the calibration would take with a worker free for every job at once
-(queueing and hand-over times left out).
+(queueing and hand-over times left out). Spans of distinct tasks named alike are told apart
+by :func:`numbered`.
 """
 
 from __future__ import annotations
@@ -38,3 +39,21 @@ def critical_path(spans: list[dict[str, Any]]) -> tuple[float, list[str]]:
         return longest[name]
 
     return max((path(n, frozenset()) for n in by_name), key=lambda p: p[0], default=(0.0, []))
+
+
+def numbered(spans: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """``spans`` with the names of distinct tasks that share one told apart: the second task
+    named ``n`` becomes ``n [2]``, and so on (two requests at one d whose caps differ, say, are
+    named alike by :func:`worker.spread.task_name`; the critical path goes by names). A task
+    run twice keeps its name."""
+    tasks: dict[str, list[str]] = {}  # name -> the digests of the tasks so named, in order
+    for span in spans:
+        task = span.get("task")
+        if task is None:
+            continue
+        seen = tasks.setdefault(span["name"], [])
+        if task not in seen:
+            seen.append(task)
+        if (n := seen.index(task)) > 0:
+            span["name"] = f"{span['name']} [{n + 1}]"
+    return spans

@@ -41,8 +41,7 @@ from fpm.model.stiffness import model_stiffness
 from service.limits import dump_spec
 from store import graph, keys, records, scratch
 from store.status import CalibrationStatus
-from store.timeline import critical_path
-from worker.jobs import numbered
+from store.timeline import critical_path, numbered
 from worker.spread import VALIDATION_SPAN, CaseSpread, local_threads, task_digest, to_stored
 
 SMALL = json.loads(

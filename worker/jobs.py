@@ -45,7 +45,7 @@ from fpm.io.export import ExportError, export
 from store import keys, records, scratch
 from store.hashing import export_hash
 from store.status import CalibrationStatus, FemStatus, Phase
-from store.timeline import critical_path
+from store.timeline import critical_path, numbered
 
 from . import memory
 from .problems import problem_of, reference_of
@@ -492,24 +492,6 @@ class _Span:
             if k:
                 span["name"] = f"{self.name} ({'gather' if k == len(rounds) else k})"
             scratch.add_span(self.redis, self.calibration_id, span)
-
-
-def numbered(spans: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """``spans`` with the names of distinct tasks that share one told apart: the second task
-    named ``n`` becomes ``n [2]``, and so on (two requests at one d whose caps differ, say, are
-    named alike by :func:`worker.spread.task_name`; the critical path goes by names). A task
-    run twice keeps its name."""
-    tasks: dict[str, list[str]] = {}  # name -> the digests of the tasks so named, in order
-    for span in spans:
-        task = span.get("task")
-        if task is None:
-            continue
-        seen = tasks.setdefault(span["name"], [])
-        if task not in seen:
-            seen.append(task)
-        if (n := seen.index(task)) > 0:
-            span["name"] = f"{span['name']} [{n + 1}]"
-    return spans
 
 
 def _timeline(redis: Redis, record: records.CalibrationRecord, own: _Span) -> dict[str, Any]:

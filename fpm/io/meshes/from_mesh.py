@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from ...model.problem import load_patterns
+from ...model.problem import Problem, load_patterns, load_problem
 from ..errors import MeshError
 from .conform import conform_spec
 from .geometry import geometry_from_mesh
@@ -67,8 +67,6 @@ def spec_from_mesh(
         MeshError: the mesh cannot become a solid. ValueError: a bad selector or force.
         pydantic.ValidationError: the spec does not fit its solid (e.g. a box with no node).
     """
-    from ...model.problem import load_problem
-
     if isinstance(mesh, str | Path):
         name = name or Path(mesh).name
         mesh = read_mesh(mesh)
@@ -102,7 +100,10 @@ def spec_from_mesh(
             + (", as --voxel-reference needs" if voxel_reference and lattice is None else "")
             + "); the default follows the mesh's surface (conforming)"
         ]
-    problem = load_problem(spec)  # selectors checked against the nodes
+    spec["fpm"] = {"dt": "auto" if dt == "auto" else float(dt)}
+    if stiffness is not None:
+        spec["fpm"]["stiffness"] = stiffness
+    problem = load_problem(spec)  # selectors and the fpm settings checked against the solid
     notes = made.notes + conformed + [f"{problem.n_nodes} nodes, h = {problem.h:.4g} m"]
     notes += problem.notes
     if made.tetrahedra is not None:
@@ -113,25 +114,20 @@ def spec_from_mesh(
             "themselves (10-node, reference.mesh), read at the lattice nodes"
         )
     if dt == "auto":
-        spec["fpm"] = {"dt": "auto"}
         notes.append(
             "fpm.dt = 'auto': half the lattice's stability estimate at the fitted stiffness, at "
             "most 1 ms (the result's dt says which)"
         )
-    else:
-        spec["fpm"] = {"dt": float(dt)}
-    chosen_stiffness, why = (
-        default_stiffness(spec, problem) if stiffness is None else (stiffness, "")
-    )
-    if chosen_stiffness is not None:
-        spec["fpm"]["stiffness"] = chosen_stiffness
-        load_problem(spec)  # the mode checked against the material
-    if why:
-        notes.append(why)
+    if stiffness is None:  # valid by construction: two force patterns or more
+        mode, why = default_stiffness(spec, problem)
+        if mode is not None:
+            spec["fpm"]["stiffness"] = mode
+        if why:
+            notes.append(why)
     return spec, notes
 
 
-def default_stiffness(spec: dict[str, Any], problem: Any) -> tuple[str | None, str]:
+def default_stiffness(spec: dict[str, Any], problem: Problem) -> tuple[str | None, str]:
     """``fpm.stiffness`` for a spec made from a mesh, and a note saying why: ``"field"`` (a
     factor per cell on the families' springs and on kappa, chosen by cross-validation and
     returned only where it predicts a left-out load better: docs/explanation/physics/
