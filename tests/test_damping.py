@@ -20,10 +20,12 @@ from fpm.fitting.damping import (
     CHUNK,
     MARGIN_PROBES,
     PREDICT_AFTER,
+    TRUST,
     _piece,
     _Runs,
     _search,
     _smallest_settling,
+    _unsure,
     critical_damping,
     fastest_damping,
     predicted_steps,
@@ -248,3 +250,33 @@ def test_the_margin_from_the_reduced_steps_edge_probes_it_first(edge):
     else:  # the edge fails: nothing below it is run
         assert runs.probed == pytest.approx([0.9])
         assert d_min == pytest.approx(1.0)
+
+
+class _Parabola:
+    """A reduced step whose predicted steps are ``base * (1 + (log d - log d0)^2 / w^2)``."""
+
+    def __init__(self, base: float, d0: float, width: float):
+        self.base, self.d0, self.width = base, d0, width
+
+    def steps(self, d: float, cap: int) -> float:
+        return self.base * (1 + (math.log(d / self.d0) / self.width) ** 2)
+
+
+def test_a_confirming_run_is_skipped_only_beyond_twice_the_reduced_steps_error():
+    """Predicted 1,000 steps at the fastest d and 1,100 at a side (10% more): the side is
+    ruled out while the runs at the fastest d measured within 5% of the prediction (10% >
+    TRUST x 5%), confirmed once they measured 6% or more off, either way, or did not settle."""
+    assert TRUST == 2.0
+    side = math.log(1.04)
+    width = side / math.sqrt(0.1)  # 10% more steps at a side
+    models = [_Parabola(600.0, 1.0, width), _Parabola(400.0, 1.0, width)]
+    assert models[0].steps(1.04, 0) + models[1].steps(1.04, 0) == pytest.approx(1100.0)
+    for measured, needed in [
+        ([600, 400], False),
+        ([630, 420], False),  # 1,050: 4.8% off
+        ([640, 420], True),  # 1,060: 5.7% off
+        ([560, 380], True),  # 940: 6.4% off, under the prediction
+        (None, True),
+    ]:
+        for y in (side, -side):
+            assert _unsure(models, measured, y, 0.0) is needed, (measured, y)

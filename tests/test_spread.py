@@ -255,7 +255,8 @@ def case_spans(result: dict[str, Any]) -> list[dict[str, Any]]:
 
 
 def ahead_spans(result: dict[str, Any]) -> list[dict[str, Any]]:
-    """The spans of the d run ahead (the confirming d, the margin's probes)."""
+    """The spans of the d run ahead (the margin's probes; a confirming d where the reduced steps
+    cannot rule it out)."""
     return [s for s in result["jobs"] if s["name"].endswith(", all load cases")]
 
 
@@ -377,7 +378,7 @@ def test_same_parameters_with_one_two_and_three_workers(redis, worker_processes)
     expected = calibrate(fpm.load_problem(spec)).to_dict()  # in-process, one thread pool
     assert results[1] == {name: expected[name] for name in FITTED}
     assert len(workers_of_cases[1]) == 1 and ahead[1] == 0  # nothing run ahead on one worker
-    assert ahead[2] >= 2 and ahead[3] >= 2  # the confirming d at once
+    assert ahead[2] >= 1 and ahead[3] >= 1  # a d run ahead at once (the margin's edge)
     assert len(workers_of_cases[3]) >= 2, workers_of_cases  # the other workers took cases
     assert not validated_apart[1] and (validated_apart[2] or validated_apart[3])
 
@@ -387,14 +388,15 @@ def test_same_parameters_with_one_two_and_three_workers(redis, worker_processes)
     ("task", "workers"),
     [
         (r"load case \d$", 2),
-        (r"within their total, all load cases$", 2),
+        (r"all load cases$", 2),
         (r"validation cases$", 3),
     ],
 )
 def test_worker_killed_holding_a_task_of_the_damping_stage_loses_nothing(
     redis, worker_processes, task, workers
 ):
-    """A load case at one d, a d run ahead (a request), the validation cases: the worker that
+    """A load case at one d, a d run ahead (a request: the margin's probe or a confirming d),
+    the validation cases: the worker that
     holds one is killed mid-run, its task runs again elsewhere, the parameters are those of
     the calibration in-process. (One validation case of the small box takes a few ms, so that
     the kill lands while its task runs, not after it ended or between its stored answer and
