@@ -66,8 +66,9 @@ from ..model.problem import Problem
 # The runs and verdicts live in fpm.fitting.lockstep; their names stay importable from here.
 from .lockstep import CHUNK as CHUNK
 from .lockstep import HOLD as HOLD
+from .lockstep import LATER as LATER
+from .lockstep import LOOK as LOOK
 from .lockstep import (
-    LATER,
     MARGIN_CAP,
     PRUNE,
     CaseRun,
@@ -75,7 +76,6 @@ from .lockstep import (
     Spread,
     _Runs,
 )
-from .lockstep import LOOK as LOOK
 from .lockstep import PREDICT_AFTER as PREDICT_AFTER
 from .lockstep import SAMPLE as SAMPLE
 from .lockstep import Outcome as Outcome

@@ -43,8 +43,10 @@ PRUNE = 1.1
 """A d is dropped once its predicted total exceeds this times the best total (a margin probe:
 once a case's predicted steps exceed this times its cap); the slack absorbs prediction error."""
 LATER = -1
-"""A :class:`Request`'s budget that is named once the runs have started: the confirming d's,
-run beside the predicted d's whose total is their budget (:meth:`_Runs.separate`)."""
+"""A :class:`Request`'s budget that is named once the runs have started: a d run beside the
+predicted d's whose total is its budget (:meth:`_Runs.separate`). The search no longer asks
+for one (its confirming d run only after the predicted d's runs:
+:func:`fpm.fitting.damping._unsure`); a worker still runs such a request as any other."""
 LOOK = 0.2
 """Seconds between a lockstep's looks for what is named later."""
 MARGIN_CAP = 2
