@@ -217,7 +217,9 @@ def test_a_force_at_a_point_acts_there_and_a_far_point_is_refused(api):
     spec, _ = spec_from_mesh(mesh, **dict(GIVEN, forces=[force]))
     assert spec["load_cases"][0]["forces"] == [{"point": at.tolist(), "vector": [0, 0, -0.01]}]
     problem = fpm.load_problem(spec)
-    case = problem.load_cases[0]
+    assert problem.spec.fpm.loads == "hat"  # the lattice takes its nodes' hats (test_hat_loads)
+    np.testing.assert_allclose(problem.load_cases[0].forces.sum(axis=0), [0, 0, -0.01], atol=1e-17)
+    case = problem.load_cases[0].as_given()  # the point's spread over its face, as the spec says
     assert 2 <= len(case.nodes) <= 4
     np.testing.assert_allclose(case.forces.sum(axis=0), [0, 0, -0.01], atol=1e-17)
     centroid = case.forces[:, 2] @ problem.nodes[case.nodes] / case.forces[:, 2].sum()

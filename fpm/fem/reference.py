@@ -145,7 +145,9 @@ def solve_fem(
         )
     material = problem.spec.material
     # The validation cases too (after the load cases): the fit never sees them, the result does.
-    forces = np.stack([case.dense(len(nodes)) for case in problem.all_cases])  # (L + V, N, 3)
+    forces = np.stack(
+        [case.as_given().dense(len(nodes)) for case in problem.all_cases]
+    )  # (L + V, N, 3)
     in_solid = np.zeros(len(nodes), dtype=bool)
     in_solid[hexahedra] = True
     stray = np.flatnonzero(~in_solid & np.any(forces != 0, axis=(0, 2)))

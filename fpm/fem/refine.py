@@ -425,7 +425,7 @@ def refined_tet_reference(
     its error by one refinement with spread loads."""
     refine = resolved_refine(problem.spec)
     budget = problem.spec.reference.node_budget or DEFAULT_NODE_BUDGET
-    forces = np.stack([case.dense(problem.n_nodes) for case in problem.all_cases])
+    forces = np.stack([case.as_given().dense(problem.n_nodes) for case in problem.all_cases])
     loads = tetrahedron_loads(problem, forces)
 
     def level(refinements: int, x: np.ndarray, t: np.ndarray) -> Mesh:
@@ -604,7 +604,7 @@ def refined_hex_reference(
     budget = problem.spec.reference.node_budget or DEFAULT_NODE_BUDGET
     if problem.spec.material.model != "linear":
         raise FemError("reference.refine applies to the linear reference only")
-    forces = np.stack([case.dense(problem.n_nodes) for case in problem.all_cases])
+    forces = np.stack([case.as_given().dense(problem.n_nodes) for case in problem.all_cases])
     surface = lattice_surface(hexahedra, problem.n_nodes)
     first = _hex_level(
         problem, 0, problem.nodes, hexahedra, problem.fixed.copy(), forces, surface, method

@@ -467,7 +467,7 @@ def tet10_reference(
     lattice = problem.nodes
     where = locate(mesh.nodes[: mesh.n_corners], mesh.corners, lattice)
     cases = problem.all_cases
-    lattice_forces = np.stack([case.dense(len(lattice)) for case in cases])  # (L, N, 3)
+    lattice_forces = np.stack([case.as_given().dense(len(lattice)) for case in cases])  # (L, N, 3)
     if loads is None:
         forces = point_loads(mesh, lattice_forces, where)
     else:

@@ -78,6 +78,19 @@ ENERGY = (
     "m_i g with gravity). Forces = -dE/dx; the static equilibrium is dE/dx = 0 over the free "
     "nodes with the fixed nodes at rest"
 )
+LOADS = {
+    "node": "a force on a node acts at that node (the paper's model)",
+    "hat": (
+        "a force f meant for node i stands for a load over the node's share of the solid and "
+        "is applied as f_j = f M_ij / sum_k M_ik on the nodes j around it, M the consistent "
+        "mass matrix (int N_i N_j, 2 x 2 Gauss points per face) of the lattice's surface (the "
+        "hexahedron faces that belong to one hexahedron) for a surface node, of its volume "
+        "(2 x 2 x 2 per hexahedron) for an interior one; shares on fixed nodes go to the "
+        "supports. On a flat face: 4/9 at i, 1/9 at each edge neighbour, 1/36 at each diagonal "
+        "one. load_cases[].forces are already so applied (fpm.model.hat_loads)"
+    ),
+}
+"""How the fit applied a nodal force (``fpm.loads``), as an engine must to get its figures."""
 SOFA_NO_VOLUME = (
     "SOFA has no XML component for this model's volume term (1/2 kappa (V - V0)^2 / V0 per "
     "trilinear hexahedron): this scene has the springs only and is softer in compression than "
@@ -265,7 +278,9 @@ def to_json(
             **{k: v for k, v in settle.items() if k != "cases"},
             "max_steps": int(max_steps or resolved_max_steps(lattice)),
             "gravity": list(spec.fpm.gravity),
+            "loads": spec.fpm.loads,
         },
+        "loads": LOADS[spec.fpm.loads],
         "energy": ENERGY,
         "step": STEP,
         "h": problem.h,

@@ -17,6 +17,7 @@ from pydantic import ValidationError
 from pydantic_core import InitErrorDetails, PydanticCustomError
 
 from .geometry import Solid, SurfacePoint, build_solid, lumped_masses, spring_lengths, surface_point
+from .hat_loads import hat_shares, spread_forces
 from .regions import RegionMap, check_material, lattice_regions
 from .spec import BoxGeometry, MeshGeometry, NetworkGeometry, ProblemSpec, Selector
 
@@ -43,11 +44,20 @@ class LoadCase:
         name: label.
         nodes: (P,) indices of the stimulated nodes (unique, ascending).
         forces: (P, 3) force on each, N (forces on the same node are summed).
+        given: the case as the spec gives it, when the lattice takes it otherwise
+            (``fpm.loads: "hat"``: ``nodes`` and ``forces`` are then its shares,
+            :mod:`fpm.model.hat_loads`); None: as given. The FEM reference spreads the given
+            forces (:meth:`as_given`); the lattice and everything downstream take these.
     """
 
     name: str
     nodes: np.ndarray
     forces: np.ndarray
+    given: LoadCase | None = None
+
+    def as_given(self) -> LoadCase:
+        """The case as the spec gives it (what the FEM reference loads)."""
+        return self if self.given is None else self.given
 
     def dense(self, n_nodes: int) -> np.ndarray:
         """(N, 3) nodal force array."""
@@ -197,8 +207,17 @@ def build_problem(spec: ProblemSpec, mesh: dict[str, Any] | None = None) -> Prob
     errors.extend(check_material(spec))
     _check_thin_parts(spec, solid, errors)
     regions = _material_regions(spec, solid, mesh, errors, finder.notes)
+    if spec.fpm.loads == "hat" and solid.elements() is None:
+        errors.append(
+            (("fpm", "loads"), "'hat' spreads a force over its node's cells: a network has none")
+        )
     if errors:
         raise SpecError(errors)
+    if spec.fpm.loads == "hat":
+        load_cases, validation = (
+            _hat_loads(solid, fixed, load_cases),
+            _hat_loads(solid, fixed, validation),
+        )
     return Problem(
         spec,
         solid,
@@ -301,6 +320,21 @@ def _load_cases(
             errors.append(((field, c, "forces"), "all forces are zero"))
         load_cases.append(LoadCase(case.name or f"load case {c + 1}", nodes, forces))
     return load_cases
+
+
+def _hat_loads(solid: Solid, fixed: np.ndarray, cases: list[LoadCase]) -> list[LoadCase]:
+    """``cases`` as the lattice takes them with ``fpm.loads: "hat"`` (each keeps itself as
+    ``given``, what the reference loads)."""
+    if not cases:
+        return cases
+    hexahedra = solid.elements()
+    assert hexahedra is not None
+    loaded = np.unique(np.concatenate([case.nodes for case in cases]))
+    shares = hat_shares(solid.nodes, hexahedra, loaded)
+    return [
+        LoadCase(case.name, *spread_forces(shares, case.nodes, case.forces, fixed), given=case)
+        for case in cases
+    ]
 
 
 def _check_stiffness_mode(spec: ProblemSpec, errors: list[tuple[Loc, str]]) -> None:

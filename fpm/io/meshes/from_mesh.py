@@ -12,6 +12,7 @@ from .conform import conform_spec
 from .geometry import geometry_from_mesh
 from .reading import read_mesh
 from .selectors import FORCE_HELP, SELECTOR_HELP, parse_force, parse_selector
+from .voxelise import support_planes
 
 
 def spec_from_mesh(
@@ -70,11 +71,17 @@ def spec_from_mesh(
     if isinstance(mesh, str | Path):
         name = name or Path(mesh).name
         mesh = read_mesh(mesh)
-    made = geometry_from_mesh(
-        mesh, spacing=spacing, connectivity=connectivity, scale=scale, voxelise=voxelise
-    )
     if not fix:
         raise ValueError(f"give the fixed nodes (--fix {SELECTOR_HELP})")
+    fixed = [parse_selector(s) for s in fix]
+    made = geometry_from_mesh(
+        mesh,
+        spacing=spacing,
+        connectivity=connectivity,
+        scale=scale,
+        voxelise=voxelise,
+        planes=support_planes(fixed),
+    )
     if not forces:
         raise ValueError(f"give at least one load case (--force {FORCE_HELP})")
     spec: dict[str, Any] = {
@@ -85,7 +92,7 @@ def spec_from_mesh(
             "density": density,
         },
         "geometry": made.geometry,
-        "fixed": [parse_selector(s) for s in fix],
+        "fixed": fixed,
         "load_cases": [{"name": text.strip(), "forces": parse_force(text)} for text in forces],
     }
     if made.tetrahedra is not None and not voxel_reference:
@@ -101,6 +108,8 @@ def spec_from_mesh(
             + "); the default follows the mesh's surface (conforming)"
         ]
     spec["fpm"] = {"dt": "auto" if dt == "auto" else float(dt)}
+    if "mesh" in spec.get("reference", {}):
+        spec["fpm"]["loads"] = "hat"  # as the refined tetrahedra take them (fpm.model.hat_loads)
     if stiffness is not None:
         spec["fpm"]["stiffness"] = stiffness
     problem = load_problem(spec)  # selectors and the fpm settings checked against the solid
@@ -112,6 +121,11 @@ def spec_from_mesh(
             if voxel_reference
             else f"FEM reference: the {len(made.tetrahedra['tetrahedra'])} tetrahedra "
             "themselves (10-node, reference.mesh), read at the lattice nodes"
+        )
+    if spec["fpm"].get("loads") == "hat":
+        notes.append(
+            "fpm.loads = 'hat': a force on a node acts over the node's share of the surface, as "
+            "the reference applies it (the lattice takes it by its shape functions)"
         )
     if dt == "auto":
         notes.append(

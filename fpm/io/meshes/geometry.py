@@ -9,7 +9,15 @@ from typing import Any
 import numpy as np
 
 from ..errors import MeshError
-from .voxelise import _crop, _fmt, face_pieces, one_piece, voxelise_surface, voxelise_tetrahedra
+from .voxelise import (
+    Planes,
+    _crop,
+    _fmt,
+    face_pieces,
+    one_piece,
+    voxelise_surface,
+    voxelise_tetrahedra,
+)
 
 VOLUME_CELLS = {"tetra": 4, "tetra10": 4, "wedge": 6, "wedge15": 6, "pyramid": 5, "pyramid13": 5}
 """meshio cell types voxelised as volumes, with their corner count (corners come first)."""
@@ -57,6 +65,7 @@ def geometry_from_mesh(
     connectivity: str = "full",
     scale: float = 1.0,
     voxelise: bool = False,
+    planes: Planes = None,
 ) -> MeshGeometry:
     """The spec geometry of a meshio ``mesh`` (see the module docstring).
 
@@ -66,6 +75,8 @@ def geometry_from_mesh(
         connectivity: the springs (``axis``, ``axis+face``, ``full``).
         scale: multiplies the coordinates (e.g. 0.001 for a mesh in mm).
         voxelise: voxelise a hexahedral mesh too (resample it onto a lattice of ``spacing``).
+        planes: per axis, coordinates (after ``scale``) a plane of lattice nodes falls on
+            where one cuts the solid (:func:`~fpm.io.meshes.voxelise.support_planes`).
     """
     points = np.asarray(mesh.points, dtype=float)
     if points.ndim != 2 or points.shape[1] != 3:
@@ -115,13 +126,13 @@ def geometry_from_mesh(
                     if len(d)
                 ]
             )
-        occupancy, origin = voxelise_tetrahedra(points, tets, spacing)
+        occupancy, origin = voxelise_tetrahedra(points, tets, spacing, planes)
         kind, what = "tetrahedra", f"{len(tets)} tetrahedra"
     elif any(len(d) for _, d in surfaces):
         tris = np.concatenate(
             [d[:, [[0, 1, 2], [0, 2, 3]][: n - 2]].reshape(-1, 3) for n, d in surfaces if len(d)]
         )
-        occupancy, origin = voxelise_surface(points, tris, spacing)
+        occupancy, origin = voxelise_surface(points, tris, spacing, planes)
         kind, what = "surface", f"a closed surface of {len(tris)} triangles"
     else:
         raise MeshError(

@@ -47,6 +47,16 @@ class FpmSettings(_Strict):
         "left out at a time), returned only where it predicts the left-out loads better than "
         "the four numbers (needs two or more load_cases; two-stage method)",
     )
+    loads: Literal["node", "hat"] = Field(
+        "node",
+        description="how the lattice takes a nodal force: 'node' (the paper's: all of it at its "
+        "node) or 'hat' (as the load it stands for and the refined FEM reference applies: a "
+        "traction over the node's share of the surface, or a body load over its share of the "
+        "volume, given to the lattice nodes as an FEM gives a distributed load, by the shape "
+        "functions; what `spec from-mesh` chooses for an organ whose reference is its "
+        "tetrahedra). Cells only (not a spring network)",
+        exclude_if=lambda v: v == "node",
+    )
     dt: float | Literal["auto"] = Field(
         "auto",
         description="time step, s, or 'auto' (default): half the lattice's stability estimate "
