@@ -114,6 +114,9 @@ class Runtime:
             step when the forces are zero: the equilibrium is then rest) (the distance
             criterion, :mod:`fpm.dynamics.settle`; 0: none).
         gravity: (3,) m/s^2 (the weight m g joins the applied forces).
+        shares: (N, N) sparse, for an export fitted with ``loads: "hat"``: row i the shares of
+            a force on surface node i (the export's ``load_shares``); None: forces act at their
+            node (:meth:`applied`).
         x, v: (N, 3) positions (m) and velocities (m/s), the state :meth:`step` advances.
         steps: steps taken since the last :meth:`reset`.
         unbalanced: the largest |F_i| over the free nodes at the start of the last step, N.
@@ -134,6 +137,7 @@ class Runtime:
     settle_tolerance: float
     settle_stiffness: float = 0.0
     gravity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    shares: sp.csr_matrix | None = None
     x: np.ndarray = field(init=False)
     v: np.ndarray = field(init=False)
     steps: int = field(init=False, default=0)
@@ -172,6 +176,13 @@ class Runtime:
             rest_volumes = np.asarray(doc["rest_volumes"], dtype=float)
         else:
             hexahedra, kappa, rest_volumes = np.zeros((0, 8), np.int64), np.zeros(0), np.zeros(0)
+        shares, table = None, doc.get("load_shares")
+        if table is not None:
+            rows = np.repeat(np.asarray(table["nodes"], dtype=np.int64), np.diff(table["indptr"]))
+            shares = sp.csr_matrix(
+                (np.asarray(table["weights"], dtype=float), (rows, table["indices"])),
+                (len(nodes), len(nodes)),
+            )
         return cls(
             rest=nodes,
             masses=np.asarray(doc["masses"], dtype=float),
@@ -187,6 +198,7 @@ class Runtime:
             settle_tolerance=float(p["settle_tolerance"]),
             settle_stiffness=float(p.get("settle_stiffness", 0.0)),
             gravity=np.asarray(p.get("gravity", (0.0, 0.0, 0.0)), dtype=float),
+            shares=shares,
         )
 
     @property
@@ -199,6 +211,17 @@ class Runtime:
         self.v = np.zeros_like(self.rest)
         self.steps, self.unbalanced, self.settled, self._load_scale = 0, float("inf"), False, 0.0
         self._moved_scale = 0.0
+
+    def applied(self, forces: np.ndarray) -> np.ndarray:
+        """(N, 3) nodal ``forces`` (N, 3), N, as the fit applied them (the export's ``loads``):
+        with ``"hat"`` a force on a surface node is shared over the nodes around it (its
+        ``load_shares``); otherwise, and on interior nodes, as given. An engine passes the
+        force of a tool at a node through this to get the model the fit judged."""
+        f = np.asarray(forces, dtype=float).reshape(self.rest.shape)
+        if self.shares is None:
+            return f
+        shared = (np.asarray(self.shares.sum(axis=1)).ravel() > 0)[:, None]
+        return np.asarray(self.shares.T @ np.where(shared, f, 0.0)) + np.where(shared, 0.0, f)
 
     def load_case_forces(self, export: dict[str, Any], case: int) -> np.ndarray:
         """(N, 3) the nodal forces of the export's load case ``case``, N."""

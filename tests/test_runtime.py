@@ -204,3 +204,25 @@ def test_the_readme_numpy_step_is_the_runtime(tmp_path, monkeypatch, mode):
     assert np.abs(rt.x - rt.rest - displacement).max() <= 1e-10 * scale
     eq = static_equilibrium(problem, k=theta, depth=None, load_case=0, tolerance=1e-12)
     assert np.abs(eq.displacements - displacement).max() <= 1e-6 * scale
+
+
+def test_an_engine_applies_a_force_as_the_hat_fit_did():
+    """With ``fpm.loads: "hat"`` the export carries the shares of every surface node: a force
+    at a node passed through :meth:`Runtime.applied` is the export's load case (its spread
+    forces), so an engine loading a node gets the model the fit judged."""
+    from live_page import conforming_spec
+
+    spec = conforming_spec(0.012)
+    spec["fpm"].update(stiffness="families+volume", loads="hat")
+    problem, _, _, doc = exported(spec)
+    assert doc["parameters"]["loads"] == "hat" and "4/9" in doc["loads"]
+    rt = Runtime.from_export(doc)
+    for j, case in enumerate(problem.load_cases):
+        given = case.as_given().dense(problem.n_nodes)
+        assert len(case.nodes) > len(case.as_given().nodes)
+        spread = rt.applied(given)
+        spread[rt.fixed] = 0.0
+        np.testing.assert_allclose(spread, rt.load_case_forces(doc, j), rtol=0, atol=1e-15)
+    node = exported({**spec, "fpm": {"stiffness": "families+volume"}})[3]
+    assert "load_shares" not in node
+    np.testing.assert_array_equal(Runtime.from_export(node).applied(given), given)

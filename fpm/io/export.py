@@ -237,6 +237,25 @@ def fpm_displacements(lattice: Lattice) -> tuple[np.ndarray, list[int], list[boo
     )
 
 
+def load_shares(problem: Problem) -> dict[str, list]:
+    """The ``hat`` rule (:data:`LOADS`) as a table for every surface node of the lattice (where
+    a tool touches it), compressed by rows: row r is node ``nodes[r]``; its shares are
+    ``weights[indptr[r]:indptr[r + 1]]`` on the nodes ``indices[indptr[r]:indptr[r + 1]]``."""
+    from ..model.hat_loads import hat_shares, surface_mass
+
+    hexahedra = problem.solid.elements()
+    assert hexahedra is not None  # 'hat' is refused on a network
+    area = np.asarray(surface_mass(problem.nodes, hexahedra).sum(axis=1)).ravel()
+    surface = np.flatnonzero(area > 0)
+    rows = hat_shares(problem.nodes, hexahedra, surface)[surface]
+    return {
+        "nodes": surface.tolist(),
+        "indptr": rows.indptr.tolist(),
+        "indices": rows.indices.tolist(),
+        "weights": rows.data.tolist(),
+    }
+
+
 def to_json(
     lattice: Lattice, fit: dict[str, Any] | None = None, max_steps: int | None = None
 ) -> dict[str, Any]:
@@ -281,6 +300,7 @@ def to_json(
             "loads": spec.fpm.loads,
         },
         "loads": LOADS[spec.fpm.loads],
+        **({"load_shares": load_shares(problem)} if spec.fpm.loads == "hat" else {}),
         "energy": ENERGY,
         "step": STEP,
         "h": problem.h,
