@@ -78,6 +78,9 @@ def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
     (folder / "organ.json").write_text(json.dumps(live_page.organ_export(ORGAN_H)))
     conforming = live_page.exported(live_page.conforming_spec(CONFORMING_H))
     (folder / "conforming.json").write_text(json.dumps(conforming))
+    hat = live_page.conforming_spec(CONFORMING_H)
+    hat["fpm"]["loads"] = "hat"
+    (folder / "hat.json").write_text(json.dumps(live_page.exported(hat)))
     spec = json.loads((live_page.ROOT / "examples/small-box.json").read_text())
     spec["fpm"] = {"stiffness": "single"}
     box = live_page.exported(spec)
@@ -293,6 +296,45 @@ def test_the_worker_steps_as_the_model_does(page, data):
         })()""".replace("NODE", str(LOADED))
     )
     assert got == {"same": True, "steps": 150}
+    page.js("live.worker.terminate()")
+
+
+def test_the_worker_shares_a_push_as_a_hat_fit_did(page, data):
+    """An export fitted with ``fpm.loads: "hat"``: a push on a surface node acts as the fit
+    applied a force there, shared over the nodes around it (``load_shares``): the worker's
+    positions are the model's stepped under :meth:`Runtime.applied` of that push."""
+    doc = load(data, "hat.json")
+    runtime = Runtime.from_export(doc)
+    table = doc["load_shares"]
+    node = next(n for n in table["nodes"] if not runtime.fixed[n])
+    push = np.zeros((runtime.n_nodes, 3))
+    push[node] = [0.001, -0.002, -0.01]
+    spread = runtime.applied(push)
+    assert np.count_nonzero(np.any(spread != 0, axis=1)) >= 4  # shared, not at the node alone
+    call(page, WORKER, {"url": "/data/hat.json"})
+    got = call(
+        page,
+        """async (node, force, spread) => {
+          const w = live.worker;
+          w.postMessage({type: 'pause'});
+          w.postMessage({type: 'push', node, force});
+          w.postMessage({type: 'step', count: 150});
+          const stepped = () => live.frames.find(f => f.stepsThisFrame === 150);
+          while (!stepped()) await new Promise(r => setTimeout(r, 10));
+          const doc = await (await fetch('/data/hat.json')).json();
+          const m = fpm.FpmModel.fromExport(doc);
+          const f = Float64Array.from(spread);
+          for (let n = 0; n < 150; n++) m.step(f);
+          return {model: Array.from(m.x), worker: Array.from(stepped().positions)};
+        }""",
+        node,
+        push[node].tolist(),
+        spread.ravel().tolist(),
+    )
+    rest = np.asarray(doc["nodes"]).ravel()
+    moved = np.abs(np.asarray(got["model"]) - rest).max()
+    assert moved > 1e-6
+    assert np.abs(np.asarray(got["worker"]) - np.float32(got["model"])).max() <= 1e-6 * moved
     page.js("live.worker.terminate()")
 
 

@@ -147,9 +147,12 @@ def default_stiffness(spec: dict[str, Any], problem: Problem) -> tuple[str | Non
     returned only where it predicts a left-out load better: docs/explanation/physics/
     stiffness-field.md) for an organ whose reference is its own tetrahedra, loaded in two
     force patterns or more; else None (the schema's default, families+volume). Why: on the
-    organs of ``bench/tet_organ.py`` at about 2,000 lattice nodes the four parameters leave
-    18-20% on unseen presses, the field 10-14% (docs/explanation/organs-conforming.md);
-    with one pattern there is nothing to cross-validate, so it would never be returned."""
+    organs of ``bench/tet_organ.py`` at about 2,000 lattice nodes, with node loads on a lattice
+    held half a cell off its plane, the four parameters left 18-20% on unseen presses, the
+    field 10-14% (docs/explanation/organs-conforming.md); with hat loads on a lattice held
+    on its plane the four parameters leave 9-15% and the field is not returned there, but it
+    costs only its cross-validation where it does not help. With one pattern there is nothing
+    to cross-validate, so it would never be returned."""
     if "mesh" not in spec.get("reference", {}):
         return None, ""
     if len(load_patterns(problem)) < 2:

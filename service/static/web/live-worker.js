@@ -7,7 +7,9 @@
 //            an ArrayBuffer (transfer it)>} | {url, headers}: build the model (a URL is fetched
 //            here; a 202 is asked again after its Retry-After) and start.
 //   push     {node, force: [fx, fy, fz]}: a constant force on a node, N, until changed
-//            (force null or [0, 0, 0] takes it away).
+//            (force null or [0, 0, 0] takes it away). A model fitted with fpm.loads "hat" (its
+//            export has load_shares) takes a push or drag on a surface node as the fit took a
+//            force there: shared over the nodes around it (fpm.runtime.Runtime.applied).
 //   drag     {node, target: [x, y, z], stiffness?, maxForce?}: a spring-like force toward the
 //            target, k (target - x_node), each step from the node's current position; k defaults
 //            to the sum of the node's spring stiffnesses; target null lets go.
@@ -30,7 +32,9 @@
 import { FpmModel } from "./fpm-step.js";
 
 let model = null;
-let forces = null; // Float64Array(3 N): what the pushes put on the nodes this step
+let forces = null; // Float64Array(3 N): what the pushes and drags put on the nodes this step
+let shares = null; // node -> [nodes, weights] of the export's load_shares ("hat"), or null
+const touched = []; // the nodes whose forces this step's applyForces wrote
 let handleStiffness = null; // per node: the default drag stiffness
 const pushes = new Map(); // node -> [fx, fy, fz]
 const drags = new Map(); // node -> {target, stiffness, maxForce}
@@ -65,9 +69,24 @@ async function fetchExport(url, headers) {
   }
 }
 
+// The export's load_shares (a compressed-row table) as node -> [Int32Array, Float64Array].
+function readShares(table) {
+  if (!table) return null;
+  const out = new Map();
+  table.nodes.forEach((node, r) => {
+    const a = table.indptr[r];
+    const b = table.indptr[r + 1];
+    const nodes = Int32Array.from(table.indices.slice(a, b));
+    out.set(node, [nodes, Float64Array.from(table.weights.slice(a, b))]);
+  });
+  return out;
+}
+
 function load(doc) {
   model = FpmModel.fromExport(doc);
   forces = new Float64Array(3 * model.nNodes);
+  shares = readShares(doc.load_shares);
+  touched.length = 0;
   handleStiffness = model.nodeStiffness();
   pushes.clear();
   drags.clear();
@@ -87,10 +106,35 @@ function load(doc) {
   );
 }
 
-// The forces of this step: the pushes, and each drag's pull from the node's current position.
+// Force (f0, f1, f2), N, meant for `node` added to this step's forces: shared over the nodes
+// around it as the fit applied it (load_shares), or at the node.
+function addForce(node, f0, f1, f2) {
+  const row = shares && shares.get(node);
+  if (!row) {
+    forces[3 * node] += f0;
+    forces[3 * node + 1] += f1;
+    forces[3 * node + 2] += f2;
+    touched.push(node);
+    return;
+  }
+  const [nodes, weights] = row;
+  for (let r = 0; r < nodes.length; r++) {
+    const k = 3 * nodes[r];
+    forces[k] += weights[r] * f0;
+    forces[k + 1] += weights[r] * f1;
+    forces[k + 2] += weights[r] * f2;
+    touched.push(nodes[r]);
+  }
+}
+
+// The forces of this step, from zero: the pushes, and each drag's pull from the node's current
+// position (plus the node's push).
 function applyForces() {
+  for (const node of touched) forces.fill(0, 3 * node, 3 * node + 3);
+  touched.length = 0;
   const x = model.x;
   dragForce = 0;
+  for (const [node, p] of pushes) if (!drags.has(node)) addForce(node, p[0], p[1], p[2]);
   for (const [node, d] of drags) {
     const k = 3 * node;
     let f0 = d.stiffness * (d.target[0] - x[k]);
@@ -105,21 +149,12 @@ function applyForces() {
     }
     dragForce = Math.max(dragForce, Math.min(size, d.maxForce > 0 ? d.maxForce : size));
     const p = pushes.get(node);
-    forces[k] = f0 + (p ? p[0] : 0);
-    forces[k + 1] = f1 + (p ? p[1] : 0);
-    forces[k + 2] = f2 + (p ? p[2] : 0);
+    addForce(node, f0 + (p ? p[0] : 0), f1 + (p ? p[1] : 0), f2 + (p ? p[2] : 0));
   }
 }
 
 function active() {
   return pushes.size > 0 || drags.size > 0;
-}
-
-function setForce(node, vector) {
-  const k = 3 * node;
-  forces[k] = vector ? vector[0] : 0;
-  forces[k + 1] = vector ? vector[1] : 0;
-  forces[k + 2] = vector ? vector[2] : 0;
 }
 
 function checkNode(node) {
@@ -201,14 +236,12 @@ const handlers = {
     const zero = !m.force || m.force.every((c) => c === 0);
     if (zero) pushes.delete(m.node);
     else pushes.set(m.node, m.force.map(Number));
-    setForce(m.node, zero ? null : pushes.get(m.node));
   },
   drag(m) {
     checkNode(m.node);
     changed = true;
     if (!m.target) {
       drags.delete(m.node);
-      setForce(m.node, pushes.get(m.node) || null);
       return;
     }
     drags.set(m.node, {
@@ -221,7 +254,6 @@ const handlers = {
     changed = true;
     pushes.clear();
     drags.clear();
-    forces.fill(0);
   },
   reset() {
     changed = true;
