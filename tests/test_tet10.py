@@ -402,7 +402,7 @@ def test_organ_reference_at_the_lattice_nodes_matches_scikit_fem():
     points = np.einsum("pa,pac->pc", lam, nodes[tets[where.element]])
     inside = where.distance == 0
     points[inside] = problem.nodes[inside]
-    case = problem.load_cases[0]
+    case = problem.load_cases[0].as_given()  # what the reference loads (fpm.loads "hat")
     at_load = scalar.probes(points[case.nodes].T)
     for c in range(3):
         f[component[c]] += at_load.T @ case.forces[:, c]
