@@ -98,6 +98,11 @@ def test_the_lattice_takes_the_shares_and_the_reference_the_forces_as_given():
         fpm.solve_fem(node).displacements, fpm.solve_fem(hat).displacements, rtol=0, atol=1e-15
     )
     assert "loads" not in node.spec.model_dump(mode="json")["fpm"]  # the default keeps identities
+    # node loads against a reference that spreads them: a note says so and what 'hat' does
+    assert any("fpm.loads = 'node'" in n for n in node.notes)
+    assert not any("fpm.loads" in n for n in hat.notes)
+    unrefined = fpm.load_problem({**spec, "fpm": {}, "reference": {}})  # "check": point loads
+    assert not any("fpm.loads" in n for n in unrefined.notes)
 
 
 def test_hat_loads_on_a_spring_network_are_refused_at_the_field():
