@@ -81,7 +81,8 @@ def spec_from_mesh(
     ``voxelise``, ``name``, ``dt`` (s, or "auto"), ``lattice`` (a tetrahedral mesh:
     ``"conforming"``, the default, the voxel lattice's surface nodes moved onto its surface; or
     ``"voxels"``), ``stiffness`` (``fpm.stiffness``; by default ``"field"`` for a tetrahedral
-    organ loaded in two force patterns or more); see :func:`fpm.io.meshes.spec_from_mesh`.
+    organ loaded in two force patterns or more), ``loads`` (``fpm.loads``; by default ``"hat"``
+    where the reference is the mesh's tetrahedra); see :func:`fpm.io.meshes.spec_from_mesh`.
     Raises :class:`fpm.io.meshes.MeshError` (e.g. an open surface) or ValueError (a bad selector).
     """
     from fpm.io.meshes import spec_from_mesh as build

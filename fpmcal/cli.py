@@ -266,6 +266,7 @@ def cmd_spec_from_mesh(args: argparse.Namespace) -> None:
         conform=args.conform,
         lattice=args.lattice,
         stiffness=args.stiffness,
+        loads=args.loads,
     )
     for note in notes:
         print(f"note: {note}", file=sys.stderr)
@@ -588,6 +589,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="fpm.stiffness; default: 'field' (a stiffness factor per cell, returned only where "
         "it predicts a left-out load better) for a tetrahedral organ loaded in two force "
         "patterns or more, else the schema's default (families+volume)",
+    )  # fmt: skip
+    p.add_argument(
+        "--loads", choices=["node", "hat"], default=None,
+        help="fpm.loads; default: 'hat' (a force acts over its node's share of the surface, as "
+        "the reference applies it) where the reference is the mesh's tetrahedra, else 'node'",
     )  # fmt: skip
     p.add_argument("--name", default=None, help="the spec's name (default: the file name)")
     p.add_argument(

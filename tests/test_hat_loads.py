@@ -146,3 +146,21 @@ def test_an_organ_from_its_mesh_is_held_where_the_spec_holds_it_and_takes_hat_lo
     assert held[:, 2].max() == pytest.approx(0.0, abs=1e-12)
     on_plane = np.abs(problem.nodes[:, 2]) < 1e-12
     assert on_plane.sum() > 50  # a whole plane of the lattice, not a surface node by chance
+
+
+def test_the_paper_s_node_loads_by_name_from_the_command_line(tmp_path):
+    from bench.tet_organ import organ_mesh
+    from fpmcal.cli import main
+
+    nodes, tets = organ_mesh((4, 3, 4))
+    path = tmp_path / "organ.vtu"
+    meshio.write(path, meshio.Mesh(nodes, [("tetra", tets)]))
+    argv = ["spec", "from-mesh", str(path), "--spacing", "0.01", "--fix", "face:z-",
+            "--force", "nearest:0,0,0.035:0,0,-0.01", "--E", "5000", "--nu", "0.45"]  # fmt: skip
+    assert main([*argv, "-o", str(tmp_path / "hat.json")]) == 0
+    assert main([*argv, "--loads", "node", "-o", str(tmp_path / "node.json")]) == 0
+    hat = fpm.load_problem(str(tmp_path / "hat.json"))
+    node = fpm.load_problem(str(tmp_path / "node.json"))
+    assert hat.spec.fpm.loads == "hat" and node.spec.fpm.loads == "node"
+    assert len(node.load_cases[0].nodes) == 1 < len(hat.load_cases[0].nodes)
+    assert any("fpm.loads = 'node'" in n for n in node.notes)  # the reference spreads it

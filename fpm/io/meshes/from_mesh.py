@@ -33,6 +33,7 @@ def spec_from_mesh(
     conform: bool = False,
     lattice: str | None = None,
     stiffness: str | None = None,
+    loads: str | None = None,
 ) -> tuple[dict[str, Any], list[str]]:
     """A problem spec for a mesh file (or a ``meshio.Mesh``), and notes for the user.
 
@@ -63,6 +64,9 @@ def spec_from_mesh(
             ``"field"`` for an organ, a tetrahedral mesh whose reference is its tetrahedra,
             loaded in two force patterns or more (:func:`default_stiffness`), else the
             schema's default (families+volume).
+        loads: ``fpm.loads`` (``"node"`` or ``"hat"``); None: ``"hat"`` where the reference is
+            the tetrahedra (it spreads each force over its node's hat, and the lattice then
+            takes the same load: :mod:`fpm.model.hat_loads`), else the schema's (``"node"``).
 
     Raises:
         MeshError: the mesh cannot become a solid. ValueError: a bad selector or force.
@@ -108,7 +112,9 @@ def spec_from_mesh(
             + "); the default follows the mesh's surface (conforming)"
         ]
     spec["fpm"] = {"dt": "auto" if dt == "auto" else float(dt)}
-    if "mesh" in spec.get("reference", {}):
+    if loads is not None:
+        spec["fpm"]["loads"] = loads
+    elif "mesh" in spec.get("reference", {}):
         spec["fpm"]["loads"] = "hat"  # as the refined tetrahedra take them (fpm.model.hat_loads)
     if stiffness is not None:
         spec["fpm"]["stiffness"] = stiffness
@@ -122,10 +128,11 @@ def spec_from_mesh(
             else f"FEM reference: the {len(made.tetrahedra['tetrahedra'])} tetrahedra "
             "themselves (10-node, reference.mesh), read at the lattice nodes"
         )
-    if spec["fpm"].get("loads") == "hat":
+    if spec["fpm"].get("loads") == "hat" and loads is None:
         notes.append(
             "fpm.loads = 'hat': a force on a node acts over the node's share of the surface, as "
-            "the reference applies it (the lattice takes it by its shape functions)"
+            "the reference applies it (the lattice takes it by its shape functions; --loads node "
+            "for the paper's, all of it at the node)"
         )
     if dt == "auto":
         notes.append(
