@@ -145,6 +145,7 @@ class Runtime:
     settled: bool = field(init=False, default=False)
     _load_scale: float = field(init=False, default=0.0, repr=False)
     _moved_scale: float = field(init=False, default=0.0, repr=False)
+    _shared: np.ndarray | None = field(init=False, default=None, repr=False)
 
     def __post_init__(self) -> None:
         n, s = self.n_nodes, len(self.springs)
@@ -157,6 +158,8 @@ class Runtime:
         self._corner_scatter = sp.csr_matrix(
             (np.ones(len(flat)), (flat, np.arange(len(flat)))), (n, len(flat))
         )
+        # the nodes whose force is shared (rows of load_shares), (N, 1) bool
+        self._shared = None if self.shares is None else (np.diff(self.shares.indptr) > 0)[:, None]
         self.reset()
 
     @classmethod
@@ -218,9 +221,9 @@ class Runtime:
         ``load_shares``); otherwise, and on interior nodes, as given. An engine passes the
         force of a tool at a node through this to get the model the fit judged."""
         f = np.asarray(forces, dtype=float).reshape(self.rest.shape)
-        if self.shares is None:
+        if self.shares is None or self._shared is None:
             return f
-        shared = (np.asarray(self.shares.sum(axis=1)).ravel() > 0)[:, None]
+        shared = self._shared
         return np.asarray(self.shares.T @ np.where(shared, f, 0.0)) + np.where(shared, 0.0, f)
 
     def load_case_forces(self, export: dict[str, Any], case: int) -> np.ndarray:

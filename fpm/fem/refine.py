@@ -58,8 +58,7 @@ from typing import Any
 import numpy as np
 
 from ..model.hexahedron import NATURAL
-from ..model.problem import Problem
-from ..model.spec import ProblemSpec
+from ..model.problem import Problem, resolved_refine
 from ..model.tetrahedra import EDGES
 from .assembly import body_forces, stiffness_matrix
 from .elasticity import constitutive_matrix
@@ -108,19 +107,6 @@ __all__ = [
     "refine_tetrahedra",
     "relative_change",
 ]
-
-
-def resolved_refine(spec: ProblemSpec) -> int | str:
-    """What ``reference.refine`` means for ``spec``: as given, else ``"auto"`` for a tetrahedral
-    mesh, ``"check"`` for the linear hexahedra, 0 for a neo-Hookean or supplied reference."""
-    reference = spec.reference
-    if reference.refine is not None:
-        return reference.refine
-    if reference.displacements is not None or spec.material.model != "linear":
-        return 0
-    if reference.mesh is not None or reference.mesh_id is not None:
-        return "auto"
-    return "check"
 
 
 # ------------------------------------------------------------------ refinement

@@ -245,9 +245,9 @@ def load_shares(problem: Problem) -> dict[str, list]:
 
     hexahedra = problem.solid.elements()
     assert hexahedra is not None  # 'hat' is refused on a network
-    area = np.asarray(surface_mass(problem.nodes, hexahedra).sum(axis=1)).ravel()
-    surface = np.flatnonzero(area > 0)
-    rows = hat_shares(problem.nodes, hexahedra, surface)[surface]
+    masses = surface_mass(problem.nodes, hexahedra)
+    surface = np.flatnonzero(np.asarray(masses.sum(axis=1)).ravel() > 0)
+    rows = hat_shares(problem.nodes, hexahedra, surface, masses)[surface]
     return {
         "nodes": surface.tolist(),
         "indptr": rows.indptr.tolist(),

@@ -82,12 +82,20 @@ def volume_mass(nodes: np.ndarray, hexahedra: np.ndarray) -> sp.csr_matrix:
     return sp.csr_matrix((mass.ravel(), (rows, cols)), (len(nodes), len(nodes)))
 
 
-def hat_shares(nodes: np.ndarray, hexahedra: np.ndarray, loaded: np.ndarray) -> sp.csr_matrix:
+def hat_shares(
+    nodes: np.ndarray,
+    hexahedra: np.ndarray,
+    loaded: np.ndarray,
+    surface_masses: sp.csr_matrix | None = None,
+) -> sp.csr_matrix:
     """(N, N) sparse: row i, for each node of ``loaded`` (K,), the share of a force on node i
     that each lattice node takes (module docstring: surface rows for the nodes of the surface,
-    volume rows for the others; each row sums to 1); the other rows empty."""
+    volume rows for the others; each row sums to 1); the other rows empty.
+    ``surface_masses``: :func:`surface_mass` of the lattice when the caller has it."""
     loaded = np.unique(np.asarray(loaded, dtype=np.int64))
-    surface = surface_mass(nodes, hexahedra)[loaded]
+    if surface_masses is None:
+        surface_masses = surface_mass(nodes, hexahedra)
+    surface = surface_masses[loaded]
     inside = np.asarray(surface.sum(axis=1)).ravel() <= 0
     if inside.any():
         cells = hexahedra[np.isin(hexahedra, loaded[inside]).any(axis=1)]

@@ -218,7 +218,7 @@ def build_problem(spec: ProblemSpec, mesh: dict[str, Any] | None = None) -> Prob
             _hat_loads(solid, fixed, load_cases),
             _hat_loads(solid, fixed, validation),
         )
-    elif _spreads_loads(spec) and solid.elements() is not None:
+    elif resolved_refine(spec) not in (0, "check") and solid.elements() is not None:
         finder.notes.append(
             "fpm.loads = 'node': the lattice takes each force at its node, where the refined "
             "reference spreads it over the node's share of the surface; 'hat' takes it as the "
@@ -329,16 +329,19 @@ def _load_cases(
     return load_cases
 
 
-def _spreads_loads(spec: ProblemSpec) -> bool:
-    """Whether the FEM reference spreads each lattice force over its node's hat: a tetrahedral
-    reference refined (``reference.refine`` unset is "auto" there), or hexahedra refined at
-    least once (as :func:`fpm.fem.refine.resolved_refine` reads the spec)."""
+def resolved_refine(spec: ProblemSpec) -> int | str:
+    """What ``reference.refine`` means for ``spec``: as given, else ``"auto"`` for a tetrahedral
+    mesh, ``"check"`` for the linear hexahedra, 0 for a neo-Hookean or supplied reference
+    (:mod:`fpm.fem.refine`; 0 and "check" load the forces at their nodes, every other value
+    spreads each over its node's hat, :mod:`fpm.fem.loads`)."""
     reference = spec.reference
+    if reference.refine is not None:
+        return reference.refine
     if reference.displacements is not None or spec.material.model != "linear":
-        return False
-    tetrahedra = reference.mesh is not None or reference.mesh_id is not None
-    refine = reference.refine if reference.refine is not None else ("auto" if tetrahedra else 0)
-    return refine not in (0, "check")
+        return 0
+    if reference.mesh is not None or reference.mesh_id is not None:
+        return "auto"
+    return "check"
 
 
 def _hat_loads(solid: Solid, fixed: np.ndarray, cases: list[LoadCase]) -> list[LoadCase]:
