@@ -222,8 +222,9 @@ def build_problem(spec: ProblemSpec, mesh: dict[str, Any] | None = None) -> Prob
         finder.notes.append(
             "fpm.loads = 'node': the lattice takes each force at its node, where the refined "
             "reference spreads it over the node's share of the surface; 'hat' takes it as the "
-            "reference does (what spec from-mesh chooses: on the bench's organ at 3.25 mm the "
-            "worst unseen press 10.8% -> 6.4%, docs/explanation/organs-conforming.md)"
+            "reference does (what spec from-mesh chooses: on the bench's organ mesh at 3.25 mm "
+            "the worst unseen press 10.8% -> 6.4%, on the voxel ellipsoid at 5 mm with refine 2 "
+            "5.4% -> 3.4%; docs/howto/reference-error.md)"
         )
     return Problem(
         spec,
