@@ -63,6 +63,11 @@ def scene(request):
 
         spec = conforming_spec(0.012)
     spec["fpm"] = {"stiffness": "families+volume"}
+    return scene_of(spec)
+
+
+def scene_of(spec):
+    """(problem, the parsed JSON export, the scene module) of ``spec`` at the continuum start."""
     problem = load_problem(spec)
     theta = continuum_start(problem)
     record = {
@@ -94,6 +99,32 @@ def scene(request):
             else:
                 sys.modules[k] = v
     return problem, doc, module
+
+
+def test_a_push_of_your_own_is_shared_as_the_hat_fit_did():
+    """A hat fit's scene carries the load shares: ``applied`` of the forces as given is the
+    export's load case (the shared forces the fit judged), and a node-load scene gives a
+    force back as it is."""
+    from live_page import conforming_spec
+
+    spec = conforming_spec(0.012)
+    spec["fpm"] = {"stiffness": "families+volume", "loads": "hat"}
+    problem, doc, module = scene_of(spec)
+    assert module.MODEL["load_shares"] == doc["load_shares"]
+    for j, case in enumerate(problem.load_cases):
+        given = case.as_given()
+        assert len(case.nodes) > len(given.nodes)
+        nodes, forces = module.applied(given.nodes, given.forces)
+        spread = np.zeros((problem.n_nodes, 3))
+        spread[nodes] = forces
+        spread[problem.fixed] = 0.0
+        expected = np.zeros_like(spread)
+        expected[doc["load_cases"][j]["nodes"]] = doc["load_cases"][j]["forces"]
+        np.testing.assert_allclose(spread, expected, rtol=0, atol=1e-15)
+    spec["fpm"] = {"stiffness": "families+volume"}
+    _, node_doc, node_module = scene_of(spec)
+    assert "load_shares" not in node_module.MODEL
+    assert node_module.applied([5, 3], [[1, 2, 3], [4, 5, 6]]) == ([3, 5], [[4, 5, 6], [1, 2, 3]])
 
 
 def volume_field(scene):

@@ -537,6 +537,8 @@ def sofa_python_scene(lattice: Lattice) -> str:
     model["load_cases"] = [
         {k: case[k] for k in ("name", "nodes", "forces")} for case in doc["load_cases"]
     ]
+    if "load_shares" in doc:  # a hat fit: applied() spreads a force as the fit did
+        model["load_shares"] = doc["load_shares"]
     placeholder = 'MODEL: dict[str, Any] = json.loads("{}")'
     if placeholder not in template:
         raise RuntimeError("fpm/io/sofa_scene.py lost its MODEL line")

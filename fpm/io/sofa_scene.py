@@ -20,6 +20,11 @@ with V_c in closed form over a_k = sum_n C_kn x_n: V = 8 [a1, a2, a3] + 8/3 ([a1
 SOFA asks a force field for f (``addForce``), for df = kFactor K dx (``addDForce``) and for
 kFactor K as (row, column, value) triplets (``addKToMatrix``), K = df/dx at the positions of the
 last ``addForce``.
+
+A fit with ``fpm.loads: "hat"`` judged a force at a surface node as the load it stands for,
+shared over the nodes around it; its load cases here are already so shared, and
+:func:`applied` shares a force of your own the same way (``MODEL["load_shares"]``), e.g. a
+tool's push: ``indices, forces = applied([i], [[0, 0, -0.01]])`` for a ConstantForceField.
 """
 
 from __future__ import annotations
@@ -33,7 +38,8 @@ import Sofa.Core
 
 MODEL: dict[str, Any] = json.loads("{}")
 """The lattice (the exporter writes it here): nodes, masses, fixed, springs [i, j, L, k],
-hexahedra, volume_stiffness, rest_volumes, parameters (d, dt, gravity), load_cases."""
+hexahedra, volume_stiffness, rest_volumes, parameters (d, dt, gravity, loads), load_cases, and
+for a hat fit load_shares (each surface node's shares: nodes, indptr, indices, weights)."""
 
 NATURAL = np.array(
     [[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1],
@@ -155,6 +161,28 @@ class VolumeForceField(Sofa.Core.ForceField):
 
     def addKToMatrix(self, mparams: Any, n_nodes: int, n_dofs: int) -> np.ndarray:  # noqa: N802
         return self.stiffness_triplets(mparams["kFactor"])
+
+
+def applied(indices: Any, forces: Any) -> tuple[list[int], list[list[float]]]:
+    """Nodal ``forces`` (K, 3), N, at nodes ``indices`` (K,) as the fit applied them: for a
+    hat fit a force on a surface node shared over the nodes around it by its
+    ``load_shares`` row (4/9 at the node, 1/9 at each edge neighbour, 1/36 at each diagonal
+    one on a flat face), every other force as given. Returns the (indices, forces) of a
+    ``ConstantForceField``, nodes ascending."""
+    table = MODEL.get("load_shares")
+    rows = {} if table is None else {int(n): r for r, n in enumerate(table["nodes"])}
+    total: dict[int, np.ndarray] = {}
+    for i, f in zip(np.ravel(indices), np.asarray(forces, dtype=float).reshape(-1, 3)):
+        r = rows.get(int(i))
+        if r is None:
+            shares = [(int(i), 1.0)]
+        else:
+            lo, hi = table["indptr"][r], table["indptr"][r + 1]
+            shares = list(zip(table["indices"][lo:hi], table["weights"][lo:hi]))
+        for node, weight in shares:
+            total[int(node)] = total.get(int(node), np.zeros(3)) + weight * f
+    nodes = sorted(total)
+    return nodes, [total[n].tolist() for n in nodes]
 
 
 def numbers(values: Any) -> list[float]:
