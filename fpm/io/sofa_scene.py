@@ -172,13 +172,14 @@ def applied(indices: Any, forces: Any) -> tuple[list[int], list[list[float]]]:
     table = MODEL.get("load_shares")
     rows = {} if table is None else {int(n): r for r, n in enumerate(table["nodes"])}
     total: dict[int, np.ndarray] = {}
-    for i, f in zip(np.ravel(indices), np.asarray(forces, dtype=float).reshape(-1, 3)):
+    pushes = np.asarray(forces, dtype=float).reshape(-1, 3)
+    for i, f in zip(np.ravel(indices), pushes, strict=True):
         r = rows.get(int(i))
         if r is None:
             shares = [(int(i), 1.0)]
         else:
             lo, hi = table["indptr"][r], table["indptr"][r + 1]
-            shares = list(zip(table["indices"][lo:hi], table["weights"][lo:hi]))
+            shares = list(zip(table["indices"][lo:hi], table["weights"][lo:hi], strict=True))
         for node, weight in shares:
             total[int(node)] = total.get(int(node), np.zeros(3)) + weight * f
     nodes = sorted(total)
