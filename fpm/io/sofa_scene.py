@@ -169,8 +169,8 @@ def applied(indices: Any, forces: Any) -> tuple[list[int], list[list[float]]]:
     ``load_shares`` row (4/9 at the node, 1/9 at each edge neighbour, 1/36 at each diagonal
     one on a flat face), every other force as given. Returns the (indices, forces) of a
     ``ConstantForceField``, nodes ascending."""
-    table = MODEL.get("load_shares")
-    rows = {} if table is None else {int(n): r for r, n in enumerate(table["nodes"])}
+    table = MODEL.get("load_shares") or {"nodes": [], "indptr": [0], "indices": [], "weights": []}
+    rows = {int(n): r for r, n in enumerate(table["nodes"])}
     total: dict[int, np.ndarray] = {}
     pushes = np.asarray(forces, dtype=float).reshape(-1, 3)
     for i, f in zip(np.ravel(indices), pushes, strict=True):
