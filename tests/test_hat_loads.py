@@ -91,18 +91,26 @@ def test_the_lattice_takes_the_shares_and_the_reference_the_forces_as_given():
     assert len(case.nodes) == 9 and np.allclose(case.forces.sum(axis=0), [0, 0, -0.01])
     assert len(case.as_given().nodes) == 1
     spec["reference"] = {"refine": 1}
-    node = fpm.load_problem({**spec, "fpm": {}})
+    node = fpm.load_problem({**spec, "fpm": {"loads": "node"}})
     hat = fpm.load_problem(spec)
     # the reference loads the forces as given: the same FEM solution either way
     assert np.allclose(
         fpm.solve_fem(node).displacements, fpm.solve_fem(hat).displacements, rtol=0, atol=1e-15
     )
-    assert "loads" not in node.spec.model_dump(mode="json")["fpm"]  # the default keeps identities
     # node loads against a reference that spreads them: a note says so and what 'hat' does
     assert any("fpm.loads = 'node'" in n for n in node.notes)
     assert not any("fpm.loads" in n for n in hat.notes)
-    unrefined = fpm.load_problem({**spec, "fpm": {}, "reference": {}})  # "check": point loads
-    assert not any("fpm.loads" in n for n in unrefined.notes)
+    # 'auto', the default: 'hat' where the reference spreads the forces, the paper's node
+    # loads where it loads them at their nodes ("check": the mesh as given)
+    auto = fpm.load_problem({**spec, "fpm": {}})
+    assert auto.spec.fpm.loads == "auto" and auto.loads == hat.loads == "hat"
+    assert node.loads == "node"
+    assert auto.spec.model_dump(mode="json")["fpm"]["loads"] == "auto"  # stored as asked
+    assert [c.nodes.tolist() for c in auto.load_cases] == [c.nodes.tolist() for c in hat.load_cases]
+    assert not any("fpm.loads" in n for n in auto.notes)
+    unrefined = fpm.load_problem({**spec, "fpm": {}, "reference": {}})
+    assert unrefined.loads == "node" and not any("fpm.loads" in n for n in unrefined.notes)
+    assert len(unrefined.load_cases[0].nodes) == 1
 
 
 def test_hat_loads_on_a_spring_network_are_refused_at_the_field():
@@ -164,3 +172,29 @@ def test_the_paper_s_node_loads_by_name_from_the_command_line(tmp_path):
     assert hat.spec.fpm.loads == "hat" and node.spec.fpm.loads == "node"
     assert len(node.load_cases[0].nodes) == 1 < len(hat.load_cases[0].nodes)
     assert any("fpm.loads = 'node'" in n for n in node.notes)  # the reference spreads it
+
+
+def test_a_spec_stored_before_auto_keeps_the_node_loads_it_was_fitted_with():
+    """The service stores the dumped spec; before 'auto' the dump left 'node' out, so a stored
+    spec without fpm.loads was fitted with node loads and is rebuilt so (its exports too),
+    while one stored now says 'auto' and takes the hat where the reference spreads forces."""
+    from fpm.model.spec import ProblemSpec
+    from worker.problems import problem_of
+
+    spec = {
+        "name": "stored",
+        "material": {"youngs_modulus": 5e3, "poisson_ratio": 0.45, "density": 1000.0},
+        "geometry": {"type": "box", "size": [0.04, 0.04, 0.04], "nodes": [5, 5, 5]},
+        "fixed": [{"face": "z-"}],
+        "load_cases": [{"name": "press", "forces": [{"at": [0.02, 0.02, 0.04],
+                                                     "vector": [0, 0, -0.01]}]}],
+        "reference": {"refine": 1},
+    }  # fmt: skip
+    dumped = ProblemSpec.model_validate(spec).model_dump(mode="json")
+    assert dumped["fpm"]["loads"] == "auto"
+    assert problem_of(None, dumped).loads == "hat"  # type: ignore[arg-type]  (no tagged mesh)
+    del dumped["fpm"]["loads"]  # as the service dumped it before 'auto'
+    old = problem_of(None, dumped)  # type: ignore[arg-type]
+    assert old.loads == "node" and len(old.load_cases[0].nodes) == 1
+    dumped["fpm"]["loads"] = "hat"  # an explicit choice is kept
+    assert problem_of(None, dumped).loads == "hat"  # type: ignore[arg-type]

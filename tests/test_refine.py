@@ -267,13 +267,14 @@ def test_spread_loads_on_a_curved_organ_keep_the_resultant():
     nodes = np.array(spec["reference"]["mesh"]["nodes"])
     tets = np.array(spec["reference"]["mesh"]["tetrahedra"])
     problem = fpm.load_problem(spec)
-    forces = np.stack([c.dense(problem.n_nodes) for c in problem.load_cases])
+    given = [c.as_given() for c in problem.load_cases]  # what the reference loads
+    forces = np.stack([c.dense(problem.n_nodes) for c in given])
     mesh = tet10.quadratic_mesh(nodes, tets)
     where = tet10.locate(nodes, tets, problem.nodes)
     nodal = tetrahedron_loads(problem, forces)(mesh, where)
     for case in range(2):
         np.testing.assert_allclose(nodal[case].sum(axis=0), forces[case].sum(axis=0), atol=1e-14)
-        x = problem.nodes[problem.load_cases[case].nodes[0]]
+        x = problem.nodes[given[case].nodes[0]]
         f = forces[case].sum(axis=0)
         couple = moments(mesh.nodes, nodal[case]) - np.cross(x, f)
         # the lattice node lies off the mesh's surface: at most a couple of |f| times that gap

@@ -23,11 +23,16 @@ from store import records
 
 def problem_of(redis: Redis, spec: dict[str, Any]) -> Problem:
     """:func:`fpm.load_problem` of the stored ``spec`` (as the service dumped it), with the
-    uploaded mesh when its regions select by tag.
+    uploaded mesh when its regions select by tag. A spec stored before ``fpm.loads`` had
+    ``"auto"`` has no ``loads`` (the dump left out its default, ``"node"``): it keeps ``"node"``,
+    so a parameter set fitted then exports as it was fitted.
 
     Raises:
         LookupError: the mesh those regions read is no longer stored.
     """
+    fpm = spec.get("fpm") or {}
+    if "loads" not in fpm:  # dumped before fpm.loads 'auto' (the default since): it meant 'node'
+        spec = {**spec, "fpm": {**fpm, "loads": "node"}}
     parsed = ProblemSpec.model_validate(spec)
     return load_problem(parsed, tagged_mesh(redis, parsed))
 

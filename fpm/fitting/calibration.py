@@ -176,6 +176,7 @@ def finalize(
         reference_refinements=getattr(reference, "refinements", None),
         method=method,
         stiffness_mode=problem.spec.fpm.stiffness,
+        loads=problem.loads,
         k=float(theta[0]),
         stiffness=stiffness,
         volume_stiffness=volume_stiffness(problem, theta),

@@ -104,6 +104,12 @@ class CalibrationResult(BaseModel):
         "assembled from cells plus a volume term), 'single' (the paper's model: one k), or "
         "'families'",
     )
+    loads: str = Field(
+        "node",
+        description="how the lattice took a nodal force (fpm.loads, 'auto' resolved): 'node' "
+        "(all of it at its node) or 'hat' (shared over the nodes around it as the refined "
+        "reference spreads it); an engine applies forces the same way (the export's load_shares)",
+    )
     reference: str = Field(
         "fem",
         description="what the fit was measured against: 'fem-linear-selective', "

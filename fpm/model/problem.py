@@ -84,6 +84,8 @@ class Problem:
             (e.g. which node a ``nearest`` selector took and how far it is from the point).
         regions: the material region of every lattice cell (:mod:`fpm.model.regions`); None
             without ``material.regions``.
+        loads: how the lattice takes a nodal force, ``"node"`` or ``"hat"`` (``fpm.loads``
+            with ``"auto"`` resolved: :func:`resolved_loads`).
     """
 
     spec: ProblemSpec
@@ -97,6 +99,7 @@ class Problem:
     notes: list[str] = field(default_factory=list)
     validation_cases: list[LoadCase] = field(default_factory=list)
     regions: RegionMap | None = None
+    loads: str = "node"
 
     def __post_init__(self) -> None:
         self.h = float(self.rest_lengths.min())
@@ -213,18 +216,19 @@ def build_problem(spec: ProblemSpec, mesh: dict[str, Any] | None = None) -> Prob
         )
     if errors:
         raise SpecError(errors)
-    if spec.fpm.loads == "hat":
+    loads = resolved_loads(spec, solid.elements() is not None)
+    if loads == "hat":
         load_cases, validation = (
             _hat_loads(solid, fixed, load_cases),
             _hat_loads(solid, fixed, validation),
         )
-    elif resolved_refine(spec) not in (0, "check") and solid.elements() is not None:
+    elif spec.fpm.loads == "node" and _spreads(spec) and solid.elements() is not None:
         finder.notes.append(
             "fpm.loads = 'node': the lattice takes each force at its node, where the refined "
-            "reference spreads it over the node's share of the surface; 'hat' takes it as the "
-            "reference does (what spec from-mesh chooses: on the bench's organ mesh at 3.25 mm "
-            "the worst unseen press 10.8% -> 6.4%, on the voxel ellipsoid at 5 mm with refine 2 "
-            "5.4% -> 3.4%; docs/howto/reference-error.md)"
+            "reference spreads it over the node's share of the surface; 'hat' (what 'auto', "
+            "the default, takes here) takes it as the reference does (on the bench's organ mesh "
+            "at 3.25 mm the worst unseen press 10.8% -> 6.4%, on the voxel ellipsoid at 5 mm "
+            "with refine 2 5.4% -> 3.4%; docs/howto/reference-error.md)"
         )
     return Problem(
         spec,
@@ -235,6 +239,7 @@ def build_problem(spec: ProblemSpec, mesh: dict[str, Any] | None = None) -> Prob
         notes=finder.notes,
         validation_cases=validation,
         regions=regions,
+        loads=loads,
     )
 
 
@@ -343,6 +348,21 @@ def resolved_refine(spec: ProblemSpec) -> int | str:
     if reference.mesh is not None or reference.mesh_id is not None:
         return "auto"
     return "check"
+
+
+def _spreads(spec: ProblemSpec) -> bool:
+    """Whether ``spec``'s FEM reference spreads each lattice force over its node's hat (a
+    refined or tetrahedral reference: :func:`resolved_refine` neither 0 nor "check")."""
+    return resolved_refine(spec) not in (0, "check")
+
+
+def resolved_loads(spec: ProblemSpec, cells: bool) -> str:
+    """``fpm.loads`` as the lattice takes its forces: as given, or for ``"auto"`` ``"hat"``
+    where the reference spreads them (:func:`_spreads`) and the lattice has ``cells``, else
+    ``"node"`` (the paper's; a supplied, neo-Hookean or unrefined reference loads the nodes)."""
+    if spec.fpm.loads != "auto":
+        return spec.fpm.loads
+    return "hat" if cells and _spreads(spec) else "node"
 
 
 def _hat_loads(solid: Solid, fixed: np.ndarray, cases: list[LoadCase]) -> list[LoadCase]:

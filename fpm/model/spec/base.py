@@ -10,7 +10,7 @@ from pydantic import (
     ConfigDict,
 )
 
-MODEL_VERSION = "2026.12.08"
+MODEL_VERSION = "2026.12.09"
 """Version of the numerics behind a result; bump it whenever a change alters fitted values.
 It is part of a calibration's identity, so a resubmitted spec is not answered from results
 that older numerics computed."""

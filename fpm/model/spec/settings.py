@@ -47,15 +47,16 @@ class FpmSettings(_Strict):
         "left out at a time), returned only where it predicts the left-out loads better than "
         "the four numbers (needs two or more load_cases; two-stage method)",
     )
-    loads: Literal["node", "hat"] = Field(
-        "node",
+    loads: Literal["auto", "node", "hat"] = Field(
+        "auto",
         description="how the lattice takes a nodal force: 'node' (the paper's: all of it at its "
-        "node) or 'hat' (as the load it stands for and the refined FEM reference applies: a "
+        "node), 'hat' (as the load it stands for and a refined FEM reference applies: a "
         "traction over the node's share of the surface, or a body load over its share of the "
         "volume, given to the lattice nodes as an FEM gives a distributed load, by the shape "
-        "functions; what `spec from-mesh` chooses for an organ whose reference is its "
-        "tetrahedra). Cells only (not a spring network)",
-        exclude_if=lambda v: v == "node",
+        "functions; cells only, not a spring network) or 'auto' (default): 'hat' where the "
+        "reference spreads the forces (reference.refine at least 1 or 'auto', or a tetrahedral "
+        "reference) and the lattice has cells, else 'node'. The result and the export say "
+        "which was used",
     )
     dt: float | Literal["auto"] = Field(
         "auto",
