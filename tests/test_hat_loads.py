@@ -76,16 +76,20 @@ def test_shares_keep_the_resultant_and_on_a_flat_face_the_point_of_action():
         assert np.allclose(row.data @ flat[row.indices], flat[node], atol=1e-12)
 
 
-def test_the_lattice_takes_the_shares_and_the_reference_the_forces_as_given():
-    spec = {
+def pressed_box() -> dict:
+    """A 4 cm box held at z-, pressed at the middle of its top face (one node)."""
+    return {
         "name": "hat",
         "material": {"youngs_modulus": 5e3, "poisson_ratio": 0.45, "density": 1000.0},
         "geometry": {"type": "box", "size": [0.04, 0.04, 0.04], "nodes": [5, 5, 5]},
         "fixed": [{"face": "z-"}],
         "load_cases": [{"name": "press", "forces": [{"at": [0.02, 0.02, 0.04],
                                                      "vector": [0, 0, -0.01]}]}],
-        "fpm": {"loads": "hat"},
     }  # fmt: skip
+
+
+def test_the_lattice_takes_the_shares_and_the_reference_the_forces_as_given():
+    spec = {**pressed_box(), "fpm": {"loads": "hat"}}
     problem = fpm.load_problem(spec)
     (case,) = problem.load_cases
     assert len(case.nodes) == 9 and np.allclose(case.forces.sum(axis=0), [0, 0, -0.01])
@@ -181,15 +185,7 @@ def test_a_spec_stored_before_auto_keeps_the_node_loads_it_was_fitted_with():
     from fpm.model.spec import ProblemSpec
     from worker.problems import problem_of
 
-    spec = {
-        "name": "stored",
-        "material": {"youngs_modulus": 5e3, "poisson_ratio": 0.45, "density": 1000.0},
-        "geometry": {"type": "box", "size": [0.04, 0.04, 0.04], "nodes": [5, 5, 5]},
-        "fixed": [{"face": "z-"}],
-        "load_cases": [{"name": "press", "forces": [{"at": [0.02, 0.02, 0.04],
-                                                     "vector": [0, 0, -0.01]}]}],
-        "reference": {"refine": 1},
-    }  # fmt: skip
+    spec = {**pressed_box(), "reference": {"refine": 1}}
     dumped = ProblemSpec.model_validate(spec).model_dump(mode="json")
     assert dumped["fpm"]["loads"] == "auto"
     assert problem_of(None, dumped).loads == "hat"  # type: ignore[arg-type]  (no tagged mesh)
