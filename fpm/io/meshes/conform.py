@@ -12,6 +12,44 @@ from ..errors import MeshError
 KEPT_JACOBIAN = 0.1
 """:func:`conform_lattice` keeps every hexahedron's smallest Jacobian determinant at least this
 fraction of its voxel's."""
+RAY_REACH = 1.5
+""":func:`conform_lattice` moves a surface node along its outward normal when the mesh's
+surface crosses that line within this many h of it (a voxel's surface node is within
+sqrt(3) h / 2 of the surface when the voxels are the cells whose centres are inside)."""
+
+
+def outward_normals(hexahedra: np.ndarray, n_nodes: int) -> np.ndarray:
+    """(N, 3) per lattice node the sum of the outward unit normals (lattice axes) of the
+    boundary faces of ``hexahedra`` (H, 8) it is a corner of; zero off the surface."""
+    from ...fem.loads import boundary_hexahedron_faces
+
+    corners, _, local = boundary_hexahedron_faces(hexahedra)
+    faces = np.zeros((len(local), 3))
+    faces[np.arange(len(local)), local // 2] = np.where(local % 2 == 1, 1.0, -1.0)
+    out = np.zeros((n_nodes, 3))
+    np.add.at(out, corners, faces[:, None, :])
+    return out
+
+
+def line_crossings(points: np.ndarray, directions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(P,) for each line ``points`` + t ``directions`` (P, 3; unit directions) the t, m, of
+    its crossing with ``triangles`` (F, 3, 3) nearest the point (either side), inf where it
+    crosses none (Moller-Trumbore, vectorised over lines and triangles)."""
+    a = triangles[:, 0]
+    e1, e2 = triangles[:, 1] - a, triangles[:, 2] - a
+    p = np.cross(directions[:, None, :], e2[None])
+    det = np.einsum("fk,pfk->pf", e1, p)
+    usable = np.abs(det) > 1e-12 * np.einsum("fk,fk->f", e1, e1)
+    inverse = np.where(usable, 1.0 / np.where(usable, det, 1.0), 0.0)
+    s = points[:, None, :] - a[None]
+    u = inverse * np.einsum("pfk,pfk->pf", s, p)
+    q = np.cross(s, e1[None])
+    v = inverse * np.einsum("pk,pfk->pf", directions, q)
+    t = inverse * np.einsum("fk,pfk->pf", e2, q)
+    eps = 1e-9
+    crossed = usable & (u >= -eps) & (v >= -eps) & (u + v <= 1 + eps)
+    t = np.where(crossed, t, np.inf)
+    return t[np.arange(len(points)), np.argmin(np.abs(t), axis=1)]
 
 
 def conform_lattice(
@@ -24,26 +62,41 @@ def conform_lattice(
     tol: float = 0.0,
 ) -> np.ndarray:
     """(N, 3) a voxel lattice's ``nodes`` (N, 3), m, with its surface nodes (the corners of
-    its boundary faces, ``hexahedra`` (H, 8)) moved onto their nearest points on the surface
-    of the tetrahedra ``tets`` (T, 4) on ``mesh_nodes`` (M, 3): a surface-conforming lattice,
-    the mesh's solid instead of its staircase. Each node goes all the way unless a hexahedron
-    of it would keep less than :data:`KEPT_JACOBIAN` of its voxel's smallest Jacobian
-    determinant; those hexahedra's surface nodes go 0.8 of the way, then 0.8 of that, until
-    none does (every hexahedron stays positive).
+    its boundary faces, ``hexahedra`` (H, 8)) moved onto the surface of the tetrahedra
+    ``tets`` (T, 4) on ``mesh_nodes`` (M, 3): a surface-conforming lattice, the mesh's solid
+    instead of its staircase. Each surface node goes along its outward normal (the sum of its
+    boundary faces' outward normals: straight out from a flat part of the staircase,
+    diagonally out from a step's edge or corner) to where that line crosses the mesh's
+    surface, if it does within :data:`RAY_REACH` h, else to its nearest point of the surface.
+    (To the nearest point, the two nodes of a step's face land next to each other and fold
+    the face onto the surface: 8-10% of the organ's surface faces had two corners closer than
+    0.4 h, the shortest a quarter of h; along the normals none.) It goes all the way unless a
+    hexahedron of it would keep less than :data:`KEPT_JACOBIAN` of its voxel's smallest
+    Jacobian determinant; those hexahedra's surface nodes go 0.8 of the way, then 0.8 of that,
+    until none does (every hexahedron stays positive).
 
     The selectors stay true: a node inside one of the ``boxes`` (lo, hi) (within ``tol``, m)
     moves only within it (its target clipped to the box); a node outside every box that
     would end up in one does not move.
     """
     from ...fem.elasticity import min_jacobian_determinants
-    from ...fem.loads import lattice_surface
-    from ...fem.tet10 import nearest_on_boundary
+    from ...fem.loads import lattice_spacing, lattice_surface
+    from ...fem.tet10 import boundary_faces, nearest_on_boundary
 
     x0 = np.asarray(nodes, dtype=float)
+    mesh_nodes = np.asarray(mesh_nodes, dtype=float)
     surface = np.flatnonzero(lattice_surface(hexahedra, len(x0)))
-    _, target, _ = nearest_on_boundary(
-        np.asarray(mesh_nodes, dtype=float), np.asarray(tets), x0[surface]
-    )
+    _, target, _ = nearest_on_boundary(mesh_nodes, np.asarray(tets), x0[surface])
+    normal = outward_normals(hexahedra, len(x0))[surface]
+    length = np.linalg.norm(normal, axis=1)
+    pointed = length > 0  # opposite faces of a fin cancel: such a node takes its nearest point
+    direction = np.zeros_like(normal)
+    direction[pointed] = normal[pointed] / length[pointed, None]
+    triangles = mesh_nodes[boundary_faces(np.asarray(tets))[0]]
+    t = np.full(len(surface), np.inf)
+    t[pointed] = line_crossings(x0[surface][pointed], direction[pointed], triangles)
+    along = np.abs(t) <= RAY_REACH * float(np.min(lattice_spacing(x0, hexahedra)))
+    target[along] = x0[surface][along] + t[along, None] * direction[along]
     share = np.ones(len(surface))
     boxes = [(np.asarray(lo, float), np.asarray(hi, float)) for lo, hi in boxes or []]
 
