@@ -12,6 +12,8 @@ from ..errors import MeshError
 KEPT_JACOBIAN = 0.1
 """:func:`conform_lattice` keeps every hexahedron's smallest Jacobian determinant at least this
 fraction of its voxel's."""
+CROSSING_PAIRS = 2_000_000
+""":func:`line_crossings` tries at most this many line-triangle pairs at once (memory)."""
 RAY_REACH = 1.5
 """:func:`conform_lattice` moves a surface node along its outward normal when the mesh's
 surface crosses that line within this many h of it (a voxel's surface node is within
@@ -31,25 +33,50 @@ def outward_normals(hexahedra: np.ndarray, n_nodes: int) -> np.ndarray:
     return out
 
 
-def line_crossings(points: np.ndarray, directions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+def line_crossings(
+    points: np.ndarray, directions: np.ndarray, triangles: np.ndarray, reach: float = np.inf
+) -> np.ndarray:
     """(P,) for each line ``points`` + t ``directions`` (P, 3; unit directions) the t, m, of
-    its crossing with ``triangles`` (F, 3, 3) nearest the point (either side), inf where it
-    crosses none (Moller-Trumbore, vectorised over lines and triangles)."""
-    a = triangles[:, 0]
-    e1, e2 = triangles[:, 1] - a, triangles[:, 2] - a
-    p = np.cross(directions[:, None, :], e2[None])
-    det = np.einsum("fk,pfk->pf", e1, p)
-    usable = np.abs(det) > 1e-12 * np.einsum("fk,fk->f", e1, e1)
-    inverse = np.where(usable, 1.0 / np.where(usable, det, 1.0), 0.0)
-    s = points[:, None, :] - a[None]
-    u = inverse * np.einsum("pfk,pfk->pf", s, p)
-    q = np.cross(s, e1[None])
-    v = inverse * np.einsum("pk,pfk->pf", directions, q)
-    t = inverse * np.einsum("fk,pfk->pf", e2, q)
-    eps = 1e-9
-    crossed = usable & (u >= -eps) & (v >= -eps) & (u + v <= 1 + eps)
-    t = np.where(crossed, t, np.inf)
-    return t[np.arange(len(points)), np.argmin(np.abs(t), axis=1)]
+    its crossing with ``triangles`` (F, 3, 3) nearest the point (either side) within ``reach``
+    (m) of it, inf where there is none (Moller-Trumbore). With a finite reach only the
+    triangles whose centres lie within reach plus the largest triangle's radius are tried
+    (a k-d tree), in chunks of at most CROSSING_PAIRS line-triangle pairs."""
+    from scipy.spatial import cKDTree
+
+    centre = triangles.mean(axis=1)
+    radius = float(np.linalg.norm(triangles - centre[:, None], axis=2).max())
+    if np.isfinite(reach):
+        near = cKDTree(centre).query_ball_point(points, reach + radius)
+    else:
+        near = [range(len(triangles))] * len(points)
+    width = max((len(n) for n in near), default=0)
+    out = np.full(len(points), np.inf)
+    if width == 0:
+        return out
+    candidates = np.full((len(points), width), -1)
+    for i, n in enumerate(near):
+        candidates[i, : len(n)] = list(n)
+    chunk = max(1, CROSSING_PAIRS // width)
+    for first in range(0, len(points), chunk):
+        rows = slice(first, first + chunk)
+        which = candidates[rows]
+        tri = triangles[np.maximum(which, 0)]  # (C, W, 3, 3)
+        a, e1, e2 = tri[:, :, 0], tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0]
+        d = directions[rows][:, None, :]
+        p = np.cross(d, e2)
+        det = np.einsum("cwk,cwk->cw", e1, p)
+        usable = (which >= 0) & (np.abs(det) > 1e-12 * np.einsum("cwk,cwk->cw", e1, e1))
+        inverse = np.where(usable, 1.0 / np.where(usable, det, 1.0), 0.0)
+        s = points[rows][:, None, :] - a
+        u = inverse * np.einsum("cwk,cwk->cw", s, p)
+        q = np.cross(s, e1)
+        v = inverse * np.einsum("cwk,cwk->cw", np.broadcast_to(d, q.shape), q)
+        t = inverse * np.einsum("cwk,cwk->cw", e2, q)
+        eps = 1e-9
+        crossed = usable & (u >= -eps) & (v >= -eps) & (u + v <= 1 + eps) & (np.abs(t) <= reach)
+        t = np.where(crossed, t, np.inf)
+        out[rows] = t[np.arange(len(t)), np.argmin(np.abs(t), axis=1)]
+    return out
 
 
 def conform_lattice(
@@ -94,8 +121,9 @@ def conform_lattice(
     direction[pointed] = normal[pointed] / length[pointed, None]
     triangles = mesh_nodes[boundary_faces(np.asarray(tets))[0]]
     t = np.full(len(surface), np.inf)
-    t[pointed] = line_crossings(x0[surface][pointed], direction[pointed], triangles)
-    along = np.abs(t) <= RAY_REACH * float(np.min(lattice_spacing(x0, hexahedra)))
+    reach = RAY_REACH * float(np.min(lattice_spacing(x0, hexahedra)))
+    t[pointed] = line_crossings(x0[surface][pointed], direction[pointed], triangles, reach)
+    along = np.isfinite(t)
     target[along] = x0[surface][along] + t[along, None] * direction[along]
     share = np.ones(len(surface))
     boxes = [(np.asarray(lo, float), np.asarray(hi, float)) for lo, hi in boxes or []]
