@@ -443,15 +443,16 @@ def diagnose(organ: str, spacing: float, refine: int) -> None:
     # As they are, under the lattice's own nodal loads (the FEM reference on the hexahedra
     # as given would load the forces at their nodes, a deeper dimple than the hat traction
     # the tetrahedra carry: 26-29% at 6.5 mm instead of 9-12%, a bound that was wrong).
-    from bench.surface_cells import relative, solve
+    from bench import surface_cells
     from fpm.fem.elasticity import constitutive_matrix, element_stiffness
 
     coords = problem.solid.nodes[problem.solid.elements()]
     material = problem.spec.material
     c = constitutive_matrix(material.youngs_modulus, material.poisson_ratio)
     loads = [case.dense(problem.n_nodes) for case in problem.load_cases]
-    solved = solve(problem, element_stiffness(coords, c, "selective"), loads)
-    gap = [relative(u, q) for u, q in zip(solved, truth, strict=True)]
+    gap = surface_cells.judged(
+        problem, element_stiffness(coords, c, "selective"), loads, list(truth)
+    )
     print(f"  the lattice's hexahedra as a continuum (B-bar, its loads): {fmt(gap)} %")
     hexahedra = copy.deepcopy(spec)
     del hexahedra["reference"]["mesh"]

@@ -134,9 +134,12 @@ def solve(problem: Any, blocks: np.ndarray, loads: list[np.ndarray]) -> list[np.
     return out
 
 
-def relative(u: np.ndarray, q: np.ndarray) -> float:
-    """100 sum_i |u_i - q_i| / sum_i |q_i|, % (docs/physics.md)."""
-    return float(100 * np.linalg.norm(u - q, axis=1).sum() / np.linalg.norm(q, axis=1).sum())
+def judged(problem: Any, blocks: np.ndarray, loads: list, truth: list) -> list[float]:
+    """The relative discrepancy, % per load, of :func:`solve` against ``truth`` (N, 3) per load
+    (:func:`fpm.fem.refine.relative_change`: 100 sum_i |u_i - q_i| / sum_i |q_i|)."""
+    from fpm.fem.refine import relative_change
+
+    return relative_change(np.stack(solve(problem, blocks, loads)), np.stack(truth))
 
 
 def refit(
@@ -154,8 +157,8 @@ def refit(
     fitted = len(problem.load_cases)
 
     def cost(y: np.ndarray) -> float:
-        us = solve(problem, cell_blocks(problem, theta * np.exp(y), element, cells), loads[:fitted])
-        return float(np.mean([relative(u, q) for u, q in zip(us, truth[:fitted], strict=True)]))
+        blocks = cell_blocks(problem, theta * np.exp(y), element, cells)
+        return float(np.mean(judged(problem, blocks, loads[:fitted], truth[:fitted])))
 
     simplex = np.vstack([np.zeros(4), 0.3 * np.eye(4)])
     found = minimize(
@@ -194,26 +197,29 @@ def rows(problem: Any, reference: Any, refitted: bool = True) -> list[tuple[str,
     full = element_stiffness(coords, c, "full")
     qm6 = qm6_stiffness(coords, c)
 
-    def judged(blocks: np.ndarray) -> list[float]:
-        return [relative(u, q) for u, q in zip(solve(problem, blocks, loads), truth, strict=True)]
+    def judged_all(blocks: np.ndarray) -> list[float]:
+        return judged(problem, blocks, loads, truth)
 
     out = [
         (
             "calibrated (nonlinear, as reported)",
             [*result.relative_discrepancy, *result.validation_relative_discrepancy],
         ),
-        ("springs, the four parameters (linear)", judged(cell_blocks(problem, theta, None, every))),
-        ("FEM full", judged(full)),
-        ("FEM B-bar", judged(element_stiffness(coords, c, "selective"))),
-        ("FEM QM6", judged(qm6)),
+        (
+            "springs, the four parameters (linear)",
+            judged_all(cell_blocks(problem, theta, None, every)),
+        ),
+        ("FEM full", judged_all(full)),
+        ("FEM B-bar", judged_all(element_stiffness(coords, c, "selective"))),
+        ("FEM QM6", judged_all(qm6)),
     ]
     for name, element in (("full", full), ("QM6", qm6)):
-        out.append((f"surface {name}", judged(cell_blocks(problem, theta, element, surface))))
+        out.append((f"surface {name}", judged_all(cell_blocks(problem, theta, element, surface))))
         if not refitted:
             continue
         again = refit(problem, theta, element, surface, loads, truth)
         out.append(
-            (f"surface {name} refitted", judged(cell_blocks(problem, again, element, surface)))
+            (f"surface {name} refitted", judged_all(cell_blocks(problem, again, element, surface)))
         )
     errors = [*(result.reference_error or []), *(result.validation_reference_error or [])]
     print(
