@@ -132,7 +132,7 @@ def lattice_spacing(nodes: np.ndarray, hexahedra: np.ndarray) -> np.ndarray:
     on ``nodes`` (N, 3) along each axis. On a box or voxel lattice the cells' size exactly; on
     a voxel lattice whose surface nodes were moved onto a mesh's surface
     (:func:`fpm.io.meshes.conform_lattice`) the voxels' size, where its shortest spring can be
-    a third of it."""
+    half of it."""
     x = nodes[hexahedra]
     return np.asarray(np.median(x.max(axis=1) - x.min(axis=1), axis=0), dtype=float)
 
