@@ -18,8 +18,6 @@ import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-import numpy as np
-
 
 @contextmanager
 def shifted_lattice(dx: float, dy: float) -> Iterator[None]:
@@ -52,7 +50,7 @@ def main() -> None:
     with shifted_lattice(dx, dy):
         row = run_organ(organ, spacing)
     row["shift"] = [dx, dy]
-    print(json.dumps(row, default=lambda v: np.asarray(v).tolist()))
+    print(json.dumps(row))
 
 
 if __name__ == "__main__":
