@@ -146,6 +146,7 @@ def lowest_modes(
     *,
     hierarchy: object | None = None,
     free: np.ndarray | None = None,
+    threads: int | None = None,
 ) -> Modes:
     """The ``count`` lowest modes of ``tangent`` (3M, 3M) N/m, symmetric positive definite,
     with lumped ``masses`` (M,) kg: K phi = w^2 M phi.
@@ -156,7 +157,8 @@ def lowest_modes(
     :data:`COARSE_UP_TO` unknowns, then on each finer level LOBPCG from the level below's
     modes carried up, preconditioned by the V-cycle from that level down. The coarse levels
     are cheap and their modes good starts, so the lattice itself needs few iterations
-    (``iterations`` counts those).
+    (``iterations`` counts those). ``threads``: the block's V-cycles on this many threads
+    (None: :data:`CYCLE_THREADS`; the same modes, bit for bit, on any number).
     """
     n = tangent.shape[0]
     m = np.repeat(np.asarray(masses, float), 3)
@@ -190,7 +192,7 @@ def lowest_modes(
         a_l, m_l = levels[level].A, masses_at[level]
 
         def precondition(r: np.ndarray, level: int = level) -> np.ndarray:
-            return _cycles(hierarchy, r, level)
+            return _cycles(hierarchy, r, level, threads)
 
         def stiffness(y: np.ndarray, a_l: sp.spmatrix = a_l) -> np.ndarray:
             return np.asarray(a_l @ y)
@@ -219,10 +221,12 @@ THREADED_FROM = 20_000
 well under a millisecond and the threads cost more than they save)."""
 
 
-def _cycles(hierarchy: object, r: np.ndarray, level: int) -> np.ndarray:
+def _cycles(hierarchy: object, r: np.ndarray, level: int, threads: int | None = None) -> np.ndarray:
     """One V-cycle of ``hierarchy`` from ``level`` (:func:`fpm.fem.linear_solver.v_cycle`) on
-    each column of ``r`` (n, b): (n, b). The first column's cycle runs alone (it sets up the
-    coarsest level's solver, made on first use, before threads share it)."""
+    each column of ``r`` (n, b): (n, b), on ``threads`` threads (None: :data:`CYCLE_THREADS`).
+    The first column's cycle runs alone (it sets up the coarsest level's solver, made on first
+    use, before threads share it)."""
+    threads = CYCLE_THREADS if threads is None else threads
     out = np.empty_like(r)
 
     def one(j: int) -> None:
@@ -230,11 +234,11 @@ def _cycles(hierarchy: object, r: np.ndarray, level: int) -> np.ndarray:
 
     one(0)
     rest = range(1, r.shape[1])
-    if CYCLE_THREADS < 2 or r.shape[0] < THREADED_FROM or len(rest) < 2:
+    if threads < 2 or r.shape[0] < THREADED_FROM or len(rest) < 2:
         for j in rest:
             one(j)
     else:
-        with ThreadPoolExecutor(CYCLE_THREADS) as pool:
+        with ThreadPoolExecutor(threads) as pool:
             list(pool.map(one, rest))
     return out
 
@@ -279,16 +283,27 @@ def _weighted_gram(x: np.ndarray, m: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
-def _combine(x: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """x c for tall x (n, a) and small c (a, b): (n, b), compiled (see :func:`_gram`)."""
+def _combine_into(out: np.ndarray, x: np.ndarray, c: np.ndarray) -> None:
+    """out += x c for tall x (n, a) and small c (a, b), out (n, b); compiled (see
+    :func:`_gram`): a sum continued block after block adds in the order one over the blocks
+    side by side would."""
     n, a = x.shape
     b = c.shape[1]
-    out = np.zeros((n, b))
     for i in range(n):
         for p in range(a):
             xp = x[i, p]
             for q in range(b):
                 out[i, q] += xp * c[p, q]
+
+
+def _combine(blocks: list[np.ndarray], c: np.ndarray) -> np.ndarray:
+    """[B_0 B_1 ...] c for tall blocks B_i (n, a_i) side by side and small c (sum a_i, b):
+    (n, b), without forming the blocks side by side."""
+    out = np.zeros((blocks[0].shape[0], c.shape[1]))
+    row = 0
+    for b in blocks:
+        _combine_into(out, b, np.ascontiguousarray(c[row : row + b.shape[1]]))
+        row += b.shape[1]
     return out
 
 
@@ -302,73 +317,94 @@ def _lobpcg(
     diagonal: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Block LOBPCG for K x = w^2 M x (``apply``: K, ``mass``: M, on blocks of vectors):
-    Rayleigh-Ritz on [X, T R, P] each iteration (R the residuals, T the preconditioner, P the
-    last change of X orthogonal to X; K applied to the new directions T R only), until the
-    first ``count`` residuals are below :data:`TOLERANCE` relative, or ``iterations``.
-    ``diagonal``: M's diagonal (n,) when M is diagonal (the lattice's lumped masses): the
-    M-weighted Gram matrices are then summed without forming M s (:func:`_weighted_gram`,
-    the same sums; on the 93,705-node organ M s of the stacked block is 135 MB).
-    Returns (w^2, X, K X, iterations taken), ascending, X M-orthonormal."""
+    Rayleigh-Ritz on S = [X, T R, P] each iteration (R the residuals, T the preconditioner, P the
+    last change of X orthogonal to X), until the first ``count`` residuals are below
+    :data:`TOLERANCE` relative, or ``iterations``. ``diagonal``: M's diagonal (n,) when M is
+    diagonal (the lattice's lumped masses): the M-weighted Gram matrices are then summed without
+    forming M s (:func:`_weighted_gram`).
+
+    Lean on memory: S stays three blocks (never side by side), its Gram matrices are summed
+    block by block, K is applied to one block at a time for S^T K S (K X is kept from the
+    residual) and the new X and P are each one combination of the blocks (P's coefficients
+    follow from S^T M S). At most five blocks are held at once (X, T, P, the new X and P),
+    where holding K S and S side by side took about twelve: 244 columns of the lattice at the
+    peak (0.54 GB on the 93,705-node organ) against about 100 now, for two more products by
+    K per iteration. Returns (w^2, X, K X, iterations taken), ascending, X M-orthonormal."""
     block = x.shape[1]
 
-    def m_gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """a^T M b."""
-        if diagonal is not None:
-            return _weighted_gram(a, diagonal, b)
-        return _gram(a, np.ascontiguousarray(mass(b)))
+    def m_gram(blocks: list[np.ndarray]) -> np.ndarray:
+        """S^T M S of the blocks side by side."""
+        sizes = np.cumsum([0] + [b.shape[1] for b in blocks])
+        out = np.empty((sizes[-1], sizes[-1]))
+        for j, bj in enumerate(blocks):
+            mb = None if diagonal is not None else np.ascontiguousarray(mass(bj))
+            for i in range(j + 1):
+                if diagonal is not None:
+                    g = _weighted_gram(blocks[i], diagonal, bj)
+                else:
+                    assert mb is not None
+                    g = _gram(blocks[i], mb)
+                out[sizes[i] : sizes[i + 1], sizes[j] : sizes[j + 1]] = g
+                out[sizes[j] : sizes[j + 1], sizes[i] : sizes[i + 1]] = g.T
+        return out
 
-    def orthonormalising(s: np.ndarray) -> np.ndarray:
-        """c with s c M-orthonormal (SVQB: the Gram matrix's eigenvectors, directions below
-        1e-10 of the largest dropped)."""
-        gram = m_gram(s, s)
-        d = np.sqrt(np.maximum(np.diag(gram), 1e-300))
-        e, v = np.linalg.eigh((gram + gram.T) / 2 / d[:, None] / d[None, :])
+    def k_gram(blocks: list[np.ndarray], kfirst: np.ndarray) -> np.ndarray:
+        """S^T K S, K applied to one block at a time (``kfirst``: K times the first)."""
+        sizes = np.cumsum([0] + [b.shape[1] for b in blocks])
+        out = np.empty((sizes[-1], sizes[-1]))
+        for j, bj in enumerate(blocks):
+            kb = kfirst if j == 0 else np.ascontiguousarray(apply(bj))
+            for i in range(j + 1):
+                g = _gram(blocks[i], kb)
+                out[sizes[i] : sizes[i + 1], sizes[j] : sizes[j + 1]] = g
+                out[sizes[j] : sizes[j + 1], sizes[i] : sizes[i + 1]] = g.T
+            del kb
+        return out
+
+    def ritz(gm: np.ndarray, gk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(the lowest ``block`` Ritz values, their coefficients on S): S made M-orthonormal
+        (SVQB: the Gram matrix's eigenvectors, directions below 1e-10 of the largest dropped),
+        then K's eigenproblem on it."""
+        d = np.sqrt(np.maximum(np.diag(gm), 1e-300))
+        e, v = np.linalg.eigh((gm + gm.T) / 2 / d[:, None] / d[None, :])
         keep = e > 1e-10 * e.max()
-        return np.ascontiguousarray((v[:, keep] / np.sqrt(e[keep])[None, :]) / d[:, None])
-
-    def orthonormal(s: np.ndarray, ks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """s and K s made M-orthonormal."""
-        c = orthonormalising(s)
-        return _combine(s, c), _combine(ks, c)
-
-    def ritz(s: np.ndarray, ks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        a = _gram(s, ks)
-        w, c = np.linalg.eigh((a + a.T) / 2)
-        c = np.ascontiguousarray(c[:, :block])
-        return w[:block], _combine(s, c), _combine(ks, c)
+        c = (v[:, keep] / np.sqrt(e[keep])[None, :]) / d[:, None]
+        a = c.T @ gk @ c
+        w, y = np.linalg.eigh((a + a.T) / 2)
+        return w[:block], c @ y[:, :block]
 
     x = np.ascontiguousarray(x)
-    w, x, kx = ritz(*orthonormal(x, np.ascontiguousarray(apply(x))))
+    w, coefficients = ritz(m_gram([x]), k_gram([x], np.ascontiguousarray(apply(x))))
+    x = _combine([x], coefficients)
     p: np.ndarray | None = None
-    kp: np.ndarray | None = None
     last: np.ndarray | None = None
+    kx: np.ndarray | None = None
     taken = 0
     for taken in range(1, iterations + 1):
-        r = kx - mass(x) * w[None, :]
+        kx = np.ascontiguousarray(apply(x))
+        r = np.ascontiguousarray(mass(x))
+        r *= -w[None, :]
+        r += kx
         relative = np.linalg.norm(r[:, :count], axis=0) / np.linalg.norm(kx[:, :count], axis=0)
         settled = last is not None and np.all(np.abs(w[:count] / last - 1) <= SETTLED_VALUES)
         if settled or np.all(relative <= TOLERANCE):
             taken -= 1
             break
         last = w[:count].copy()
-        # Each tall block is dropped as soon as what follows no longer needs it (on the
-        # 93,705-node organ a column is 2.2 MB and a stacked block 60 of them).
         t = np.ascontiguousarray(precondition(r))
         del r
-        stacked = np.hstack([x, t] if p is None else [x, t, p])
-        kt = np.ascontiguousarray(apply(t))
-        del t
-        kstacked = np.hstack([kx, kt] if kp is None else [kx, kt, kp])
-        del kt
-        p = kp = None
-        c = orthonormalising(stacked)
-        s_c = _combine(stacked, c)
-        del stacked
-        ks_c = _combine(kstacked, c)
-        del kstacked
-        new_w, new_x, new_kx = ritz(s_c, ks_c)
-        del s_c, ks_c
-        change = np.ascontiguousarray(m_gram(x, new_x))
-        p, kp = new_x - _combine(x, change), new_kx - _combine(kx, change)
-        w, x, kx = new_w, new_x, new_kx
+        blocks = [x, t] if p is None else [x, t, p]
+        gm = m_gram(blocks)
+        gk = k_gram(blocks, kx)
+        kx = None
+        w, coefficients = ritz(gm, gk)
+        new_x = _combine(blocks, coefficients)
+        # P = new X - X (X^T M new X): the same combination with X's rows less X^T M S c
+        change = gm[:block] @ coefficients
+        coefficients[:block] -= change
+        p = _combine(blocks, coefficients)
+        x = new_x
+        del blocks, t, new_x
+    if kx is None:  # every iteration taken: K X of the last one
+        kx = np.ascontiguousarray(apply(x))
     return w, x, kx, taken

@@ -447,6 +447,7 @@ def predict_damping(
     cap: int = 1_000_000,
     count: int = MODES,
     distances: list[float] | None = None,
+    modes: dict[bytes, Modes] | None = None,
 ) -> tuple[Prediction, list[StepModel]]:
     """The predicted fastest d of ``problem``'s load cases at ``stiffness``, ``depth`` and
     ``dt``, within ``bounds`` (N s/m), and the reduced steps it came from.
@@ -454,14 +455,16 @@ def predict_damping(
     ``solver``: the problem's static solver (its systems, perturbed lists and multigrid
     hierarchies); ``static`` (L, N, 3): the static equilibria, m (None: the modes' linear
     response); ``distances``: each case's settle distance towards them (None: the spec's,
-    :func:`fpm.dynamics.settle.nominal_distance`). One set of modes per distinct list.
+    :func:`fpm.dynamics.settle.nominal_distance`). One set of modes per distinct list;
+    ``modes``: those already found (:class:`fpm.dynamics.modes_ahead.ModesAhead`), keyed as
+    :func:`reduced_steps` keys them.
 
     Raises:
         ValueError: no d in the bounds settles in the reduced steps (e.g. a tolerance of 0).
         SingularStiffnessError: the lattice at rest is not held (a mechanism).
     """
     t0 = time.perf_counter()
-    found: dict[bytes, Modes] = {}
+    found: dict[bytes, Modes] = {} if modes is None else dict(modes)
     with single_threaded_blas():
         models = reduced_steps(
             problem, solver, stiffness, depth, dt, static, count=count, modes=found,
@@ -529,9 +532,9 @@ def reduced_steps(
                 )  # fmt: skip
             except np.linalg.LinAlgError as e:
                 raise SingularStiffnessError(f"the modes: {e}") from None
-            if not np.all(lowest.w2 > 1e-12 * max(float(lowest.w2.max()), 1e-300)):
-                raise SingularStiffnessError("the lattice at rest has a mode without stiffness")
             found[key] = lowest
+        if not np.all(found[key].w2 > 1e-12 * max(float(found[key].w2.max()), 1e-300)):
+            raise SingularStiffnessError("the lattice at rest has a mode without stiffness")
         plist = solver.lists.get(problem.load_cases[j].nodes, depth)
         loads = solver.loads(j)
         distance = by_distance(spec)

@@ -29,10 +29,12 @@ import numpy as np
 from ..dynamics.equilibrium import StaticSolver
 from ..dynamics.modes import (
     FALLBACK_STEPS,
+    Modes,
     auto_max_steps,
     predict_damping,
     single_threaded_blas,
 )
+from ..dynamics.modes_ahead import ModesAhead
 from ..dynamics.settle import by_distance, case_distances, nominal_distance
 from ..dynamics.stability import stable_time_step, time_step
 from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
@@ -227,11 +229,15 @@ def _fit_damping(
         progress({"phase": "polish"})
     bounds = stiffness_bounds(problem)
     solves = 0
+    # the slowest modes, found beside the polish from its second round (their hierarchy is
+    # the polish's); the prediction takes those whose hierarchy the polish kept
+    ahead = ModesAhead(cost.solver, fit_depth(problem))
     if has_volume(problem):  # the defect-corrected reduced fit is the polish
         with single_threaded_blas():
             theta, _, solves = fit_reduced(
-                cost, basis or first_basis(problem), best.x, bounds, progress
-            )
+                cost, basis or first_basis(problem), best.x, bounds, progress,
+                after_round=ahead.start,
+            )  # fmt: skip
         problem.cache.pop("reduced_units", None)  # its unit matrices are not needed again
     else:
         theta = _polish(cost, best.x, bounds, progress)
@@ -277,6 +283,7 @@ def _fit_damping(
         plan,
         spread,
         disp,
+        ahead.modes(depth),
     )
     final = final_run(
         cost, stiffness, depth, fit.displacements, fit.steps, settled=True,
@@ -368,6 +375,7 @@ def find_damping(
     plan: DampingPlan | None = None,
     spread: Callable[[DampingPlan, np.ndarray | None], Spread | None] | None = None,
     reference: np.ndarray | None = None,
+    modes: dict[bytes, Modes] | None = None,
 ) -> tuple[DampingFit, DampingPlan]:
     """The fastest-settling d at (``stiffness``, ``depth``, ``dt`` s), from ``static`` (L, N,
     3) the static equilibria, m, ``reference`` (L, N, 3) the reference's displacements at the
@@ -384,7 +392,8 @@ def find_damping(
     the reduced steps, from the two critical-damping estimates of :func:`damping_guesses`,
     'auto' then being FALLBACK_STEPS. ``spread``: given the plan and the static equilibria its
     runs settle towards (the target criterion; None: not), runs the search's runs over
-    other processes (:func:`fpm.fitting.damping.fastest_damping`). Returns the fit and the
+    other processes (:func:`fpm.fitting.damping.fastest_damping`); ``modes``: the slowest
+    modes already found (:class:`fpm.dynamics.modes_ahead.ModesAhead`). Returns the fit and the
     plan its runs followed."""
     bounds = damping_bounds(problem)
     asked = problem.spec.fpm.max_steps
@@ -395,8 +404,9 @@ def find_damping(
         distance = case_distances(problem.spec, static, reference)
     try:
         prediction, models = predict_damping(
-            problem, solver, stiffness, depth, dt, bounds, static, distances=distance
-        )
+            problem, solver, stiffness, depth, dt, bounds, static, distances=distance,
+            modes=modes,
+        )  # fmt: skip
     except (ValueError, SingularStiffnessError, NegativeCurvature, np.linalg.LinAlgError):
         guesses = damping_guesses(problem, solver, stiffness, depth, static)
         cap = FALLBACK_STEPS if asked == "auto" else int(asked)

@@ -502,6 +502,7 @@ def fit_reduced(
     bounds: tuple[np.ndarray, np.ndarray],
     progress: Callable[[dict[str, Any]], None] | None = None,
     threads: int = CASE_SOLVERS,
+    after_round: Callable[[int], None] | None = None,
 ) -> tuple[list[float], float, int]:
     """Minimise Eq. (2) of the nonlinear static equilibria within ``bounds`` from ``start``:
     reduced linear fits on ``basis`` with enrichment, corrected by the nonlinear defect until
@@ -511,7 +512,9 @@ def fit_reduced(
     (:data:`CASE_SOLVERS`), the solvers' shares at once on ``threads`` threads with the same
     answer to the bit. The static equilibria at the answer are left as ``cost``'s
     warm starts, so a static solve there takes no Newton step. ``progress`` gets {phase:
-    "polish", round, evaluations} after each round.
+    "polish", round, evaluations} after each round; ``after_round`` the round's number, after
+    each round that goes on, while no solve runs (the damping stage starts the modes there:
+    :class:`fpm.dynamics.modes_ahead.ModesAhead`).
 
     Returns (parameters, their normalised static cost (inf if a load case has no equilibrium),
     the full linear solves it made)."""
@@ -563,6 +566,8 @@ def fit_reduced(
                 progress({"phase": "polish", "round": rounds, "evaluations": cost.evaluations})
             if float(np.abs(y - previous).max()) < CONVERGED:
                 break
+            if after_round is not None:
+                after_round(rounds)
     for j, equilibrium in enumerate(solved):  # the other solvers' answers as cost's warm starts
         if statics[j] and equilibrium.converged:
             cost.solver.seed(j, stiffness, cost.depth, equilibrium.displacements)
