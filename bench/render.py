@@ -305,8 +305,10 @@ def headline(documents: dict[str, dict[str, Any]], bench_dir: str) -> list[str]:
         out.append(
             f"- **An organ of 10^5 nodes**: the {two['nodes']:,}-node voxel organ "
             f"(a spec with no `fpm` settings) calibrates through the service in "
-            f"{two['wall_s']:.0f} s on two workers of a {run['machine']['cores']}-core machine"
+            f"{two['wall_s']:.0f} s on two workers"
             + (f" ({others})" if others else "")
+            + f" of a {run['machine']['cores']}-core machine ({run['machine']['cpu']}), its "
+            f"critical path {two['critical_path_s']:.0f} s"
             + f", at most {max(r['peak_pss_gb'] for r in large.values()):.1f} GB per worker"
             + (
                 ", the same parameters to the bit whatever the workers"
