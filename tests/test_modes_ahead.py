@@ -74,3 +74,25 @@ def test_small_lists_are_left_to_the_prediction():
     ahead = ModesAhead(solver, None)
     ahead.start(1)
     assert ahead.modes(None) == {}
+
+
+def test_a_calibration_finds_its_modes_beside_the_polish_once(monkeypatch):
+    """The damping stage starts the modes after the polish's first round, on their own thread,
+    and the prediction takes them: the modes are found once, and not on the stage's thread."""
+    import threading
+
+    from fpm.dynamics import eigen, modes_ahead
+    from fpm.fitting.calibration import calibrate
+
+    where: list[str] = []
+    real = eigen.lowest_modes
+
+    def counted(*args, **kwargs):
+        where.append(threading.current_thread().name)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(modes_ahead, "lowest_modes", counted)
+    monkeypatch.setattr("fpm.dynamics.modes.lowest_modes", counted)
+    problem = box((11, 5, 5), "families+volume")
+    calibrate(problem, chains=1)
+    assert where == ["modes-ahead"]
