@@ -12,13 +12,30 @@ WIDTH = 30
 
 
 def fraction_done(calibration: dict[str, Any]) -> float:
-    """Annealing moves done over moves in all (1 once succeeded). The stages after the
-    annealing (damping, finalize) have no known length: the line names them instead."""
+    """How far the calibration is, 0-1, counted in its stages (``progress.stages``), not in
+    time: each stage an equal share, filled within the annealing by its moves done and within
+    the damping stage by its steps begun (polish, depth, field, d search); 1 once succeeded.
+    The FEM reference and the d search have no known length, so the bar waits at their
+    stage's start rather than claiming a share it cannot measure. A server that sends no
+    ``stages`` gets the annealing's own fraction."""
     if calibration["status"] == "succeeded":
         return 1.0
     p = calibration["progress"]
-    total = p.get("total_iterations") or 0
-    return min(p.get("iterations", 0) / total, 1.0) if total else 0.0
+    stages = p.get("stages") or []
+    if p["phase"] not in stages:
+        return 0.0 if stages else _within(p)
+    return (stages.index(p["phase"]) + _within(p)) / len(stages)
+
+
+def _within(progress: dict[str, Any]) -> float:
+    """The fraction of the current stage done, where it is known (else 0)."""
+    if progress["phase"] == "annealing":
+        total = progress.get("total_iterations") or 0
+        return min(progress.get("iterations", 0) / total, 1.0) if total else 0.0
+    if progress["phase"] == "damping":
+        step = (progress.get("damping") or {}).get("step")
+        return list(DAMPING_STEPS).index(step) / len(DAMPING_STEPS) if step in DAMPING_STEPS else 0
+    return 0.0
 
 
 PHASE_LABELS = {"annealing": {"two-stage": "stiffness", "paper": "annealing"}}
@@ -41,14 +58,19 @@ def phase_label(progress: dict[str, Any]) -> str:
 
 
 def render(calibration: dict[str, Any]) -> str:
-    """One line: name, bar, percent, status, phase, then the annealing's temperature and best
-    cost, or in the damping stage its step and the d values tried."""
+    """One line: name, bar, percent (:func:`fraction_done`), status, stage k of n, phase, then
+    the annealing's temperature and best cost, or in the damping stage its step and the d
+    values tried."""
     p = calibration["progress"]
     fraction = fraction_done(calibration)
     filled = round(fraction * WIDTH)
     name = printable(calibration.get("name", ""))
     line = f"{name[:28]:<28} [{'#' * filled}{'.' * (WIDTH - filled)}]"
-    line += f" {fraction:4.0%} {calibration['status']:<9} {phase_label(p):<9}"
+    line += f" {fraction:4.0%} {calibration['status']:<9}"
+    stages = p.get("stages") or []
+    if p["phase"] in stages:
+        line += f" stage {stages.index(p['phase']) + 1}/{len(stages)}"
+    line += f" {phase_label(p):<9}"
     if p["phase"] == "damping":
         damping = p.get("damping") or {}
         line += f" {DAMPING_STEPS.get(damping.get('step') or '', 'starting')}"

@@ -18,7 +18,7 @@ from client.cli import (
 )
 from client.cli import main as cli
 from client.demo import report, web_view_hint
-from client.progress import ProgressBar, render
+from client.progress import ProgressBar, fraction_done, render
 from fpm.fitting.calibration import calibrate
 from stack.redis_server import free_port
 
@@ -115,6 +115,31 @@ def test_progress_bar_names_the_stage():
         calibration["progress"]["damping"] = {"step": step, "runs": 0}
         bar.update(calibration)
     assert len(stream.getvalue().splitlines()) == 4  # one line per step of the damping stage
+
+
+def test_progress_bar_counts_stages_and_is_full_only_when_done():
+    """The bar of an organ's calibration, whose FEM reference and damping stage take most of
+    its time, is not full from the end of the annealing on: each stage is a share."""
+    stages = ["fem", "annealing", "damping", "finalize"]
+    progress = {"phase": "fem", "method": "two-stage", "stages": stages}
+    calibration = {"name": "organ", "status": "running", "progress": progress}
+    seen = [fraction_done(calibration)]
+    assert "stage 1/4 fem" in render(calibration)
+    progress.update(phase="annealing", iterations=50, total_iterations=100)
+    seen.append(fraction_done(calibration))
+    progress["iterations"] = 100
+    seen.append(fraction_done(calibration))
+    progress["phase"] = "damping"
+    for step in (None, "polish", "depth", "damping"):
+        progress["damping"] = {"step": step, "runs": 0}
+        seen.append(fraction_done(calibration))
+    assert "stage 3/4 damping" in render(calibration)
+    progress["phase"] = "finalize"
+    seen.append(fraction_done(calibration))
+    assert seen == [0, 0.375, 0.5, 0.5, 0.5, 0.5625, 0.6875, 0.75]
+    assert fraction_done({**calibration, "status": "succeeded"}) == 1.0
+    progress["phase"] = "queued"  # not a stage: nothing done yet
+    assert fraction_done(calibration) == 0.0
 
 
 RESULT = {
