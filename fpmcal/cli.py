@@ -257,6 +257,7 @@ def cmd_spec_from_mesh(args: argparse.Namespace) -> None:
         poisson_ratio=args.nu,
         density=args.density,
         spacing=args.spacing,
+        nodes=args.nodes,
         connectivity=args.connectivity,
         scale=args.scale,
         voxelise=args.voxelise,
@@ -546,7 +547,8 @@ def build_parser() -> argparse.ArgumentParser:
         "from-mesh",
         help="a spec JSON from a mesh file (Gmsh .msh, VTK .vtu/.vtk, Abaqus .inp, STL, ...)",
         description="Hexahedral meshes are used as they are; tetrahedral meshes and closed "
-        "triangle surfaces are voxelised at --spacing (a cell is solid when its centre lies "
+        "triangle surfaces are voxelised at --spacing, or at the spacing that gives about --nodes "
+        "nodes (a cell is solid when its centre lies "
         "inside), and for tetrahedra the lattice's surface then follows the mesh's (--lattice). "
         "A tetrahedral mesh is also kept in the spec (reference.mesh): the FEM "
         "reference is solved on it with 10-node tetrahedra and read at the lattice nodes "
@@ -555,6 +557,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("spec", metavar="MESH", help="mesh file")
     p.add_argument("--spacing", type=float, default=None, help="lattice spacing h, m")
+    p.add_argument(
+        "--nodes",
+        type=int,
+        default=None,
+        help="instead of --spacing: about how many lattice nodes (a real-time budget); the "
+        "spacing is chosen for it and printed in a note",
+    )
     p.add_argument(
         "--fix", action="append", default=[], metavar="SELECTOR",
         help=f"fixed nodes (repeatable): {SELECTOR_HELP}",

@@ -28,7 +28,7 @@ cases given as short selector strings (:func:`parse_selector`, :func:`parse_forc
 
 The package's modules, one idea each (public names as before, all imported from here):
 :mod:`.reading`, :mod:`.voxelise`, :mod:`.geometry`, :mod:`.selectors`, :mod:`.conform`,
-:mod:`.from_mesh`.
+:mod:`.from_mesh`, :mod:`.sizing` (the spacing for a node count).
 """
 
 from __future__ import annotations
@@ -70,6 +70,7 @@ from .selectors import (  # noqa: F401
     parse_force,
     parse_selector,
 )
+from .sizing import lattice_nodes, spacing_for_nodes  # noqa: F401
 from .voxelise import (  # noqa: F401
     CHUNK,
     ORIENT_BOUND,

@@ -12,6 +12,7 @@ from .conform import conform_spec
 from .geometry import geometry_from_mesh
 from .reading import read_mesh
 from .selectors import FORCE_HELP, SELECTOR_HELP, parse_force, parse_selector
+from .sizing import spacing_for_nodes
 from .voxelise import support_planes
 
 
@@ -24,6 +25,7 @@ def spec_from_mesh(
     poisson_ratio: float,
     density: float = 1000.0,
     spacing: float | None = None,
+    nodes: int | None = None,
     connectivity: str = "full",
     scale: float = 1.0,
     voxelise: bool = False,
@@ -44,6 +46,9 @@ def spec_from_mesh(
             ``"nearest:0,0,0.05:0,0,-0.5"``.
         youngs_modulus, poisson_ratio, density: the material (Pa, -, kg/m^3).
         spacing, connectivity, scale, voxelise: as :func:`geometry_from_mesh`.
+        nodes: instead of ``spacing``, about how many lattice nodes (a real-time budget): the
+            spacing is chosen for it (:func:`~fpm.io.meshes.sizing.spacing_for_nodes`, three
+            significant digits; a note gives it and the count found).
         name: the spec's name (default: the file's name).
         dt: the FPM time step, s, or ``"auto"`` (resolved by the fit: half the lattice's
             stability estimate at the fitted stiffness, at most 1 ms).
@@ -78,14 +83,15 @@ def spec_from_mesh(
     if not fix:
         raise ValueError(f"give the fixed nodes (--fix {SELECTOR_HELP})")
     fixed = [parse_selector(s) for s in fix]
-    made = geometry_from_mesh(
-        mesh,
-        spacing=spacing,
-        connectivity=connectivity,
-        scale=scale,
-        voxelise=voxelise,
-        planes=support_planes(fixed),
+    options: dict[str, Any] = dict(
+        connectivity=connectivity, scale=scale, voxelise=voxelise, planes=support_planes(fixed)
     )
+    if nodes is not None and spacing is not None:
+        raise ValueError("give the spacing (--spacing) or the node count (--nodes), not both")
+    if nodes is not None:
+        _, made = spacing_for_nodes(mesh, nodes, **options)
+    else:
+        made = geometry_from_mesh(mesh, spacing=spacing, **options)
     if not forces:
         raise ValueError(f"give at least one load case (--force {FORCE_HELP})")
     spec: dict[str, Any] = {
