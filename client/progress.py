@@ -59,8 +59,8 @@ def phase_label(progress: dict[str, Any]) -> str:
 
 def render(calibration: dict[str, Any]) -> str:
     """One line: name, bar, percent (:func:`fraction_done`), status, stage k of n, phase, then
-    the annealing's temperature and best cost, or in the damping stage its step and the d
-    values tried."""
+    the annealing's temperature and best cost, in the damping stage its step and the d values
+    tried, or in the FEM stage the reference's refinement level, FEM nodes and last change."""
     p = calibration["progress"]
     fraction = fraction_done(calibration)
     filled = round(fraction * WIDTH)
@@ -79,6 +79,12 @@ def render(calibration: dict[str, Any]) -> str:
         if damping.get("best_d") is not None:
             line += f" fastest d={damping['best_d']:.3g}"
         return line.rstrip()
+    fem = p.get("fem") or {}
+    if p["phase"] == "fem" and fem.get("level") is not None:
+        line += f" level {fem['level']}: {fem['fem_nodes']:,} nodes"
+        if fem.get("last_change") is not None:
+            line += f", last change {fem['last_change']:.2g}%"
+        return line.rstrip()
     if p.get("temperature") is not None:
         line += f" T={p['temperature']:.2e}"
     if p.get("best_cost") is not None:
@@ -87,8 +93,8 @@ def render(calibration: dict[str, Any]) -> str:
 
 
 class ProgressBar:
-    """Redraws one line on a terminal; on a pipe, prints a line per 10%, change of phase or
-    step of the damping stage."""
+    """Redraws one line on a terminal; on a pipe, prints a line per 10%, change of phase, step
+    of the damping stage or level of the FEM reference."""
 
     def __init__(self, stream: TextIO | None = None):
         self.stream = stream or sys.stderr
@@ -106,7 +112,7 @@ class ProgressBar:
                 calibration["status"],
                 p["phase"],
                 int(fraction_done(calibration) * 10),
-                str((p.get("damping") or {}).get("step")),
+                f"{(p.get('damping') or {}).get('step')}/{(p.get('fem') or {}).get('level')}",
             )
             if key == self.last_key:
                 return

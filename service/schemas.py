@@ -71,6 +71,21 @@ class DampingProgress(BaseModel):
         return _old_name(data, "last_d", "d")
 
 
+class FemProgress(BaseModel):
+    """The FEM reference's refinement while it runs (``reference.refine`` a number or "auto";
+    empty before its first level and for a reference solved in one piece)."""
+
+    level: int | None = Field(
+        None, description="the level being solved: uniform refinements of the mesh as given"
+    )
+    fem_nodes: int | None = Field(None, description="the FEM's nodes at that level")
+    last_change: float | None = Field(
+        None,
+        description="the largest change, %, between the last two levels solved (null before "
+        "two): 'auto' stops below 1% or at reference.node_budget",
+    )
+
+
 class Progress(BaseModel):
     """Where a calibration is: its phase and stage, and the annealing's and the damping
     stage's latest reports."""
@@ -90,6 +105,9 @@ class Progress(BaseModel):
     chains: list[ChainProgress] = []
     damping: DampingProgress | None = Field(
         None, description="the damping stage's report, once it has started (two-stage)"
+    )
+    fem: FemProgress | None = Field(
+        None, description="the FEM reference's refinement level, while it runs (phase fem)"
     )
 
 

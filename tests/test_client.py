@@ -125,6 +125,11 @@ def test_progress_bar_counts_stages_and_is_full_only_when_done():
     calibration = {"name": "organ", "status": "running", "progress": progress}
     seen = [fraction_done(calibration)]
     assert "stage 1/4 fem" in render(calibration)
+    progress["fem"] = {"level": 2, "fem_nodes": 342225, "last_change": 3.5}
+    assert render(calibration).endswith(
+        "stage 1/4 fem       level 2: 342,225 nodes, last change 3.5%"
+    )
+    progress["fem"] = None
     progress.update(phase="annealing", iterations=50, total_iterations=100)
     seen.append(fraction_done(calibration))
     progress["iterations"] = 100

@@ -417,6 +417,17 @@ def test_refine_auto_stops_under_1_percent_and_reports_the_last_change():
     assert summarise(levels, []).estimated_error == pytest.approx([3 / 1.11])
 
 
+def test_refine_tells_each_level_as_it_starts():
+    told: list[dict] = []
+    first = fake_levels([8.0, 3.0, 0.5, 0.1], [100, 800, 6400, 51200, 409600])
+    levels, _ = converge(first, "auto", 10**6, progress=told.append)
+    assert [t["level"] for t in told] == [0, 1, 2, 3]
+    assert [t["fem_nodes"] for t in told] == [100, 800, 6400, 51200]
+    changes = [max(level["change"]) for level in summarise(levels, []).levels[1:3]]
+    assert [t["last_change"] for t in told[:2]] == [None, None]  # no change before two levels
+    assert [t["last_change"] for t in told[2:]] == pytest.approx(changes)
+
+
 def test_refine_auto_stops_before_a_level_whose_cg_iterations_make_it_too_costly():
     """The work of a level is its nodes times the CG iterations per case the level before
     needed: a mesh of slivers (examples/lobe.vtu: 717 iterations) is not refined to a level

@@ -12,7 +12,8 @@ from fastapi.testclient import TestClient
 from service.main import create_app
 from service.settings import Settings
 from stack.redis_server import free_port
-from store import keys, liveness
+from store import keys, liveness, records
+from store.status import FemStatus
 
 pytestmark = pytest.mark.redis
 
@@ -133,6 +134,24 @@ def test_progress_names_each_stage(api, redis, small_spec):
     redis.hset(keys.calibration(paper["id"]), mapping={"status": "running", "phase": "annealing"})
     stage = api.get(f"/v1/calibrations/{paper['id']}").json()["progress"]["stage"]
     assert stage == "annealing (k, d) on dynamic runs"
+
+
+def test_progress_shows_the_fem_reference_s_level_while_it_runs(api, redis, small_spec):
+    """The worker writes each refinement level into the reference's meta as it starts
+    (worker.jobs.fem_reference); the calibration waiting on it shows the level."""
+    calibration_id = api.post("/v1/calibrations", json=small_spec).json()["id"]
+    fem_hash = records.get_calibration(redis, calibration_id).fem_hash
+    records.update_fem_meta(redis, fem_hash, {"status": FemStatus.RUNNING})
+    progress = api.get(f"/v1/calibrations/{calibration_id}").json()["progress"]
+    assert progress["phase"] == "fem" and progress["stage"] == "FEM reference"
+    assert progress["fem"] == {"level": None, "fem_nodes": None, "last_change": None}
+    level = {"level": 2, "fem_nodes": 342225, "last_change": 3.5}
+    records.update_fem_meta(redis, fem_hash, level)
+    progress = api.get(f"/v1/calibrations/{calibration_id}").json()["progress"]
+    assert progress["fem"] == level
+    assert progress["stage"] == "FEM reference (refinement level 2: 342,225 FEM nodes)"
+    records.update_fem_meta(redis, fem_hash, {"status": FemStatus.SUCCEEDED})
+    assert api.get(f"/v1/calibrations/{calibration_id}").json()["progress"]["fem"] is None
 
 
 def test_records_of_an_older_version_are_served_without_a_500(api, redis, run_workers, small_spec):

@@ -238,6 +238,15 @@ def test_finalize_twice_stores_one_parameter_set(redis, run_workers, small_spec)
     assert redis.get(keys.parameter_set(ps_id)) == stored
 
 
+def test_a_refined_reference_writes_its_levels_for_the_progress(redis, run_workers, small_spec):
+    small_spec["reference"] = {"refine": 1}  # levels 0 and 1 of the 8-node reference
+    record, _ = submit(redis, small_spec)
+    run_workers()
+    meta = records.get_fem_meta(redis, record.fem_hash)
+    assert meta["status"] == "succeeded" and meta["level"] == "1"
+    assert int(meta["fem_nodes"]) > int(meta["n_nodes"])  # the refined mesh, not the lattice
+
+
 def test_fem_failure_fails_the_calibration(redis, run_workers, small_spec):
     small_spec["fixed"] = [{"node": 0}]  # one node cannot hold the solid: the FEM refuses
     record, _ = submit(redis, small_spec)

@@ -96,7 +96,11 @@ def fem_reference(fem_hash: str) -> dict[str, Any]:
             raise FemError(f"reference.mesh_id: no uploaded mesh {mesh_id}")
         problem = load_problem(spec, mesh)  # its tags, if material.regions select by them
         memory.check(problem.n_nodes)  # refused before it starts, not killed halfway
-        result = solve_fem(problem, mesh=mesh)
+
+        def level(info: dict[str, Any]) -> None:  # the calibrations' progress shows it
+            records.update_fem_meta(redis, fem_hash, info)
+
+        result = solve_fem(problem, mesh=mesh, progress=level)
     except FemError as e:
         # The problem cannot be solved (e.g. the solid is not held): a retry would fail the
         # same way, so the reference fails now and the chains waiting on it say why.

@@ -18,6 +18,7 @@ the model, and the result carries its load steps and Newton iterations.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -65,13 +66,15 @@ def reference_for(
     *,
     load_steps: int = 1,
     mesh: dict[str, Any] | None = None,
+    progress: Callable[[dict[str, Any]], None] | None = None,
 ) -> FemResult:
     """The reference ``problem`` is calibrated against: the supplied displacements when the
-    spec has them (no FEM is solved), else :func:`solve_fem` (``mesh`` as there)."""
+    spec has them (no FEM is solved), else :func:`solve_fem` (``mesh`` and ``progress`` as
+    there)."""
     supplied = supplied_reference(problem)
     if supplied is not None:
         return supplied
-    return solve_fem(problem, method, load_steps=load_steps, mesh=mesh)
+    return solve_fem(problem, method, load_steps=load_steps, mesh=mesh, progress=progress)
 
 
 def solve_fem(
@@ -80,6 +83,7 @@ def solve_fem(
     *,
     load_steps: int = 1,
     mesh: dict[str, Any] | None = None,
+    progress: Callable[[dict[str, Any]], None] | None = None,
 ) -> FemResult:
     """Nodal displacements of ``problem`` for every load case, by the spec's material model.
 
@@ -94,6 +98,8 @@ def solve_fem(
             fails, :mod:`fpm.fem.hyperelastic`).
         mesh: the mesh ``reference.mesh_id`` names, ``{"nodes": (N, 3), "tetrahedra": (T, 4)}``
             (m, 0-based), as the service stored it; ignored when the spec has none.
+        progress: told each level of a refined reference as it starts (``reference.refine``
+            a number or "auto": :func:`fpm.fem.refine.converge`).
 
     Raises:
         FemError: a network geometry, an inverted or degenerate hexahedron, a solid that is
@@ -118,13 +124,11 @@ def solve_fem(
                 f"reference.mesh_id {settings.mesh_id} names an uploaded mesh, which was not "
                 "given: submit the spec to the service, or put the mesh in reference.mesh"
             )
-        solve_tets = tet10_reference if refine == 0 else refined_tet_reference
-        return solve_tets(
-            problem,
-            np.asarray(mesh["nodes"], dtype=float),
-            np.asarray(mesh["tetrahedra"], dtype=np.int64),
-            method,
-        )
+        x = np.asarray(mesh["nodes"], dtype=float)
+        t = np.asarray(mesh["tetrahedra"], dtype=np.int64)
+        if refine == 0:
+            return tet10_reference(problem, x, t, method)
+        return refined_tet_reference(problem, x, t, method, progress)
     hexahedra = problem.solid.elements()
     if hexahedra is None:
         raise FemError(
@@ -155,7 +159,7 @@ def solve_fem(
         raise FemError(f"node {int(stray[0])} is loaded but belongs to no hexahedron")
     gravity = np.asarray(problem.spec.fpm.gravity, dtype=float)
     if refine not in (0, "check"):  # refined hexahedra, the forces spread (fpm.fem.refine)
-        return refined_hex_reference(problem, hexahedra, asked, None)
+        return refined_hex_reference(problem, hexahedra, asked, None, progress)
     if np.any(gravity):  # the solid's own weight, in every load case
         density = (
             hexahedron_densities(problem, nodes, hexahedra)

@@ -235,6 +235,10 @@ def relative_change(coarse: np.ndarray, fine: np.ndarray) -> list[float]:
     return [float(100 * d / s) if s > 0 else 0.0 for d, s in zip(diff, scale, strict=True)]
 
 
+Progress = Callable[[dict[str, Any]], None]
+"""Told each level of a refined reference as it starts (:func:`converge`)."""
+
+
 @dataclass
 class Level:
     """One solve of the reference.
@@ -263,7 +267,12 @@ class Mesh:
 
 
 def converge(
-    first: Mesh, refine: int | str, budget: int, *, tolerance: float = TOLERANCE
+    first: Mesh,
+    refine: int | str,
+    budget: int,
+    *,
+    tolerance: float = TOLERANCE,
+    progress: Progress | None = None,
 ) -> tuple[list[Level], list[str]]:
     """Solve the levels ``refine`` asks for, starting from the mesh ``first`` (level 0).
 
@@ -271,6 +280,8 @@ def converge(
     ``tolerance`` (%) in every case or the next level has more than ``budget`` FEM nodes or
     more predicted work than ``budget`` times :data:`WORK_ITERATIONS` (its FEM nodes times
     the most CG iterations a case of the level before needed).
+    ``progress`` is told each level as it starts: ``{"level": refinements, "fem_nodes": n,
+    "last_change": the largest change so far (%, None before two levels)}``.
     Returns the levels solved and notes (a level refused by the budget).
     """
     notes: list[str] = []
@@ -280,6 +291,7 @@ def converge(
             mesh = mesh.finer()
             _within(mesh, budget)  # before any solve: the spec asks for more than it allows
     levels: list[Level] = []
+    last: float | None = None
     while True:
         if mesh.fem_nodes > budget and mesh.refinements > 0:  # the mesh as given always runs
             if not isinstance(refine, int) and levels:
@@ -302,6 +314,8 @@ def converge(
                 "raise reference.node_budget"
             )
             break
+        if progress is not None:
+            progress({"level": mesh.refinements, "fem_nodes": mesh.fem_nodes, "last_change": last})
         t0 = time.perf_counter()
         result = mesh.solve()
         levels.append(Level(mesh.refinements, mesh.fem_nodes, result, time.perf_counter() - t0))
@@ -310,7 +324,8 @@ def converge(
                 break
         elif len(levels) >= 2:
             change = relative_change(levels[-2].result.displacements, result.displacements)
-            if max(change, default=0.0) < tolerance:
+            last = max(change, default=0.0)
+            if last < tolerance:
                 break
         mesh = mesh.finer()
     return levels, notes
@@ -404,11 +419,15 @@ def _tet10_nodes(nodes: np.ndarray, tets: np.ndarray) -> int:
 
 
 def refined_tet_reference(
-    problem: Problem, nodes: np.ndarray, tets: np.ndarray, method: str = "auto"
+    problem: Problem,
+    nodes: np.ndarray,
+    tets: np.ndarray,
+    method: str = "auto",
+    progress: Progress | None = None,
 ) -> FemResult:
     """The 10-node tetrahedral reference on ``tets`` refined as ``reference.refine`` says
     (module docstring); ``"check"`` solves the mesh as given with point loads and estimates
-    its error by one refinement with spread loads."""
+    its error by one refinement with spread loads. ``progress``: as :func:`converge`'s."""
     refine = resolved_refine(problem.spec)
     budget = problem.spec.reference.node_budget or DEFAULT_NODE_BUDGET
     forces = np.stack([case.as_given().dense(problem.n_nodes) for case in problem.all_cases])
@@ -435,7 +454,7 @@ def refined_tet_reference(
     if refine == "check":
         base = tet10_reference(problem, x0, t0, method)
         return _checked(base, first.fem_nodes, first.finer, budget, None)
-    levels, notes = converge(first, refine, budget)
+    levels, notes = converge(first, refine, budget, progress=progress)
     return summarise(levels, notes)
 
 
@@ -582,10 +601,15 @@ def _solve_hex(
 
 
 def refined_hex_reference(
-    problem: Problem, hexahedra: np.ndarray, method: str, base: FemResult | None
+    problem: Problem,
+    hexahedra: np.ndarray,
+    method: str,
+    base: FemResult | None,
+    progress: Progress | None = None,
 ) -> FemResult:
     """The 8-node reference refined as ``reference.refine`` says (module docstring): ``base``
-    is the reference as given (point loads), which ``"check"`` returns with its estimate."""
+    is the reference as given (point loads), which ``"check"`` returns with its estimate.
+    ``progress``: as :func:`converge`'s."""
     refine = resolved_refine(problem.spec)
     budget = problem.spec.reference.node_budget or DEFAULT_NODE_BUDGET
     if problem.spec.material.model != "linear":
@@ -600,5 +624,5 @@ def refined_hex_reference(
             raise ValueError("the check needs the reference as given")
         limit = None if problem.spec.reference.refine == "check" else CHECK_NODES
         return _checked(base, problem.n_nodes, first.finer, budget, limit)
-    levels, notes = converge(first, refine, budget)
+    levels, notes = converge(first, refine, budget, progress=progress)
     return summarise(levels, notes)

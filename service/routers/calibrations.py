@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Query, Response, status
@@ -27,6 +28,7 @@ from ..schemas import (
     CalibrationSummary,
     ChainProgress,
     DampingProgress,
+    FemProgress,
     Progress,
     Timings,
 )
@@ -141,12 +143,23 @@ def read(calibration_id: CalibrationId, redis: RedisDep) -> Calibration:
     if view is None:
         raise ProblemError(404, "Not found", f"no calibration {calibration_id!r}")
     record, chains, damping = view
-    fem_running = (
-        record.status == CalibrationStatus.QUEUED
-        and not record.fem_cached
-        and records.fem_status(redis, record.fem_hash) == FemStatus.RUNNING
+    fem: FemProgress | None = None
+    if record.status == CalibrationStatus.QUEUED and not record.fem_cached:
+        meta = records.get_fem_meta(redis, record.fem_hash)
+        if meta.get("status") == FemStatus.RUNNING.value:
+            fem = _fem_progress(meta)
+    return _view(record, (chains, damping), fem)
+
+
+def _fem_progress(meta: dict[str, str]) -> FemProgress:
+    """The running FEM reference's level, from its meta hash (the worker writes it as each
+    level starts: :func:`worker.jobs.fem_reference`); empty before the first."""
+    if "level" not in meta:
+        return FemProgress()
+    change = json.loads(meta.get("last_change") or "null")
+    return FemProgress(
+        level=int(meta["level"]), fem_nodes=int(meta["fem_nodes"]), last_change=change
     )
-    return _view(record, (chains, damping), fem_running)
 
 
 @router.delete(
@@ -170,8 +183,12 @@ def cancel(calibration_id: CalibrationId, redis: RedisDep) -> Calibration:
     return read(calibration_id, redis)
 
 
-def _stage(method: str, phase: Phase, damping: DampingProgress | None) -> str:
+def _stage(
+    method: str, phase: Phase, damping: DampingProgress | None, fem: FemProgress | None = None
+) -> str:
     """What runs in ``phase``, in words."""
+    if phase == Phase.FEM and fem is not None and fem.level is not None:
+        return f"FEM reference (refinement level {fem.level}: {fem.fem_nodes:,} FEM nodes)"
     if phase == Phase.ANNEALING:
         if method == "two-stage":
             return "stage 1 of 2: stiffness search (annealing on static equilibria)"
@@ -190,9 +207,10 @@ def _stage(method: str, phase: Phase, damping: DampingProgress | None) -> str:
 def _view(
     record: records.CalibrationRecord,
     progress: tuple[dict[int, dict[str, Any]], dict[str, Any] | None],
-    fem_running: bool,
+    fem: FemProgress | None,
 ) -> Calibration:
-    """The API view of a record and its jobs' progress."""
+    """The API view of a record and its jobs' progress (``fem``: the FEM reference's, while
+    it runs for this calibration)."""
     chain_reports, damping_report = progress
     chains = [ChainProgress(chain=c, **p) for c, p in sorted(chain_reports.items())]
     damping = DampingProgress(**damping_report) if damping_report else None
@@ -200,7 +218,7 @@ def _view(
     method = annealing.get("method", "paper")  # records of older versions ran the paper's
     phase = record.phase
     status_ = record.status
-    if fem_running:
+    if fem is not None:
         phase, status_ = Phase.FEM, CalibrationStatus.RUNNING
     stages = [Phase.ANNEALING, Phase.DAMPING] if method == "two-stage" else [Phase.ANNEALING]
     stages = ([] if record.fem_cached else [Phase.FEM]) + stages + [Phase.FINALIZE]
@@ -226,7 +244,7 @@ def _view(
         progress=Progress(
             phase=phase,
             method=method,
-            stage=_stage(method, phase, damping),
+            stage=_stage(method, phase, damping, fem),
             stages=stages,
             iterations=sum(c.move for c in chains),
             total_iterations=per_chain * record.chains,
@@ -234,6 +252,7 @@ def _view(
             best_cost=min(costs) if costs else None,
             chains=chains,
             damping=damping,
+            fem=fem,
         ),
         timings=t,
         fem_reference_id=record.fem_hash,
