@@ -22,6 +22,8 @@ def test_grid_indices_and_depth_on_a_box(box):
     problem, hexahedra, index, surface = box
     x = problem.solid.nodes
     assert np.array_equal(index, np.round((x - x[~surface][0]) / 0.01).astype(int))
+    with pytest.raises(ValueError, match="not on a grid of spacing"):
+        grid_indices(problem.solid.nodes, hexahedra, 0.004)  # e.g. the shortest spring
     depth = surface_depth(hexahedra, surface, 5)
     from_faces = np.min(np.minimum(index - index.min(0), index.max(0) - index), axis=1)
     assert np.array_equal(depth, np.minimum(from_faces, 6))
