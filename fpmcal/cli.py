@@ -157,7 +157,7 @@ def cmd_fem(args: argparse.Namespace) -> None:
     from fpm.fitting.validation import resolution_notes
 
     problem = _load(args.spec)
-    result = solve_fem(problem)
+    result = solve_fem(problem, progress=_fem_levels)
     if result.element == "tet10":
         mesh = problem.spec.reference.mesh
         size = f" ({len(mesh.tetrahedra)} tetrahedra)" if mesh is not None else ""
@@ -218,6 +218,17 @@ class _Bar:
             print(file=sys.stderr)
 
 
+def _fem_levels(info: dict[str, Any]) -> None:
+    """A line on stderr per level of a refined FEM reference as it starts (it can take
+    minutes on an organ)."""
+    change = info.get("last_change")
+    after = f" (the last two levels differ by {change:.2g}%)" if change is not None else ""
+    print(
+        f"FEM reference: refinement level {info['level']}, {info['fem_nodes']:,} FEM nodes{after}",
+        file=sys.stderr,
+    )
+
+
 def cmd_calibrate(args: argparse.Namespace) -> None:
     from fpm.fem.reference import reference_for
     from fpm.fitting.calibration import calibrate
@@ -227,7 +238,8 @@ def cmd_calibrate(args: argparse.Namespace) -> None:
     a = problem.spec.annealing
     chains = args.chains or a.chains
     print(f"{problem.spec.name}: {problem.n_nodes} nodes, h = {problem.h:.4g} m", file=sys.stderr)
-    reference = reference_for(problem)  # the supplied field, if any: then no FEM
+    # the supplied field, if any: then no FEM
+    reference = reference_for(problem, progress=None if args.quiet else _fem_levels)
     warned = check_reference(problem, reference.displacements)  # a UnitsError stops here
     _warn(warned)
     progress = None if args.quiet else _Bar(chains, a.moves)

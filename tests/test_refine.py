@@ -579,3 +579,19 @@ def test_rest_refuses_a_bad_refine_with_422_and_queues_nothing(api, redis):
     assert response.status_code == 422, response.text
     assert "reference.refine" in [e["field"] for e in response.json()["errors"]]
     assert redis.dbsize() == 0
+
+
+def test_fpmcal_fem_says_each_level_as_it_starts(tmp_path, capsys):
+    from fpmcal.cli import main
+    from tests.helpers_fpm import box_spec
+
+    spec = box_spec((3, 3, 4), 0.01, fpm_settings={"stiffness": "families+volume"})
+    spec["reference"] = {"refine": 1}
+    path = tmp_path / "box.json"
+    path.write_text(json.dumps(spec))
+    assert main(["fem", str(path), "-o", str(tmp_path / "fem.json")]) == 0
+    lines = [x for x in capsys.readouterr().err.splitlines() if x.startswith("FEM reference:")]
+    assert lines == [
+        "FEM reference: refinement level 0, 36 FEM nodes",
+        "FEM reference: refinement level 1, 175 FEM nodes",
+    ]
