@@ -71,6 +71,8 @@ def spacing_for_nodes(mesh: Any, nodes: int, **options: Any) -> tuple[float, Mes
         h = _rounded(h * (count / nodes) ** (1 / 3))
         if h in tried:
             break
+    if not tried:
+        raise MeshError(f"no spacing down to {h:.3g} m puts a lattice cell inside the mesh")
     h = min(tried, key=lambda s: abs(math.log(tried[s][0] / nodes)))
     count, made = tried[h]
     made.notes.insert(
