@@ -133,22 +133,12 @@ def main() -> None:
     import fpm
     from bench.tet_organ import surface_spec
     from fpm.fem.loads import lattice_surface
-    from fpm.fitting.validation import reference_displacements, validation_reference
 
     organ, spacing = sys.argv[1], float(sys.argv[2])
     bands = [int(b) for b in (sys.argv[3] if len(sys.argv) > 3 else "1,2").split(",")]
     problem = fpm.load_problem(surface_spec(organ, spacing))
-    reference = fpm.solve_fem(problem)
-    result = fpm.calibrate(problem, reference=reference)
-    theta = np.array([*result.stiffness.values(), result.volume_stiffness])
-    truth = [
-        *reference_displacements(reference, problem),
-        *validation_reference(reference, problem),
-    ]
-    cases = [*problem.load_cases, *problem.validation_problem().load_cases]
-    loads = [case.dense(problem.n_nodes) for case in cases]
+    result, theta, truth, loads = surface_cells.calibrated_linear(problem, fpm.solve_fem(problem))
     hexahedra = problem.solid.elements()
-    problem.cache["blocks"] = surface_cells.spring_blocks(problem.solid.nodes[hexahedra])
     index = grid_indices(problem.solid.nodes, hexahedra, spacing)  # (problem.h: shortest spring)
     surface = lattice_surface(hexahedra, problem.n_nodes)
     depth = surface_depth(hexahedra, surface, max(bands))

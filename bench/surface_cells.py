@@ -170,13 +170,12 @@ def refit(
     return theta * np.exp(found.x)
 
 
-def rows(problem: Any, reference: Any, refitted: bool = True) -> list[tuple[str, list[float]]]:
-    """The table's rows for ``problem`` and its FEM ``reference``, as (model, % per case);
-    ``refitted`` False leaves out the refitted rows (each refit solves the lattice up to 80
-    times: minutes at 15,000 nodes)."""
+def calibrated_linear(problem: Any, reference: Any) -> tuple[Any, np.ndarray, list, list]:
+    """The calibration of ``problem`` against ``reference`` and what the linear models need:
+    (result, theta (4,) its four parameters, the reference (N, 3) per fitted then validation
+    case, the nodal loads (N, 3) N of those cases). Also puts :func:`spring_blocks` of the
+    lattice's cells in ``problem.cache["blocks"]`` (:func:`cell_blocks` reads them)."""
     import fpm
-    from fpm.fem.elasticity import constitutive_matrix, element_stiffness
-    from fpm.fem.loads import lattice_surface
     from fpm.fitting.validation import reference_displacements, validation_reference
 
     result = fpm.calibrate(problem, reference=reference)
@@ -187,9 +186,20 @@ def rows(problem: Any, reference: Any, refitted: bool = True) -> list[tuple[str,
     ]
     cases = [*problem.load_cases, *problem.validation_problem().load_cases]
     loads = [case.dense(problem.n_nodes) for case in cases]
+    problem.cache["blocks"] = spring_blocks(problem.solid.nodes[problem.solid.elements()])
+    return result, theta, truth, loads
+
+
+def rows(problem: Any, reference: Any, refitted: bool = True) -> list[tuple[str, list[float]]]:
+    """The table's rows for ``problem`` and its FEM ``reference``, as (model, % per case);
+    ``refitted`` False leaves out the refitted rows (each refit solves the lattice up to 80
+    times: minutes at 15,000 nodes)."""
+    from fpm.fem.elasticity import constitutive_matrix, element_stiffness
+    from fpm.fem.loads import lattice_surface
+
+    result, theta, truth, loads = calibrated_linear(problem, reference)
     hexahedra = problem.solid.elements()
     coords = problem.solid.nodes[hexahedra]
-    problem.cache["blocks"] = spring_blocks(coords)
     material = problem.spec.material
     c = constitutive_matrix(material.youngs_modulus, material.poisson_ratio)
     every = np.ones(len(hexahedra), dtype=bool)
