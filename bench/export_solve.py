@@ -218,7 +218,6 @@ def solve(
             t = 1.0
         u += t * step
     raise ArithmeticError("the export's equilibrium did not converge in 200 Newton steps")
-    return u.reshape(-1, 3)
 
 
 def relative(u: np.ndarray, reference: np.ndarray) -> float:
