@@ -650,8 +650,10 @@ def field_report(
     measured for both at ``depth`` (None: every layer)."""
     from .validation import validate
 
-    four = validate(problem, reference, model_stiffness(problem, stage.theta), depth)
-    mine = validate(problem, reference, stage.field_stiffness(problem), depth)
+    four = validate(
+        problem, reference, model_stiffness(problem, stage.theta), depth, geometry=False
+    )
+    mine = validate(problem, reference, stage.field_stiffness(problem), depth, geometry=False)
     return FieldFit(
         returned=stage.returned,
         spring_factor=stage.spring_factor,

@@ -1,0 +1,61 @@
+"""fpm.fitting.validation.geometry_notes: a validation case whose figure is mostly the
+springs' change of geometry (large loads against the linear FEM reference) says so, with the
+figure the same model has under small loads; a case in the linear range does not."""
+
+import copy
+import re
+
+import numpy as np
+import pytest
+
+import fpm
+from fpm.fitting.validation import GEOMETRY_GAP, validate
+from tests.test_export import soft_block_spec
+
+THETA = [30.0, 20.0, 4.0, 2e4]  # k per family, N/m, and kappa, Pa: a soft block's
+
+
+def block(scale: float):
+    """The soft block with two validation presses, every force times ``scale``, and its FEM
+    reference (linear: its displacements are proportional to the loads)."""
+    spec = copy.deepcopy(soft_block_spec())
+    spec["validation_cases"] = [
+        {"name": "press off centre", "forces": [{"at": [0.02, 0.02, 0.04], "vector": [0, 0, -0.002]}]},
+        {"name": "sideways", "forces": [{"at": [0.01, 0.02, 0.04], "vector": [0, 0.002, 0]}]},
+    ]  # fmt: skip
+    for case in spec["load_cases"] + spec["validation_cases"]:
+        for force in case["forces"]:
+            force["vector"] = [scale * v for v in force["vector"]]
+    problem = fpm.load_problem(spec)
+    return problem, fpm.solve_fem(problem)
+
+
+def test_a_case_in_the_linear_range_gets_no_note():
+    problem, reference = block(1.0)
+    found = validate(problem, reference, THETA, None)
+    assert found.notes == [] and len(found.relative) == 2
+
+
+def test_a_large_load_is_said_to_be_the_springs_geometry_with_its_small_load_figure():
+    problem, reference = block(100.0)
+    found = validate(problem, reference, THETA, None)
+    small_problem, small_reference = block(0.1)  # the same cases 1,000 times smaller
+    small = validate(small_problem, small_reference, THETA, None)
+    assert small.notes == []
+    assert len(found.notes) >= 1
+    for note in found.notes:
+        name, big, little, gap = re.match(
+            r"validation case '(.+)': ([\d.]+)% at its loads, ([\d.]+)% under 0.001 of them: "
+            r"([\d.]+) points are the springs' change of geometry",
+            note,
+        ).groups()
+        j = [c.name for c in problem.validation_cases].index(name)
+        assert float(big) == pytest.approx(found.relative[j], abs=0.05)
+        assert float(little) == pytest.approx(small.relative[j], abs=0.05)
+        assert float(gap) > GEOMETRY_GAP
+    assert np.any(np.array(found.relative) - np.array(small.relative) > GEOMETRY_GAP)
+
+
+def test_geometry_false_leaves_the_notes_out():
+    problem, reference = block(100.0)
+    assert validate(problem, reference, THETA, None, geometry=False).notes == []
