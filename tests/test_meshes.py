@@ -215,7 +215,7 @@ def test_fifty_thousand_tetrahedra_to_twenty_thousand_nodes_under_ten_seconds():
 
 def test_mesh_errors_say_what_to_do(tmp_path: Path):
     tets = meshio.Mesh(ball(0.05, 100, 100), [("tetra", Delaunay(ball(0.05, 100, 100)).simplices)])
-    with pytest.raises(MeshError, match="give its spacing h > 0 in m"):
+    with pytest.raises(MeshError, match=r"give its spacing h > 0 in m .* \(--nodes\)"):
         geometry_from_mesh(tets)
     sliver = meshio.Mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 0.01]]),
                          [("tetra", np.array([[0, 1, 2, 3]]))])  # fmt: skip

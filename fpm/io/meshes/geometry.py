@@ -108,7 +108,8 @@ def geometry_from_mesh(
     if spacing is None or not spacing > 0:
         raise MeshError(
             f"this mesh ({types}) is voxelised into a lattice: give its spacing h > 0 in m "
-            "(--spacing), e.g. a tenth of the solid's smallest extent"
+            "(--spacing), e.g. a tenth of the solid's smallest extent, or about how many "
+            "lattice nodes it should have (--nodes), e.g. 2000 for a real-time model"
         )
     volumes += [(8, h) for h in hexes]
     volume_names += [t for t, d in blocks if t in HEXAHEDRA and len(d)]
