@@ -209,6 +209,36 @@ def test_doubling_stiffness_and_forces_keeps_the_displacements(paper: fpm.Proble
         assert scaled.displacements == pytest.approx(base.displacements, abs=1e-5 * u)
 
 
+@pytest.mark.parametrize("amg_from", [10**9, 0])
+def test_linearised_is_the_small_load_limit_of_the_equilibrium(paper: fpm.Problem, amg_from):
+    """The model linearised at rest is the limit of u(s F) / s as s -> 0, the gap shrinking in
+    proportion to s (the springs' rotation and stretch are first order in the load), by LU and
+    by multigrid CG alike; and it is linear: twice the forces, twice the answer."""
+    k = spring_stiffness(paper, K_A)
+    solver = StaticSolver(paper, amg_from=amg_from)
+    linear = solver.linearised(2, k, None, tolerance=1e-10)
+    size = np.abs(linear).max()
+    gaps = []
+    for s in (1e-1, 1e-2):
+        spec = copy.deepcopy(PAPER_A)
+        for case in spec["load_cases"]:
+            for force in case["forces"]:
+                force["vector"] = [s * v for v in force["vector"]]
+        small = fpm.load_problem(spec)
+        found = StaticSolver(small).solve(2, k, None, tolerance=1e-10)
+        assert found.converged
+        gaps.append(np.abs(found.displacements / s - linear).max() / size)
+    assert gaps[1] < 1e-2 and gaps[0] / gaps[1] == pytest.approx(10, rel=0.15)
+    doubled = fpm.load_problem(PAPER_A)
+    doubled.load_cases[2].forces = 2 * doubled.load_cases[2].forces
+    twice = StaticSolver(doubled, amg_from=amg_from).linearised(2, k, None, tolerance=1e-10)
+    assert twice == pytest.approx(2 * linear, abs=1e-8 * size)
+    full = solver.solve(2, k, None, tolerance=1e-10).displacements  # CG started there instead
+    started = solver.linearised(2, k, None, tolerance=1e-10, start=full)
+    assert np.abs(full - linear).max() > 1e-3 * size  # the paper's loads are not linear
+    assert started == pytest.approx(linear, abs=1e-8 * size)
+
+
 def test_the_residual_is_below_the_tolerance_recomputed_from_the_springs(paper: fpm.Problem):
     result = static_equilibrium(paper, k=K_A, load_case=2, depth=None)
     assert result.converged and result.tolerance == pytest.approx(1e-6)
