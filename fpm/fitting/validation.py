@@ -270,7 +270,7 @@ def geometry_notes(
     cases) whose ``relative`` figure, %, exceeds by more than :data:`GEOMETRY_GAP` points the
     figure of the same model linearised at rest
     (:meth:`fpm.dynamics.equilibrium.StaticSolver.linearised`, its limit under small loads,
-    started from the equilibrium ``solved`` of each case: almost free where the two are close)
+    started from the equilibrium ``solved`` of each case: cheaper the closer the two are)
     against the reference ``truth`` (V, N, 3), m: the part of the figure that is the springs'
     change of geometry (they rotate and stretch; the FEM reference is linear, small strain),
     which a finer lattice does not remove. Measured on the organ of
