@@ -361,11 +361,7 @@ class StaticSolver:
         k = system.parameters(Stiffness.of(stiffness))
         applied = float(np.sqrt(np.einsum("ij,ij->i", forces, forces)).max(initial=0.0))
         rest = np.zeros((system.n_free, 3))
-        key = system.free.tobytes()
-        buffer = self._buffers.get(key)
-        if buffer is None:
-            buffer = self._buffers[key] = system.blocks()
-        tangent = system.tangent(rest, k, modified=False, shift=0.0, out=buffer)
+        tangent = system.tangent(rest, k, modified=False, shift=0.0, out=self._buffer(system))
         guess = np.zeros(3 * system.n_free)
         if start is not None:
             guess = np.asarray(start, dtype=float)[system.free].ravel()
@@ -486,6 +482,14 @@ class StaticSolver:
             return False
         return True
 
+    def _buffer(self, system: SpringSystem) -> np.ndarray:
+        """The tangent's values of ``system``'s list, kept between solves (refilled by each)."""
+        key = system.free.tobytes()
+        buffer = self._buffers.get(key)
+        if buffer is None:
+            buffer = self._buffers[key] = system.blocks()
+        return buffer
+
     def _newton_step(
         self,
         system: SpringSystem,
@@ -503,10 +507,7 @@ class StaticSolver:
         where that is singular (a mechanism, e.g. an `axis` lattice at rest) the clamped one
         with a small diagonal shift (Levenberg-Marquardt).
         """
-        key = system.free.tobytes()
-        buffer = self._buffers.get(key)
-        if buffer is None:
-            buffer = self._buffers[key] = system.blocks()
+        buffer = self._buffer(system)
         for modified, shift in ((False, 0.0), (True, 0.0), (True, SHIFT)):
             tangent = system.tangent(u, k, modified=modified, shift=shift, out=buffer)
             try:
