@@ -321,3 +321,28 @@ def test_listing_offset_past_64_bits_is_422_not_500(api):
     """Found by the fuzzer: Redis refused the range (not an integer), answered 500."""
     assert_problem(api.get("/v1/calibrations", params={"offset": 2**63 - 49}), 422, "offset")
     assert api.get("/v1/calibrations", params={"offset": 10**9}).status_code == 200
+
+
+def test_springs_too_soft_for_their_volume_term_fail_as_the_chains_say(api, redis, run_workers):
+    """Found by the fuzz test above: E 1 GPa at nu 0.4999 with k bounded to 1e-5 N/m puts the
+    chains' start at springs 1e-17 of the volume term, whose linearised lattice is singular in
+    double precision. The reduced-basis job leaves it to the chains, which fail the calibration
+    with the reason and what to change, never a raw solver error."""
+    redis.flushdb()
+    spec = {
+        "name": "stiff",
+        "material": {"youngs_modulus": 1e9, "poisson_ratio": 0.4999, "density": 0.001},
+        "geometry": {"type": "box", "size": [0.01, 0.1, 1.0], "nodes": [2, 2, 3],
+                     "connectivity": "axis+face"},
+        "fixed": [{"face": "y-"}],
+        "load_cases": [{"name": "a", "forces": [{"at": [0.01, 0.1, 0.5],
+                                                 "vector": [1e3, 1e3, 0]}]}],
+        "annealing": {"method": "two-stage", "chains": 1, "bounds": {"k": [1e-6, 1e-5]}},
+    }  # fmt: skip
+    submitted = api.post("/v1/calibrations", json=spec)
+    assert submitted.status_code == 202, submitted.text
+    run_workers()
+    done = api.get(submitted.headers["location"]).json()
+    assert done["status"] == "failed"
+    assert done["error"].startswith("annealing chain 0 failed: the lattice linearised")
+    assert "widen annealing.bounds.k" in done["error"] and "Traceback" not in done["error"]

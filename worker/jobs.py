@@ -144,7 +144,10 @@ def reduced_basis(calibration_id: str) -> dict[str, Any]:
     problem = problem_of(redis, record.spec)
     memory.check(problem.n_nodes)
     span = _Span(job, calibration_id, BASIS_SPAN, [])
-    basis = first_basis(problem)
+    try:
+        basis = first_basis(problem)
+    except AnnealingError as e:  # the chains meet it too, and fail the calibration with it
+        return {"failed": str(e)}
     scratch.save_reduced_basis(redis, calibration_id, *basis.to_stored())
     span.add()
     return {"solves": basis.solves, "columns": [c.basis.shape[1] for c in basis.cases]}

@@ -44,9 +44,11 @@ from scipy.optimize import minimize
 
 from ..dynamics.equilibrium import Equilibrium, StaticSolver
 from ..dynamics.modes import single_threaded_blas
+from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
 from ..model.forces import Stiffness
 from ..model.problem import Problem
 from ..model.stiffness import continuum_start, linear_parts, model_stiffness
+from .annealing import AnnealingError
 from .bounds import fit_depth, stiffness_bounds
 from .cost import StaticCost
 
@@ -472,9 +474,21 @@ def first_basis(problem: Problem) -> ReducedBasis:
         model = ReducedLinearModel(problem, cases)
         model.attach([solver] * len(cases), depth)
         theta = np.asarray(chain_start(problem), dtype=float)
-        model.enrich(theta)
+        try:
+            model.enrich(theta)
+        except (SingularStiffnessError, NegativeCurvature) as e:
+            raise AnnealingError(
+                f"the lattice linearised at the chains' start (k {_fmt(theta[:-1])} N/m, kappa "
+                f"{theta[-1]:.3g} Pa) is singular in double precision ({e}): its springs are "
+                "too soft beside its volume term to hold it; widen annealing.bounds.k, or check "
+                "E and the units (E in Pa, lengths in m)"
+            ) from None
         model.turn(theta)
         return model.basis()
+
+
+def _fmt(values: np.ndarray) -> str:
+    return " / ".join(f"{v:.3g}" for v in values)
 
 
 DEFECT_ROUNDS = 8
