@@ -338,43 +338,6 @@ class StaticSolver:
             seconds=time.perf_counter() - start,
         )
 
-    def linearised(
-        self,
-        load_case: int,
-        stiffness: Stiffness | np.ndarray,
-        depth: int | None,
-        *,
-        tolerance: float | None = None,
-        start: np.ndarray | None = None,
-    ) -> np.ndarray:
-        """(N, 3) displacements, m, of ``load_case`` under the model linearised at rest (the
-        tangent at rest, the limit of :meth:`solve` over the load as the load shrinks: no
-        spring rotates or stretches measurably): one linear solve, by the list's LU or
-        multigrid CG (the hierarchy :meth:`solve` keeps), to the same nodal residual as
-        :meth:`solve`; arguments as its. ``start`` (N, 3), m: where CG starts (e.g. the
-        equilibrium :meth:`solve` found: where the loads hardly change the geometry, CG
-        then has almost nothing left to do). Raises ArithmeticError when the tangent at rest
-        is not positive definite (a mechanism)."""
-        tol = self.default_tolerance() if tolerance is None else float(tolerance)
-        system, _ = self.system(load_case, depth)
-        forces = self.forces(load_case, system)
-        k = system.parameters(Stiffness.of(stiffness))
-        applied = float(np.sqrt(np.einsum("ij,ij->i", forces, forces)).max(initial=0.0))
-        rest = np.zeros((system.n_free, 3))
-        tangent = system.tangent(rest, k, modified=False, shift=0.0, out=self._buffer(system))
-        guess = np.zeros(3 * system.n_free)
-        if start is not None:
-            guess = np.asarray(start, dtype=float)[system.free].ravel()
-        try:
-            x, _ = self._linear_solve(
-                system, rest, k, tangent, forces.ravel() - tangent @ guess, 0.0, 0.5 * tol * applied
-            )
-        except (NegativeCurvature, SingularStiffnessError) as e:
-            raise ArithmeticError(f"the tangent at rest is not positive definite: {e}") from e
-        displacements = np.zeros_like(self.problem.nodes)
-        displacements[system.free] = (guess + x).reshape(-1, 3)
-        return displacements
-
     def _start(
         self,
         predictor: _Predictor,
@@ -482,14 +445,6 @@ class StaticSolver:
             return False
         return True
 
-    def _buffer(self, system: SpringSystem) -> np.ndarray:
-        """The tangent's values of ``system``'s list, kept between solves (refilled by each)."""
-        key = system.free.tobytes()
-        buffer = self._buffers.get(key)
-        if buffer is None:
-            buffer = self._buffers[key] = system.blocks()
-        return buffer
-
     def _newton_step(
         self,
         system: SpringSystem,
@@ -507,7 +462,10 @@ class StaticSolver:
         where that is singular (a mechanism, e.g. an `axis` lattice at rest) the clamped one
         with a small diagonal shift (Levenberg-Marquardt).
         """
-        buffer = self._buffer(system)
+        key = system.free.tobytes()
+        buffer = self._buffers.get(key)
+        if buffer is None:
+            buffer = self._buffers[key] = system.blocks()
         for modified, shift in ((False, 0.0), (True, 0.0), (True, SHIFT)):
             tangent = system.tangent(u, k, modified=modified, shift=shift, out=buffer)
             try:
