@@ -3,7 +3,9 @@ springs' change of geometry (large loads against the linear FEM reference) says 
 figure the same model has under small loads; a case in the linear range does not."""
 
 import copy
+import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -61,3 +63,24 @@ def test_a_large_load_is_said_to_be_the_springs_geometry_with_its_small_load_fig
 def test_geometry_false_leaves_the_notes_out():
     problem, reference = block(100.0)
     assert validate(problem, reference, THETA, None, geometry=False).notes == []
+
+
+def test_a_calibration_without_validation_cases_says_its_figures_flatter_it():
+    """Every figure of a fit with no validation cases is on its own loads: the result says so,
+    unless the paper's method (which judges its fit on its own loads) was asked for."""
+    from fpm.fitting.validation import unseen_note
+
+    spec = copy.deepcopy(soft_block_spec())
+    spec.pop("validation_cases", None)
+    (note,) = unseen_note(fpm.load_problem(spec))
+    assert "no validation cases" in note and "validation_cases" in note
+    assert unseen_note(block(1.0)[0]) == []
+    spec["annealing"] = {**spec.get("annealing", {}), "method": "paper"}
+    assert unseen_note(fpm.load_problem(spec)) == []
+
+
+def test_the_note_reaches_the_result():
+    spec = json.loads(Path(__file__).parents[1] / "examples" / "small-box.json".read_text())
+    spec.pop("validation_cases", None)
+    result = fpm.calibrate(fpm.load_problem(spec))
+    assert any(w.startswith("no validation cases") for w in result.warnings)

@@ -66,6 +66,7 @@ from .validation import (
     check_reference,
     final_run,
     reference_displacements,
+    unseen_note,
     validate,
 )
 
@@ -223,6 +224,7 @@ def finalize(
         warnings=list(warnings or [])
         + final.notes
         + validation.notes
+        + unseen_note(problem)
         + mode_notes(problem)
         + field_notes,
         chains=[

@@ -259,6 +259,19 @@ def validate(
     return Validation(figures.relative, figures.h_percent, notes)
 
 
+def unseen_note(problem: Problem) -> list[str]:
+    """A note when a two-stage calibration has no validation cases: its figures are then all
+    on the loads it was fitted to, which flatter it (the paper's method, which judges its fit
+    on its own loads, gets none)."""
+    if problem.validation_cases or problem.spec.annealing.method == "paper":
+        return []
+    return [
+        "no validation cases: every figure here is on the loads the fit was chosen for, which "
+        "flatter it; name a few loads it never sees as validation_cases to learn how it does "
+        "elsewhere (docs/howto/validation-cases.md)"
+    ]
+
+
 def geometry_notes(
     cost: StaticCost,
     truth: np.ndarray,
