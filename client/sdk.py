@@ -77,8 +77,10 @@ def spec_from_mesh(
     ``fix``: fixed nodes as short selectors (``"face:z-"``, ``"box:x0,y0,z0:x1,y1,z1"``,
     ``"nearest:x,y,z"``, ...); ``forces``: one load case each, ``"SELECTOR:fx,fy,fz"`` (N; append
     ``":distribute"`` to share the vector over the selected nodes; ``;`` between forces of one
-    load case). ``options``: ``nodes`` (instead of ``spacing``: about how many lattice nodes,
-    the spacing found for it), ``connectivity``, ``scale`` (e.g. 0.001 for a mesh in mm),
+    load case). ``options``: ``validation`` (one validation case per string, in the forces'
+    form: loads the fit never sees, reported beside it), ``nodes`` (instead of ``spacing``:
+    about how many lattice nodes, the spacing found for it), ``connectivity``, ``scale``
+    (e.g. 0.001 for a mesh in mm),
     ``voxelise``, ``name``, ``dt`` (s, or "auto"), ``lattice`` (a tetrahedral mesh:
     ``"conforming"``, the default, the voxel lattice's surface nodes moved onto its surface; or
     ``"voxels"``), ``stiffness`` (``fpm.stiffness``; by default ``"field"`` for a tetrahedral

@@ -280,6 +280,7 @@ def cmd_spec_from_mesh(args: argparse.Namespace) -> None:
         lattice=args.lattice,
         stiffness=args.stiffness,
         loads=args.loads,
+        validation=args.validate,
     )
     for note in notes:
         print(f"note: {note}", file=sys.stderr)
@@ -583,6 +584,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--force", action="append", default=[], metavar="FORCE",
         help=f"one load case (repeatable): {FORCE_HELP}",
+    )  # fmt: skip
+    p.add_argument(
+        "--validate", action="append", default=[], metavar="FORCE",
+        help="one validation case (repeatable), in --force's form: a load the fit never sees, "
+        "reported beside the fit at the fitted parameters (the figure to quote)",
     )  # fmt: skip
     p.add_argument("--E", type=float, required=True, help="Young's modulus, Pa (5 kPa = 5000)")
     p.add_argument("--nu", type=float, required=True, help="Poisson's ratio")

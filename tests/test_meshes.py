@@ -268,6 +268,7 @@ def test_spec_from_mesh_command_line_and_sdk_agree(tmp_path: Path, capsys):
     out = tmp_path / "lobe.json"
     argv = ["spec", "from-mesh", str(path), "--spacing", "0.006", "--fix", "box:-1,-1,-1:1,1,-0.02",
             "--force", "nearest:0,0,0.03:0,0,-0.01", "--force", "face:z+:0.01,0,0:distribute",
+            "--validate", "nearest:0.01,0,0.02:0,0.01,0",
             "--E", "5000", "--nu", "0.45", "--density", "1040", "-o", str(out)]  # fmt: skip
     assert main(argv) == 0
     err = capsys.readouterr().err
@@ -281,6 +282,9 @@ def test_spec_from_mesh_command_line_and_sdk_agree(tmp_path: Path, capsys):
         "face:z+:0.01,0,0:distribute",
     ]
     np.testing.assert_allclose(problem.load_cases[1].forces.sum(axis=0), [0.01, 0, 0])
+    # a validation case, never fitted, in the forces' form
+    assert [c.name for c in problem.validation_cases] == ["nearest:0.01,0,0.02:0,0.01,0"]
+    np.testing.assert_allclose(problem.validation_cases[0].forces.sum(axis=0), [0, 0.01, 0])
     assert spec["fpm"]["dt"] == "auto"
     sdk = sdk_spec_from_mesh(
         path,
@@ -290,8 +294,14 @@ def test_spec_from_mesh_command_line_and_sdk_agree(tmp_path: Path, capsys):
         youngs_modulus=5000,
         poisson_ratio=0.45,
         density=1040,
+        validation=["nearest:0.01,0,0.02:0,0.01,0"],
     )
     assert sdk == spec
+    # a bad validation force is one line naming it, as a bad --force is
+    argv[argv.index("--validate") + 1] = "nearest:0.01,0,0.02:0,0.01"
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "0,0.01" in err
 
 
 def test_a_mesh_given_as_spec_points_at_from_mesh(tmp_path: Path, capsys):

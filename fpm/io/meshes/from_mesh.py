@@ -36,6 +36,7 @@ def spec_from_mesh(
     lattice: str | None = None,
     stiffness: str | None = None,
     loads: str | None = None,
+    validation: list[str] | None = None,
 ) -> tuple[dict[str, Any], list[str]]:
     """A problem spec for a mesh file (or a ``meshio.Mesh``), and notes for the user.
 
@@ -44,6 +45,9 @@ def spec_from_mesh(
         fix: fixed nodes, each a short selector (:func:`parse_selector`), e.g. ``"face:z-"``.
         forces: one string per load case (:func:`parse_force`), e.g.
             ``"nearest:0,0,0.05:0,0,-0.5"``.
+        validation: one string per validation case, in the same form: loads the fit never
+            sees, simulated at the fitted parameters and reported beside the fit (the honest
+            figure: docs/howto/validation-cases.md).
         youngs_modulus, poisson_ratio, density: the material (Pa, -, kg/m^3).
         spacing, connectivity, scale, voxelise: as :func:`geometry_from_mesh`.
         nodes: instead of ``spacing``, about how many lattice nodes (a real-time budget): the
@@ -105,6 +109,10 @@ def spec_from_mesh(
         "fixed": fixed,
         "load_cases": [{"name": text.strip(), "forces": parse_force(text)} for text in forces],
     }
+    if validation:
+        spec["validation_cases"] = [
+            {"name": text.strip(), "forces": parse_force(text)} for text in validation
+        ]
     if made.tetrahedra is not None and not voxel_reference:
         spec["reference"] = {"mesh": made.tetrahedra}
     chosen = _lattice(lattice, conform, made.kind, voxel_reference)
