@@ -78,12 +78,7 @@ def geometry_from_mesh(
         planes: per axis, coordinates (after ``scale``) a plane of lattice nodes falls on
             where one cuts the solid (:func:`~fpm.io.meshes.voxelise.support_planes`).
     """
-    points = np.asarray(mesh.points, dtype=float)
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise MeshError(f"the mesh has {points.shape[-1]}-D points: a solid needs 3-D coordinates")
-    if not np.all(np.isfinite(points)):
-        raise MeshError("the mesh has non-finite coordinates")
-    points = points * float(scale)
+    points = mesh_points(mesh) * float(scale)
     blocks = [(c.type, np.asarray(c.data, dtype=np.int64)) for c in mesh.cells]
     tag_name, found_tags = cell_tags(mesh)
     block_tags: list[np.ndarray | None] = list(found_tags) or [None] * len(blocks)
@@ -175,6 +170,39 @@ def geometry_from_mesh(
     return MeshGeometry(geometry, kind, notes, reference)
 
 
+def mesh_points(mesh: Any) -> np.ndarray:
+    """(N, 3) the coordinates of a meshio ``mesh``, as given (before any scale).
+
+    Raises:
+        MeshError: points that are not 3-D, or the first node with a NaN or infinite
+            coordinate, by its index and coordinates.
+    """
+    points = np.asarray(mesh.points, dtype=float)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise MeshError(f"the mesh has {points.shape[-1]}-D points: a solid needs 3-D coordinates")
+    bad = np.flatnonzero(~np.isfinite(points).all(axis=1))
+    if len(bad):
+        raise MeshError(
+            f"node {int(bad[0])} of the mesh has a non-finite coordinate {_fmt(points[bad[0]])} "
+            f"({len(bad)} such node(s)): give finite coordinates, or remove the node"
+        )
+    return points
+
+
+def out_of_range(cells: np.ndarray, n: int, what: str, among: str) -> None:
+    """Raise :class:`MeshError` naming the first of ``cells`` (C, corners) whose node index is
+    not one of the mesh's ``n`` nodes; ``what`` names the cell (e.g. ``"tetra cell"``),
+    ``among`` what it is counted in (e.g. ``"in its block"``)."""
+    bad = np.flatnonzero((cells < 0).any(axis=1) | (cells >= n).any(axis=1))
+    if len(bad):
+        c = int(bad[0])
+        index = next(int(i) for i in cells[c] if not 0 <= i < n)
+        raise MeshError(
+            f"{what} {c} (of {len(cells)} {among}; {len(bad)} such) names node {index}, "
+            f"which is not in the mesh (nodes 0..{n - 1})"
+        )
+
+
 def check_volume_cells(
     points: np.ndarray, volumes: list[tuple[int, np.ndarray]], names: list[str]
 ) -> list[str]:
@@ -198,8 +226,7 @@ def check_volume_cells(
     for (n, cells), name in zip(volumes, names, strict=True):
         if not len(cells):
             continue
-        if cells.min() < 0 or cells.max() >= len(points):
-            raise MeshError("a cell names a node that is not in the mesh")
+        out_of_range(cells, len(points), f"{name} cell", "in its block")
         tets = cells[:, _SPLIT[n]].reshape(-1, 4)
         volume = tetrahedron_volumes(points, tets).reshape(len(cells), -1)
         v = points[tets]
@@ -261,18 +288,34 @@ def _reference_mesh(
     centres: np.ndarray,
     notes: list[str],
 ) -> dict[str, Any]:
-    """``reference.mesh`` of the tetrahedra: used nodes only, inside-out tetrahedra renumbered,
-    flat ones (no volume: e.g. from a split wedge) dropped; ``tags`` (one per tetrahedron)
+    """``reference.mesh`` of the tetrahedra: used nodes only, nodes at the same point merged
+    (else the FEM would see a crack, or two pieces, where the lattice sees one solid: a face
+    is shared by position, :func:`face_pieces`), inside-out tetrahedra renumbered, flat ones
+    (no volume: e.g. from a split wedge) dropped; ``tags`` (one per tetrahedron)
     kept as its ``tags``. Of the mesh's pieces (:func:`face_pieces`) only those holding one
     of the lattice's cell ``centres`` (C, 3), m, are kept: the reference is the solid the
     lattice is (:func:`one_piece` drops the cells of the others), and a piece joined by less
     than a face would not be held, and a load spread onto it (:mod:`fpm.fem.loads`) could not
-    be carried. A note in ``notes`` says what was left out."""
+    be carried. A note in ``notes`` says what was left out.
+
+    Raises:
+        MeshError: two pieces hold lattice cells (they touch or overlap without sharing faces,
+            or lie closer than the spacing): the lattice joins them, the FEM would not.
+    """
     from ...fem.tet10 import locate
     from ...model.tetrahedra import DEGENERATE, EDGES, tetrahedron_volumes
 
     used, inverse = np.unique(tets, return_inverse=True)
     tets, nodes = inverse.reshape(-1, 4), points[used]
+    _, first, same = np.unique(nodes, axis=0, return_index=True, return_inverse=True)
+    merged = first[same.reshape(-1)]  # each node's first one at its point
+    if np.any(merged != np.arange(len(nodes))):
+        notes.append(
+            f"reference.mesh: merged {len(nodes) - len(first)} node(s) at the same point as "
+            "another (numbered twice, e.g. where two blocks or regions meet): the tetrahedra "
+            "on them are joined, as the lattice's cells are"
+        )
+        tets = merged[tets]
     volume = tetrahedron_volumes(nodes, tets)
     v = nodes[tets]
     longest = np.linalg.norm(v[:, EDGES[:, 1]] - v[:, EDGES[:, 0]], axis=2).max(axis=1)
@@ -282,8 +325,23 @@ def _reference_mesh(
     tets[volume < 0] = tets[volume < 0][:, [0, 2, 1, 3]]
     pieces = face_pieces(nodes, tets)
     if pieces.max() > 0:
-        held = np.zeros(pieces.max() + 1, dtype=bool)
-        held[pieces[locate(nodes, tets, centres).element]] = True
+        cells = np.bincount(
+            pieces[locate(nodes, tets, centres).element], minlength=pieces.max() + 1
+        )
+        held = cells > 0
+        if held.sum() > 1:  # the lattice joins them, the FEM on the tetrahedra would not
+            other = np.flatnonzero(held)[np.argsort(-cells[held], kind="stable")[1]]
+            members = np.flatnonzero(pieces == other)
+            raise MeshError(
+                f"the mesh's tetrahedra are {pieces.max() + 1} pieces not joined through shared "
+                f"faces, and the lattice's cells join {int(held.sum())} of them into one solid: "
+                f"the piece of tetrahedron {int(np.flatnonzero(solid)[members[0]])} "
+                f"({len(members)} tetrahedra, around {_fmt(nodes[tets[members]].mean(axis=(0, 1)))}"
+                " m) touches or overlaps the rest without sharing faces with it, so the FEM "
+                "reference on the tetrahedra would hold and load it apart: join the pieces by "
+                "shared faces (a conforming mesh) or remove it (if they are apart, a finer "
+                "spacing keeps their cells apart too)"
+            )
         keep = held[pieces]
         if not keep.all():
             notes.append(
@@ -315,8 +373,7 @@ def _hexahedral(
             "the mesh is hexahedral and is used as it is (--spacing ignored; --voxelise "
             "resamples it onto a lattice)"
         )
-    if hexes.min() < 0 or hexes.max() >= len(points):
-        raise MeshError("a hexahedron names a node that is not in the mesh")
+    out_of_range(hexes, len(points), "hexahedron", "hexahedra")
     used, inverse = np.unique(hexes, return_inverse=True)
     hexes = inverse.reshape(-1, 8)
     nodes = points[used]

@@ -12,7 +12,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import MeshError
-from .geometry import MeshGeometry, geometry_from_mesh
+from .geometry import MeshGeometry, geometry_from_mesh, mesh_points
+from .voxelise import _fmt
 
 TRIES = 8
 """:func:`spacing_for_nodes` voxelises the mesh at most this many times."""
@@ -48,10 +49,16 @@ def spacing_for_nodes(mesh: Any, nodes: int, **options: Any) -> tuple[float, Mes
     """
     if not nodes >= 8:
         raise ValueError(f"nodes must be at least 8, one cell (got {nodes})")
-    points = np.asarray(mesh.points, dtype=float) * float(options.get("scale", 1.0))
-    extent = np.ptp(points, axis=0) if len(points) else np.zeros(3)
+    points = mesh_points(mesh) * float(options.get("scale", 1.0))
+    if not len(points):
+        raise MeshError("the mesh has no nodes: it holds no solid to voxelise")
+    extent = np.ptp(points, axis=0)
     if not np.all(extent > 0):
-        raise MeshError("the mesh has no extent along some axis: it holds no solid to voxelise")
+        flat = "xyz"[int(np.flatnonzero(~(extent > 0))[0])]
+        raise MeshError(
+            f"the mesh has no extent along {flat} (its nodes span {_fmt(points.min(axis=0))} to "
+            f"{_fmt(points.max(axis=0))} m): it holds no solid to voxelise"
+        )
     h = _rounded((0.5 * float(np.prod(extent)) / nodes) ** (1 / 3))
     tried: dict[float, tuple[int, MeshGeometry]] = {}
     for _ in range(TRIES):
