@@ -481,3 +481,29 @@ def test_the_conforming_lattice_lies_on_the_mesh_surface_and_calibrates(tmp_path
     problem = fpm.load_problem(spec)
     result = fpm.calibrate(problem, reference=fpm.solve_fem(problem))
     assert result.volume_stiffness is not None and max(result.relative_discrepancy) < 30
+
+
+def test_a_spacing_or_scale_in_the_wrong_unit_is_refused_before_memory_runs_out(
+    tmp_path: Path, capsys
+):
+    """A spacing of microns on a 3 cm organ (or a node count of 10^9, or a mesh read in mm as
+    metres) would ask for terabytes of voxels: refused in one line naming the spacing, the
+    mesh's size and the units, before anything is allocated; a scale that is not a number > 0
+    is refused by name."""
+    points = ball(0.03, 300, 600)
+    mesh = meshio.Mesh(points, [("tetra", Delaunay(points).simplices)])
+    options = dict(fix=["box:-1,-1,-1:1,1,-0.02"], forces=["nearest:0,0,0.03:0,0,-0.01"],
+                   youngs_modulus=5000, poisson_ratio=0.45)  # fmt: skip
+    for asked in ({"spacing": 1e-6}, {"nodes": 10**9}, {"spacing": 0.005, "scale": 1000.0}):
+        with pytest.raises(MeshError, match=r"would span \d+ x \d+ x \d+ cells.*metres"):
+            spec_from_mesh(mesh, **options, **asked)
+    for scale in (float("nan"), 0.0, -1.0):
+        with pytest.raises(ValueError, match="scale must be a finite number > 0"):
+            spec_from_mesh(mesh, **options, spacing=0.006, scale=scale)
+    path = tmp_path / "lobe.vtu"
+    meshio.write(path, mesh)
+    argv = ["spec", "from-mesh", str(path), "--spacing", "1e-6", "--fix", "box:-1,-1,-1:1,1,-0.02",
+            "--force", "nearest:0,0,0.03:0,0,-0.01", "--E", "5000", "--nu", "0.45"]  # fmt: skip
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "1e-06 m" in err and "--scale" in err

@@ -78,7 +78,7 @@ def geometry_from_mesh(
         planes: per axis, coordinates (after ``scale``) a plane of lattice nodes falls on
             where one cuts the solid (:func:`~fpm.io.meshes.voxelise.support_planes`).
     """
-    points = mesh_points(mesh) * float(scale)
+    points = mesh_points(mesh) * positive_scale(scale)
     blocks = [(c.type, np.asarray(c.data, dtype=np.int64)) for c in mesh.cells]
     tag_name, found_tags = cell_tags(mesh)
     block_tags: list[np.ndarray | None] = list(found_tags) or [None] * len(blocks)
@@ -187,6 +187,14 @@ def mesh_points(mesh: Any) -> np.ndarray:
             f"({len(bad)} such node(s)): give finite coordinates, or remove the node"
         )
     return points
+
+
+def positive_scale(scale: Any) -> float:
+    """``scale`` as a float, or a ValueError saying it must be a finite number > 0."""
+    value = float(scale)
+    if not (np.isfinite(value) and value > 0):
+        raise ValueError(f"scale must be a finite number > 0, e.g. 0.001 for mm (got {scale!r})")
+    return value
 
 
 def out_of_range(cells: np.ndarray, n: int, what: str, among: str) -> None:

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import MeshError
-from .geometry import MeshGeometry, geometry_from_mesh, mesh_points
+from .geometry import MeshGeometry, geometry_from_mesh, mesh_points, positive_scale
 from .voxelise import _fmt
 
 TRIES = 8
@@ -49,7 +49,7 @@ def spacing_for_nodes(mesh: Any, nodes: int, **options: Any) -> tuple[float, Mes
     """
     if not nodes >= 8:
         raise ValueError(f"nodes must be at least 8, one cell (got {nodes})")
-    points = mesh_points(mesh) * float(options.get("scale", 1.0))
+    points = mesh_points(mesh) * positive_scale(options.get("scale", 1.0))
     if not len(points):
         raise MeshError("the mesh has no nodes: it holds no solid to voxelise")
     extent = np.ptp(points, axis=0)

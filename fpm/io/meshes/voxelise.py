@@ -15,6 +15,9 @@ TOLERANCE = 1e-9
 a centre on a face shared by two tetrahedra is never lost to rounding."""
 CHUNK = 1 << 21
 """Candidate (element, cell) pairs handled at once (bounds the temporaries)."""
+MAX_CELLS = 50_000_000
+"""A lattice's bounding box may hold at most this many cells (a 93,718-node organ's holds about
+10^5): more is a spacing or a scale in the wrong unit, refused before memory runs out."""
 
 
 Planes = list[list[float]] | None
@@ -37,6 +40,13 @@ def lattice(
             below = int(np.ceil((inside[0] - lo[a]) / spacing - 1e-9))
             origin[a] = inside[0] - below * spacing
             cells[a] = below + max(1, int(np.ceil((hi[a] - inside[0]) / spacing - 1e-9)))
+    if float(np.prod(cells.astype(float))) > MAX_CELLS:
+        span = " x ".join(str(int(c)) for c in cells)
+        raise MeshError(
+            f"a lattice of spacing h = {spacing:.4g} m over the mesh's {_fmt(hi - lo)} m would "
+            f"span {span} cells, over the {MAX_CELLS:,} a lattice may: are the spacing and the "
+            "mesh in metres (--scale 0.001 reads a mesh in mm)?"
+        )
     return origin, cells
 
 
