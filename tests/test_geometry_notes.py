@@ -80,7 +80,7 @@ def test_a_calibration_without_validation_cases_says_its_figures_flatter_it():
 
 
 def test_the_note_reaches_the_result():
-    spec = json.loads(Path(__file__).parents[1] / "examples" / "small-box.json".read_text())
+    spec = json.loads((Path(__file__).parents[1] / "examples" / "small-box.json").read_text())
     spec.pop("validation_cases", None)
     result = fpm.calibrate(fpm.load_problem(spec))
     assert any(w.startswith("no validation cases") for w in result.warnings)
