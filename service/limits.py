@@ -18,7 +18,7 @@ from fpm import Problem, ProblemSpec, load_problem
 from fpm.model.regions import tag_selectors
 from fpm.model.spec import BoxGeometry, MeshGeometry, NetworkGeometry, VoxelGeometry
 from fpm.model.support import unheld_reason
-from fpm.model.tetrahedra import check_tetrahedra
+from fpm.model.tetrahedra import check_tetrahedra, lattice_pieces
 from store import records
 from store.text import refusal
 
@@ -142,8 +142,10 @@ def check_calibration_spec(
     spec: ProblemSpec, settings: Settings, mesh: dict[str, Any] | None = None
 ) -> Problem:
     """Check ``spec``'s text and its size against the limits, then build it
-    (:func:`fpm.load_problem`; ``mesh`` the upload whose tags its regions select by,
-    :func:`check_reference_mesh`).
+    (:func:`fpm.load_problem`; ``mesh`` the upload ``reference.mesh_id`` names,
+    :func:`check_reference_mesh`: the spec is built with it when its regions select by its
+    tags), then check that its reference mesh is one solid where the lattice is
+    (:func:`check_reference_pieces`).
 
     Raises:
         ProblemError: 422 naming the field with refused characters, over a limit or that
@@ -170,7 +172,7 @@ def check_calibration_spec(
             "annealing.chains",
             f"{spec.annealing.chains} chains is over the limit of {settings.max_chains}",
         )
-    problem = load_problem(spec, mesh)
+    problem = load_problem(spec, mesh if tag_selectors(spec) else None)
     if not problem.fixed.any():
         raise _rejected("fixed", "selects no node: the FEM reference needs the solid held")
     hexahedra = problem.solid.elements()
@@ -180,13 +182,47 @@ def check_calibration_spec(
     )
     if reason:  # refused now rather than failed in a worker
         raise _rejected("fixed", reason)
+    check_reference_pieces(problem, mesh)
     return problem
+
+
+def check_reference_pieces(problem: Problem, mesh: dict[str, Any] | None) -> None:
+    """The FEM reference's tetrahedra (``reference.mesh``, or ``mesh``: the upload
+    ``reference.mesh_id`` names) must not be pieces without shared faces that the lattice's
+    cells join into one solid (:func:`fpm.model.tetrahedra.lattice_pieces`, as
+    ``spec_from_mesh`` refuses them): the FEM would hold and load them apart (a piece not held
+    leaves the stiffness matrix singular). Nodes numbered twice at one point need no check:
+    the pieces are joined by position, and the FEM joins such nodes
+    (:func:`fpm.model.tetrahedra.merge_coincident`). A supplied reference solves no FEM.
+
+    Raises:
+        ProblemError: 422 at ``reference.mesh`` or ``reference.mesh_id`` naming the piece (a
+            tetrahedron of it, its size, its centre).
+    """
+    reference = problem.spec.reference
+    if reference.displacements is not None:
+        return
+    if reference.mesh is not None:
+        field, nodes, tets = "reference.mesh", reference.mesh.nodes, reference.mesh.tetrahedra
+    elif reference.mesh_id is not None and mesh is not None:
+        field, nodes, tets = "reference.mesh_id", mesh["nodes"], mesh["tetrahedra"]
+    else:
+        return
+    hexahedra = problem.solid.elements()
+    if hexahedra is None or not len(hexahedra):
+        return
+    x, t = np.asarray(nodes, dtype=float), np.asarray(tets, dtype=np.int64)
+    apart = lattice_pieces(x, t, problem.nodes[hexahedra].mean(axis=1)).joined_apart(x, t)
+    if apart:
+        raise _rejected(field, apart)
 
 
 def check_reference_mesh(spec: ProblemSpec, redis: Redis) -> dict[str, Any] | None:
     """A spec naming ``reference.mesh_id`` must name a mesh uploaded with ``POST /v1/meshes``.
-    Returns that mesh (nodes, tetrahedra, tags) when the spec's material regions select by its
-    tags (:func:`fpm.model.regions.tag_selectors`: the spec is built with it), else None.
+    Returns that mesh (nodes, tetrahedra, tags), else None (no ``mesh_id``): the spec is built
+    with it when its material regions select by its tags
+    (:func:`fpm.model.regions.tag_selectors`), and its pieces are checked against the lattice
+    (:func:`check_reference_pieces`).
 
     Raises:
         ProblemError: 422 at ``reference.mesh_id`` when no such mesh is stored.
@@ -194,8 +230,8 @@ def check_reference_mesh(spec: ProblemSpec, redis: Redis) -> dict[str, Any] | No
     mesh_id = spec.reference.mesh_id
     if mesh_id is None:
         return None
-    mesh = records.get_mesh(redis, mesh_id) if tag_selectors(spec) else None
-    if mesh is None and not records.has_mesh(redis, mesh_id):
+    mesh = records.get_mesh(redis, mesh_id)
+    if mesh is None:
         raise _rejected(
             "reference.mesh_id",
             f"no uploaded mesh {mesh_id}: upload it first (POST /v1/meshes returns its id)",

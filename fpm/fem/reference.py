@@ -88,8 +88,10 @@ def solve_fem(
     """Nodal displacements of ``problem`` for every load case, by the spec's material model.
 
     With ``reference.mesh`` (or ``reference.mesh_id`` and ``mesh``) the reference is solved with
-    10-node tetrahedra on that mesh and read at the lattice nodes (:mod:`fpm.fem.tet10`); the
-    result has the same shape, on the lattice, with ``element`` ``"tet10"``.
+    10-node tetrahedra on that mesh (nodes at one point numbered twice joined:
+    :func:`fpm.model.tetrahedra.merge_coincident`) and read at the lattice nodes
+    (:mod:`fpm.fem.tet10`); the result has the same shape, on the lattice, with ``element``
+    ``"tet10"``.
 
     Args:
         problem: from :func:`fpm.load_problem`; needs a box, voxels or mesh geometry.
@@ -115,6 +117,7 @@ def solve_fem(
     refine = resolved_refine(problem.spec)  # 0: the mesh as given, point loads, no estimate
     asked = method
     if settings.mesh is not None or settings.mesh_id is not None:
+        from ..model.tetrahedra import merge_coincident
         from .tet10 import tet10_reference
 
         if settings.mesh is not None:
@@ -124,8 +127,9 @@ def solve_fem(
                 f"reference.mesh_id {settings.mesh_id} names an uploaded mesh, which was not "
                 "given: submit the spec to the service, or put the mesh in reference.mesh"
             )
-        x = np.asarray(mesh["nodes"], dtype=float)
-        t = np.asarray(mesh["tetrahedra"], dtype=np.int64)
+        # Nodes numbered twice at one point joined (as spec_from_mesh joins them): else the
+        # tetrahedra on either side share no face, a crack or two pieces the lattice has not.
+        x, t, _ = merge_coincident(mesh["nodes"], mesh["tetrahedra"])
         if refine == 0:
             return tet10_reference(problem, x, t, method)
         return refined_tet_reference(problem, x, t, method, progress)

@@ -16,12 +16,14 @@ answer at the lattice's nodes, which is what the fit compares.
 - **Assembly.** Element matrices are computed vectorised over chunks of elements and summed into
   3x3 node blocks (BSR), the unknowns node-major, so :func:`fpm.fem.solution.solve_dirichlet`
   solves it as it solves the hexahedra (sparse LU when small, AMG-preconditioned CG above).
-- **Reading at points** (:func:`locate`). Each point is found in a tetrahedron by its barycentric
-  coordinates (all >= -1e-9), candidates the tetrahedra whose centroids are nearest and then,
-  where those miss, every tetrahedron whose centroid lies within the largest circumscribing
-  distance (so none is missed). A point in no tetrahedron takes the nearest point of the mesh's
-  boundary triangles (exact: candidates within the first estimate plus the largest triangle's
-  reach), and its tetrahedron. Values there are the quadratic interpolation (:func:`interpolate`).
+- **Reading at points** (:func:`~fpm.model.tetrahedra.locate`: with the mesh's checks, so that
+  the service finds where points lie without the solvers). Each point is found in a
+  tetrahedron by its barycentric coordinates (all >= -1e-9), candidates the tetrahedra whose
+  centroids are nearest and then, where those miss, every tetrahedron whose centroid lies within
+  the largest circumscribing distance (so none is missed). A point in no tetrahedron takes the
+  nearest point of the mesh's boundary triangles (exact: candidates within the first estimate
+  plus the largest triangle's reach), and its tetrahedron. Values there are the quadratic
+  interpolation (:func:`interpolate`).
 - **Point loads** (:func:`point_loads`): a force at a point goes to the nodes of the tetrahedron
   holding it, in proportion to their shape function values there (the consistent point load:
   the work ``f . u(x)`` is the same for every quadratic field).
@@ -42,10 +44,18 @@ from scipy.spatial import cKDTree
 from ..model.problem import Problem
 from ..model.tetrahedra import (
     EDGES,
+    Location,
     TetMeshError,
+    locate,
     tetrahedron_volumes,
     validate_tetrahedra,
 )
+from ..model.tetrahedra import FACES as FACES
+from ..model.tetrahedra import TOLERANCE as TOLERANCE
+from ..model.tetrahedra import _barycentric as _barycentric
+from ..model.tetrahedra import boundary_faces as boundary_faces
+from ..model.tetrahedra import closest_on_triangles as closest_on_triangles
+from ..model.tetrahedra import nearest_on_boundary as nearest_on_boundary
 from .assembly import keep_nodes, unique_inverse
 from .elasticity import constitutive_matrix, strain_displacement
 from .linear_solver import (
@@ -61,19 +71,12 @@ from .materials import has_materials, tetrahedron_elasticity
 from .solution import RESIDUAL_LIMIT, FemError, FemResult
 from .solution import solve_dirichlet as _solve_direct
 
-FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
-"""(4, 3) corners of the face opposite each corner, numbered outward for a positive tetrahedron."""
-
 _A, _B = 0.5854101966249685, 0.1381966011250105
 GAUSS_4 = np.array([[_A, _B, _B, _B], [_B, _A, _B, _B], [_B, _B, _A, _B], [_B, _B, _B, _A]])
 """(4, 4) barycentric coordinates of the 4-point Gauss rule (degree 2); each weight is V / 4."""
 
-TOLERANCE = 1e-9
-"""Barycentric margin: a point this (relative) far outside a tetrahedron still counts as in it."""
 CHUNK = 4096
 """Elements per chunk of the stiffness assembly (bounds the (chunk, 30, 30) temporaries)."""
-PAIR_CHUNK = 1 << 20
-"""(point, candidate) pairs tested at once in :func:`locate`."""
 
 
 @dataclass(frozen=True)
@@ -188,174 +191,6 @@ def body_forces(mesh: Tet10Mesh, density: float | np.ndarray, gravity: np.ndarra
     )
     total = np.bincount(mesh.elements.ravel(), share.ravel(), len(mesh.nodes))
     return total[:, None] * (density * np.asarray(gravity, dtype=float))[None, :]
-
-
-# ------------------------------------------------------------------ points in the mesh
-
-
-@dataclass
-class Location:
-    """Where points lie in a tetrahedral mesh (:func:`locate`).
-
-    Attributes:
-        element: (P,) the tetrahedron holding each point (or holding its nearest mesh point).
-        lam: (P, 4) barycentric coordinates there (each in [0, 1], summing to 1).
-        distance: (P,) distance from the point to the mesh, m (0 inside).
-    """
-
-    element: np.ndarray
-    lam: np.ndarray
-    distance: np.ndarray
-
-
-def _barycentric(coords: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(K, 4) barycentric coordinates of ``points`` (K, 3) in tetrahedra ``coords`` (K, 4, 3)."""
-    edges = np.transpose(coords[:, 1:] - coords[:, :1], (0, 2, 1))
-    rest = np.linalg.solve(edges, (points - coords[:, 0])[:, :, None])[:, :, 0]
-    return np.concatenate([1 - rest.sum(axis=1, keepdims=True), rest], axis=1)
-
-
-def _first_inside(
-    coords: np.ndarray, points: np.ndarray, point: np.ndarray, element: np.ndarray, n: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Tests the pairs (point[k], element[k]); returns per point (n,) found, element, lam."""
-    found = np.zeros(n, dtype=bool)
-    which = np.full(n, -1, dtype=np.int64)
-    lam_out = np.zeros((n, 4))
-    for start in range(0, len(point), PAIR_CHUNK):
-        p, e = point[start : start + PAIR_CHUNK], element[start : start + PAIR_CHUNK]
-        lam = _barycentric(coords[e], points[p])
-        inside = lam.min(axis=1) >= -TOLERANCE
-        p, e, lam = p[inside], e[inside], lam[inside]
-        new = ~found[p]
-        p, e, lam = p[new], e[new], lam[new]
-        _, first = np.unique(p, return_index=True)
-        found[p[first]] = True
-        which[p[first]] = e[first]
-        lam_out[p[first]] = lam[first]
-    return found, which, lam_out
-
-
-def _ball_pairs(
-    tree: cKDTree, points: np.ndarray, radius: np.ndarray | float
-) -> tuple[np.ndarray, np.ndarray]:
-    """(point, item) pairs: every item of ``tree`` within ``radius`` of each of ``points``."""
-    lists = tree.query_ball_point(points, radius, return_sorted=False)
-    counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
-    items = np.fromiter((i for x in lists for i in x), dtype=np.int64, count=int(counts.sum()))
-    return np.repeat(np.arange(len(points)), counts), items
-
-
-def boundary_faces(tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(F, 3) boundary triangles (faces of exactly one tetrahedron, outward for positive
-    tetrahedra) of ``tets`` (T, 4), and (F,) the tetrahedron each belongs to."""
-    faces = tets[:, FACES].reshape(-1, 3)
-    _, inverse, counts = np.unique(
-        np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True
-    )
-    single = counts[inverse.ravel()] == 1
-    return faces[single], np.repeat(np.arange(len(tets)), 4)[single]
-
-
-def closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """(K, 3) the point of triangle (a, b, c) nearest ``p``, all (K, 3), m (Ericson, *Real-Time
-    Collision Detection* 5.1.5, by Voronoi regions, vectorised)."""
-    ab, ac, ap = b - a, c - a, p - a
-    bp, cp = p - b, p - c
-
-    def dot(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        return np.einsum("ij,ij->i", x, y)
-
-    d1, d2 = dot(ab, ap), dot(ac, ap)
-    d3, d4 = dot(ab, bp), dot(ac, bp)
-    d5, d6 = dot(ab, cp), dot(ac, cp)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        on_ab = a + (d1 / (d1 - d3))[:, None] * ab
-        on_ac = a + (d2 / (d2 - d6))[:, None] * ac
-        w_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        on_bc = b + w_bc[:, None] * (c - b)
-        total = va + vb + vc
-        face = a + (vb / total)[:, None] * ab + (vc / total)[:, None] * ac
-    conditions = [
-        (d1 <= 0) & (d2 <= 0),
-        (d3 >= 0) & (d4 <= d3),
-        (d6 >= 0) & (d5 <= d6),
-        (vc <= 0) & (d1 >= 0) & (d3 <= 0),
-        (vb <= 0) & (d2 >= 0) & (d6 <= 0),
-        (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
-    ]
-    choices = [a, b, c, on_ab, on_ac, on_bc]
-    return np.select([k[:, None] for k in conditions], choices, face)
-
-
-def locate(nodes: np.ndarray, tets: np.ndarray, points: np.ndarray) -> Location:
-    """Where each of ``points`` (P, 3), m, lies in the mesh ``tets`` (T, 4) on ``nodes`` (N, 3)
-    (see the module docstring; exact, vectorised over (point, candidate) pairs)."""
-    points = np.asarray(points, dtype=float).reshape(-1, 3)
-    coords = nodes[tets]  # (T, 4, 3)
-    n = len(points)
-    centroid = coords.mean(axis=1)
-    reach = float(np.linalg.norm(coords - centroid[:, None], axis=2).max())
-    tree = cKDTree(centroid)
-    k = min(8, len(tets))
-    _, near = tree.query(points, k)
-    near = np.asarray(near).reshape(n, k)
-    found, element, lam = _first_inside(coords, points, np.repeat(np.arange(n), k), near.ravel(), n)
-    rest = np.flatnonzero(~found)
-    if len(rest):  # every tetrahedron that could hold the point: centroid within the reach
-        point, item = _ball_pairs(tree, points[rest], reach * (1 + 1e-9))
-        more, which, lam_more = _first_inside(coords, points[rest], point, item, len(rest))
-        found[rest[more]] = True
-        element[rest[more]] = which[more]
-        lam[rest[more]] = lam_more[more]
-    distance = np.zeros(n)
-    outside = np.flatnonzero(~found)
-    if len(outside):
-        e, q, d = nearest_on_boundary(nodes, tets, points[outside])
-        element[outside] = e
-        lam[outside] = _barycentric(coords[e], q)
-        distance[outside] = d
-    lam = np.clip(lam, 0.0, 1.0)  # within TOLERANCE of the tetrahedron: onto it
-    lam /= lam.sum(axis=1, keepdims=True)
-    return Location(element, lam, distance)
-
-
-def nearest_on_boundary(
-    nodes: np.ndarray, tets: np.ndarray, points: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For ``points`` (P, 3), m (outside the mesh, or inside: the nearest point of its surface
-    either way): (P,) the tetrahedron owning the nearest boundary triangle, (P, 3) the nearest
-    point, (P,) its distance, m."""
-    faces, owner = boundary_faces(tets)
-    tri = nodes[faces]  # (F, 3, 3)
-    centre = tri.mean(axis=1)
-    reach = np.linalg.norm(tri - centre[:, None], axis=2).max()
-    tree = cKDTree(centre)
-    k = min(8, len(faces))
-    _, near = tree.query(points, k)
-    near = np.asarray(near).reshape(len(points), k)
-    p = np.repeat(np.arange(len(points)), k)
-    q = closest_on_triangles(points[p], *(tri[near.ravel(), i] for i in range(3)))
-    estimate = np.linalg.norm(q - points[p], axis=1).reshape(-1, k).min(axis=1)
-    # Any triangle nearer than the estimate has its centre within estimate + reach.
-    p, f = _ball_pairs(tree, points, estimate + reach * (1 + 1e-9) + 1e-12)
-    best_d = np.full(len(points), np.inf)
-    best_f = np.zeros(len(points), dtype=np.int64)
-    best_q = np.zeros((len(points), 3))
-    for start in range(0, len(p), PAIR_CHUNK):
-        pp, ff = p[start : start + PAIR_CHUNK], f[start : start + PAIR_CHUNK]
-        qq = closest_on_triangles(points[pp], tri[ff, 0], tri[ff, 1], tri[ff, 2])
-        dd = np.linalg.norm(qq - points[pp], axis=1)
-        order = np.lexsort((dd, pp))  # per point, the nearest first
-        pp, ff, qq, dd = pp[order], ff[order], qq[order], dd[order]
-        first = np.ones(len(pp), dtype=bool)
-        first[1:] = pp[1:] != pp[:-1]
-        pp, ff, qq, dd = pp[first], ff[first], qq[first], dd[first]
-        better = dd < best_d[pp]
-        pp, ff, qq, dd = pp[better], ff[better], qq[better], dd[better]
-        best_d[pp], best_f[pp], best_q[pp] = dd, ff, qq
-    return owner[best_f], best_q, best_d
 
 
 def interpolate(mesh: Tet10Mesh, values: np.ndarray, where: Location) -> np.ndarray:

@@ -1,12 +1,17 @@
-"""Tetrahedral meshes as the spec carries them (``reference.mesh``): checks and volumes.
+"""Tetrahedral meshes as the spec carries them (``reference.mesh``): checks and volumes, where
+points lie in them (:func:`locate`), nodes numbered twice (:func:`merge_coincident`) and pieces
+(:func:`face_pieces`; :func:`lattice_pieces`: those a lattice joins).
 
-NumPy only, so that :mod:`fpm.model.problem` and the service can check a mesh without the FEM's
-solvers. The 10-node element built on these tetrahedra is :mod:`fpm.fem.tet10`.
+NumPy and SciPy only, so that :mod:`fpm.model.problem` and the service can check a mesh without
+the FEM's solvers. The 10-node element built on these tetrahedra is :mod:`fpm.fem.tet10`.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+from scipy.spatial import cKDTree
 
 EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
 """(6, 2) corners of a tetrahedron's edges, in the order of the 10-node element's mid-edge nodes
@@ -14,6 +19,12 @@ EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
 DEGENERATE = 1e-8
 """A tetrahedron whose volume is at most this times its longest edge cubed is degenerate
 (a regular tetrahedron has 0.118)."""
+FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
+"""(4, 3) corners of the face opposite each corner, numbered outward for a positive tetrahedron."""
+TOLERANCE = 1e-9
+"""Barycentric margin: a point this (relative) far outside a tetrahedron still counts as in it."""
+PAIR_CHUNK = 1 << 20
+"""(point, candidate) pairs tested at once in :func:`locate`."""
 
 
 class TetMeshError(ValueError):
@@ -114,3 +125,290 @@ def validate_tetrahedra(nodes: np.ndarray, tets: np.ndarray) -> None:
     if errors:
         field, index, message = errors[0]
         raise TetMeshError(message, index, field)
+
+
+# ------------------------------------------------------------------ points in the mesh
+
+
+@dataclass
+class Location:
+    """Where points lie in a tetrahedral mesh (:func:`locate`).
+
+    Attributes:
+        element: (P,) the tetrahedron holding each point (or holding its nearest mesh point).
+        lam: (P, 4) barycentric coordinates there (each in [0, 1], summing to 1).
+        distance: (P,) distance from the point to the mesh, m (0 inside).
+    """
+
+    element: np.ndarray
+    lam: np.ndarray
+    distance: np.ndarray
+
+
+def _barycentric(coords: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(K, 4) barycentric coordinates of ``points`` (K, 3) in tetrahedra ``coords`` (K, 4, 3)."""
+    edges = np.transpose(coords[:, 1:] - coords[:, :1], (0, 2, 1))
+    rest = np.linalg.solve(edges, (points - coords[:, 0])[:, :, None])[:, :, 0]
+    return np.concatenate([1 - rest.sum(axis=1, keepdims=True), rest], axis=1)
+
+
+def _first_inside(
+    coords: np.ndarray, points: np.ndarray, point: np.ndarray, element: np.ndarray, n: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Tests the pairs (point[k], element[k]); returns per point (n,) found, element, lam."""
+    found = np.zeros(n, dtype=bool)
+    which = np.full(n, -1, dtype=np.int64)
+    lam_out = np.zeros((n, 4))
+    for start in range(0, len(point), PAIR_CHUNK):
+        p, e = point[start : start + PAIR_CHUNK], element[start : start + PAIR_CHUNK]
+        lam = _barycentric(coords[e], points[p])
+        inside = lam.min(axis=1) >= -TOLERANCE
+        p, e, lam = p[inside], e[inside], lam[inside]
+        new = ~found[p]
+        p, e, lam = p[new], e[new], lam[new]
+        _, first = np.unique(p, return_index=True)
+        found[p[first]] = True
+        which[p[first]] = e[first]
+        lam_out[p[first]] = lam[first]
+    return found, which, lam_out
+
+
+def _ball_pairs(
+    tree: cKDTree, points: np.ndarray, radius: np.ndarray | float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(point, item) pairs: every item of ``tree`` within ``radius`` of each of ``points``."""
+    lists = tree.query_ball_point(points, radius, return_sorted=False)
+    counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
+    items = np.fromiter((i for x in lists for i in x), dtype=np.int64, count=int(counts.sum()))
+    return np.repeat(np.arange(len(points)), counts), items
+
+
+def boundary_faces(tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(F, 3) boundary triangles (faces of exactly one tetrahedron, outward for positive
+    tetrahedra) of ``tets`` (T, 4), and (F,) the tetrahedron each belongs to."""
+    faces = tets[:, FACES].reshape(-1, 3)
+    _, inverse, counts = np.unique(
+        np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True
+    )
+    single = counts[inverse.ravel()] == 1
+    return faces[single], np.repeat(np.arange(len(tets)), 4)[single]
+
+
+def closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(K, 3) the point of triangle (a, b, c) nearest ``p``, all (K, 3), m (Ericson, *Real-Time
+    Collision Detection* 5.1.5, by Voronoi regions, vectorised)."""
+    ab, ac, ap = b - a, c - a, p - a
+    bp, cp = p - b, p - c
+
+    def dot(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return np.einsum("ij,ij->i", x, y)
+
+    d1, d2 = dot(ab, ap), dot(ac, ap)
+    d3, d4 = dot(ab, bp), dot(ac, bp)
+    d5, d6 = dot(ab, cp), dot(ac, cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        on_ab = a + (d1 / (d1 - d3))[:, None] * ab
+        on_ac = a + (d2 / (d2 - d6))[:, None] * ac
+        w_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        on_bc = b + w_bc[:, None] * (c - b)
+        total = va + vb + vc
+        face = a + (vb / total)[:, None] * ab + (vc / total)[:, None] * ac
+    conditions = [
+        (d1 <= 0) & (d2 <= 0),
+        (d3 >= 0) & (d4 <= d3),
+        (d6 >= 0) & (d5 <= d6),
+        (vc <= 0) & (d1 >= 0) & (d3 <= 0),
+        (vb <= 0) & (d2 >= 0) & (d6 <= 0),
+        (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
+    ]
+    choices = [a, b, c, on_ab, on_ac, on_bc]
+    return np.select([k[:, None] for k in conditions], choices, face)
+
+
+def locate(nodes: np.ndarray, tets: np.ndarray, points: np.ndarray) -> Location:
+    """Where each of ``points`` (P, 3), m, lies in the mesh ``tets`` (T, 4) on ``nodes`` (N, 3):
+    in the tetrahedra of the nearest centroids, else of every centroid within the largest
+    reach; a point in no tetrahedron takes the nearest point of the boundary triangles
+    (:func:`nearest_on_boundary`). Exact, vectorised over (point, candidate) pairs
+    (:mod:`fpm.fem.tet10` reads its reference there)."""
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    coords = nodes[tets]  # (T, 4, 3)
+    n = len(points)
+    centroid = coords.mean(axis=1)
+    reach = float(np.linalg.norm(coords - centroid[:, None], axis=2).max())
+    tree = cKDTree(centroid)
+    k = min(8, len(tets))
+    _, near = tree.query(points, k)
+    near = np.asarray(near).reshape(n, k)
+    found, element, lam = _first_inside(coords, points, np.repeat(np.arange(n), k), near.ravel(), n)
+    rest = np.flatnonzero(~found)
+    if len(rest):  # every tetrahedron that could hold the point: centroid within the reach
+        point, item = _ball_pairs(tree, points[rest], reach * (1 + 1e-9))
+        more, which, lam_more = _first_inside(coords, points[rest], point, item, len(rest))
+        found[rest[more]] = True
+        element[rest[more]] = which[more]
+        lam[rest[more]] = lam_more[more]
+    distance = np.zeros(n)
+    outside = np.flatnonzero(~found)
+    if len(outside):
+        e, q, d = nearest_on_boundary(nodes, tets, points[outside])
+        element[outside] = e
+        lam[outside] = _barycentric(coords[e], q)
+        distance[outside] = d
+    lam = np.clip(lam, 0.0, 1.0)  # within TOLERANCE of the tetrahedron: onto it
+    lam /= lam.sum(axis=1, keepdims=True)
+    return Location(element, lam, distance)
+
+
+def nearest_on_boundary(
+    nodes: np.ndarray, tets: np.ndarray, points: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For ``points`` (P, 3), m (outside the mesh, or inside: the nearest point of its surface
+    either way): (P,) the tetrahedron owning the nearest boundary triangle, (P, 3) the nearest
+    point, (P,) its distance, m."""
+    faces, owner = boundary_faces(tets)
+    tri = nodes[faces]  # (F, 3, 3)
+    centre = tri.mean(axis=1)
+    reach = np.linalg.norm(tri - centre[:, None], axis=2).max()
+    tree = cKDTree(centre)
+    k = min(8, len(faces))
+    _, near = tree.query(points, k)
+    near = np.asarray(near).reshape(len(points), k)
+    p = np.repeat(np.arange(len(points)), k)
+    q = closest_on_triangles(points[p], *(tri[near.ravel(), i] for i in range(3)))
+    estimate = np.linalg.norm(q - points[p], axis=1).reshape(-1, k).min(axis=1)
+    # Any triangle nearer than the estimate has its centre within estimate + reach.
+    p, f = _ball_pairs(tree, points, estimate + reach * (1 + 1e-9) + 1e-12)
+    best_d = np.full(len(points), np.inf)
+    best_f = np.zeros(len(points), dtype=np.int64)
+    best_q = np.zeros((len(points), 3))
+    for start in range(0, len(p), PAIR_CHUNK):
+        pp, ff = p[start : start + PAIR_CHUNK], f[start : start + PAIR_CHUNK]
+        qq = closest_on_triangles(points[pp], tri[ff, 0], tri[ff, 1], tri[ff, 2])
+        dd = np.linalg.norm(qq - points[pp], axis=1)
+        order = np.lexsort((dd, pp))  # per point, the nearest first
+        pp, ff, qq, dd = pp[order], ff[order], qq[order], dd[order]
+        first = np.ones(len(pp), dtype=bool)
+        first[1:] = pp[1:] != pp[:-1]
+        pp, ff, qq, dd = pp[first], ff[first], qq[first], dd[first]
+        better = dd < best_d[pp]
+        pp, ff, qq, dd = pp[better], ff[better], qq[better], dd[better]
+        best_d[pp], best_f[pp], best_q[pp] = dd, ff, qq
+    return owner[best_f], best_q, best_d
+
+
+# ------------------------------------------------------------------ nodes numbered twice, pieces
+
+
+def merge_coincident(nodes: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """``nodes`` (N, 3) and ``tets`` (T, 4) with nodes at the same point numbered twice joined
+    (e.g. where two blocks or regions of a mesh meet, each with its own nodes): a tetrahedron's
+    corner at a point is the first node there, the later copies are dropped, the other nodes
+    keep their order (unused ones too). Without joining, the tetrahedra on either side share no
+    face, and a FEM on them sees a crack, or two pieces, where the solid is one.
+
+    Returns:
+        the nodes, the tetrahedra renumbered, and how many nodes were dropped (0: the arrays
+        as given; so too for nodes that are not (N, 3) finite coordinates or a node index out
+        of range, which :func:`check_tetrahedra` names as the mesh numbers them).
+    """
+    nodes = np.asarray(nodes, dtype=float)
+    tets = np.asarray(tets, dtype=np.int64)
+    if (
+        nodes.ndim != 2
+        or nodes.shape[1:] != (3,)
+        or not len(nodes)
+        or not np.isfinite(nodes).all()
+        or (tets.size and (tets.min() < 0 or tets.max() >= len(nodes)))
+    ):
+        return nodes, tets, 0
+    _, first, same = np.unique(nodes, axis=0, return_index=True, return_inverse=True)
+    if len(first) == len(nodes):
+        return nodes, tets, 0
+    merged = first[same.reshape(-1)]  # each node's first one at its point
+    kept = merged == np.arange(len(nodes))
+    number = np.cumsum(kept) - 1  # a kept node's index among the kept
+    return nodes[kept], number[merged][tets], int(len(nodes) - kept.sum())
+
+
+def face_pieces(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(T,) the piece of each tetrahedron ``tets`` (T, 4) on ``nodes`` (N, 3): tetrahedra that
+    share a face (three corners at the same positions, whether or not the mesh numbers them
+    as the same nodes) are in one piece; pieces numbered from 0."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    _, same = np.unique(nodes, axis=0, return_inverse=True)
+    corners = same.reshape(-1)[tets]
+    faces = np.sort(corners[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), axis=1)
+    m = int(faces.max()) + 1
+    if m < 2**21:  # a face as one int64: ten times faster than unique rows (the service's submit)
+        _, face = np.unique((faces[:, 0] * m + faces[:, 1]) * m + faces[:, 2], return_inverse=True)
+    else:
+        _, face = np.unique(faces, axis=0, return_inverse=True)
+    count = len(tets) + int(face.max()) + 1
+    owner = np.repeat(np.arange(len(tets)), 4)
+    graph = coo_matrix(
+        (np.ones(len(owner)), (owner, len(tets) + face.reshape(-1))), shape=(count, count)
+    )
+    return connected_components(graph, directed=False)[1][: len(tets)]
+
+
+@dataclass(frozen=True)
+class Pieces:
+    """A tetrahedral mesh's pieces and the lattice cells each holds (:func:`lattice_pieces`).
+
+    Attributes:
+        piece: (T,) the piece of each tetrahedron (:func:`face_pieces`), numbered from 0.
+        cells: (P,) how many of the lattice's cell centres each piece holds (a centre outside
+            the mesh counts for the piece of its nearest boundary point, :func:`locate`).
+    """
+
+    piece: np.ndarray
+    cells: np.ndarray
+
+    @property
+    def held(self) -> np.ndarray:
+        """(P,) bool: the pieces that hold a lattice cell."""
+        return self.cells > 0
+
+    def joined_apart(
+        self, nodes: np.ndarray, tets: np.ndarray, numbering: np.ndarray | None = None
+    ) -> str | None:
+        """None when at most one piece holds lattice cells; else what is wrong: the lattice's
+        cells are one solid where the FEM on the tetrahedra ``tets`` (T, 4) on ``nodes``
+        (N, 3), m, would hold and load the pieces apart. The message names the piece holding
+        the second most cells by its first tetrahedron (``numbering`` (T,): its index as the
+        user numbers it; else its index in ``tets``), its size and its centre."""
+        held = self.held
+        if held.sum() <= 1:
+            return None
+        other = np.flatnonzero(held)[np.argsort(-self.cells[held], kind="stable")[1]]
+        members = np.flatnonzero(self.piece == other)
+        first = int(members[0] if numbering is None else numbering[members[0]])
+        centre = ", ".join(f"{float(x):.4g}" for x in nodes[tets[members]].mean(axis=(0, 1)))
+        return (
+            f"the mesh's tetrahedra are {len(self.cells)} pieces not joined through shared "
+            f"faces, and the lattice's cells join {int(held.sum())} of them into one solid: "
+            f"the piece of tetrahedron {first} ({len(members)} tetrahedra, around [{centre}] m) "
+            "touches or overlaps the rest without sharing faces with it, so the FEM reference "
+            "on the tetrahedra would hold and load it apart: join the pieces by shared faces (a "
+            "conforming mesh) or remove it (if they are apart, a finer spacing keeps their cells "
+            "apart too)"
+        )
+
+
+def lattice_pieces(nodes: np.ndarray, tets: np.ndarray, centres: np.ndarray) -> Pieces:
+    """The pieces of the tetrahedra ``tets`` (T, 4) on ``nodes`` (N, 3), m (joined through
+    faces at the same positions: nodes numbered twice need no merging), and how many of a
+    lattice's cell ``centres`` (C, 3), m, each holds. The lattice's cells are one solid, so
+    two pieces holding cells are joined by the lattice but not by a FEM on the tetrahedra
+    (:meth:`Pieces.joined_apart` says which); a piece holding none is no part of the lattice's
+    solid. Only a mesh of two or more pieces locates the centres."""
+    piece = face_pieces(nodes, tets)
+    count = int(piece.max()) + 1
+    if count == 1:
+        return Pieces(piece, np.array([len(centres)]))
+    cells = np.bincount(piece[locate(nodes, tets, centres).element], minlength=count)
+    return Pieces(piece, cells)

@@ -71,7 +71,7 @@ def submit(
     that would take the API key over its quota (calibrations queued or running, their lattice
     nodes) is refused with 429 and Retry-After; other keys are not affected.
     """
-    mesh = check_reference_mesh(spec, redis)  # the upload, when regions select by its tags
+    mesh = check_reference_mesh(spec, redis)  # the upload reference.mesh_id names
     problem = check_calibration_spec(spec, settings, mesh)
     dumped = dump_spec(spec)
     if graph.answered_by(redis, dumped) is None:

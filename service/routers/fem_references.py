@@ -46,7 +46,7 @@ def submit(
     202 + Location when a job was started; 200 + Location when the same reference is already
     stored or being computed. Its id is the content hash, so it can be shared.
     """
-    mesh = check_reference_mesh(spec, redis)  # the upload, when regions select by its tags
+    mesh = check_reference_mesh(spec, redis)  # the upload reference.mesh_id names
     problem = check_calibration_spec(spec, settings, mesh)
     dumped = dump_spec(spec)
     digest = fem_hash(dumped)

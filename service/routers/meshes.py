@@ -50,7 +50,10 @@ def upload(
     when it was uploaded before. A mesh with an index out of range, a repeated corner, an
     inverted or a degenerate tetrahedron is refused with 422 naming the element
     (``tetrahedra.<i>``), and nothing is stored. The body may be larger than a spec's
-    (``max_mesh_bytes``).
+    (``max_mesh_bytes``). Nodes at one point numbered twice are kept as sent (the id is of the
+    mesh sent) and joined by the FEM; pieces not joined through shared faces that a spec's
+    lattice joins into one solid are refused when the spec is submitted (422 at
+    ``reference.mesh_id`` naming one).
     """
     refused = mesh_refusals(mesh.nodes, mesh.tetrahedra, settings)
     if refused:

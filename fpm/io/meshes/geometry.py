@@ -13,7 +13,6 @@ from .voxelise import (
     Planes,
     _crop,
     _fmt,
-    face_pieces,
     one_piece,
     voxelise_surface,
     voxelise_tetrahedra,
@@ -297,33 +296,36 @@ def _reference_mesh(
     notes: list[str],
 ) -> dict[str, Any]:
     """``reference.mesh`` of the tetrahedra: used nodes only, nodes at the same point merged
-    (else the FEM would see a crack, or two pieces, where the lattice sees one solid: a face
-    is shared by position, :func:`face_pieces`), inside-out tetrahedra renumbered, flat ones
-    (no volume: e.g. from a split wedge) dropped; ``tags`` (one per tetrahedron)
-    kept as its ``tags``. Of the mesh's pieces (:func:`face_pieces`) only those holding one
-    of the lattice's cell ``centres`` (C, 3), m, are kept: the reference is the solid the
-    lattice is (:func:`one_piece` drops the cells of the others), and a piece joined by less
-    than a face would not be held, and a load spread onto it (:mod:`fpm.fem.loads`) could not
-    be carried. A note in ``notes`` says what was left out.
+    (:func:`~fpm.model.tetrahedra.merge_coincident`: else the FEM would see a crack, or two
+    pieces, where the lattice sees one solid), inside-out tetrahedra renumbered, flat ones (no
+    volume: e.g. from a split wedge) dropped; ``tags`` (one per tetrahedron) kept as its
+    ``tags``. Of the mesh's pieces (:func:`~fpm.model.tetrahedra.lattice_pieces`, as the
+    service checks a spec's mesh) only those holding one of the lattice's cell ``centres``
+    (C, 3), m, are kept: the reference is the solid the lattice is (:func:`one_piece` drops
+    the cells of the others), and a piece joined by less than a face would not be held, and a
+    load spread onto it (:mod:`fpm.fem.loads`) could not be carried. A note in ``notes`` says
+    what was left out.
 
     Raises:
         MeshError: two pieces hold lattice cells (they touch or overlap without sharing faces,
             or lie closer than the spacing): the lattice joins them, the FEM would not.
     """
-    from ...fem.tet10 import locate
-    from ...model.tetrahedra import DEGENERATE, EDGES, tetrahedron_volumes
+    from ...model.tetrahedra import (
+        DEGENERATE,
+        EDGES,
+        lattice_pieces,
+        merge_coincident,
+        tetrahedron_volumes,
+    )
 
     used, inverse = np.unique(tets, return_inverse=True)
-    tets, nodes = inverse.reshape(-1, 4), points[used]
-    _, first, same = np.unique(nodes, axis=0, return_index=True, return_inverse=True)
-    merged = first[same.reshape(-1)]  # each node's first one at its point
-    if np.any(merged != np.arange(len(nodes))):
+    nodes, tets, merged = merge_coincident(points[used], inverse.reshape(-1, 4))
+    if merged:
         notes.append(
-            f"reference.mesh: merged {len(nodes) - len(first)} node(s) at the same point as "
+            f"reference.mesh: merged {merged} node(s) at the same point as "
             "another (numbered twice, e.g. where two blocks or regions meet): the tetrahedra "
             "on them are joined, as the lattice's cells are"
         )
-        tets = merged[tets]
     volume = tetrahedron_volumes(nodes, tets)
     v = nodes[tets]
     longest = np.linalg.norm(v[:, EDGES[:, 1]] - v[:, EDGES[:, 0]], axis=2).max(axis=1)
@@ -331,26 +333,13 @@ def _reference_mesh(
     tets = tets[solid]
     volume = tetrahedron_volumes(nodes, tets)
     tets[volume < 0] = tets[volume < 0][:, [0, 2, 1, 3]]
-    pieces = face_pieces(nodes, tets)
-    if pieces.max() > 0:
-        cells = np.bincount(
-            pieces[locate(nodes, tets, centres).element], minlength=pieces.max() + 1
-        )
-        held = cells > 0
-        if held.sum() > 1:  # the lattice joins them, the FEM on the tetrahedra would not
-            other = np.flatnonzero(held)[np.argsort(-cells[held], kind="stable")[1]]
-            members = np.flatnonzero(pieces == other)
-            raise MeshError(
-                f"the mesh's tetrahedra are {pieces.max() + 1} pieces not joined through shared "
-                f"faces, and the lattice's cells join {int(held.sum())} of them into one solid: "
-                f"the piece of tetrahedron {int(np.flatnonzero(solid)[members[0]])} "
-                f"({len(members)} tetrahedra, around {_fmt(nodes[tets[members]].mean(axis=(0, 1)))}"
-                " m) touches or overlaps the rest without sharing faces with it, so the FEM "
-                "reference on the tetrahedra would hold and load it apart: join the pieces by "
-                "shared faces (a conforming mesh) or remove it (if they are apart, a finer "
-                "spacing keeps their cells apart too)"
-            )
-        keep = held[pieces]
+    found = lattice_pieces(nodes, tets, centres)
+    if len(found.cells) > 1:
+        apart = found.joined_apart(nodes, tets, np.flatnonzero(solid))
+        if apart:  # the lattice joins them, the FEM on the tetrahedra would not
+            raise MeshError(apart)
+        held = found.held
+        keep = held[found.piece]
         if not keep.all():
             notes.append(
                 f"reference.mesh: left out {int((~keep).sum())} tetrahedra "

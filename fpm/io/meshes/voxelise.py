@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from ...model.tetrahedra import face_pieces as face_pieces  # with the mesh's checks
 from ..errors import MeshError
 
 TOLERANCE = 1e-9
@@ -247,25 +248,6 @@ def _orientation(
         exact = (f[2] - f[0]) * (f[5] - f[1]) - (f[3] - f[1]) * (f[4] - f[0])
         sign[k] = (exact > 0) - (exact < 0)
     return sign
-
-
-def face_pieces(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """(T,) the piece of each tetrahedron ``tets`` (T, 4) on ``nodes`` (N, 3): tetrahedra that
-    share a face (three corners at the same positions, whether or not the mesh numbers them
-    as the same nodes) are in one piece; pieces numbered from 0."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    _, same = np.unique(nodes, axis=0, return_inverse=True)
-    corners = same.reshape(-1)[tets]
-    faces = np.sort(corners[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), axis=1)
-    _, face = np.unique(faces, axis=0, return_inverse=True)
-    count = len(tets) + int(face.max()) + 1
-    owner = np.repeat(np.arange(len(tets)), 4)
-    graph = coo_matrix(
-        (np.ones(len(owner)), (owner, len(tets) + face.reshape(-1))), shape=(count, count)
-    )
-    return connected_components(graph, directed=False)[1][: len(tets)]
 
 
 def one_piece(occupancy: np.ndarray) -> tuple[np.ndarray, int]:
