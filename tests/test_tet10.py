@@ -125,6 +125,22 @@ def test_rigid_body_modes_give_zero_force():
     assert np.abs(k @ modes).max() < 1e-12 * np.abs(k.data).max()
 
 
+def test_assembly_in_chunks_is_the_sum_of_the_element_matrices(monkeypatch):
+    """The global K, assembled in chunks of 7 elements (a compiled scatter of 3x3 blocks), is
+    the dense sum of every element's 30 x 30 matrix at its nodes' unknowns."""
+    nodes, tets = cube_tetrahedra(2, jitter=0.3)
+    mesh = tet10.quadratic_mesh(nodes, tets)
+    monkeypatch.setattr(tet10, "CHUNK", 7)
+    k = tet10.stiffness_matrix(mesh, C).toarray()
+    dense = np.zeros_like(k)
+    ke = tet10.element_stiffness(mesh.nodes[mesh.corners], C)
+    for element, matrix in zip(mesh.elements, ke, strict=True):
+        dofs = (3 * element[:, None] + np.arange(3)).ravel()
+        dense[np.ix_(dofs, dofs)] += matrix
+    assert len(mesh.elements) > 3 * 7
+    assert np.abs(k - dense).max() <= 1e-13 * np.abs(dense).max()
+
+
 def test_stiffness_is_symmetric_and_body_force_sums_to_the_weight():
     nodes, tets = cube_tetrahedra(2, size=0.1, jitter=0.3)
     mesh = tet10.quadratic_mesh(nodes, tets)

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 import scipy.sparse as sp
@@ -165,15 +166,35 @@ def stiffness_matrix(mesh: Tet10Mesh, c: np.ndarray) -> sp.bsr_matrix:
     del keys
     data = np.zeros((len(pairs), 9))
     coords = mesh.nodes[mesh.corners]
+    add = _compiled_add_blocks()
     for start in range(0, len(elements), CHUNK):
         stop = min(start + CHUNK, len(elements))
         ke = element_stiffness(coords[start:stop], c if c.ndim == 2 else c[start:stop])
-        blocks = ke.reshape(-1, 10, 3, 10, 3).transpose(0, 1, 3, 2, 4).reshape(-1, 9)
-        where = slot[start * 100 : stop * 100]
-        for entry in range(9):
-            data[:, entry] += np.bincount(where, blocks[:, entry], len(pairs))
+        add(data, slot[start * 100 : stop * 100], ke)
     indptr = np.searchsorted(pairs // m, np.arange(m + 1))
     return sp.bsr_matrix((data.reshape(-1, 3, 3), pairs % m, indptr), shape=(3 * m, 3 * m))
+
+
+def _add_blocks(data: np.ndarray, where: np.ndarray, ke: np.ndarray) -> None:
+    """``data`` (P, 9) += the 3x3 node blocks of element matrices ``ke`` (E, 30, 30), block
+    (a, b) of element e into row ``where[100 e + 10 a + b]`` (row-major 3x3). In element order,
+    as one sum per global block; a loop rather than nine ``np.bincount`` over all P blocks per
+    chunk of elements (at 342,225 FEM nodes those took 20 of the assembly's 27 s)."""
+    for e in range(ke.shape[0]):
+        for a in range(10):
+            for b in range(10):
+                s = where[100 * e + 10 * a + b]
+                for i in range(3):
+                    for j in range(3):
+                        data[s, 3 * i + j] += ke[e, 3 * a + i, 3 * b + j]
+
+
+@cache
+def _compiled_add_blocks() -> Callable[[np.ndarray, np.ndarray, np.ndarray], None]:
+    """:func:`_add_blocks` compiled by numba on first use (as the FEM's compiled smoother)."""
+    from numba import njit
+
+    return njit(cache=True, nogil=True)(_add_blocks)
 
 
 def body_forces(mesh: Tet10Mesh, density: float | np.ndarray, gravity: np.ndarray) -> np.ndarray:
