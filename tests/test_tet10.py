@@ -141,6 +141,30 @@ def test_assembly_in_chunks_is_the_sum_of_the_element_matrices(monkeypatch):
     assert np.abs(k - dense).max() <= 1e-13 * np.abs(dense).max()
 
 
+def test_load_cases_on_two_threads_are_each_solved_as_alone(monkeypatch):
+    """The p-multigrid CG solves the load cases on up to COLUMN_THREADS threads: the same
+    displacements, residuals and iterations, bit for bit, as one after another, and they
+    solve K u = f."""
+    from fpm.fem import linear_solver
+
+    nodes, tets = cube_tetrahedra(3, jitter=0.25)
+    mesh = tet10.quadratic_mesh(nodes, tets)
+    k = tet10.stiffness_matrix(mesh, C)
+    held = mesh.nodes[:, 2] < 1e-9
+    free = np.repeat(~held, 3)
+    forces = np.random.default_rng(7).normal(size=(3, 3 * len(mesh.nodes))) * free
+    solved = {}
+    for threads in (1, 2):
+        monkeypatch.setattr(linear_solver, "COLUMN_THREADS", threads)
+        solved[threads] = tet10.solve_p_multigrid(k, forces, free, mesh)
+    (u1, r1, i1), (u2, r2, i2) = solved[1], solved[2]
+    assert np.array_equal(u1, u2) and np.array_equal(r1, r2) and i1 == i2
+    kff = k.tocsr()[free][:, free]
+    for case in range(3):
+        residual = kff @ u2[case, free] - forces[case, free]
+        assert np.linalg.norm(residual) <= 1e-8 * np.linalg.norm(forces[case, free])
+
+
 def test_stiffness_is_symmetric_and_body_force_sums_to_the_weight():
     nodes, tets = cube_tetrahedra(2, size=0.1, jitter=0.3)
     mesh = tet10.quadratic_mesh(nodes, tets)

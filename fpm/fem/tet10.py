@@ -64,7 +64,7 @@ from .linear_solver import (
     _compiled_sweep,
     amg_hierarchy,
     choose_method,
-    conjugate_gradients,
+    each_column,
     rigid_body_modes,
     v_cycle,
 )
@@ -433,16 +433,14 @@ def solve_p_multigrid(
 
     f = forces[:, free]
     u = np.zeros_like(forces, dtype=float)
-    residuals = np.zeros(len(forces))
-    iterations = []
-    for case in range(len(forces)):
-        try:
-            result = conjugate_gradients(kff, f[case], precondition)
-        except NegativeCurvature:
-            raise singular from None
+    try:  # the load cases on up to COLUMN_THREADS threads, each as alone, bit for bit
+        results = each_column(kff, list(f), precondition)
+    except NegativeCurvature:
+        raise singular from None
+    for case, result in enumerate(results):
         u[case, free] = result.x
-        residuals[case] = result.residual
-        iterations.append(int(result.iterations))
+    residuals = np.array([r.residual for r in results])
+    iterations = [int(r.iterations) for r in results]
     if not np.all(np.isfinite(u)) or residuals.max(initial=0.0) > RESIDUAL_LIMIT:
         raise singular
     return u, residuals, iterations
