@@ -13,6 +13,7 @@ makes), where the FEM job failed later ("the stiffness matrix is singular").
 from __future__ import annotations
 
 import copy
+import re
 from typing import Any
 
 import numpy as np
@@ -20,6 +21,7 @@ import pytest
 from test_fuzz_meshes import grid_tetrahedra
 
 import fpm
+from fpm.fem.solution import FemError
 from fpm.model.tetrahedra import lattice_pieces, merge_coincident
 
 SIZE = np.array([0.06, 0.03, 0.03])
@@ -170,3 +172,11 @@ def test_nodes_numbered_twice_over_rest_are_accepted_and_their_fem_is_the_clean_
         np.testing.assert_allclose(reference["displacements"], clean, rtol=1e-12, atol=0)
     calibration = api.post("/v1/calibrations", json=spec(twice))  # (not run here)
     assert calibration.status_code == 202, calibration.text
+
+
+def test_pieces_the_lattice_joins_are_refused_in_process_before_the_solve():
+    """In process (``fpm.solve_fem`` on a spec that never went through the service) the same
+    check names the piece, where the solve failed on a singular stiffness matrix."""
+    problem = fpm.load_problem(spec(touching_pieces()))
+    with pytest.raises(FemError, match=r"reference\.mesh: .*" + re.escape(PIECE)):
+        fpm.solve_fem(problem)

@@ -117,7 +117,7 @@ def solve_fem(
     refine = resolved_refine(problem.spec)  # 0: the mesh as given, point loads, no estimate
     asked = method
     if settings.mesh is not None or settings.mesh_id is not None:
-        from ..model.tetrahedra import merge_coincident
+        from ..model.tetrahedra import lattice_pieces, merge_coincident
         from .tet10 import tet10_reference
 
         if settings.mesh is not None:
@@ -130,6 +130,11 @@ def solve_fem(
         # Nodes numbered twice at one point joined (as spec_from_mesh joins them): else the
         # tetrahedra on either side share no face, a crack or two pieces the lattice has not.
         x, t, _ = merge_coincident(mesh["nodes"], mesh["tetrahedra"])
+        hexahedra = problem.solid.elements()
+        if hexahedra is not None and len(hexahedra):  # as the service refuses it at submit
+            apart = lattice_pieces(x, t, problem.nodes[hexahedra].mean(axis=1)).joined_apart(x, t)
+            if apart:
+                raise FemError(f"reference.mesh: {apart}")
         if refine == 0:
             return tet10_reference(problem, x, t, method)
         return refined_tet_reference(problem, x, t, method, progress)
