@@ -162,7 +162,9 @@ def test_load_cases_on_two_threads_are_each_solved_as_alone(monkeypatch):
     kff = k.tocsr()[free][:, free]
     for case in range(3):
         residual = kff @ u2[case, free] - forces[case, free]
-        assert np.linalg.norm(residual) <= 1e-8 * np.linalg.norm(forces[case, free])
+        assert np.linalg.norm(residual) <= 1.01 * tet10.CG_TOLERANCE * np.linalg.norm(
+            forces[case, free]
+        )
 
 
 def test_stiffness_is_symmetric_and_body_force_sums_to_the_weight():

@@ -132,17 +132,18 @@ def each_column(
     k: sp.sparray | sp.spmatrix,
     columns: list[np.ndarray],
     cycle: Callable[[np.ndarray], np.ndarray],
+    rtol: float = AMG_TOLERANCE,
 ) -> list[CgResult]:
-    """:func:`conjugate_gradients` of ``k`` for each right-hand side in ``columns``, on up to
-    :data:`COLUMN_THREADS` threads (one preconditioning first, which sets up the hierarchy's
-    coarse solver, made on first use, before the threads share it)."""
+    """:func:`conjugate_gradients` of ``k`` to ``rtol`` for each right-hand side in
+    ``columns``, on up to :data:`COLUMN_THREADS` threads (one preconditioning first, which sets
+    up the hierarchy's coarse solver, made on first use, before the threads share it)."""
     if len(columns) < 2 or COLUMN_THREADS < 2:
-        return [conjugate_gradients(k, b, cycle) for b in columns]
+        return [conjugate_gradients(k, b, cycle, rtol=rtol) for b in columns]
     from concurrent.futures import ThreadPoolExecutor
 
     cycle(np.zeros(k.shape[0]))
     with ThreadPoolExecutor(min(COLUMN_THREADS, len(columns))) as pool:
-        return list(pool.map(lambda b: conjugate_gradients(k, b, cycle), columns))
+        return list(pool.map(lambda b: conjugate_gradients(k, b, cycle, rtol=rtol), columns))
 
 
 def amg_hierarchy(
