@@ -66,8 +66,9 @@ def test_geometry_false_leaves_the_notes_out():
 
 
 def test_a_calibration_without_validation_cases_says_its_figures_flatter_it():
-    """Every figure of a fit with no validation cases is on its own loads: the result says so,
-    unless the paper's method (which judges its fit on its own loads) was asked for."""
+    """Every figure of a fit of several stiffness parameters with no validation cases is on
+    its own loads: the result says so, unless the paper's model (one k) or method (which judge
+    the fit on its own loads, as the paper does) was asked for."""
     from fpm.fitting.validation import unseen_note
 
     spec = copy.deepcopy(soft_block_spec())
@@ -75,12 +76,16 @@ def test_a_calibration_without_validation_cases_says_its_figures_flatter_it():
     (note,) = unseen_note(fpm.load_problem(spec))
     assert "no validation cases" in note and "validation_cases" in note
     assert unseen_note(block(1.0)[0]) == []
-    spec["annealing"] = {**spec.get("annealing", {}), "method": "paper"}
-    assert unseen_note(fpm.load_problem(spec)) == []
+    for paper in ({"fpm": {**spec.get("fpm", {}), "stiffness": "single"}},
+                  {"annealing": {**spec.get("annealing", {}), "method": "paper"}}):  # fmt: skip
+        assert unseen_note(fpm.load_problem({**spec, **paper})) == []
 
 
-def test_the_note_reaches_the_result():
+def test_the_note_reaches_the_result_and_not_the_papers():
     spec = json.loads((Path(__file__).parents[1] / "examples" / "small-box.json").read_text())
-    spec.pop("validation_cases", None)
+    assert spec["fpm"]["stiffness"] == "single" and "validation_cases" not in spec
+    result = fpm.calibrate(fpm.load_problem(spec))
+    assert not any(w.startswith("no validation cases") for w in result.warnings)
+    spec["fpm"]["stiffness"] = "families"
     result = fpm.calibrate(fpm.load_problem(spec))
     assert any(w.startswith("no validation cases") for w in result.warnings)
