@@ -127,14 +127,13 @@ def measure(organ: str, spacing: float, levels: list[int]) -> None:
     )
     from fpm.fem.refine import refine_tetrahedra
     from fpm.fem.tet10 import (
-        boundary_faces,
         fixed_nodes,
         interpolate,
-        locate,
         quadratic_mesh,
         solve_p_multigrid,
         stiffness_matrix,
     )
+    from fpm.model.tetrahedra import boundary_faces, locate
 
     spec = surface_spec(organ, spacing, refine=2)
     problem = fpm.load_problem(spec)

@@ -100,7 +100,7 @@ def organ_spec(
     has there, a staircase closer to the plane) and which meets the surface obliquely (a
     stronger singular line), by 12.4 / 12.3% after the first refinement: no better.
     """
-    from fpm.fem.tet10 import locate
+    from fpm.model.tetrahedra import locate
 
     nodes, tets = organ_mesh(cells)
     lo, hi = nodes.min(axis=0), nodes.max(axis=0)
@@ -209,8 +209,8 @@ def surface_spec(
     ``spec_from_mesh``'s (``"voxels"`` for the staircase, to compare)."""
     import meshio
 
-    from fpm.fem.tet10 import nearest_on_boundary
     from fpm.io.meshes import spec_from_mesh
+    from fpm.model.tetrahedra import nearest_on_boundary
 
     made = ORGANS[organ]
     nodes, tets = made["mesh"]()

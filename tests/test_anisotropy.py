@@ -16,6 +16,7 @@ from fpm.fem.materials import hexahedron_stiffness, tetrahedron_elasticity
 from fpm.fem.solution import solve_dirichlet
 from fpm.fitting.cost import StaticCost
 from fpm.fitting.validation import reference_displacements
+from fpm.model import tetrahedra
 from fpm.model.anisotropy import closed_form_start, lattice_constants
 from fpm.model.spec import ReferenceSettings
 from fpm.model.stiffness import (
@@ -189,7 +190,7 @@ def test_tetrahedra_reproduce_the_analytic_uniaxial_stretch(axis, load):
     c, _ = tetrahedron_elasticity(problem, mesh.nodes, mesh.corners)
     k = tet10.stiffness_matrix(mesh, c)
     x = mesh.nodes
-    faces, owner = tet10.boundary_faces(mesh.corners)
+    faces, owner = tetrahedra.boundary_faces(mesh.corners)
     on = np.abs(x[:, load] - x[:, load].max()) < 1e-12
     loaded = np.all(on[faces], axis=1)
     f = np.zeros_like(x)

@@ -232,7 +232,7 @@ def force_text(
     if kind == "surface point":
         aim = top + rng.uniform(-0.3, 0.3, 3) * extent
         try:
-            from fpm.fem.tet10 import nearest_on_boundary
+            from fpm.model.tetrahedra import nearest_on_boundary
 
             good = np.isfinite(points).all(axis=1)
             valid = tets[((tets >= 0) & (tets < len(points))).all(axis=1)]

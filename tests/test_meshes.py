@@ -17,7 +17,6 @@ import fpm
 from client import spec_from_mesh as sdk_spec_from_mesh
 from fpm.io.meshes import (
     MeshError,
-    face_pieces,
     geometry_from_mesh,
     lattice,
     parse_force,
@@ -29,6 +28,7 @@ from fpm.io.meshes import (
 )
 from fpm.model.geometry import voxel_mesh
 from fpm.model.spec import VoxelGeometry
+from fpm.model.tetrahedra import face_pieces
 from fpmcal.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -444,8 +444,8 @@ def test_the_conforming_lattice_lies_on_the_mesh_surface_and_calibrates(tmp_path
     from bench.tet_organ import organ_mesh
     from fpm.fem.elasticity import min_jacobian_determinants
     from fpm.fem.loads import lattice_surface
-    from fpm.fem.tet10 import nearest_on_boundary
     from fpm.io.meshes import KEPT_JACOBIAN
+    from fpm.model.tetrahedra import nearest_on_boundary
 
     nodes, tets = organ_mesh((4, 3, 4))
     mesh = meshio.Mesh(nodes, [("tetra", tets)])

@@ -98,8 +98,8 @@ def test_the_conforming_lattice_folds_no_voxel_step_onto_the_surface():
     voxel's."""
     from fpm.fem.elasticity import min_jacobian_determinants
     from fpm.fem.loads import boundary_hexahedron_faces, lattice_surface
-    from fpm.fem.tet10 import nearest_on_boundary
     from fpm.io.meshes.conform import KEPT_JACOBIAN
+    from fpm.model.tetrahedra import nearest_on_boundary
 
     mesh = organ()
     h = 0.007
@@ -209,8 +209,8 @@ def test_a_surface_point_spreads_by_shape_functions_with_linear_precision():
     """On a box lattice and on the organ's conforming lattice: the weights are >= 0, sum to 1
     and reproduce the nearest surface point (partition of unity, linear precision); a point at
     a node gives that node alone; a point on the surface is its own nearest point."""
-    from fpm.fem.tet10 import nearest_on_boundary
     from fpm.model.geometry import surface_point
+    from fpm.model.tetrahedra import nearest_on_boundary
 
     rng = np.random.default_rng(3)
     box = fpm.load_problem(
@@ -250,7 +250,7 @@ def test_a_force_at_a_point_acts_there_and_a_far_point_is_refused(api):
     """The load case's nodal forces sum to the force and their moment is the point's (the
     spread centroid is the surface point); a point 2 h from the organ is refused with its
     distance, at load_cases.0.forces.0.point, by load_problem and over REST (422)."""
-    from fpm.fem.tet10 import nearest_on_boundary
+    from fpm.model.tetrahedra import nearest_on_boundary
 
     mesh = organ()
     at = nearest_on_boundary(mesh.points, mesh.cells[0].data, np.array([[0.02, 0.01, 0.04]]))[1][0]

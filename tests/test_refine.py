@@ -40,6 +40,7 @@ from fpm.fem.refine import (
 )
 from fpm.fem.solution import FemError, FemResult
 from fpm.fitting.validation import check_reference
+from fpm.model import tetrahedra
 from fpm.model.tetrahedra import tetrahedron_volumes
 from store.hashing import fem_hash
 
@@ -169,7 +170,7 @@ def test_the_spread_load_sums_to_the_lattice_force_and_its_moment(element):
     if element == "tet10":
         nodes, tets = box_tetrahedra((4, 4, 4), (0.1, 0.1, 0.1))
         mesh = tet10.quadratic_mesh(*refine_tetrahedra(nodes, tets)[:2])
-        where = tet10.locate(mesh.nodes[: mesh.n_corners], mesh.corners, problem.nodes)
+        where = tetrahedra.locate(mesh.nodes[: mesh.n_corners], mesh.corners, problem.nodes)
         nodal = tetrahedron_loads(problem, forces)(mesh, where)
         positions = mesh.nodes
     else:
@@ -270,7 +271,7 @@ def test_spread_loads_on_a_curved_organ_keep_the_resultant():
     given = [c.as_given() for c in problem.load_cases]  # what the reference loads
     forces = np.stack([c.dense(problem.n_nodes) for c in given])
     mesh = tet10.quadratic_mesh(nodes, tets)
-    where = tet10.locate(nodes, tets, problem.nodes)
+    where = tetrahedra.locate(nodes, tets, problem.nodes)
     nodal = tetrahedron_loads(problem, forces)(mesh, where)
     for case in range(2):
         np.testing.assert_allclose(nodal[case].sum(axis=0), forces[case].sum(axis=0), atol=1e-14)
@@ -316,7 +317,7 @@ def test_refined_tetrahedra_converge_at_the_expected_rate_on_a_bar_with_a_known_
     st, share = triangle_rule(8)
     for _ in range(3):
         mesh = tet10.quadratic_mesh(x, t)
-        faces, owner = tet10.boundary_faces(t)
+        faces, owner = tetrahedra.boundary_faces(t)
         tri = x[faces]
         normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         area = np.linalg.norm(normal, axis=1) / 2
@@ -328,7 +329,7 @@ def test_refined_tetrahedra_converge_at_the_expected_rate_on_a_bar_with_a_known_
             -1, 3
         )
         element = np.repeat(owner[loaded], len(st))
-        lam = tet10._barycentric(x[t[element]], points)
+        lam = tetrahedra._barycentric(x[t[element]], points)
         weights = (area[loaded][:, None] * share[None]).ravel()
         samples = Samples(points, weights, element, lam)
         load = traction(points, np.repeat(normal[loaded], len(st), axis=0)) * weights[:, None]
@@ -341,7 +342,7 @@ def test_refined_tetrahedra_converge_at_the_expected_rate_on_a_bar_with_a_known_
         u[free] = factorize(k[free][:, free], "direct", np.zeros((int(free.sum()), 6)))(
             rhs[:, None]
         )[:, 0]
-        where = tet10.locate(x, t, lattice)
+        where = tetrahedra.locate(x, t, lattice)
         u_lattice = tet10.interpolate(mesh, u.reshape(-1, 3), where)
         solutions.append(u_lattice[None])
         truth = exact(lattice)

@@ -17,6 +17,7 @@ from fpm.fem import tet10
 from fpm.fem.materials import hexahedron_stiffness, tetrahedron_elasticity
 from fpm.fem.solution import solve_dirichlet
 from fpm.io.export import Parameters, build_lattice
+from fpm.model import tetrahedra
 from fpm.model.spec import ProblemSpec
 from fpm.model.stiffness import (
     assembly_weights,
@@ -89,7 +90,7 @@ def layered(reference: str, selector: dict, load: int):
         c, _ = tetrahedron_elasticity(problem, mesh.nodes, mesh.corners)
         k = tet10.stiffness_matrix(mesh, c)
         x = mesh.nodes
-        faces, owner = tet10.boundary_faces(mesh.corners)
+        faces, owner = tetrahedra.boundary_faces(mesh.corners)
         on = np.abs(x[:, load] - x[:, load].max()) < 1e-12
         loaded = np.all(on[faces], axis=1)
         f = np.zeros_like(x)

@@ -59,7 +59,7 @@ import numpy as np
 
 from ..model.hexahedron import NATURAL
 from ..model.problem import Problem, resolved_refine
-from ..model.tetrahedra import EDGES
+from ..model.tetrahedra import EDGES, Location, boundary_faces
 from .assembly import body_forces, stiffness_matrix
 from .elasticity import constitutive_matrix
 from .linear_solver import choose_method
@@ -77,7 +77,7 @@ from .loads import (
 )
 from .materials import has_materials, hexahedron_densities, hexahedron_stiffness
 from .solution import FemError, FemResult, solve_dirichlet
-from .tet10 import Location, Tet10Mesh, boundary_faces, tet10_reference
+from .tet10 import Tet10Mesh, tet10_reference
 
 TOLERANCE = 1.0
 """``refine: "auto"`` stops when the change between two levels is below this, %, in every case."""

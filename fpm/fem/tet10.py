@@ -51,12 +51,6 @@ from ..model.tetrahedra import (
     tetrahedron_volumes,
     validate_tetrahedra,
 )
-from ..model.tetrahedra import FACES as FACES
-from ..model.tetrahedra import TOLERANCE as TOLERANCE
-from ..model.tetrahedra import _barycentric as _barycentric
-from ..model.tetrahedra import boundary_faces as boundary_faces
-from ..model.tetrahedra import closest_on_triangles as closest_on_triangles
-from ..model.tetrahedra import nearest_on_boundary as nearest_on_boundary
 from .assembly import keep_nodes, unique_inverse
 from .elasticity import constitutive_matrix, strain_displacement
 from .linear_solver import (

@@ -81,7 +81,6 @@ from .voxelise import (  # noqa: F401
     _orientation,
     _pairs,
     cell_centres,
-    face_pieces,
     lattice,
     one_piece,
     open_edges,

@@ -108,7 +108,7 @@ def conform_lattice(
     """
     from ...fem.elasticity import min_jacobian_determinants
     from ...fem.loads import lattice_spacing, lattice_surface
-    from ...fem.tet10 import boundary_faces, nearest_on_boundary
+    from ...model.tetrahedra import boundary_faces, nearest_on_boundary
 
     x0 = np.asarray(nodes, dtype=float)
     mesh_nodes = np.asarray(mesh_nodes, dtype=float)

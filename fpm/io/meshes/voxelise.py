@@ -8,7 +8,6 @@ from typing import Any
 
 import numpy as np
 
-from ...model.tetrahedra import face_pieces as face_pieces  # with the mesh's checks
 from ..errors import MeshError
 
 TOLERANCE = 1e-9
