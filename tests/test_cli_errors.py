@@ -117,9 +117,30 @@ def test_wrong_units_stop_a_calibration(tmp_path: Path, capsys: pytest.CaptureFi
     assert main(["calibrate", str(path), "-q"]) == 1
     captured = capsys.readouterr()
     error = captured.err.splitlines()[-1]
-    assert error.startswith("error: load case '0.1 N' (and 1 more load case): the linear FEM")
+    assert error.startswith("error: load case '0.1 N' (and 1 more case): the linear FEM")
     assert "E is in Pa (5 kPa = 5000), lengths in m, forces in N" in error
+    assert "E = 5 Pa is softer than any tissue" in error
     assert "annealing" not in captured.err and captured.out == ""
+
+
+def test_a_validation_case_that_moves_far_stops_a_calibration_naming_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+):
+    """The units right, a validation case of 20 N on the 3 cm box at 10 kPa (it moves a node
+    further than the box is thick): one line naming it, exit 1; it was an internal error
+    (IndexError) where the check indexed the load cases with the validation cases' places."""
+    spec = small()
+    spec["validation_cases"] = [
+        {"name": "hard press", "forces": [{"at": [0.01, 0.01, 0.03], "vector": [0, 0, 20.0]}]}
+    ]
+    path = write(tmp_path, "far.json", spec)
+    assert main(["calibrate", str(path), "-q"]) == 1
+    captured = capsys.readouterr()
+    error = captured.err.splitlines()[-1]
+    assert error.startswith("error: validation case 'hard press': the linear FEM reference")
+    assert error.endswith("lower the forces (this spec: E = 10000 Pa, largest nodal force 20 N, "
+                          "solid 0.03 x 0.03 x 0.03 m)")  # fmt: skip
+    assert "internal error" not in captured.err and "units" not in captured.err
 
 
 def test_an_annealing_start_that_fails_is_explained(

@@ -54,6 +54,49 @@ def test_a_reference_that_moves_further_than_the_solid_is_thick_is_refused():
     assert "E = 5 Pa" in message and "\n" not in message
 
 
+def test_a_validation_case_that_moves_too_far_is_named_as_one():
+    """E = 5 kPa, a 0.05 N press fitted (0.69 mm) and a 10 N press unseen (0.14 m, more than
+    the 6 cm block): the reference of every case is checked, the case named by the spec's name
+    as a validation case (an index past the load cases raised IndexError), and with the units
+    right the message says the load is too large, not to check them."""
+    spec = block(5000.0).spec.model_dump(mode="json")
+    spec["validation_cases"] = [
+        {"name": "hard press", "forces": [{"at": [0.02, 0.02, 0.06], "vector": [0, 0, 10.0]}]}
+    ]
+    problem = fpm.load_problem(spec)
+    every = solve_fem(problem)
+    assert every.displacements.shape[0] == 2
+    with pytest.raises(UnitsError) as info:
+        check_reference(problem, every)
+    message = str(info.value)
+    assert message.startswith("validation case 'hard press': the linear FEM reference moves")
+    assert "the load is far too large for a linear reference: lower the forces" in message
+    assert "units" not in message and "\n" not in message
+    assert check_reference(problem, every.displacements[:1]) == []  # the load cases alone
+    with pytest.raises(ValueError, match="holds 3 cases where the spec has 1 load cases and 1"):
+        check_reference(problem, np.zeros((3, problem.n_nodes, 3)))
+
+
+def test_units_are_blamed_only_where_a_value_looks_like_another_unit():
+    """A 6 cm block at E = 5 kPa moved 0.14 m by 10 N: too large a load, units not named; the
+    same block read as 60 m (a mesh in mm) and 10 kN: the size is named as the suspect."""
+    problem = block(5000.0, forces=(10.0,))
+    u = solve_fem(problem).displacements
+    with pytest.raises(UnitsError) as info:
+        check_reference(problem, u)
+    assert "check the units" not in str(info.value)
+    assert "E = 5000 Pa, largest nodal force 10 N" in str(info.value)
+    metres = box_spec((4, 4, 4), 20.0)
+    metres["material"]["youngs_modulus"] = 5000.0
+    big = fpm.load_problem(metres)
+    with pytest.raises(UnitsError) as info:
+        check_reference(big, np.full((1, big.n_nodes, 3), 100.0))
+    message = str(info.value)
+    assert "check the units (E is in Pa" in message
+    assert "the solid is 60 m across (a mesh in mm is read with --scale 0.001)" in message
+    assert "E = 5000 Pa is" not in message  # E is plausible: not named
+
+
 def test_a_reference_outside_small_strain_is_flagged_per_load_case():
     """E = 500 Pa: 0.05 N moves the node 6.9 mm (11% of 6 cm), 0.005 N 0.69 mm (1.1%)."""
     problem = block(500.0, forces=(0.05, 0.005))

@@ -174,7 +174,7 @@ FAILURE_REASONS = (
     "annealing chain",
     "damping stage failed",
     "FEM reference failed",
-    "units check failed",
+    "reference check failed",
 )
 """How a calibration of an accepted spec may fail: the annealer's reason, the damping stage's
 (two-stage: no d settles), the FEM's refusal, or a FEM answer no small-strain solid gives."""

@@ -186,8 +186,8 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
     memory.check(problem.n_nodes)
     try:
         check_reference(problem, fem)
-    except ValueError as e:  # a units mistake: no annealing can fix it
-        _fail(redis, calibration_id, f"units check failed: {e}")
+    except ValueError as e:  # units or a load far too large: no annealing can fix it
+        _fail(redis, calibration_id, f"reference check failed: {e}")
         return {"failed": True}
     saved = scratch.get_checkpoint(redis, calibration_id, chain)
     reporter = _ChainProgress(job, calibration_id, chain)

@@ -1,5 +1,5 @@
-"""Diagnoses for the user: a reference in the wrong units, and why an annealing start failed.
-Every message says what to change.
+"""Diagnoses for the user: a reference in the wrong units or under too large a load, and why an
+annealing start failed. Every message says what to change.
 
 The lattice's stability estimate lives in :mod:`fpm.dynamics.stability`.
 """
@@ -23,7 +23,15 @@ max_steps, had no static equilibrium, or cost more than c_max."""
 
 
 class UnitsError(ValueError):
-    """The FEM reference moves a node further than the solid is thick: the units are wrong."""
+    """The FEM reference moves a node further than the solid is thick: the units are wrong, or
+    the load is far too large for the reference."""
+
+
+SOFTEST = 100.0
+"""Pa: a Young's modulus below this is softer than any tissue (brain, fat: about 0.5-3 kPa),
+so most likely written in kPa (E = 5 for 5 kPa)."""
+LARGEST = 2.0
+"""m: a solid larger than this across is most likely a mesh in mm or cm read as m."""
 
 
 def check_reference(problem: Problem, displacements: Any) -> list[str]:
@@ -31,55 +39,95 @@ def check_reference(problem: Problem, displacements: Any) -> list[str]:
 
     Args:
         problem: the problem.
-        displacements: (L, N, 3) FEM displacements, m (or a :class:`fpm.fem.reference.FemResult`).
+        displacements: (L, N, 3) or (L + V, N, 3) FEM displacements, m: the load cases, then
+            (if given) the validation cases (or a :class:`fpm.fem.reference.FemResult`).
 
     Returns:
-        For the linear model, one warning per load case whose largest nodal displacement is
-        above 10% of the solid's smallest bounding-box extent (outside small strain, where a
-        linear reference is only approximate); none for the neo-Hookean model, which is made
-        for large deformation.
+        For the linear model, one warning per load or validation case whose largest nodal
+        displacement is above 10% of the solid's smallest bounding-box extent (outside small
+        strain, where a linear reference is only approximate); none for the neo-Hookean model,
+        which is made for large deformation.
 
     Raises:
-        UnitsError: a load case moves a node further than the smallest extent: with linear
-            elasticity this almost always means the units are off (E = 5 for 5 kPa, a size in
-            mm, a force in g); otherwise (a slender part under a large load) the linear
-            reference is meaningless there anyway.
+        UnitsError: a case moves a node further than the smallest extent: the message names
+            the case and the spec's values that look like a units mistake (E below
+            :data:`SOFTEST`, a solid over :data:`LARGEST` across), if any; otherwise it says
+            that the load is far too large (the linear reference is meaningless there).
+        ValueError: ``displacements`` holds neither L nor L + V cases.
     """
     u = np.asarray(getattr(displacements, "displacements", displacements), dtype=float)
+    cases, names = _cases(problem, len(u))
     linear = problem.spec.material.model == "linear"
     extents = np.ptp(problem.nodes, axis=0)
     extent = float(extents[extents > 0].min())
-    largest = np.linalg.norm(u, axis=2).max(axis=1)  # (L,)
-    names = [case.name for case in problem.load_cases]
+    largest = np.linalg.norm(u, axis=2).max(axis=1)  # (cases,)
+    suspects = _unit_suspects(problem, extents)
     too_far = np.flatnonzero(~(largest <= extent))  # NaN counts as too far
     if len(too_far):
         j = int(too_far[np.argmax(np.nan_to_num(largest[too_far], nan=np.inf))])
         node = int(np.nanargmax(np.linalg.norm(u[j], axis=1)))
         more = len(too_far) - 1
-        others = f" (and {more} more load case{'s' if more > 1 else ''})" if more else ""
-        force = float(np.linalg.norm(problem.load_cases[j].forces, axis=1).max())
-        advice = (
+        others = f" (and {more} more case{'s' if more > 1 else ''})" if more else ""
+        force = float(np.linalg.norm(cases[j].forces, axis=1).max())
+        given = (
+            f"this spec: E = {problem.spec.material.youngs_modulus:g} Pa, largest nodal force "
+            f"{force:.3g} N, solid {_dims(extents)} m"
+        )
+        moved = (
+            f"{names[j]}{others}: the {'linear' if linear else 'neo-Hookean'} FEM reference "
+            f"moves node {node} by {largest[j]:.3g} m, more than the solid's smallest extent "
+            f"({extent:.3g} m)"
+        )
+        too_large = (
             "the load is far too large for a linear reference: lower the forces"
             if linear
             else "the load moves the solid further than it is thick: lower the forces"
         )
-        raise UnitsError(
-            f"load case '{names[j]}'{others}: the {'linear' if linear else 'neo-Hookean'} FEM "
-            f"reference moves node {node} by "
-            f"{largest[j]:.3g} m, more than the solid's smallest extent ({extent:.3g} m): check "
-            f"the units: {UNITS_HINT} (this spec: E = {problem.spec.material.youngs_modulus:g} "
-            f"Pa, largest nodal force {force:.3g} N, solid {_dims(extents)} m); if they are "
-            f"right, {advice}"
-        )
+        if suspects:
+            raise UnitsError(
+                f"{moved}: check the units ({UNITS_HINT}): {'; '.join(suspects)} ({given}); if "
+                f"they are right, {too_large}"
+            )
+        raise UnitsError(f"{moved}: {too_large} ({given})")
+    units = f", or check the units ({UNITS_HINT}: {'; '.join(suspects)})" if suspects else ""
     return [
-        f"load case '{names[j]}': the largest FEM displacement, {largest[j]:.3g} m, is "
+        f"{names[j]}: the largest FEM displacement, {largest[j]:.3g} m, is "
         f"{100 * largest[j] / extent:.0f}% of the solid's smallest extent ({extent:.3g} m): "
         "outside small strain: the linear reference is only approximate there and the fit "
-        "inherits its error; consider smaller forces, or check E and the units "
-        f"({UNITS_HINT})"
+        f"inherits its error; consider smaller forces{units}"
         for j in range(len(names))
         if linear and largest[j] > SMALL_STRAIN * extent
     ]
+
+
+def _cases(problem: Problem, count: int) -> tuple[list[Any], list[str]]:
+    """The cases of a reference of ``count`` cases (the load cases, or those then the
+    validation cases) and how messages name them."""
+    loads, unseen = problem.load_cases, problem.validation_cases
+    if count not in (len(loads), len(loads) + len(unseen)):
+        raise ValueError(
+            f"the FEM reference holds {count} cases where the spec has {len(loads)} load cases"
+            + (f" and {len(unseen)} validation cases" if unseen else "")
+        )
+    cases = (loads + unseen)[:count]
+    names = [f"load case '{c.name}'" for c in loads] + [
+        f"validation case '{c.name}'" for c in unseen
+    ]
+    return cases, names[:count]
+
+
+def _unit_suspects(problem: Problem, extents: np.ndarray) -> list[str]:
+    """What in the spec looks like a value in another unit (empty: nothing does)."""
+    out = []
+    e = problem.spec.material.youngs_modulus
+    if e < SOFTEST:
+        out.append(f"E = {e:g} Pa is softer than any tissue (5 kPa is 5000)")
+    if float(extents.max()) > LARGEST:
+        out.append(
+            f"the solid is {float(extents.max()):.3g} m across (a mesh in mm is read with "
+            "--scale 0.001)"
+        )
+    return out
 
 
 def explain_rejections(

@@ -70,13 +70,12 @@ def validation_reference(reference: Any, problem: Problem) -> np.ndarray | None:
 
 
 def check_reference(problem: Problem, reference: Any) -> list[str]:
-    """Units sanity of the FEM reference (:func:`fpm.fitting.diagnosis.check_reference`): raises
-    on a reference no small-strain solid gives, returns warnings."""
+    """Units sanity of the FEM reference, load and validation cases
+    (:func:`fpm.fitting.diagnosis.check_reference`): raises on a reference no small-strain
+    solid gives, returns warnings."""
     from .diagnosis import check_reference as check
 
-    return check(problem, reference_displacements(reference, problem)) + resolution_notes(
-        problem, reference
-    )
+    return check(problem, reference) + resolution_notes(problem, reference)
 
 
 def resolution_notes(problem: Problem, reference: Any) -> list[str]:
