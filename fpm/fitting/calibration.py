@@ -13,7 +13,8 @@ Two methods (``annealing.method``; docs/physics.md):
   cost the fastest-settling wins (:func:`pick_paper_state`).
 
 Either way, depth 'auto' is resolved on static equilibria (:func:`resolve_depth`) and a last
-dynamic run at (stiffness, d, depth) gives the reported cost, discrepancies and settle steps.
+dynamic run at (stiffness, d, depth) gives the reported cost, discrepancies and settle steps,
+and :func:`fpm.fitting.verdict.judge` the verdict on the fit (good, fair or poor, and why).
 
 Data flow (the service runs each step as a job): :func:`check_reference` (units) ->
 :func:`run_chain` (one seeded chain; families+volume chains share one first reduced basis,
@@ -70,6 +71,7 @@ from .validation import (
     validate,
 )
 
+from .verdict import judge
 __all__ = [
     # the orchestration
     "calibrate",
@@ -162,7 +164,9 @@ def finalize(
     field, model, field_notes = field_parts(problem, reference, damping, theta, checked)
     saved = None if damping is None else damping.validation
     if saved is not None and saved["depth"] == checked:  # solved beside the damping stage
-        validation = Validation(saved["relative"], saved["h_percent"], saved["notes"])
+        validation = Validation(
+            saved["relative"], saved["h_percent"], saved["notes"], saved.get("compliance", [])
+        )
     else:
         validation = validate(problem, reference, model, checked)
     m = problem.solid.masses
@@ -170,7 +174,7 @@ def finalize(
 
     n_cases = len(problem.load_cases)
     fem_error = getattr(reference, "estimated_error", None)
-    return CalibrationResult(
+    result = CalibrationResult(
         reference=reference_label(problem.spec),
         reference_error=None if fem_error is None else fem_error[:n_cases],
         validation_reference_error=None if fem_error is None else fem_error[n_cases:],
@@ -187,6 +191,8 @@ def finalize(
         validation_relative_discrepancy=validation.relative,
         validation_discrepancy_h=validation.h_percent,
         d=float(d),
+        compliance_ratio=final.compliance,
+        validation_compliance_ratio=validation.compliance,
         d_min=None if damping is None else damping.d_min,
         d_predicted=None if damping is None else damping.d_predicted,
         max_steps=fixed_max_steps(problem.spec.fpm.max_steps)
@@ -235,6 +241,8 @@ def finalize(
     )
 
 
+    result.verdict = judge(problem, result, theta, reference)
+    return result
 def calibrate(
     problem: Problem,
     *,

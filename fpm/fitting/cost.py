@@ -7,8 +7,9 @@ Two ways to get p: :class:`CostFunction` runs the FPM dynamically to rest at (st
 (the paper's); :class:`StaticCost` solves for the settled state directly
 (:mod:`fpm.dynamics.equilibrium`), which does not depend on d. Figures of merit per load case
 (:func:`discrepancies`): the relative discrepancy (the headline: scale-free), the error at the
-loaded nodes relative to their FEM displacement, and the mean nodal discrepancy in % of h (the
-paper's unit, which shrinks with soft materials and small loads, so never shown alone).
+loaded nodes relative to their FEM displacement, the mean nodal discrepancy in % of h (the
+paper's unit, which shrinks with soft materials and small loads, so never shown alone), and the
+load compliance ratio (:func:`compliance_ratio`: how soft the model feels under the load).
 """
 
 from __future__ import annotations
@@ -61,11 +62,32 @@ class Discrepancies:
         relative: 100 * sum_i |p_i - q_i| / sum_i |q_i - q0_i|, % (the headline figure).
         loaded: the same over the loaded nodes only, %.
         h_percent: mean nodal |p_i - q_i| over all nodes, % of h (the paper's unit).
+        compliance: the load compliance ratio (:func:`compliance_ratio`): how soft the loaded
+            nodes feel beside the reference (1: as stiff; above 1 softer), None where undefined.
     """
 
     relative: list[float] = field(default_factory=list)
     loaded: list[float] = field(default_factory=list)
     h_percent: list[float] = field(default_factory=list)
+    compliance: list[float | None] = field(default_factory=list)
+
+
+def compliance_ratio(
+    nodes: np.ndarray, forces: np.ndarray, fpm: np.ndarray, reference: np.ndarray
+) -> float | None:
+    """The load compliance ratio of one load case: ``sum_i f_i . u_i`` over its loaded nodes
+    ``nodes`` (P,) with forces ``forces`` (P, 3), N, for the model's displacements ``fpm``
+    (N, 3), m, over the same for the reference's ``reference`` (N, 3), m (the work the load
+    does on each). 1: a probe at those nodes feels the reference's stiffness; 1.5: the model
+    is 1.5 times too soft there; 0.8: 1.25 times too stiff. Scale-free: the same for forces
+    and displacements scaled together. None when the load does no work on the reference
+    (forces across its displacements), where no ratio is defined."""
+    f = np.asarray(forces, dtype=float)
+    model = float(np.einsum("ij,ij->", f, fpm[nodes]))
+    truth = float(np.einsum("ij,ij->", f, reference[nodes]))
+    if not truth > 0:
+        return None
+    return model / truth
 
 
 def discrepancies(problem: Problem, fpm: np.ndarray, reference: np.ndarray) -> Discrepancies:
@@ -77,6 +99,7 @@ def discrepancies(problem: Problem, fpm: np.ndarray, reference: np.ndarray) -> D
         out.relative.append(float(100 * error.sum() / size.sum()))
         out.loaded.append(float(100 * error[case.nodes].sum() / size[case.nodes].sum()))
         out.h_percent.append(float(100 * error.mean() / problem.h))
+        out.compliance.append(compliance_ratio(case.nodes, case.forces, fpm[j], reference[j]))
     return out
 
 

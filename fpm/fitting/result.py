@@ -94,6 +94,58 @@ class JobSpan(BaseModel):
     )
 
 
+class BoundHit(BaseModel):
+    """A fitted parameter at or near one end of its search range (fpm.fitting.bounds)."""
+
+    parameter: str = Field(description="its name: a spring family ('axis', ...), 'k' or 'kappa'")
+    value: float = Field(description="the fitted value: N/m for a spring family, Pa for kappa")
+    side: str = Field(description="'lower' or 'upper': the end it is at")
+    bound: float = Field(description="that end of its range, in the value's unit")
+    setting: str = Field(
+        description="what sets that end: 'annealing.bounds.k', or 'derived' (from the material "
+        "and h, not a spec setting: fpm.fitting.bounds)"
+    )
+
+
+class Floor(BaseModel):
+    """What the model family reaches on a lattice like this one, as the manual documents it."""
+
+    figure: float = Field(description="the documented worst relative discrepancy, %")
+    what: str = Field(description="what was measured, on what")
+    source: str = Field(description="the manual's page that records it")
+
+
+class Cause(BaseModel):
+    """A likely cause of a fit short of good, and the action that helps."""
+
+    cause: str = Field(
+        description="'large deformation', 'lattice too coarse', 'nu near 0.5', 'compliance', "
+        "'bound', 'model family' or 'unsettled'"
+    )
+    detail: str = Field(description="what was found, with the case or part and the figure")
+    action: str = Field(description="what to change")
+
+
+class Verdict(BaseModel):
+    """How good the fit is, in one word and its reasons (thresholds: fpm.fitting.verdict)."""
+
+    grade: str = Field(
+        description="'good', 'fair' or 'poor' (a poor fit still succeeds: read its causes)"
+    )
+    basis: str = Field(
+        description="'unseen': judged on the validation cases (never fitted); 'fitted': on the "
+        "fitted load cases, there being none (they flatter the fit)"
+    )
+    worst: float = Field(description="the worst relative discrepancy on that basis, %")
+    worst_case: str = Field(description="the case it is on")
+    floor: Floor = Field(description="what the model family reaches on such a lattice")
+    bounds: list[BoundHit] = Field(
+        [], description="the fitted parameters at or near a bound of their search range"
+    )
+    causes: list[Cause] = Field([], description="likely causes when not good, with actions")
+    summary: str = Field(description="the verdict in one line, for a table or a page")
+
+
 class CalibrationResult(BaseModel):
     """The fitted parameters and how well they fit (units in each field's description)."""
 
@@ -197,6 +249,22 @@ class CalibrationResult(BaseModel):
     )
     validation_discrepancy_h: list[float] = Field(
         [], description="per validation case, mean nodal discrepancy, % of h"
+    )
+    compliance_ratio: list[float | None] = Field(
+        [],
+        description="per load case, the load compliance ratio: sum_i f_i . u_i over its "
+        "loaded nodes, the model's over the reference's (1.0: a probe there feels the "
+        "reference's stiffness; 1.5: 1.5 times too soft; 0.8: 1.25 times too stiff); null "
+        "where the load does no work on the reference; empty in results stored before it",
+    )
+    validation_compliance_ratio: list[float | None] = Field(
+        [], description="the same per validation case"
+    )
+    verdict: Verdict | None = Field(
+        None,
+        description="how good the fit is ('good', 'fair', 'poor'), on what basis, beside what "
+        "the model family reaches, the parameters at a bound and the likely causes; null in "
+        "results stored before it",
     )
     settle_steps: list[int] = Field(description="time steps to settle, per load case")
     settled: bool = Field(description="every load case settled within max_steps")

@@ -18,7 +18,7 @@ it was solved for them (:func:`reference_displacements`, :func:`validation_refer
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -127,6 +127,8 @@ class FinalRun:
             criterion.
         settle_distance: (L,) the distance each case was promised within (its settle
             distance); None without the distance criterion.
+        compliance: (L,) the load compliance ratio of each settled state
+            (:func:`fpm.fitting.cost.compliance_ratio`); empty in a stage stored before it.
     """
 
     cost: float
@@ -140,6 +142,7 @@ class FinalRun:
     settle_estimated: list[float] | None = None
     settle_measured: list[float] | None = None
     settle_distance: list[float] | None = None
+    compliance: list[float | None] = field(default_factory=list)
 
 
 def final_run(
@@ -218,16 +221,19 @@ def final_run(
         settle_estimated=estimated,
         settle_measured=measured,
         settle_distance=None if measured is None else distances,
+        compliance=figures.compliance,
     )
 
 
 @dataclass
 class Validation:
-    """The validation cases at the fitted parameters: relative and % of h per case, and notes."""
+    """The validation cases at the fitted parameters: relative and % of h per case, notes, and
+    the load compliance ratio per case (:func:`fpm.fitting.cost.compliance_ratio`)."""
 
     relative: list[float]
     h_percent: list[float]
     notes: list[str]
+    compliance: list[float | None] = field(default_factory=list)
 
 
 def validate(
@@ -255,7 +261,7 @@ def validate(
     ]
     if geometry and not notes:
         notes = geometry_notes(cost, truth, theta, solved, figures.relative)
-    return Validation(figures.relative, figures.h_percent, notes)
+    return Validation(figures.relative, figures.h_percent, notes, figures.compliance)
 
 
 def unseen_note(problem: Problem) -> list[str]:
