@@ -66,8 +66,13 @@ def _mesh_hint(path: str) -> str:
 def _load(path: str, reference: str | None = None) -> Any:
     """The problem of the spec file ``path``; its notes go to stderr. ``reference``: a file
     whose displacement field becomes the spec's ``reference.displacements``
-    (:func:`fpm.io.meshes.read_reference`)."""
+    (:func:`fpm.io.meshes.read_reference`). The service's size limits apply before it is built
+    (:func:`fpm.limits.check_size`, then the memory a calibration of it needs:
+    :func:`worker.memory.check`)."""
+    from fpm.limits import check_size
     from fpm.model.problem import load_problem
+    from fpm.model.spec import ProblemSpec
+    from worker import memory
 
     spec = _read_spec(path)
     if reference is not None:
@@ -78,6 +83,8 @@ def _load(path: str, reference: str | None = None) -> Any:
         except (OSError, ValueError) as e:
             raise SpecFileError(f"--reference {reference}: {e}") from None
         spec["reference"] = {**(spec.get("reference") or {}), "displacements": field}
+    spec = ProblemSpec.model_validate(spec)
+    memory.check(check_size(spec), machine=True)
     problem = load_problem(spec)
     for note in problem.notes:
         print(f"note: {note}", file=sys.stderr)
@@ -259,7 +266,12 @@ def cmd_calibrate(args: argparse.Namespace) -> None:
 
 def cmd_spec_from_mesh(args: argparse.Namespace) -> None:
     from fpm.io.meshes import spec_from_mesh
+    from fpm.limits import Limits, node_count
+    from fpm.model.spec import ProblemSpec
 
+    limits = Limits.from_environ()  # the service's: a spec it would refuse is not made
+    if args.nodes is not None:
+        limits.check_nodes(args.nodes, "--nodes")
     dt: float | str = args.dt if args.dt == "auto" else _positive(args.dt, "--dt")
     spec, notes = spec_from_mesh(
         args.spec,
@@ -282,6 +294,8 @@ def cmd_spec_from_mesh(args: argparse.Namespace) -> None:
         loads=args.loads,
         validation=args.validate,
     )
+    nodes = node_count(ProblemSpec.model_validate(spec))
+    limits.check_nodes(nodes, "--nodes" if args.nodes is not None else "--spacing")
     for note in notes:
         print(f"note: {note}", file=sys.stderr)
     _emit(spec, args.output)
@@ -706,9 +720,21 @@ def error_report(error: Exception, spec: str) -> tuple[list[str], int]:
     status."""
     from fpm.fitting.annealing import AnnealingError
     from fpm.fitting.diagnosis import UnitsError
+    from fpm.limits import LimitError
+    from worker.memory import MemoryRefused
 
     if isinstance(error, SpecFileError):
         return [str(error)], 2
+    if isinstance(error, LimitError):  # as the service refuses it: the field, or the flag
+        where = "error" if error.field.startswith(("-", "FPM_")) else spec
+        return [f"{where}: {error.field}: {_one_line(error.message)}"], 2
+    if isinstance(error, MemoryRefused):
+        return [f"error: {_one_line(error)}"], 1
+    if isinstance(error, MemoryError):  # past the estimate: still the reason, not a traceback
+        return [
+            "error: out of memory: the problem is too large for this machine (fewer lattice "
+            "nodes: a coarser spacing, or spec from-mesh --nodes)"
+        ], 1
     if isinstance(error, ValidationError):
         errors = error.errors()
         lines = []

@@ -7,7 +7,6 @@ leaves nothing behind.
 from __future__ import annotations
 
 import json
-import math
 from typing import Any
 
 import numpy as np
@@ -15,8 +14,9 @@ from redis import Redis
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from fpm import Problem, ProblemSpec, load_problem
+from fpm.limits import LimitError, Limits, check_size
 from fpm.model.regions import tag_selectors
-from fpm.model.spec import BoxGeometry, MeshGeometry, NetworkGeometry, VoxelGeometry
+from fpm.model.spec import NetworkGeometry
 from fpm.model.support import unheld_reason
 from fpm.model.tetrahedra import check_tetrahedra, lattice_pieces
 from store import records
@@ -86,24 +86,6 @@ class _TooLarge(Exception):
     pass
 
 
-def node_count(spec: ProblemSpec) -> int:
-    """Nodes the solid of ``spec`` will have, computed without building it."""
-    g = spec.geometry
-    if isinstance(g, BoxGeometry):
-        return math.prod(int(n) for n in g.nodes)  # Python ints: np.prod wraps past 2**63
-    if isinstance(g, VoxelGeometry):
-        cells = np.asarray(g.occupancy, dtype=bool)
-        nx, ny, nz = cells.shape
-        used = np.zeros((nx + 1, ny + 1, nz + 1), dtype=bool)
-        for dx in (0, 1):
-            for dy in (0, 1):
-                for dz in (0, 1):
-                    used[dx : dx + nx, dy : dy + ny, dz : dz + nz] |= cells
-        return int(used.sum())
-    assert isinstance(g, MeshGeometry | NetworkGeometry)
-    return len(g.nodes)
-
-
 def _invalid(errors: list[dict[str, str]]) -> ProblemError:
     detail = "; ".join(f"{e['field']}: {e['message']}" for e in errors)
     return ProblemError(422, "Invalid input", detail, errors=errors)
@@ -111,6 +93,16 @@ def _invalid(errors: list[dict[str, str]]) -> ProblemError:
 
 def _rejected(field: str, message: str) -> ProblemError:
     return _invalid([{"field": field, "message": message}])
+
+
+def size_limits(settings: Settings) -> Limits:
+    """The service's size limits (:mod:`fpm.limits`, as ``fpmcal`` applies them)."""
+    return Limits(
+        max_nodes=settings.max_nodes,
+        max_load_cases=settings.max_load_cases,
+        max_chains=settings.max_chains,
+        max_mesh_tetrahedra=settings.max_mesh_tetrahedra,
+    )
 
 
 def text_refusals(data: Any) -> list[dict[str, str]]:
@@ -159,19 +151,10 @@ def check_calibration_spec(
         raise _rejected(
             "geometry.type", "a network has no FEM reference, so it cannot be calibrated"
         )
-    nodes = node_count(spec)
-    if nodes > settings.max_nodes:
-        raise _rejected("geometry", f"{nodes} nodes is over the limit of {settings.max_nodes}")
-    if len(spec.load_cases) > settings.max_load_cases:
-        raise _rejected(
-            "load_cases",
-            f"{len(spec.load_cases)} load cases is over the limit of {settings.max_load_cases}",
-        )
-    if spec.annealing.chains > settings.max_chains:
-        raise _rejected(
-            "annealing.chains",
-            f"{spec.annealing.chains} chains is over the limit of {settings.max_chains}",
-        )
+    try:
+        check_size(spec, size_limits(settings))
+    except LimitError as e:
+        raise _rejected(e.field, e.message) from None
     problem = load_problem(spec, mesh if tag_selectors(spec) else None)
     if not problem.fixed.any():
         raise _rejected("fixed", "selects no node: the FEM reference needs the solid held")

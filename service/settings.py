@@ -12,6 +12,7 @@ from typing import Annotated
 from pydantic import AliasChoices, Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from fpm import limits
 from store.graph import JobOptions
 
 
@@ -31,12 +32,12 @@ class Settings(BaseSettings):
         description="accepted X-API-Key values (comma-separated); empty = no authentication",
     )
     max_nodes: int = Field(
-        100_000,
+        limits.MAX_NODES,
         ge=8,
         description="largest solid, in nodes (a 93,705-node organ was measured to calibrate "
-        "within the job timeouts in under 5 GB; docs/service.md)",
+        "within the job timeouts in under 5 GB; docs/service.md); fpmcal applies it too",
     )
-    max_load_cases: int = Field(20, ge=1)
+    max_load_cases: int = Field(limits.MAX_LOAD_CASES, ge=1)
     max_active_per_key: int = Field(
         20,
         ge=0,
@@ -50,13 +51,17 @@ class Settings(BaseSettings):
         "unlimited)",
     )
     quota_retry_after: int = Field(60, ge=1, description="Retry-After of a 429 over a quota, s")
-    max_chains: int = Field(16, ge=1, description="most annealing chains per calibration")
+    max_chains: int = Field(
+        limits.MAX_CHAINS, ge=1, description="most annealing chains per calibration"
+    )
     max_body_bytes: int = Field(2_000_000, ge=1024, description="largest request body, bytes")
     max_mesh_bytes: int = Field(
         32_000_000, ge=1024, description="largest body of a mesh upload (POST /v1/meshes), bytes"
     )
     max_mesh_tetrahedra: int = Field(
-        200_000, ge=1, description="most tetrahedra of an uploaded mesh"
+        limits.MAX_MESH_TETRAHEDRA,
+        ge=1,
+        description="most tetrahedra of an uploaded mesh or a spec's reference.mesh",
     )
     page_size_limit: int = Field(200, ge=1, description="most items per page of a listing")
     fem_timeout: int = Field(JobOptions.fem_timeout, ge=1, description="wall time of a FEM job, s")

@@ -454,6 +454,20 @@ class ParameterSetRecord(BaseModel):
         "honest figure",
     )
     validation_discrepancy_h: list[float] = Field([], description="per validation case, % of h")
+    compliance_ratio: list[float | None] = Field(
+        [],
+        description="per load case, the load compliance ratio (the model's sum_i f_i . u_i over "
+        "its loaded nodes over the reference's: 1.0 feels the reference's stiffness, 1.5 is 1.5 "
+        "times too soft); empty in sets stored before it",
+    )
+    validation_compliance_ratio: list[float | None] = Field(
+        [], description="the same per validation case"
+    )
+    verdict: dict[str, Any] | None = Field(
+        None,
+        description="the fit's verdict (fpm.fitting.result.Verdict: grade 'good', 'fair' or "
+        "'poor', its basis, floor, bounds and causes); null in sets stored before it",
+    )
     node_mass: dict[str, float] = Field(description="lumped node masses: min, max, mean, total, kg")
     warnings: list[str] = []
     cost: float = Field(description="Eq. (2) of the last dynamic run, m")

@@ -353,6 +353,10 @@ def test_concurrent_first_requests_enqueue_one_job(api, redis, run_workers, smal
     run_workers()
     assert api.get(path, params={"format": "sofa"}).status_code == 200
     # The store's own race: 8 threads, each with its own connection, ask at the same instant.
+    assert data["fit"]["compliance_ratio"] == done["result"]["compliance_ratio"]
+    assert len(data["fit"]["compliance_ratio"]) == len(small_spec["load_cases"])
+    assert data["fit"]["verdict"] == done["result"]["verdict"]
+    assert data["fit"]["verdict"]["grade"] in ("good", "fair", "poor")
     spec = records.get_calibration(redis, done["id"]).spec
     start = threading.Barrier(8)
 
@@ -633,7 +637,10 @@ def test_the_validation_figures_agree_with_an_independent_solve_of_the_export():
             {"nodes": case.nodes.tolist(), "forces": case.forces.tolist()}
         )  # the user's own load, applied to the exported lattice
     reported = result.relative_discrepancy + result.validation_relative_discrepancy
-    for j, expected in enumerate(reported):
+    ratios = model["fit"]["compliance_ratio"] + model["fit"]["validation_compliance_ratio"]
+    assert ratios == result.compliance_ratio + result.validation_compliance_ratio
+    assert model["fit"]["verdict"] == result.verdict.model_dump()
+    for j, (expected, ratio) in enumerate(zip(reported, ratios, strict=True)):
         theirs = independent_linear_solve(model, j)
         fem = np.asarray(reference.displacements[j])
         relative = 100 * np.linalg.norm(theirs - fem, axis=1).sum()
@@ -678,3 +685,7 @@ def test_a_fit_at_its_full_depth_exports_every_layer(problem):
     assert len(reached) == problem.n_nodes - problem.fixed.sum()
     short = json.loads(export(problem, {**full, "depth": deepest.layers - 1}, "json"))
     assert short["parameters"]["depth"] == deepest.layers - 1
+        # the load compliance ratio from the export alone: the work of its forces
+        nodes, forces = (np.asarray(model["load_cases"][j][k]) for k in ("nodes", "forces"))
+        work = np.einsum("ij,ij->", forces, theirs[nodes]) / np.einsum("ij,ij->", forces, fem[nodes])
+        assert work == pytest.approx(ratio, abs=0.015), j

@@ -40,7 +40,7 @@ def test_a_job_over_the_limit_is_refused_with_the_reason():
 
 
 def test_no_limit_no_refusal(monkeypatch):
-    monkeypatch.setattr(memory, "memory_limit", lambda: None)
+    monkeypatch.setattr(memory, "memory_limit", lambda **_: None)
     memory.check(10**7)
 
 

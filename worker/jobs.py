@@ -570,6 +570,9 @@ def _parameter_set(
             evaluations=result["evaluations"],
         ),
     )
+        compliance_ratio=result.get("compliance_ratio", []),
+        validation_compliance_ratio=result.get("validation_compliance_ratio", []),
+        verdict=result.get("verdict"),
 
 
 def export_parameter_set(parameter_set_id: str, fmt: str) -> dict[str, Any]:

@@ -44,9 +44,13 @@ def parse_bytes(text: str) -> int:
 
 
 def memory_limit(
-    environ: Mapping[str, str] | None = None, files: tuple[str, ...] = CGROUP_FILES
+    environ: Mapping[str, str] | None = None,
+    files: tuple[str, ...] = CGROUP_FILES,
+    machine: bool = False,
 ) -> tuple[int, str] | None:
-    """(bytes, where it came from) of this worker's memory limit, or None when it has none."""
+    """(bytes, where it came from) of this worker's memory limit, or None when it has none.
+    ``machine``: a process of its own (``fpmcal``), whose limit without one set is the
+    machine's memory."""
     env: Mapping[str, str] = os.environ if environ is None else environ
     if env.get("FPM_WORKER_MEMORY"):
         return parse_bytes(env["FPM_WORKER_MEMORY"]), "FPM_WORKER_MEMORY"
@@ -57,6 +61,11 @@ def memory_limit(
             continue
         if text.isdigit() and int(text) < NO_LIMIT:
             return int(text), name
+    if machine and hasattr(os, "sysconf"):
+        try:
+            return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"), "the machine's memory"
+        except (ValueError, OSError):
+            return None
     return None
 
 
@@ -65,16 +74,23 @@ def estimated_bytes(nodes: int) -> float:
     return BASE + PER_NODE * nodes
 
 
-def check(nodes: int, limit: tuple[int, str] | None = None) -> None:
+def check(nodes: int, limit: tuple[int, str] | None = None, machine: bool = False) -> None:
     """Raise :class:`MemoryRefused` when a job on ``nodes`` nodes cannot fit in ``limit``
-    (default: :func:`memory_limit`)."""
-    limit = memory_limit() if limit is None else limit
+    (default: :func:`memory_limit`). ``machine``: the check of ``fpmcal``, a calibration in a
+    process of its own (the limit defaults to the machine's memory; the message names the
+    machine, not a worker)."""
+    limit = memory_limit(machine=machine) if limit is None else limit
     if limit is None:
         return
     need, (have, source) = estimated_bytes(nodes), limit
     if need > have:
+        where = (
+            "this machine may use {} ({}): use a coarser spacing"
+            if machine
+            else "this worker may use {} ({}): run it on a worker with more memory "
+            "(FPM_WORKER_MEMORY or the container's limit) or use a coarser spacing"
+        )
         raise MemoryRefused(
-            f"this job needs about {need / 1e9:.2f} GB for {nodes:,} lattice nodes and this "
-            f"worker may use {have / 1e9:.2f} GB ({source}): run it on a worker with more "
-            "memory (FPM_WORKER_MEMORY or the container's limit) or use a coarser spacing"
+            f"this job needs about {need / 1e9:.2f} GB for {nodes:,} lattice nodes and "
+            + where.format(f"{have / 1e9:.2f} GB", source)
         )

@@ -9,7 +9,9 @@ lattice is rebuilt from the spec they were fitted on. Formats:
   ``fpm.stiffness: "field"``), the hexahedra with their volume stiffness
   kappa and rest volume (the volume term; null in the spring-only models), lumped masses, fixed
   nodes, the model's energy in words, d, dt, depth (null: every layer), and per load case the
-  nodal forces and the perturbed list's layers (the paper's lookup table): from it alone
+  nodal forces and the perturbed list's layers (the paper's lookup table), and ``fit``: the
+  figures per load and validation case (relative discrepancy, load compliance ratio) and the
+  verdict on the fit (good, fair or poor, and why): from it alone
   another program rebuilds
   the model's static equilibrium (tests/test_export.py does, with its own linear solve);
 - ``vtu``: the hexahedra and the springs (VTK_LINE cells) with, per load case, the FPM's and
@@ -589,6 +591,9 @@ def export(
             "validation_cases",
             "validation_relative_discrepancy",
             "validation_discrepancy_h",
+            "compliance_ratio",
+            "validation_compliance_ratio",
+            "verdict",
         )
         fit = {k: record[k] for k in keys if k in record}
         return json.dumps(to_json(lattice, fit, record.get("max_steps"))).encode()
