@@ -118,7 +118,6 @@ def check_size(spec: ProblemSpec, limits: Limits | None = None) -> int:
     if mesh is not None and len(mesh.tetrahedra) > limits.max_mesh_tetrahedra:
         raise LimitError(
             "reference.mesh.tetrahedra",
-            f"{len(mesh.tetrahedra)} tetrahedra is over the limit of "
-            f"{limits.max_mesh_tetrahedra}",
+            f"{len(mesh.tetrahedra)} tetrahedra is over the limit of {limits.max_mesh_tetrahedra}",
         )
     return nodes

@@ -54,7 +54,9 @@ def test_the_check_counts_nodes_without_building_and_names_the_field():
 def test_the_limits_come_from_the_environment_as_the_services_do():
     assert Limits.from_environ({}) == Limits()
     assert Limits.from_environ({"FPM_MAX_NODES": "2000"}).max_nodes == 2000
-    with pytest.raises(LimitError, match=r"^FPM_MAX_NODES: must be a whole number >= 1 \(got 'x'\)"):
+    with pytest.raises(
+        LimitError, match=r"^FPM_MAX_NODES: must be a whole number >= 1 \(got 'x'\)"
+    ):
         Limits.from_environ({"FPM_MAX_NODES": "x"})
 
 
