@@ -557,6 +557,9 @@ def _parameter_set(
         validation_cases=result.get("validation_cases", []),
         validation_relative_discrepancy=result.get("validation_relative_discrepancy", []),
         validation_discrepancy_h=result.get("validation_discrepancy_h", []),
+        compliance_ratio=result.get("compliance_ratio", []),
+        validation_compliance_ratio=result.get("validation_compliance_ratio", []),
+        verdict=result.get("verdict"),
         node_mass=result["node_mass"],
         warnings=result["warnings"],
         cost=result["cost"],
@@ -570,9 +573,6 @@ def _parameter_set(
             evaluations=result["evaluations"],
         ),
     )
-        compliance_ratio=result.get("compliance_ratio", []),
-        validation_compliance_ratio=result.get("validation_compliance_ratio", []),
-        verdict=result.get("verdict"),
 
 
 def export_parameter_set(parameter_set_id: str, fmt: str) -> dict[str, Any]:
