@@ -24,6 +24,8 @@ from .table import printable, table
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 STATUSES = ["queued", "running", "succeeded", "failed", "canceled"]
+UNSUCCESSFUL = ("failed", "canceled")
+"""How a calibration may end without a result (``submit --wait`` then exits 2)."""
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -34,7 +36,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     sub = parser.add_subparsers(dest="command", required=True)
     submit = sub.add_parser("submit", help="submit a calibration")
     submit.add_argument("spec", help="problem spec JSON file")
-    submit.add_argument("--wait", action="store_true", help="wait, with a progress bar on stderr")
+    submit.add_argument(
+        "--wait",
+        action="store_true",
+        help="wait, with a progress bar on stderr; exit 2 if it fails or is canceled",
+    )
     sub.add_parser("status", help="show a calibration").add_argument("id")
     sub.add_parser("cancel", help="cancel a calibration").add_argument("id")
     listing = sub.add_parser("list", help="list calibrations, newest first")
@@ -255,10 +261,18 @@ def run(client: Client, args: argparse.Namespace) -> Any:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run ``fpm-client``. Exit status: 0 done; 1 the service refused the request (each field
+    error on a line); 2 the service cannot be reached, or ``submit --wait`` ended in a failed
+    or canceled calibration (its error on stderr)."""
     args = parse_args(argv)
     with Client(args.url, api_key=args.api_key) as client:
         try:
-            run(client, args)
+            answer = run(client, args)
+            if args.command == "submit" and args.wait and answer["status"] in UNSUCCESSFUL:
+                reason = answer.get("error") or "no reason recorded"
+                print(f"error: calibration {answer['id']} {answer['status']}: {reason}",
+                      file=sys.stderr)  # fmt: skip
+                return 2
         except ApiError as e:
             print(f"error: {e}", file=sys.stderr)
             for err in e.errors:

@@ -262,3 +262,47 @@ def test_cli_cannot_reach(capsys):
 def test_demo_ends_with_the_web_view_url():
     assert web_view_hint("http://host:9000/") == "web view: http://host:9000/"
     assert web_view_hint(None).startswith("web view: http://127.0.0.1:8000/ once the stack")
+
+
+@pytest.mark.redis
+def test_submit_wait_exits_2_with_the_error_when_the_calibration_fails_or_is_canceled(
+    live_api, small_spec, tmp_path, capsys
+):
+    """A script can trust the exit status: E = 5 Pa fails at the reference check (exit 2, the
+    job's error on stderr); a calibration canceled while ``--wait`` polls exits 2 too."""
+    import threading
+
+    small_spec["name"] = "fails"
+    small_spec["material"]["youngs_modulus"] = 5.0
+    spec_file = tmp_path / "fails.json"
+    spec_file.write_text(json.dumps(small_spec))
+    assert cli(["--url", live_api, "submit", str(spec_file), "--wait"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert (
+        err[-1].startswith("error: calibration ")
+        and " failed: reference check failed: " in (err[-1])
+    )
+
+    slow = dict(small_spec, name="canceled while waited on", material=SLOW_MATERIAL)
+    slow["annealing"] = {"chains": 1, "beta": 2e-3}  # 10^5 moves: still running
+    spec_file.write_text(json.dumps(slow))
+    with Client(live_api) as client:
+
+        def cancel_when_submitted() -> None:
+            for _ in range(200):
+                items = client.calibrations(limit=5)["items"]
+                mine = [i for i in items if i["name"] == slow["name"]]
+                if mine:
+                    client.cancel(mine[0]["id"])
+                    return
+                threading.Event().wait(0.05)
+
+        canceller = threading.Thread(target=cancel_when_submitted)
+        canceller.start()
+        status = cli(["--url", live_api, "submit", str(spec_file), "--wait"])
+        canceller.join()
+    assert status == 2
+    assert capsys.readouterr().err.splitlines()[-1].endswith(" canceled: no reason recorded")
+
+
+SLOW_MATERIAL = {"youngs_modulus": 10_000.0, "poisson_ratio": 0.45, "density": 1040.0}
