@@ -20,7 +20,7 @@ from typing import Any
 import httpx
 
 from .sdk import ApiError, Client
-from .table import printable, table
+from .table import printable, table, verdict_lines
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 STATUSES = ["queued", "running", "succeeded", "failed", "canceled"]
@@ -78,9 +78,13 @@ def stage_line(c: dict[str, Any]) -> str:
     return f"{p.get('stage') or p['phase']}" + (f"  [{stages}]" if stages else "")
 
 
-def discrepancy_rows(result: dict[str, Any], names: list[str] | None = None) -> list[list[Any]]:
-    """Per load case: relative % (the headline), loaded nodes %, % of h, settle steps; then the
-    mean. % of h is never shown without the relative figure beside it."""
+def discrepancy_rows(
+    result: dict[str, Any], names: list[str] | None = None, *, compliance: bool = False
+) -> list[list[Any]]:
+    """Per load case: relative % (the headline), loaded nodes %, % of h, settle steps, and with
+    ``compliance`` the load compliance ratio (:data:`COMPLIANCE_HEADER`; '-' in a result
+    stored before it); then the mean. % of h is never shown without the relative figure beside
+    it."""
     relative = result["relative_discrepancy"]
     names = names or [f"load case {i + 1}" for i in range(len(relative))]
     columns = (
@@ -92,24 +96,37 @@ def discrepancy_rows(result: dict[str, Any], names: list[str] | None = None) -> 
     rows: list[list[Any]] = [[name, *values] for name, *values in zip(names, *columns, strict=True)]
     if len(rows) > 1:
         rows.append(["mean", *(mean(list(v)) for v in columns[:3]), None])
+    if compliance:
+        ratios = result.get("compliance_ratio") or [None] * len(relative)
+        for row, c in zip(rows, [*ratios, None][: len(rows)], strict=True):
+            row.append(None if c is None else round(c, 3))
     return rows
 
 
 DISCREPANCY_HEADERS = ["load case", "relative %", "loaded nodes %", "% of h", "settle steps"]
 """Headers of :func:`discrepancy_rows`: the relative figure first."""
 
-VALIDATION_HEADERS = ["validation case (never fitted)", "relative %", "% of h"]
+COMPLIANCE_HEADER = "compliance"
+"""The load compliance ratio's column: the model's work of the load over the reference's (1.0
+feels the reference's stiffness, 1.5 is 1.5 times too soft)."""
+
+VALIDATION_HEADERS = ["validation case (never fitted)", "relative %", "% of h", COMPLIANCE_HEADER]
 """Headers of :func:`validation_rows`."""
 
 
 def validation_rows(result: dict[str, Any]) -> list[list[Any]]:
-    """Per validation case: relative % (the honest figure) and % of h; then the mean."""
+    """Per validation case: relative % (the honest figure), % of h and the load compliance
+    ratio; then the mean."""
     relative = result.get("validation_relative_discrepancy") or []
     h_percent = result.get("validation_discrepancy_h") or []
     names = result.get("validation_cases") or [f"case {i + 1}" for i in range(len(relative))]
-    rows: list[list[Any]] = [list(r) for r in zip(names, relative, h_percent, strict=True)]
+    ratios = result.get("validation_compliance_ratio") or [None] * len(relative)
+    rows: list[list[Any]] = [
+        [name, rel, h, None if c is None else round(c, 3)]
+        for name, rel, h, c in zip(names, relative, h_percent, ratios, strict=True)
+    ]
     if len(rows) > 1:
-        rows.append(["mean", mean(relative), mean(h_percent)])
+        rows.append(["mean", mean(relative), mean(h_percent), None])
     return rows
 
 
@@ -168,7 +185,12 @@ def show_calibration(c: dict[str, Any]) -> str:
             f"h           {r['h']:.5g} m",
             f"param set   {c['parameter_set_id']}",
             "",
-            table(DISCREPANCY_HEADERS, discrepancy_rows(r)),
+            *verdict_lines(r.get("verdict")),
+            "",
+            table(
+                [*DISCREPANCY_HEADERS, COMPLIANCE_HEADER],
+                discrepancy_rows(r, c.get("load_cases"), compliance=True),
+            ),
         ]
         validation = validation_rows(r)
         if validation:

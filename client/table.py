@@ -41,3 +41,23 @@ def table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     out = [line(headers), line(["-" * w for w in widths])]
     out += [line(r) for r in cells]
     return "\n".join(out)
+
+
+def verdict_lines(verdict: dict[str, Any] | None, indent: str = "") -> list[str]:
+    """The fit's verdict (a result's ``verdict``) as lines: the grade in capitals with its
+    summary, then each parameter at a bound and each likely cause with its action; none for a
+    result stored before verdicts."""
+    if not verdict:
+        return []
+    grade = verdict["grade"]
+    summary = printable(verdict["summary"])
+    lines = [f"verdict: {grade.upper()}{summary[len(grade) :]}"]
+    floor = verdict.get("floor") or {}
+    if floor:
+        lines.append(f"  floor: {printable(floor['what'])} ({floor['source']})")
+    lines += [
+        f"  cause: {printable(c['cause'])}: {printable(c['detail'])}; "
+        f"action: {printable(c['action'])}"
+        for c in verdict.get("causes") or []
+    ]
+    return [indent + line for line in lines]

@@ -402,9 +402,15 @@ def _read_json(path: str, what: str) -> Any:
 
 
 def result_table(problem: Any, result: Any) -> str:
-    """The calibration result as a readable table (the relative discrepancy beside % of h)."""
+    """The calibration result as a readable table: the verdict first, the parameters, then per
+    case the relative discrepancy beside % of h and the load compliance ratio."""
+    from client.table import verdict_lines
+
     stiffness = getattr(result, "stiffness", None)
-    lines = [f"model  {getattr(result, 'stiffness_mode', 'single'):>12}"]
+    verdict = getattr(result, "verdict", None)
+    lines = verdict_lines(None if verdict is None else verdict.model_dump())
+    lines += [""] if lines else []
+    lines.append(f"model  {getattr(result, 'stiffness_mode', 'single'):>12}")
     regions = getattr(result, "regions", None)
     if isinstance(stiffness, dict) and ("axial_scale" in stiffness or regions):
         # material regions, transversely isotropic: the base's families here, the rest below
@@ -440,20 +446,29 @@ def result_table(problem: Any, result: Any) -> str:
         h_percent = result.discrepancy
     n = len(problem.load_cases)
     relative = list(relative) if relative is not None else [float("nan")] * n
+    ratios = list(getattr(result, "compliance_ratio", None) or [None] * n)
     lines.append(
         f"{'load case':<16}{'relative discrepancy %':>24}{'% of h':>10}{'settle steps':>14}"
+        f"{'compliance':>12}"
     )
-    for case, rel, disc, steps in zip(
-        problem.load_cases, relative, h_percent, result.settle_steps, strict=True
+    for case, rel, disc, steps, ratio in zip(
+        problem.load_cases, relative, h_percent, result.settle_steps, ratios, strict=True
     ):
-        lines.append(f"{case.name:<16}{rel:>24.3f}{disc:>10.3f}{steps:>14d}")
+        lines.append(f"{case.name:<16}{rel:>24.3f}{disc:>10.3f}{steps:>14d}{_ratio(ratio):>12}")
     lines.append(f"{'mean':<16}{_mean(relative):>24.3f}{_mean(h_percent):>10.3f}")
     validation = list(getattr(result, "validation_relative_discrepancy", None) or [])
     if validation:
-        lines += ["", f"{'validation case':<16}{'relative discrepancy %':>24}{'% of h':>10}"]
+        lines += [
+            "",
+            f"{'validation case':<16}{'relative discrepancy %':>24}{'% of h':>10}{'':>14}"
+            f"{'compliance':>12}",
+        ]
         names = getattr(result, "validation_cases", None) or [""] * len(validation)
-        for name, rel, disc in zip(names, validation, result.validation_discrepancy_h, strict=True):
-            lines.append(f"{name:<16}{rel:>24.3f}{disc:>10.3f}")
+        unseen = list(getattr(result, "validation_compliance_ratio", None) or [None] * len(names))
+        for name, rel, disc, ratio in zip(
+            names, validation, result.validation_discrepancy_h, unseen, strict=True
+        ):
+            lines.append(f"{name:<16}{rel:>24.3f}{disc:>10.3f}{'':>14}{_ratio(ratio):>12}")
         lines.append(
             f"{'mean':<16}{_mean(validation):>24.3f}{_mean(result.validation_discrepancy_h):>10.3f}"
             "  (never fitted: the honest figure)"
@@ -503,6 +518,11 @@ def _field_lines(field: Any) -> list[str]:
     )
     lines.append(f"(* returned) smoothness weight {field.smoothness_weight:g}; left out: {tried}")
     return lines
+
+
+def _ratio(value: float | None) -> str:
+    """A load compliance ratio to 3 decimals, '-' where there is none."""
+    return "-" if value is None else f"{value:.3f}"
 
 
 def _mean(values: Any) -> float:

@@ -194,3 +194,63 @@ def test_the_documented_cube_floors_are_the_benchmark_json_s():
         ]  # fmt: skip
         assert CUBE_FLOORS[(mode, "fitted")] == round(max(r["relative_discrepancy"]), 1)
         assert CUBE_FLOORS[(mode, "unseen")] == round(max(r["validation_relative_discrepancy"]), 1)
+
+
+def test_a_reference_that_does_not_resolve_its_load_is_named_as_a_cause():
+    """The small box's point loads on a coarse mesh: the reference's own estimate says 44%."""
+    result = calibrate(fpm.load_problem(SMALL_BOX))
+    assert result.reference_error is not None and max(result.reference_error) > 5
+    v = result.verdict
+    assert v is not None and v.grade == "poor"
+    [reference] = [c for c in v.causes if c.cause == "reference"]
+    assert "reference.refine 'auto'" in reference.action and "'0.05 N'" in reference.detail
+
+
+def test_both_command_lines_show_the_verdict_first_and_the_compliance_per_case(tmp_path, capsys):
+    """fpmcal calibrate's table, and fpm-client's report of the same result as the service
+    answers it: the verdict in capitals before the figures, its causes, a compliance column
+    for the fitted and the validation cases."""
+    from client.cli import show_calibration
+    from fpmcal.cli import main
+
+    spec = copy.deepcopy(SMALL_BOX)
+    spec["validation_cases"] = [
+        {"name": "sideways", "forces": [{"at": [0.01, 0.01, 0.03], "vector": [0.05, 0, 0]}]}
+    ]
+    path = tmp_path / "box.json"
+    path.write_text(json.dumps(spec))
+    assert main(["calibrate", str(path), "-q", "--json"]) == 0
+    captured = capsys.readouterr()
+    result = json.loads(captured.out)
+    v = result["verdict"]
+    assert v["basis"] == "unseen" and v["worst_case"] == "sideways"
+    table = captured.err.splitlines()
+    first = next(i for i, line in enumerate(table) if line.startswith("verdict: "))
+    assert table[first].startswith(f"verdict: {v['grade'].upper()}: worst {v['worst']:.1f}%")
+    header = next(i for i, line in enumerate(table) if line.startswith("load case"))
+    assert first < header and table[header].endswith("compliance")
+    row = table[header + 1].split()
+    assert row[0:2] == ["0.05", "N"] and float(row[-1]) == pytest.approx(
+        result["compliance_ratio"][0], abs=5e-4
+    )
+    unseen = next(line for line in table if line.startswith("sideways"))
+    assert float(unseen.split()[-1]) == pytest.approx(
+        result["validation_compliance_ratio"][0], abs=5e-4
+    )
+    assert any(line.startswith("  cause: ") for line in table) == bool(v["causes"])
+    answer = {
+        "id": "c1",
+        "name": "box",
+        "status": "succeeded",
+        "parameter_set_id": "ps-1",
+        "progress": {"phase": "done", "method": "two-stage", "stage": "done", "stages": [],
+                     "iterations": 1, "total_iterations": 1},
+        "result": result,
+    }  # fmt: skip
+    lines = show_calibration(answer).splitlines()
+    first = next(i for i, line in enumerate(lines) if line.startswith("verdict: "))
+    header = next(i for i, line in enumerate(lines) if line.startswith("load case"))
+    assert first < header and lines[header].split()[-1] == "compliance"
+    assert lines[header + 2].split()[-1] == f"{result['compliance_ratio'][0]:.3f}".rstrip("0")
+    unseen = next(line for line in lines if line.startswith("sideways"))
+    assert unseen.split()[-1] == f"{result['validation_compliance_ratio'][0]:.3f}".rstrip("0")

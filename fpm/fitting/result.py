@@ -119,8 +119,8 @@ class Cause(BaseModel):
     """A likely cause of a fit short of good, and the action that helps."""
 
     cause: str = Field(
-        description="'large deformation', 'lattice too coarse', 'nu near 0.5', 'compliance', "
-        "'bound', 'model family' or 'unsettled'"
+        description="'large deformation', 'reference', 'lattice too coarse', 'nu near 0.5', "
+        "'compliance', 'bound', 'model family' or 'unsettled'"
     )
     detail: str = Field(description="what was found, with the case or part and the figure")
     action: str = Field(description="what to change")

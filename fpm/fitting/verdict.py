@@ -19,8 +19,8 @@ fitted parameters and reference, and returns its :class:`~fpm.fitting.result.Ver
   (the reference outside small strain: :data:`fpm.fitting.diagnosis.SMALL_STRAIN`), a lattice
   too coarse for a part (:func:`fpm.model.geometry.thin_parts`, or fewer than
   :attr:`VerdictSettings.cells_across` cells across the solid), Poisson's ratio near 0.5, a
-  compliance ratio out of range, a parameter at a bound, the model family itself, an unsettled
-  run.
+  compliance ratio out of range, a parameter at a bound, a reference that does not resolve its
+  load (:data:`fpm.fem.refine.WARN_ERROR`), the model family itself, an unsettled run.
 
 A poor fit is still a calibration that succeeded: the verdict says it is poor and why.
 """
@@ -73,8 +73,8 @@ class VerdictSettings:
 SETTINGS = VerdictSettings()
 """The thresholds :func:`judge` uses."""
 
-VOLUME_PAGE = "docs/bench/volume.md (bench/results/volume.json)"
-"""The page recording the paper's cube per model (rendered from its benchmark JSON)."""
+VOLUME_PAGE = "docs/bench/volume.md"
+"""The page recording the paper's cube per model (rendered from bench/results/volume.json)."""
 ORGANS_PAGE = "docs/explanation/organs-conforming.md"
 """The page recording the organ lattices beside elements on the same nodes."""
 
@@ -235,6 +235,8 @@ def _causes(
     grade: str,
 ) -> list[Cause]:
     """The likely causes of a fit short of good, each with its action."""
+    from ..fem.refine import WARN_ERROR
+
     s = SETTINGS
     causes = []
     m = problem.spec.material
@@ -264,6 +266,19 @@ def _causes(
                     "material.model 'neo-hookean' for a reference made for large deformation",
                 )
             )
+    errors = list(result.reference_error or []) + list(result.validation_reference_error or [])
+    if errors and max(errors) > WARN_ERROR:
+        names = [c.name for c in problem.load_cases] + list(result.validation_cases)
+        at = int(np.argmax(errors))
+        causes.append(
+            Cause(
+                cause="reference",
+                detail=f"'{names[at]}': the reference's estimated error is {errors[at]:.1f}%, "
+                f"above {WARN_ERROR:g}%: it does not resolve the load, and the fit inherits that",
+                action="reference.refine 'auto', or a force spread over more nodes "
+                '("distribute": true)',
+            )
+        )
     coarse = _coarse(problem)
     if coarse:
         causes.append(
@@ -292,14 +307,16 @@ def _causes(
                 action=action,
             )
         )
-    for name, ratio in off:
-        how = f"{ratio:.2f} times too soft" if ratio > 1 else f"{1 / ratio:.2f} times too stiff"
+    if off:
+        listed = ", ".join(f"'{name}' {ratio:.2f}" for name, ratio in off)
+        soft = [r for _, r in off if r > 1]
+        how = "too soft" if len(soft) == len(off) else "too stiff" if not soft else "off"
         causes.append(
             Cause(
                 cause="compliance",
-                detail=f"'{name}': load compliance ratio {ratio:.2f} (a probe there feels the "
-                f"model {how}; within {s.compliance[0]}-{s.compliance[1]} it feels the "
-                "reference's stiffness)",
+                detail=f"load compliance ratio {listed}: a probe there feels the model {how} "
+                f"(within {s.compliance[0]}-{s.compliance[1]} it feels the reference's "
+                "stiffness; 1.5: 1.5 times too soft)",
                 action="a finer lattice under the load (a smaller spacing), or a load case "
                 "like it among the fitted ones",
             )
