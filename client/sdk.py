@@ -4,11 +4,15 @@ from client import Client
 c = Client("http://127.0.0.1:8000")
 done = c.calibrate("examples/paper-material-a.json", wait=True)
 r = done["result"]
+print(r["verdict"]["summary"])  # 'good', 'fair' or 'poor', on what basis, and why
 print(r["stiffness"], r["d"], r["depth"])  # N/m per spring family, N s/m, layers
 # The fit per load case: the relative discrepancy (%, scale-free) is the headline; the
 # loaded-node error and the paper's unit (% of h) go beside it, never % of h alone.
 for rel, loaded, h in zip(r["relative_discrepancy"], r["loaded_discrepancy"], r["discrepancy_h"]):
     print(f"{rel:.1f}% (loaded nodes {loaded:.1f}%, {h:.2f}% of h)")
+# What a probe feels per load case: the model's work of the load over the reference's
+# (1.0: the reference's stiffness; 1.5: 1.5 times too soft).
+print(r["compliance_ratio"], r["validation_compliance_ratio"])
 """
 
 from __future__ import annotations
@@ -171,7 +175,12 @@ class Client:
         stage's step and the d values tried). ``result``: ``method``, ``stiffness`` (k per
         spring family; ``k`` is the axis family's), ``d``, ``d_min``, ``depth``, per load case
         ``relative_discrepancy`` (%, the headline), ``loaded_discrepancy`` (%) and
-        ``discrepancy_h`` (% of h), ``settle_steps``, ``seconds`` per stage, ``warnings``.
+        ``discrepancy_h`` (% of h), ``compliance_ratio`` (the load compliance ratio: 1.0 feels
+        the reference's stiffness), ``settle_steps``, ``seconds`` per stage, ``warnings``, and
+        ``verdict``: ``grade`` ('good', 'fair' or 'poor': a poor fit still succeeds),
+        ``basis`` ('unseen' or 'fitted'), ``worst`` (%), ``floor`` (what the model family
+        reaches, with its page), ``bounds`` (parameters at a bound), ``causes`` (each with an
+        ``action``) and ``summary`` (one line).
         """
         return self._call("GET", f"/v1/calibrations/{calibration_id}")
 
