@@ -5,8 +5,8 @@ names a running service, submits examples/paper-material-a.json and -b.json (wit
 default method, two-stage: a stiffness search on static equilibria, then the fastest-settling
 d), shows their progress, and prints the fitted parameters beside the paper's Table 1, then the
 fit per load case: the relative discrepancy first (the headline figure), with the loaded-node
-error and the paper's unit, % of h, beside it. Stops the stack. Stored results survive in
-./data: a second run answers at once.
+error and the paper's unit, % of h, beside it, and the verdict on each fit. Stops the stack.
+Stored results survive in ./data: a second run answers at once.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from stack.redis_server import free_port
 
 from .cli import DISCREPANCY_HEADERS, discrepancy_rows, mean, stiffness_text
 from .sdk import Client, read_spec
-from .table import table
+from .table import table, verdict_lines
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 PAPER = {
@@ -100,6 +100,7 @@ def report(results: dict[str, dict[str, Any]], specs: dict[str, dict[str, Any]])
         r = done["result"]
         cases = [c.get("name") or f"case {i + 1}" for i, c in enumerate(specs[name]["load_cases"])]
         parts.append(f"{name}\n{table(DISCREPANCY_HEADERS, discrepancy_rows(r, cases))}")
+        parts += verdict_lines(r.get("verdict"))[:1]  # the grade and its summary
         parts += [f"warning: {w}" for w in r.get("warnings", [])]
     return "\n\n".join(parts) + f"\n\n{PAPER_NOTE}"
 

@@ -254,3 +254,16 @@ def test_both_command_lines_show_the_verdict_first_and_the_compliance_per_case(t
     assert lines[header + 2].split()[-1] == f"{result['compliance_ratio'][0]:.3f}".rstrip("0")
     unseen = next(line for line in lines if line.startswith("sideways"))
     assert unseen.split()[-1] == f"{result['validation_compliance_ratio'][0]:.3f}".rstrip("0")
+
+
+def test_the_demo_adds_one_verdict_line_per_material_and_nothing_else():
+    from client.demo import report
+
+    result = calibrate(fpm.load_problem(SMALL_BOX)).to_dict()
+    spec = {"load_cases": SMALL_BOX["load_cases"]}
+    bare = {k: v for k, v in result.items() if k != "verdict"}
+    before = report({"paper-material-a": {"result": bare}}, {"paper-material-a": spec})
+    after = report({"paper-material-a": {"result": result}}, {"paper-material-a": spec})
+    added = [line for line in after.splitlines() if line not in before.splitlines()]
+    assert added == [f"verdict: POOR{result['verdict']['summary'][len('poor') :]}"]
+    assert after.replace(added[0] + "\n\n", "") == before
