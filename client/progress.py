@@ -68,8 +68,8 @@ def render(calibration: dict[str, Any]) -> str:
     line = f"{name[:28]:<28} [{'#' * filled}{'.' * (WIDTH - filled)}]"
     line += f" {fraction:4.0%} {calibration['status']:<9}"
     stages = p.get("stages") or []
-    if p["phase"] in stages:
-        line += f" stage {stages.index(p['phase']) + 1}/{len(stages)}"
+    if p["phase"] in stages:  # the service's number (a server before it: the same, counted)
+        line += f" stage {p.get('stage_number') or stages.index(p['phase']) + 1}/{len(stages)}"
     line += f" {phase_label(p):<9}"
     if p["phase"] == "damping":
         damping = p.get("damping") or {}

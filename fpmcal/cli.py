@@ -195,10 +195,12 @@ def cmd_fem(args: argparse.Namespace) -> None:
 
 
 class _Bar:
-    """A one-line progress bar on stderr for in-process calibration (chains share the bar)."""
+    """A one-line progress bar on stderr for in-process calibration (chains share the bar; its
+    best cost is the best so far over all of them, so a chain starting later never raises it)."""
 
     def __init__(self, chains: int, moves: int):
         self.done = [0] * chains
+        self.best = float("inf")
         self.total = chains * moves
         self.tty = sys.stderr.isatty()
         self.last_tenth = -1
@@ -213,13 +215,14 @@ class _Bar:
         if "best_cost" not in info:  # still drawing the chain's starting point
             return
         self.done[info["chain"]] = info["move"]
+        self.best = min(self.best, info["best_cost"])
         frac = sum(self.done) / self.total
         if not self.tty and int(frac * 10) == self.last_tenth:
             return
         self.last_tenth = int(frac * 10)
         bar = "#" * round(30 * frac)
         line = f"  annealing [{bar:<30}] {frac:4.0%}  T={info['temperature']:.2e}"
-        line += f"  best cost {info['best_cost']:.4f}"
+        line += f"  best cost {self.best:.4f}"
         print(("\r" if self.tty else "") + line, end="" if self.tty else "\n", file=sys.stderr)
         if self.tty and frac >= 1:
             print(file=sys.stderr)

@@ -96,8 +96,18 @@ class Progress(BaseModel):
         "finalize, done"
     )
     method: Literal["two-stage", "paper"] = Field(description="the spec's annealing.method")
-    stage: str = Field(description="what runs now, in words")
-    stages: list[Phase] = Field(description="the phases this calibration goes through, in order")
+    stage: str = Field(
+        description="what runs now, in words, after its number ('stage 2 of 4: stiffness "
+        "search ...')"
+    )
+    stages: list[Phase] = Field(
+        description="the stages of a calibration of this method, in order: fem (done at once "
+        "when a stored reference is reused, see fem_cached), annealing, damping (two-stage), "
+        "finalize"
+    )
+    stage_number: int | None = Field(
+        None, description="the stage running, 1-based in stages (null while queued and when done)"
+    )
     iterations: int = Field(0, description="annealing moves done, all chains together")
     total_iterations: int = Field(0, description="annealing moves in all, all chains together")
     temperature: float | None = Field(None, description="highest current chain temperature")
@@ -187,6 +197,10 @@ class Calibration(BaseModel):
     timings: Timings
     fem_reference_id: str
     fem_cached: bool = Field(description="the FEM reference was already stored at submission")
+    load_cases: list[str] = Field(
+        default_factory=list,
+        description="the spec's load case names, in the order of the result's per-case lists",
+    )
     result: CalibrationResult | None = None
     parameter_set_id: str | None = None
     error: str | None = None

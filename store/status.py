@@ -43,3 +43,12 @@ class Phase(str, Enum):
     """Two-stage, stage 2: polish of the stiffness, depth, fastest-settling d."""
     FINALIZE = "finalize"
     DONE = "done"
+
+
+def calibration_stages(method: str) -> list[Phase]:
+    """The stages of a calibration of ``method`` ("two-stage" or "paper"), in order: the one
+    numbering that the status answer, ``fpm-client`` and the web page show ("stage 2 of 4").
+    The FEM reference is always stage 1, done at once when a stored one is reused, so a stage
+    has the same number whether or not it is."""
+    middle = [Phase.ANNEALING, Phase.DAMPING] if method == "two-stage" else [Phase.ANNEALING]
+    return [Phase.FEM, *middle, Phase.FINALIZE]

@@ -315,7 +315,7 @@ def test_worker_killed_in_the_damping_stage_is_retried(
         view = status_of(api, calibration_id)
         progress = view["progress"]
         assert progress["stages"] == ["fem", "annealing", "damping", "finalize"]
-        assert progress["stage"].startswith("stage 2 of 2: damping")
+        assert progress["stage"].startswith("stage 3 of 4: damping")
         assert progress["iterations"] == progress["total_iterations"]  # the chains are done
         (horse,) = child_pids(first.pid)
         os.kill(first.pid, signal.SIGKILL)  # the worker dies; its work horse with it

@@ -107,15 +107,15 @@ def test_progress_names_each_stage(api, redis, small_spec):
     chain = {"move": 7, "moves": 10, "temperature": 0.01, "best_cost": 0.3}
     redis.hset(progress_key, mapping={"0": json.dumps(chain), "1": json.dumps(chain)})
     annealing = view("annealing")
-    assert annealing["stage"].startswith("stage 1 of 2: stiffness search")
+    assert annealing["stage"].startswith("stage 2 of 4: stiffness search")
     assert annealing["iterations"] == 14 and annealing["total_iterations"] == 20
     assert [c["chain"] for c in annealing["chains"]] == [0, 1]
     assert annealing["damping"] is None
-    assert view("damping")["stage"] == "stage 2 of 2: damping (starting)"
+    assert view("damping")["stage"] == "stage 3 of 4: damping (starting)"
     report = {"step": "damping", "runs": 3, "d": 0.2, "total_steps": None}
     redis.hset(progress_key, keys.DAMPING_PROGRESS, json.dumps({**report, "best_d": 0.1}))
     damping = view("damping")
-    assert damping["stage"] == "stage 2 of 2: damping (finding the fastest-settling d)"
+    assert damping["stage"] == "stage 3 of 4: damping (finding the fastest-settling d)"
     assert damping["damping"]["runs"] == 3 and damping["damping"]["best_d"] == 0.1
     assert [c["chain"] for c in damping["chains"]] == [0, 1]  # the chain reports stay
     for step, doing in [
@@ -124,8 +124,8 @@ def test_progress_names_each_stage(api, redis, small_spec):
         ("field", "fitting the stiffness field"),
     ]:  # every phase of the stage
         redis.hset(progress_key, keys.DAMPING_PROGRESS, json.dumps({**report, "step": step}))
-        assert view("damping")["stage"] == f"stage 2 of 2: damping ({doing})"
-    assert view("finalize")["stage"] == "final dynamic run and figures"
+        assert view("damping")["stage"] == f"stage 3 of 4: damping ({doing})"
+    assert view("finalize")["stage"] == "stage 4 of 4: final dynamic run and figures"
 
     small_spec["annealing"].update(method="paper", seed=5)
     paper = api.post("/v1/calibrations", json=small_spec).json()
@@ -133,7 +133,7 @@ def test_progress_names_each_stage(api, redis, small_spec):
     assert progress["method"] == "paper" and progress["stages"] == ["fem", "annealing", "finalize"]
     redis.hset(keys.calibration(paper["id"]), mapping={"status": "running", "phase": "annealing"})
     stage = api.get(f"/v1/calibrations/{paper['id']}").json()["progress"]["stage"]
-    assert stage == "annealing (k, d) on dynamic runs"
+    assert stage == "stage 2 of 3: annealing (k, d) on dynamic runs"
 
 
 def test_progress_shows_the_fem_reference_s_level_while_it_runs(api, redis, small_spec):
@@ -143,15 +143,45 @@ def test_progress_shows_the_fem_reference_s_level_while_it_runs(api, redis, smal
     fem_hash = records.get_calibration(redis, calibration_id).fem_hash
     records.update_fem_meta(redis, fem_hash, {"status": FemStatus.RUNNING})
     progress = api.get(f"/v1/calibrations/{calibration_id}").json()["progress"]
-    assert progress["phase"] == "fem" and progress["stage"] == "FEM reference"
+    assert progress["phase"] == "fem" and progress["stage"] == "stage 1 of 4: FEM reference"
+    assert progress["stage_number"] == 1
     assert progress["fem"] == {"level": None, "fem_nodes": None, "last_change": None}
+    listed = api.get("/v1/calibrations").json()["items"]  # running in the listing too
+    assert [(i["id"], i["status"]) for i in listed] == [(calibration_id, "running")]
     level = {"level": 2, "fem_nodes": 342225, "last_change": 3.5}
     records.update_fem_meta(redis, fem_hash, level)
     progress = api.get(f"/v1/calibrations/{calibration_id}").json()["progress"]
     assert progress["fem"] == level
-    assert progress["stage"] == "FEM reference (refinement level 2: 342,225 FEM nodes)"
+    assert progress["stage"] == (
+        "stage 1 of 4: FEM reference (refinement level 2: 342,225 FEM nodes)"
+    )
     records.update_fem_meta(redis, fem_hash, {"status": FemStatus.SUCCEEDED})
     assert api.get(f"/v1/calibrations/{calibration_id}").json()["progress"]["fem"] is None
+    assert api.get("/v1/calibrations").json()["items"][0]["status"] == "queued"
+
+
+def test_a_reused_reference_keeps_the_stage_numbers(api, redis, run_workers, small_spec):
+    """The second calibration on a stored FEM reference: its stiffness search is stage 2 of 4
+    as the first's was (it was 1 of 3), and the status names the spec's load cases."""
+    small_spec["load_cases"][0]["name"] = "press on top"
+    first = api.post("/v1/calibrations", json=small_spec).json()
+    run_workers()
+    small_spec["annealing"]["seed"] = 99
+    second = api.post("/v1/calibrations", json=small_spec).json()
+    assert second["fem_cached"] is True
+    assert second["progress"]["stages"] == first["progress"]["stages"]
+    assert second["progress"]["stage"] == "queued (FEM reference reused)"
+    redis.hset(keys.calibration(second["id"]), mapping={"status": "running", "phase": "annealing"})
+    progress = api.get(f"/v1/calibrations/{second['id']}").json()["progress"]
+    assert progress["stage"].startswith("stage 2 of 4: stiffness search")
+    assert progress["stage_number"] == 2
+    names = [c.get("name") for c in small_spec["load_cases"]]
+    expected = [n or f"load case {i + 1}" for i, n in enumerate(names)]
+    assert second["load_cases"] == expected and expected[0] == "press on top"
+    done = api.get(f"/v1/calibrations/{first['id']}").json()
+    assert done["load_cases"] == expected and len(done["result"]["relative_discrepancy"]) == len(
+        expected
+    )
 
 
 def test_records_of_an_older_version_are_served_without_a_500(api, redis, run_workers, small_spec):

@@ -331,8 +331,14 @@ def _load_cases(
         np.add.at(forces, inverse, np.asarray(vec, dtype=float).reshape(-1, 3))
         if len(vec) and not np.any(forces):
             errors.append(((field, c, "forces"), "all forces are zero"))
-        load_cases.append(LoadCase(case.name or f"load case {c + 1}", nodes, forces))
+        load_cases.append(LoadCase(case_name(case.name, c), nodes, forces))
     return load_cases
+
+
+def case_name(name: str | None, index: int) -> str:
+    """How results, warnings and the status answer name the spec's case ``index`` (0-based) of
+    ``name``: that name, else "load case {index + 1}"."""
+    return name or f"load case {index + 1}"
 
 
 def resolved_refine(spec: ProblemSpec) -> int | str:

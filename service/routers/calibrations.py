@@ -8,9 +8,10 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Body, Query, Response, status
 
 from fpm import ProblemSpec
+from fpm.model.problem import case_name
 from fpm.model.spec import AnnealingSettings
 from store import graph, quotas, records
-from store.status import CalibrationStatus, FemStatus, Phase
+from store.status import CalibrationStatus, FemStatus, Phase, calibration_stages
 
 from ..deps import CalibrationId, OwnerDep, RedisDep, SettingsDep
 from ..errors import ProblemError, problem_responses
@@ -127,7 +128,7 @@ def listing(
         CalibrationSummary(
             id=r.id,
             name=r.name,
-            status=r.status,
+            status=CalibrationStatus.RUNNING if _fem_running(redis, r) else r.status,
             created=r.created,
             parameter_set_id=r.parameter_set_id or None,
         )
@@ -143,12 +144,19 @@ def read(calibration_id: CalibrationId, redis: RedisDep) -> Calibration:
     if view is None:
         raise ProblemError(404, "Not found", f"no calibration {calibration_id!r}")
     record, chains, damping = view
-    fem: FemProgress | None = None
-    if record.status == CalibrationStatus.QUEUED and not record.fem_cached:
-        meta = records.get_fem_meta(redis, record.fem_hash)
-        if meta.get("status") == FemStatus.RUNNING.value:
-            fem = _fem_progress(meta)
+    meta = _fem_running(redis, record)
+    fem = None if meta is None else _fem_progress(meta)
     return _view(record, (chains, damping), fem)
+
+
+def _fem_running(redis: Any, record: records.CalibrationRecord) -> dict[str, str] | None:
+    """The meta of the FEM reference a queued calibration waits on while it runs (the
+    calibration is then shown running, in its stage 1: the record stays queued until its
+    chains start), else None."""
+    if record.status != CalibrationStatus.QUEUED or record.fem_cached:
+        return None
+    meta = records.get_fem_meta(redis, record.fem_hash)
+    return meta if meta.get("status") == FemStatus.RUNNING.value else None
 
 
 def _fem_progress(meta: dict[str, str]) -> FemProgress:
@@ -184,18 +192,33 @@ def cancel(calibration_id: CalibrationId, redis: RedisDep) -> Calibration:
 
 
 def _stage(
-    method: str, phase: Phase, damping: DampingProgress | None, fem: FemProgress | None = None
+    method: str,
+    phase: Phase,
+    damping: DampingProgress | None,
+    fem: FemProgress | None = None,
+    reused: bool = False,
 ) -> str:
-    """What runs in ``phase``, in words."""
+    """What runs in ``phase``, in words, after its number among the stages ("stage 2 of 4: ...",
+    :func:`store.status.calibration_stages`; ``reused``: the FEM reference was stored)."""
+    stages = calibration_stages(method)
+    words = _stage_words(method, phase, damping, fem)
+    if phase not in stages:
+        return words + (" (FEM reference reused)" if reused and phase == Phase.QUEUED else "")
+    return f"stage {stages.index(phase) + 1} of {len(stages)}: {words}"
+
+
+def _stage_words(
+    method: str, phase: Phase, damping: DampingProgress | None, fem: FemProgress | None
+) -> str:
     if phase == Phase.FEM and fem is not None and fem.level is not None:
         return f"FEM reference (refinement level {fem.level}: {fem.fem_nodes:,} FEM nodes)"
     if phase == Phase.ANNEALING:
         if method == "two-stage":
-            return "stage 1 of 2: stiffness search (annealing on static equilibria)"
+            return "stiffness search (annealing on static equilibria)"
         return "annealing (k, d) on dynamic runs"
     if phase == Phase.DAMPING:
         step = DAMPING_STEPS.get(damping.step or "", "starting") if damping else "starting"
-        return f"stage 2 of 2: damping ({step})"
+        return f"damping ({step})"
     return {
         Phase.QUEUED: "queued",
         Phase.FEM: "FEM reference",
@@ -220,8 +243,7 @@ def _view(
     status_ = record.status
     if fem is not None:
         phase, status_ = Phase.FEM, CalibrationStatus.RUNNING
-    stages = [Phase.ANNEALING, Phase.DAMPING] if method == "two-stage" else [Phase.ANNEALING]
-    stages = ([] if record.fem_cached else [Phase.FEM]) + stages + [Phase.FINALIZE]
+    stages = calibration_stages(method)
     temperatures = [c.temperature for c in chains if c.temperature is not None]
     costs = [c.best_cost for c in chains if c.best_cost is not None]
     per_chain = max([c.moves for c in chains] or [0]) or AnnealingSettings(**annealing).moves
@@ -244,8 +266,9 @@ def _view(
         progress=Progress(
             phase=phase,
             method=method,
-            stage=_stage(method, phase, damping, fem),
+            stage=_stage(method, phase, damping, fem, record.fem_cached),
             stages=stages,
+            stage_number=stages.index(phase) + 1 if phase in stages else None,
             iterations=sum(c.move for c in chains),
             total_iterations=per_chain * record.chains,
             temperature=max(temperatures) if temperatures else None,
@@ -257,6 +280,10 @@ def _view(
         timings=t,
         fem_reference_id=record.fem_hash,
         fem_cached=record.fem_cached,
+        load_cases=[
+            case_name(case.get("name"), i)
+            for i, case in enumerate(record.spec.get("load_cases") or [])
+        ],
         result=CalibrationResult(**result) if result else None,
         parameter_set_id=record.parameter_set_id or None,
         error=error,
