@@ -373,3 +373,32 @@ def test_cancel_button_asks_for_the_api_key(chromium, keyed_api, small_spec):
         page.wait_for("document.querySelector('#summary [data-status=canceled]')")
         assert page.js("document.querySelector('[data-action=cancel]')") is None
     assert http.get(f"/v1/calibrations/{calibration['id']}").json()["status"] == "canceled"
+
+
+def test_browser_shows_the_verdict_first_and_the_compliance_per_case(finished, tmp_path):
+    """The summary card carries the verdict (grade in capitals, summary, floor, each cause
+    with its action) above the figures; the fit table a compliance column; the parameter
+    set's page the same verdict."""
+    c, names = finished["calibration"], finished["names"]
+    r, v = c["result"], c["result"]["verdict"]
+    url = f"{finished['url']}/#/calibrations/{c['id']}"
+    dom = browser.dump_dom(url)
+    card = element(dom, "div", f'class="verdict verdict-{v["grade"]}"')
+    assert dom.index(card) < dom.index('id="fit"')  # above the figures
+    text = text_of(card)
+    assert text.startswith(f"{v['grade'].upper()} {v['summary'][len(v['grade']) + 2 :]}")
+    assert v["floor"]["source"] in text
+    for cause in v["causes"]:
+        assert f"{cause['cause']} : {cause['detail']}. Action: {cause['action']}" in text
+    fit = text_of(element(dom, "div", 'class="panel" id="fit"'))
+    assert "Compliance" in fit
+    for j, name in enumerate(names):
+        figures = f"{pct(r['discrepancy_h'][j])} {r['settle_steps'][j]}"
+        assert f"{figures} {r['compliance_ratio'][j]:.3f}" in fit, name
+    page = browser.dump_dom(f"{finished['url']}/#/parameter-sets/{c['parameter_set_id']}")
+    assert text_of(element(page, "div", f'class="verdict verdict-{v["grade"]}"')) == text
+    png = browser.screenshot(url, tmp_path / "verdict.png", size=(1280, 900))
+    assert browser.distinct_colours(png) > 50
+    copy_to = os.environ.get("FPM_WEB_VERDICT_SCREENSHOT")
+    if copy_to:
+        shutil.copyfile(png, copy_to)

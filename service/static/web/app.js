@@ -420,25 +420,41 @@
     });
   }
 
+  function verdictCard(v) {
+    // The verdict on the fit (fpm.fitting.verdict): the grade first, its summary, the floor
+    // the model family reaches and its page, the likely causes each with its action.
+    if (!v) return null;
+    return el("div", { class: `verdict verdict-${v.grade}`, id: "verdict", "data-grade": v.grade },
+      el("p", null, el("strong", { class: "grade" }, v.grade.toUpperCase()), " ", v.summary.slice(v.grade.length + 2)),
+      el("p", { class: "muted" }, `Floor: ${v.floor.what} (${v.floor.source}).`),
+      v.causes.length ? el("ul", { class: "causes" }, v.causes.map((c) => el("li", { "data-cause": c.cause },
+        el("strong", null, c.cause), `: ${c.detail}. `, el("em", null, "Action: "), c.action))) : null);
+  }
+
+  const ratio = (x) => (Number.isFinite(x) ? x.toFixed(3) : "–");
+
   function fitPanel(c, names) {
     const r = c.result;
     const cases = r.relative_discrepancy.map((_, j) => (names && names[j]) || `load case ${j + 1}`);
     return el("div", { class: "panel", id: "fit" },
       el("h3", null, "Fit per load case"),
       el("table", null,
-        el("thead", null, el("tr", null, ["Load case", "Relative discrepancy", "Loaded nodes", "% of h", "Settle steps"]
+        el("thead", null, el("tr", null, ["Load case", "Relative discrepancy", "Loaded nodes", "% of h", "Settle steps", "Compliance"]
           .map((h, i) => el("th", { class: i ? "num" : null }, h)))),
         el("tbody", null, cases.map((name, j) => el("tr", { "data-case": j },
           el("td", null, name),
           el("td", { class: "num headline relative" }, pct(r.relative_discrepancy[j])),
           el("td", { class: "num" }, pct(r.loaded_discrepancy[j])),
           el("td", { class: "num" }, pct(r.discrepancy_h[j])),
-          el("td", { class: "num" }, r.settle_steps[j] ?? "–"))))),
+          el("td", { class: "num" }, r.settle_steps[j] ?? "–"),
+          el("td", { class: "num compliance" }, ratio((r.compliance_ratio || [])[j])))))),
       barChart(cases.map((name, j) => ({ label: name, value: r.relative_discrepancy[j], color: COLORS[j % COLORS.length] })),
         "relative discrepancy, % (100 Σ|p−q| / Σ|q|, all nodes)"),
       el("p", { class: "muted" }, "Relative: summed nodal error over the FEM's summed displacement (0% perfect, ",
         "100% no better than not moving). Loaded nodes: the same at the loaded nodes. % of h: mean nodal ",
-        "error over the lattice spacing h (the paper's unit), read beside the relative figure."),
+        "error over the lattice spacing h (the paper's unit), read beside the relative figure. ",
+        "Compliance: the work of the load on the model over that on the reference (1.0: a probe feels ",
+        "the reference's stiffness; 1.5: 1.5 times too soft)."),
       validationTable(r),
       referenceError(r));
   }
@@ -492,12 +508,13 @@
     return el("div", { id: "validation" },
       el("h3", null, "Validation cases (never fitted: the honest figure)"),
       el("table", null,
-        el("thead", null, el("tr", null, ["Validation case", "Relative discrepancy", "% of h"]
+        el("thead", null, el("tr", null, ["Validation case", "Relative discrepancy", "% of h", "Compliance"]
           .map((h, i) => el("th", { class: i ? "num" : null }, h)))),
         el("tbody", null, v.map((value, j) => el("tr", { "data-validation": j },
           el("td", null, names[j] || `case ${j + 1}`),
           el("td", { class: "num headline validation" }, pct(value)),
-          el("td", { class: "num" }, pct((r.validation_discrepancy_h || [])[j])))))));
+          el("td", { class: "num" }, pct((r.validation_discrepancy_h || [])[j])),
+          el("td", { class: "num compliance" }, ratio((r.validation_compliance_ratio || [])[j])))))));
   }
 
   function parametersPanel(c) {
@@ -615,6 +632,7 @@
         el("dt", null, "queued, running"), el("dd", null, `${seconds(t.queued_seconds)}, ${seconds(t.running_seconds)}`),
         el("dt", null, "FEM reference"), el("dd", null, c.fem_reference_id.slice(0, 16), "…", c.fem_cached ? " (was stored)" : "")),
       c.error ? el("p", { class: "error" }, c.error) : null,
+      c.result ? verdictCard(c.result.verdict) : null,
       ACTIVE.has(c.status) ? el("p", null, cancelButton(c, () => calibrationView(id, viewToken))) : null);
     const panels = [el("p", null, el("a", { href: "#/" }, "← all calibrations")), head, progressPanel(c)];
     if (c.result) {
@@ -707,12 +725,16 @@
         ? [["validation (never fitted)", ps.validation_relative_discrepancy.map((v) => pct(v)).join(" / ")]] : []),
       ["loaded nodes", ps.loaded_discrepancy.map((v) => pct(v)).join(" / ")],
       ["% of h", ps.discrepancy_h.map((v) => pct(v)).join(" / ")],
+      ...((ps.compliance_ratio || []).length
+        ? [["load compliance ratio", [...ps.compliance_ratio, ...(ps.validation_compliance_ratio || [])]
+          .map((x) => ratio(x)).join(" / ")]] : []),
       ["cost", `${num(ps.cost)} m`], ["created", when(ps.created)],
     ];
     const prov = ps.provenance || {};
     show(el("p", null, el("a", { href: "#/parameter-sets" }, "← all parameter sets")),
       el("div", { class: "panel", id: "parameter-set" },
         el("h2", null, ps.name),
+        verdictCard(ps.verdict),
         el("dl", { class: "facts" }, facts.map(([k, v]) => [el("dt", null, k), el("dd", null, v)])),
         el("p", null, "From calibration ", el("a", { href: `#/calibrations/${enc(prov.calibration_id)}` }, prov.calibration_id),
           ` (${prov.method}, seed ${prov.seed}, ${prov.chains} chains, ${prov.evaluations} evaluations)`),
