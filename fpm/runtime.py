@@ -24,11 +24,17 @@ each node seeing its predecessors' new positions, and moves only the list; an en
 node at once. Both rest at the same static equilibrium (dE/dx = 0 over the free nodes), which
 the tests check against :func:`fpm.simulate` to 1e-9; at the fitted dt the all-at-once step is
 the more stable of the two (docs/physics.md, *Engines*).
+
+This file is the recipe, in NumPy. :meth:`Runtime.step` runs it compiled where it can
+(``backend``, :mod:`fpm.native`): the C step of ``fpm/native/fpm_step.c``, compiled on first
+use with the system's C compiler, else the same arithmetic in numba, else this NumPy; in
+float64 each equals the recipe to rounding (docs/reference/native-step.md).
 """
 
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -117,6 +123,10 @@ class Runtime:
         shares: (N, N) sparse, for an export fitted with ``loads: "hat"``: row i the shares of
             a force on surface node i (the export's ``load_shares``); None: forces act at their
             node (:meth:`applied`).
+        backend: how :meth:`step` runs: ``"native"`` (the C step), ``"numba"``, ``"numpy"``
+            (this recipe) or ``"auto"`` (the first that works); None: the environment's
+            ``FPM_RUNTIME_BACKEND``, else ``"auto"``. ``backend_used`` says which ran.
+        precision: ``"float64"``, or ``"float32"`` (the C step only: x and v are then float32).
         x, v: (N, 3) positions (m) and velocities (m/s), the state :meth:`step` advances.
         steps: steps taken since the last :meth:`reset`.
         unbalanced: the largest |F_i| over the free nodes at the start of the last step, N.
@@ -138,6 +148,9 @@ class Runtime:
     settle_stiffness: float = 0.0
     gravity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     shares: sp.csr_matrix | None = None
+    backend: str | None = None
+    precision: str = "float64"
+    backend_used: str = field(init=False, default="numpy")
     x: np.ndarray = field(init=False)
     v: np.ndarray = field(init=False)
     steps: int = field(init=False, default=0)
@@ -146,6 +159,8 @@ class Runtime:
     _load_scale: float = field(init=False, default=0.0, repr=False)
     _moved_scale: float = field(init=False, default=0.0, repr=False)
     _shared: np.ndarray | None = field(init=False, default=None, repr=False)
+    _engine: Any = field(init=False, default=None, repr=False)
+    _x_next: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         n, s = self.n_nodes, len(self.springs)
@@ -160,11 +175,23 @@ class Runtime:
         )
         # the nodes whose force is shared (rows of load_shares), (N, 1) bool
         self._shared = None if self.shares is None else (np.diff(self.shares.indptr) > 0)[:, None]
+        backend = self.backend or os.environ.get("FPM_RUNTIME_BACKEND") or "auto"
+        if backend != "numpy" or self.precision != "float64":
+            from .native import engine
+
+            self._engine = engine(self, backend, self.precision)
+        self.backend_used = "numpy" if self._engine is None else self._engine.name
         self.reset()
 
     @classmethod
-    def from_export(cls, export: dict[str, Any] | str | Path) -> Runtime:
-        """The runtime of a JSON export (the parsed dict, or the path of the file)."""
+    def from_export(
+        cls,
+        export: dict[str, Any] | str | Path,
+        backend: str | None = None,
+        precision: str = "float64",
+    ) -> Runtime:
+        """The runtime of a JSON export (the parsed dict, or the path of the file), stepped by
+        ``backend`` in ``precision`` (the attributes')."""
         doc = export if isinstance(export, dict) else json.loads(Path(export).read_text())
         if doc.get("format") != "fpm-lattice":
             raise ExportFormatError("not an FPM lattice export (its format is not 'fpm-lattice')")
@@ -202,6 +229,8 @@ class Runtime:
             settle_stiffness=float(p.get("settle_stiffness", 0.0)),
             gravity=np.asarray(p.get("gravity", (0.0, 0.0, 0.0)), dtype=float),
             shares=shares,
+            backend=backend,
+            precision=precision,
         )
 
     @property
@@ -210,8 +239,12 @@ class Runtime:
 
     def reset(self) -> None:
         """Back to rest: x = the rest positions, v = 0."""
-        self.x = self.rest.copy()
-        self.v = np.zeros_like(self.rest)
+        dtype = np.float64 if self._engine is None else self._engine.dtype
+        self.x = self.rest.astype(dtype)
+        self.v = np.zeros_like(self.x)
+        self._x_next = np.empty_like(self.x)
+        if self._engine is not None:
+            self._engine.reset()
         self.steps, self.unbalanced, self.settled, self._load_scale = 0, float("inf"), False, 0.0
         self._moved_scale = 0.0
 
@@ -269,6 +302,14 @@ class Runtime:
         Returns:
             (N, 3) the positions after the step, m (the runtime's own array: read, don't write).
         """
+        if self._engine is not None:
+            f = None
+            if forces is not None:
+                f = np.ascontiguousarray(forces, dtype=self._engine.dtype).reshape(self.x.shape)
+            self.unbalanced, self.settled = self._engine.step(self.x, self._x_next, self.v, f)
+            self.x, self._x_next = self._x_next, self.x
+            self.steps += 1
+            return self.x
         applied = self.masses[:, None] * self.gravity[None, :]
         if forces is not None:
             applied = applied + np.asarray(forces, dtype=float).reshape(self.rest.shape)

@@ -3,6 +3,7 @@ volume term, nodal damping at the exported dt), against the project's own kernel
 
 import ast
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -54,13 +55,20 @@ def conforming():
     return exported(spec)
 
 
-def test_the_runtime_is_standalone():
-    """The recipe an engine ports: NumPy and SciPy only, nothing else of ours."""
+def test_the_runtime_is_standalone(cube, monkeypatch):
+    """The recipe an engine ports: NumPy and SciPy only; the one module of ours it names is the
+    compiled step, imported only for a backend other than NumPy's, without which it runs."""
     tree = ast.parse((ROOT / "fpm/runtime.py").read_text())
     names = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
     names |= {n.module or "." for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
-    assert {n.split(".")[0] for n in names} <= {"__future__", "json", "dataclasses", "pathlib",
-                                                 "typing", "numpy", "scipy"}  # fmt: skip
+    assert {n.split(".")[0] for n in names} <= {"__future__", "json", "os", "dataclasses",
+                                                 "pathlib", "typing", "numpy", "scipy",
+                                                 "native"}  # fmt: skip
+    monkeypatch.setitem(sys.modules, "fpm.native", None)  # not importable
+    rt = Runtime.from_export(cube[3], backend="numpy")
+    rt.step(rt.load_case_forces(cube[3], 0))
+    with pytest.raises(ImportError):
+        Runtime.from_export(cube[3], backend="native")
 
 
 def test_the_export_order_of_corners_is_the_model_s():
