@@ -361,11 +361,10 @@ def cmd_export(args: argparse.Namespace) -> None:
 
         from client.sdk import ApiError, Client
 
+        fmt = "json" if args.format == "binary" else args.format  # binary: packed here
         try:
             with Client(args.url, api_key=args.api_key) as client:
-                body = client.export_bytes(
-                    args.parameter_set, args.format, timeout=args.timeout or None
-                )
+                body = client.export_bytes(args.parameter_set, fmt, timeout=args.timeout or None)
         except (ApiError, httpx.HTTPError, TimeoutError) as e:
             raise ServiceError(f"the service at {args.url}: {_one_line(e)}") from None
     else:
@@ -384,11 +383,20 @@ def cmd_export(args: argparse.Namespace) -> None:
         params = _read_json(args.params, "PARAMS")
         if isinstance(params.get("result"), dict):  # a calibration as the service shows it
             params = params["result"]
-        body = export(problem, params, args.format)
+        body = export(problem, params, "json" if args.format == "binary" else args.format)
         _warn(export_warnings(problem, args.format))
+    if args.format == "binary":
+        from fpm.io.export_binary import from_json
+
+        body = from_json(json.loads(body))
+        if not args.output and sys.stdout.isatty():
+            raise ValueError("--format binary: give -o FILE (or redirect stdout to a file)")
     if args.output:
         Path(args.output).write_bytes(body)
         print(f"wrote {args.output}", file=sys.stderr)
+    elif args.format == "binary":
+        sys.stdout.buffer.write(body)
+        sys.stdout.flush()
     else:
         sys.stdout.write(body.decode())
         sys.stdout.flush()
@@ -671,14 +679,17 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "export",
         help="a fitted parameter set with its lattice: json, vtu (ParaView), sofa (.scn, springs "
-        "only) or sofa-python (SofaPython3 scene with the volume term)",
+        "only), sofa-python (SofaPython3 scene with the volume term) or binary (the JSON's step "
+        "data packed for the native step, fpm/native/fpm_step.h)",
         description="From SPEC and PARAMS (the result of fpmcal calibrate --json on SPEC, or a "
         "parameter set of the service), or from the service's stored parameter set "
         "(--parameter-set ID).",
     )
     p.add_argument("spec", nargs="?", help="problem spec JSON file the parameters were fitted on")
     p.add_argument("params", nargs="?", help="calibration result or parameter set (JSON)")
-    p.add_argument("--format", choices=["json", "vtu", "sofa", "sofa-python"], default="json")
+    p.add_argument(
+        "--format", choices=["json", "vtu", "sofa", "sofa-python", "binary"], default="json"
+    )
     p.add_argument("--parameter-set", default=None, metavar="ID", help="a stored parameter set")
     p.add_argument(
         "--url", default=os.environ.get("FPM_URL", "http://127.0.0.1:8000"),
