@@ -113,9 +113,18 @@ def field_errors(errors: Sequence[Any], strip: tuple[str, ...] = ()) -> list[dic
 
     Location parts can be the client's own keys (an unknown field), and messages may quote
     input, so both are escaped: a lone surrogate would make the answer unencodable (a 500).
+    A body that is not JSON at all is the ``body``'s error, its message the parser's with the
+    character it stopped at (FastAPI locates it at ("body", offset): the offset is no field).
     """
     out = []
     for e in errors:
+        if e.get("type") == "json_invalid":
+            at = e["loc"][-1] if isinstance(e["loc"][-1], int) else None
+            why = (e.get("ctx") or {}).get("error") or e["msg"]
+            where = f" at character {at}" if at is not None else ""
+            message = f"the body is not valid JSON ({why}{where})"
+            out.append({"field": "body", "message": escape(message)})
+            continue
         loc = [escape(str(p)) for p in e["loc"]]
         if loc and loc[0] in strip:
             loc = loc[1:]

@@ -26,7 +26,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         title="FPM calibration service",
         version="1.0",
         description="Calibrates a force propagation model (Choi et al. 2004) against a "
-        "hexahedral FEM reference, on a pool of RQ workers.",
+        "finite element (FEM) reference of the same solid (the spec's reference: hexahedra "
+        "on the lattice, or 10-node tetrahedra on a mesh of the solid's surface), on a pool "
+        "of RQ workers.",
         docs_url=None,  # served by service.docs, without a CDN
         redoc_url=None,
         generate_unique_id_function=openapi.operation_id,

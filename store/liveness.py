@@ -10,8 +10,10 @@ dead (or hung).
 
 from __future__ import annotations
 
-from rq import Queue, Worker
-from rq.utils import now
+from datetime import timedelta
+
+from rq import Queue, worker_registration
+from rq.utils import as_text, now, utcparse
 from rq.worker import BaseWorker
 
 from .timing import WORKER_TTL
@@ -21,9 +23,20 @@ __all__ = ["WORKER_TTL", "alive", "workers"]
 
 def workers(queue: Queue, window: float = WORKER_TTL) -> tuple[int, int]:
     """(alive, silent): the workers registered on ``queue`` whose last heartbeat is at most
-    ``window`` seconds old, and those whose is older (or missing)."""
-    found = [alive(w, window) for w in Worker.all(queue=queue)]  # RQ drops expired keys
-    return sum(found), len(found) - sum(found)
+    ``window`` seconds old, and those whose is older (or missing), in two round trips.
+
+    A registered key whose hash has expired is no worker (as RQ's ``Worker.all``, which also
+    drops it from the registry: that write is left to RQ)."""
+    redis = queue.connection
+    pipe = redis.pipeline(transaction=False)
+    for key in worker_registration.get_keys(queue):
+        pipe.exists(key)
+        pipe.hget(key, "last_heartbeat")
+    replies = pipe.execute()
+    cutoff = now() - timedelta(seconds=window)
+    beats = [b for e, b in zip(replies[::2], replies[1::2], strict=True) if e]
+    found = sum(b is not None and utcparse(as_text(b)) >= cutoff for b in beats)
+    return found, len(beats) - found
 
 
 def alive(worker: BaseWorker, window: float = WORKER_TTL) -> bool:

@@ -128,11 +128,28 @@ def calibration_page(
     return len(matching), matching[offset : offset + limit]
 
 
-def get_calibration_view(
-    redis: Redis, calibration_id: str
-) -> tuple[CalibrationRecord, dict[int, dict[str, Any]], dict[str, Any] | None] | None:
-    """The record and its progress reports (per chain, and the damping stage's) read in one
-    round trip, or None if there is no such calibration."""
+STAMP_FIELDS = ("status", "created", "finished", "parameter_set_id", "error", "result")
+"""The record's fields a finished calibration's answer is made of besides its spec (which a
+record never changes) and its progress reports (which end before it finishes)."""
+
+
+def calibration_stamp(redis: Redis, calibration_id: str) -> tuple[str, ...] | None:
+    """The record's :data:`STAMP_FIELDS` as stored (one read, no JSON decoded), or None if
+    there is no such calibration: equal stamps, equal records."""
+    values = redis.hmget(keys.calibration(calibration_id), list(STAMP_FIELDS))
+    return None if values[0] is None else tuple(_text(v) or "" for v in values)
+
+
+CalibrationView = tuple[
+    CalibrationRecord, dict[int, dict[str, Any]], dict[str, Any] | None, tuple[str, ...]
+]
+"""(record, chain progress by chain, damping stage progress or None, stamp)."""
+
+
+def get_calibration_view(redis: Redis, calibration_id: str) -> CalibrationView | None:
+    """The record, its progress reports (per chain, and the damping stage's) and its stamp
+    (:func:`calibration_stamp`, of the same read) in one round trip, or None if there is no
+    such calibration."""
     pipe = redis.pipeline(transaction=False)
     pipe.hgetall(keys.calibration(calibration_id))
     pipe.hgetall(keys.calibration_progress(calibration_id))
@@ -140,7 +157,9 @@ def get_calibration_view(
     if not raw:
         return None
     chains, damping = split_progress(decode_hash(raw_progress))
-    return CalibrationRecord.from_hash(decode_hash(raw)), chains, damping
+    fields = decode_hash(raw)
+    stamp = tuple(fields.get(f, "") for f in STAMP_FIELDS)
+    return CalibrationRecord.from_hash(fields), chains, damping, stamp
 
 
 def calibration_timings(redis: Redis) -> list[tuple[CalibrationStatus, float, float]]:

@@ -6,6 +6,7 @@ import json
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Query, Response, status
+from pydantic import TypeAdapter
 
 from fpm import ProblemSpec
 from fpm.model.problem import case_name
@@ -16,6 +17,7 @@ from store.status import CalibrationStatus, FemStatus, Phase, calibration_stages
 from ..deps import CalibrationId, OwnerDep, RedisDep, SettingsDep
 from ..errors import ProblemError, problem_responses
 from ..examples import openapi_examples
+from ..finished import FinishedAnswers
 from ..limits import (
     check_calibration_spec,
     check_reference_mesh,
@@ -51,6 +53,10 @@ LEGACY_RESULT = (
 )
 
 SpecBody = Annotated[ProblemSpec, Body(openapi_examples=openapi_examples())]
+ANSWER = TypeAdapter(Calibration)
+"""Serialises an answer as FastAPI serialises a route's response model."""
+FINISHED = FinishedAnswers()
+"""The answers of succeeded calibrations polled lately (:mod:`service.finished`)."""
 
 
 @router.post(
@@ -137,16 +143,38 @@ def listing(
     return CalibrationPage(items=items, total=total, offset=offset, limit=limit)
 
 
-@router.get("/{calibration_id}", operation_id="get_calibration", responses=problem_responses(404))
-def read(calibration_id: CalibrationId, redis: RedisDep) -> Calibration:
+@router.get(
+    "/{calibration_id}",
+    operation_id="get_calibration",
+    response_model=Calibration,
+    responses=problem_responses(404),
+)
+def poll(calibration_id: CalibrationId, redis: RedisDep) -> Response:
     """Status, progress, and when done the result."""
+    body = FINISHED.get(redis, calibration_id)
+    if body is None:
+        calibration, stamp = read_view(calibration_id, redis)
+        body = ANSWER.dump_json(calibration, by_alias=True)
+        if calibration.status == CalibrationStatus.SUCCEEDED:
+            FINISHED.put(calibration_id, stamp, body)
+    return Response(body, media_type="application/json")
+
+
+def read(calibration_id: str, redis: Any) -> Calibration:
+    """The calibration's API view (404 if there is none)."""
+    return read_view(calibration_id, redis)[0]
+
+
+def read_view(calibration_id: str, redis: Any) -> tuple[Calibration, tuple[str, ...]]:
+    """The API view and the record's stamp (:func:`store.records.calibration_stamp`), read in
+    one round trip (404 if there is none)."""
     view = records.get_calibration_view(redis, calibration_id)
     if view is None:
         raise ProblemError(404, "Not found", f"no calibration {calibration_id!r}")
-    record, chains, damping = view
+    record, chains, damping, stamp = view
     meta = _fem_running(redis, record)
     fem = None if meta is None else _fem_progress(meta)
-    return _view(record, (chains, damping), fem)
+    return _view(record, (chains, damping), fem), stamp
 
 
 def _fem_running(redis: Any, record: records.CalibrationRecord) -> dict[str, str] | None:

@@ -18,9 +18,10 @@ def health(redis: RedisDep) -> Health:
 
     Workers count as alive only with a heartbeat in the last ``heartbeat_window`` seconds:
     RQ's registry alone keeps a killed worker listed (for ever, once none is left to clean it).
-    Job counts cover both queues; jobs stopped by a cancel are not counted as failed.
+    Job counts cover both queues; jobs stopped by a cancel are not counted as failed. Reads
+    only, in a few pipelined round trips (no RQ registry cleanup per poll: the workers'
+    maintenance does that), so that frequent polling stays cheap.
     """
-    redis.ping()
     q = graph.queue(redis)
     alive, silent = liveness.workers(q)
     jobs = queue_stats.all_job_counts(redis).values()
