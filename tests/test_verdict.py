@@ -267,3 +267,15 @@ def test_the_demo_adds_one_verdict_line_per_material_and_nothing_else():
     added = [line for line in after.splitlines() if line not in before.splitlines()]
     assert added == [f"verdict: POOR{result['verdict']['summary'][len('poor') :]}"]
     assert after.replace(added[0] + "\n\n", "") == before
+
+
+def test_the_manual_page_lists_every_threshold_as_the_code_has_it():
+    from dataclasses import fields
+
+    page = (ROOT / "docs" / "explanation" / "verdict.md").read_text()
+    for f in fields(SETTINGS):
+        value = getattr(SETTINGS, f.name)
+        shown = "-".join(f"{v:g}" for v in value) if isinstance(value, tuple) else f"{value:g}"
+        if f.name in ("good", "fair"):
+            shown = f"{value:.1f} %"
+        assert f"| `{f.name}` | {shown} |" in page, f.name
