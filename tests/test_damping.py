@@ -4,6 +4,7 @@ equilibrium, early stopping, and the fastest d against a grid of d."""
 
 from __future__ import annotations
 
+import copy
 import math
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
@@ -20,7 +21,10 @@ from fpm.fitting.damping import (
     CHUNK,
     MARGIN_PROBES,
     PREDICT_AFTER,
+    SAMPLE,
     TRUST,
+    CaseRun,
+    DampingError,
     _piece,
     _Runs,
     _search,
@@ -28,36 +32,39 @@ from fpm.fitting.damping import (
     _unsure,
     critical_damping,
     fastest_damping,
+    long_decay,
     predicted_steps,
 )
+from fpm.fitting.damping_stage import find_damping
 from fpm.model.forces import Stiffness
-from fpm.model.stiffness import spring_stiffness
+from fpm.model.stiffness import model_stiffness, spring_stiffness
 
 K = 50.0
 """N/m."""
 
 
+BAR: dict[str, Any] = {
+    "name": "bar",
+    "material": {"youngs_modulus": 5000.0, "poisson_ratio": 0.3, "density": 1000.0},
+    "geometry": {
+        "type": "box",
+        "size": [0.02, 0.02, 0.04],
+        "nodes": [3, 3, 5],
+        "connectivity": "axis+face",
+    },
+    "fixed": [{"face": "z-"}],
+    "load_cases": [
+        {"forces": [{"at": [0.01, 0.01, 0.04], "vector": [0, 0, 0.05]}]},
+        {"forces": [{"at": [0.01, 0.01, 0.04], "vector": [0.02, 0, 0.1]}]},
+    ],
+    "fpm": {"max_steps": 2000, "stiffness": "single", "dt": 1e-3},
+}  # fmt: skip
+"""A 3x3x5 axis+face lattice, bottom fixed, pulled at the top centre in two ways."""
+
+
 @pytest.fixture(scope="module")
 def bar() -> fpm.Problem:
-    """A 3x3x5 axis+face lattice, bottom fixed, pulled at the top centre in two ways."""
-    return fpm.load_problem(
-        {
-            "name": "bar",
-            "material": {"youngs_modulus": 5000.0, "poisson_ratio": 0.3, "density": 1000.0},
-            "geometry": {
-                "type": "box",
-                "size": [0.02, 0.02, 0.04],
-                "nodes": [3, 3, 5],
-                "connectivity": "axis+face",
-            },
-            "fixed": [{"face": "z-"}],
-            "load_cases": [
-                {"forces": [{"at": [0.01, 0.01, 0.04], "vector": [0, 0, 0.05]}]},
-                {"forces": [{"at": [0.01, 0.01, 0.04], "vector": [0.02, 0, 0.1]}]},
-            ],
-            "fpm": {"max_steps": 2000, "stiffness": "single", "dt": 1e-3},
-        }  # fmt: skip
-    )
+    return fpm.load_problem(BAR)
 
 
 def total_steps(problem: fpm.Problem, d: float) -> float:
@@ -280,3 +287,88 @@ def test_a_confirming_run_is_skipped_only_beyond_twice_the_reduced_steps_error()
     ]:
         for y in (side, -side):
             assert _unsure(models, measured, y, 0.0) is needed, (measured, y)
+
+
+# ------------------------------------------------------------------ a case that cannot settle
+
+
+def slow_bar(dt: float, max_steps: int | str) -> fpm.Problem:
+    """The bar at a time step far below its stability limit: its runs need tens of thousands
+    of steps (about 65,000 and 77,000 at 2e-6 s, measured with max_steps 'auto')."""
+    spec = copy.deepcopy(BAR)
+    spec["load_cases"][0]["name"], spec["load_cases"][1]["name"] = "pull", "pull sideways"
+    spec["fpm"].update(dt=dt, max_steps=max_steps)
+    return fpm.load_problem(spec)
+
+
+def search_runs(problem: fpm.Problem, monkeypatch: pytest.MonkeyPatch) -> tuple[Any, list[Any]]:
+    """find_damping at K with every d's runs recorded: (its answer or its DampingError, [d])."""
+    tried: list[float] = []
+    separate, lockstep = _Runs.separate, _Runs._lockstep
+
+    def seen_separate(self: _Runs, d: float, *args: Any, **kwargs: Any) -> Any:
+        tried.append(d)
+        return separate(self, d, *args, **kwargs)
+
+    def seen_lockstep(self: _Runs, request: Any, *args: Any) -> Any:
+        tried.append(request.d)
+        return lockstep(self, request, *args)
+
+    monkeypatch.setattr(_Runs, "separate", seen_separate)
+    monkeypatch.setattr(_Runs, "_lockstep", seen_lockstep)
+    stiffness = model_stiffness(problem, [K])
+    solver = StaticSolver(problem)
+    static = np.stack([solver.solve(j, stiffness, None).displacements for j in range(2)])
+    dt = float(problem.spec.fpm.dt)
+    try:
+        answer: Any = find_damping(problem, solver, stiffness, 9, static, dt)[0]
+    except DampingError as e:
+        answer = e
+    return answer, tried
+
+
+def test_a_case_that_cannot_settle_within_the_budget_stops_the_search_at_once(
+    monkeypatch: pytest.MonkeyPatch,
+):
+    """At max_steps 5,000 the runs of the predicted d are still moving at their cap, their
+    distance from equilibrium growing over the run's second half: the search ends there,
+    naming the cases and their strain, without trying another d or a probe run."""
+    error, tried = search_runs(slow_bar(2e-6, 5000), monkeypatch)
+    assert isinstance(error, DampingError)
+    message = str(error)
+    for name in ("pull", "pull sideways"):
+        assert f"load case '{name}' cannot settle within the step budget" in message
+    assert "(fpm.max_steps = 5,000)" in message and "strains a spring by" in message
+    assert len(tried) == 1  # the predicted d only
+
+
+def test_a_cap_short_by_less_than_the_slack_searches_on_as_before(monkeypatch: pytest.MonkeyPatch):
+    """At dt 2e-5 and max_steps 800 the decay predicts 2,900 and 3,900 steps, under
+    HOPELESS times the cap: the search tries the other d and explains as before."""
+    error, tried = search_runs(slow_bar(2e-5, 800), monkeypatch)
+    assert isinstance(error, DampingError)
+    assert "cannot settle within the step budget" not in str(error)
+    assert str(error).startswith("no d in") and len(tried) > 3
+
+
+def test_the_settling_bar_is_found_as_before_with_auto_steps(monkeypatch: pytest.MonkeyPatch):
+    """Under 'auto' the modes predict the slow bar's steps and its cap holds them: no stop."""
+    fit, _ = search_runs(slow_bar(2e-6, "auto"), monkeypatch)
+    assert not isinstance(fit, DampingError)
+    assert min(fit.steps) > 10 * CHUNK and fit.max_steps > max(fit.steps)
+
+
+def decaying(steps: int, rate: float, settle: float, rising: bool = False) -> CaseRun:
+    """A run stopped at ``steps`` whose residual falls as exp(-rate n) (rises, ``rising``),
+    sampled every SAMPLE steps."""
+    sign = 1 if rising else -1
+    history = [(n, math.exp(sign * rate * n)) for n in range(SAMPLE, steps + 1, SAMPLE)]
+    return CaseRun(steps=steps, state=0, settle_force=settle, history=history)
+
+
+def test_the_long_decay_reads_the_whole_run():
+    # exp(-n / 1000) reaches exp(-10) at 10,000 steps; read from the envelope, which starts a
+    # sample into each quarter, the estimate is late by up to a quarter of the run
+    assert 10_000 <= long_decay(decaying(4000, 1e-3, math.exp(-10))) <= 11_000
+    assert long_decay(decaying(4000, 1e-3, math.exp(-10), rising=True)) == math.inf
+    assert long_decay(decaying(1000, 1e-3, math.exp(-10))) == 1000  # too short to read

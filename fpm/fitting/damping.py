@@ -127,6 +127,16 @@ RETRIES = 2
 """With fpm.max_steps 'auto', a search in which nothing settles within the predicted cap is
 repeated this many times more with MAX_STEPS_GROWTH times the cap (up to the schema's 10^6)."""
 MAX_STEPS_GROWTH = 4
+HOPELESS = 10.0
+"""The search stops at once (:class:`DampingError` naming the load case) when a case's run at
+the predicted d reaches its cap unsettled and the decay of its residual, which is how fast its
+distance from equilibrium shrinks towards its settle distance
+(:func:`long_decay`), predicts more than this many times the step
+budget: fpm.max_steps, or under 'auto' the schema's 10^6 its cap may grow to. Its cap would
+otherwise grow and the whole range of d be scanned at the budget's steps per case (on a
+2,000-node organ pressed by 39% of its smallest extent, 45 minutes before the same verdict).
+The slack covers the decay's error early in a long run (it over-predicted a slender bar's
+steps 3-8 times)."""
 
 
 @dataclass
@@ -211,6 +221,7 @@ def fastest_damping(
     settle: Sequence[float] | None = None,
     targets: np.ndarray | None = None,
     distances: Sequence[float] | None = None,
+    why: Sequence[str] | None = None,
 ) -> DampingFit:
     """The d in ``bounds`` that settles every load case in the fewest total steps.
 
@@ -241,15 +252,20 @@ def fastest_damping(
         targets: (L, N, 3) each load case's static equilibrium displacements, m, and
             ``distances`` (L,) their settle distances: with ``settle``, the runs settle on the
             target criterion (``spread`` has them too).
+        why: per load case, what may keep it from settling (its strain), said when it cannot
+            settle within the budget (:data:`HOPELESS`).
 
     Raises:
-        DampingError: no d in the bounds settles every load case within max_steps.
+        DampingError: no d in the bounds settles every load case within max_steps; or, as
+            soon as the predicted d's runs say so, a load case cannot settle within the step
+            budget (:data:`HOPELESS`), naming it.
     """
     if max_steps is None:
         value = problem.spec.fpm.max_steps
         auto = auto or value == "auto"
         max_steps = FALLBACK_STEPS if value == "auto" else int(value)
     step = time_step(problem, stiffness) if dt is None else dt
+    limit = SCHEMA_MAX_STEPS if auto else max_steps  # the most steps a run may ever be given
     for attempt in range(RETRIES + 1):
         last = not auto or attempt == RETRIES or max_steps >= SCHEMA_MAX_STEPS
         runs = _Runs(problem, stiffness, depth, step, spread, settle=settle, targets=targets,
@@ -257,7 +273,15 @@ def fastest_damping(
         runs.max_steps = max_steps
         try:
             return _search(
-                runs, bounds, guesses, progress, prediction, models, explain=last, grow=not last
+                runs,
+                bounds,
+                guesses,
+                progress,
+                prediction,
+                models,
+                explain=last,
+                grow=not last,
+                limit=(limit, auto, list(why or [])),
             )
         except _ShortCap as short:  # the predicted d's runs need more steps than the cap
             need = short.args[0]
@@ -281,12 +305,16 @@ def _search(
     *,
     explain: bool = True,
     grow: bool = False,
+    limit: tuple[int, bool, list[str]] | None = None,
 ) -> DampingFit:
     """The search (:func:`fastest_damping`); ``explain``: a failure says what would work (one
     probe run of up to PROBE_STEPS times max_steps), else it only says that nothing settled;
     ``grow``: the cap may grow (fpm.max_steps 'auto'), so if the predicted d's runs reach it
     unsettled, :class:`_ShortCap` says how many steps they need (their decay's prediction)
-    at once, rather than searching on under a cap that is too small."""
+    at once, rather than searching on under a cap that is too small; ``limit``: (the step
+    budget, whether it is 'auto''s, per load case what may keep it from settling): a case
+    that the predicted d's runs show cannot settle within it ends the search
+    (:func:`_hopeless`)."""
     lo, hi = round(math.log(bounds[0]), 12), round(math.log(bounds[1]), 12)
     max_steps = runs.max_steps
     steps: dict[float, list[int] | None] = {}  # log d -> steps per case (None: not settled)
@@ -296,6 +324,8 @@ def _search(
     # [log d, displacements (L, N, 3), residuals (L,) N] of the fewest total steps so far
     best: list[Any] = []
     short: dict[float, float] = {}  # log d -> steps it needs, for a d stopped by the cap
+    # log d -> (steps taken, steps predicted) per case, for a d stopped by the cap
+    needs: dict[float, list[tuple[int, float]]] = {}
 
     def key(y: float) -> float:
         """log d within the bounds, rounded: one key per d, whatever path computed it."""
@@ -326,6 +356,7 @@ def _search(
                 steps[y] = None
                 if not any(r.diverged for r in results):  # stopped by the cap
                     short[y] = max([*verdict.predicted, 2.0 * max_steps])
+                    needs[y] = [(r.steps, long_decay(r)) for r in results]
             elif verdict.outcome == "done" and all(r.state == SETTLED for r in results):
                 settled = [r.steps for r in results]
                 steps[y] = settled
@@ -364,6 +395,8 @@ def _search(
         # The predicted d runs to the cap: early in a long run its decay is no guide (on a
         # slender bar it predicted 3-8 times the steps the run took).
         f_mid = total(mid, to_cap=True, beside=beside)
+        if limit is not None and key(mid) in needs:
+            _hopeless(runs.problem, math.exp(key(mid)), needs[key(mid)], *limit)
         if grow and key(mid) in short:
             raise _ShortCap(short[key(mid)])
         # A side runs only where the reduced steps cannot rule it out (:func:`_unsure`); both
@@ -609,6 +642,72 @@ def _smallest_settling(
         else:
             y_fail = middle
     return y_ok
+
+
+def _hopeless(
+    problem: Problem,
+    d: float,
+    needs: list[tuple[int, float]],
+    limit: int,
+    auto: bool,
+    why: list[str],
+) -> None:
+    """Raise :class:`DampingError` naming the load cases whose run at ``d`` (N s/m, the
+    predicted d) stopped at its cap with a decay that predicts more than HOPELESS times the
+    step budget ``limit``: (steps taken, steps predicted) per case in ``needs``, ``why`` what
+    may keep each from settling (none: nothing said)."""
+    slow = [j for j, (_, need) in enumerate(needs) if not need <= HOPELESS * limit]
+    if not slow:
+        return
+    budget = (
+        f"fpm.max_steps 'auto' grows to at most {limit:,}"
+        if auto
+        else (f"fpm.max_steps = {limit:,}")
+    )
+    parts = []
+    for j in sorted(slow, key=lambda j: -needs[j][1]):
+        taken, need = needs[j]
+        guess = (
+            "has not shrunk over the second half of the run"
+            if not math.isfinite(need)
+            else f"predicts about {need:.2g} steps"
+        )
+        cause = f" ({why[j]})" if j < len(why) and why[j] else ""
+        parts.append(
+            f"load case '{problem.load_cases[j].name}' cannot settle within the step budget "
+            f"({budget}): at d = {d:.3g} N s/m, the fastest the lattice's slowest modes "
+            f"predict, its run is still moving after {taken:,} steps and its distance from "
+            f"equilibrium {guess}{cause}"
+        )
+    most = max(needs[j][1] for j in slow)
+    if not auto and most <= SCHEMA_MAX_STEPS:  # the spec's own cap is what is short
+        advice = f"raise fpm.max_steps to about {math.ceil(1.2 * most):,}, or set it 'auto'"
+    else:
+        advice = (
+            "lower its forces (a press of a few % of the solid's smallest extent settles in "
+            "thousands of steps), or check that the fixed nodes hold the solid"
+        )
+    raise DampingError("; ".join(parts) + ": " + advice)
+
+
+def long_decay(run: DynamicRun | CaseRun) -> float:
+    """The steps ``run`` (stopped at its cap) would take to settle, predicted from the decay of
+    its residual over the whole run: the envelope (largest sample) over its last quarter
+    against that over the quarter before, extrapolated exponentially down to its settle
+    force (as :func:`fpm.fitting.lockstep.predicted_steps` does over the last two pieces of
+    CHUNK steps, which a slow mode's swing, thousands of steps long, can fill with a rising
+    envelope); inf when the envelope has not fallen; its steps when it never settles (settle
+    force 0) or is too short to read (under 2 CHUNK steps a quarter, the first swing)."""
+    at = run.steps
+    span = at // 4
+    last = [r for n, r in run.history if at - span < n <= at]
+    before = [r for n, r in run.history if at - 2 * span < n <= at - span]
+    if run.settle_force <= 0 or span < 2 * CHUNK or not last or not before:
+        return float(at)
+    e1, e2 = max(before), max(last)
+    if not (0 < e2 < e1):
+        return math.inf
+    return at + max(math.log(e2 / run.settle_force), 0.0) / (math.log(e1 / e2) / span)
 
 
 PROBE_STEPS = 20

@@ -45,6 +45,7 @@ from .bounds import damping_bounds, fit_depth, full_depth, stiffness_bounds
 from .cost import StaticCost
 from .damping import DampingFit, Spread, critical_damping, fastest_damping
 from .depth import resolve_depth
+from .diagnosis import SMALL_STRAIN
 from .field import fit_field
 from .reduced import ReducedBasis, first_basis, fit_reduced
 from .stiffness_stage import (
@@ -397,6 +398,7 @@ def find_damping(
     plan its runs followed."""
     bounds = damping_bounds(problem)
     asked = problem.spec.fpm.max_steps
+    why = strain_notes(problem, static, reference)
     if plan is None:
         plan = DampingPlan([float(t) for t in stiffness.parameters()], int(depth), dt)
     distance = None
@@ -412,7 +414,7 @@ def find_damping(
         cap = FALLBACK_STEPS if asked == "auto" else int(asked)
         fit = fastest_damping(
             problem, stiffness, depth, bounds, guesses, dt=dt, progress=progress, max_steps=cap,
-            auto=asked == "auto", spread=None if spread is None else spread(plan, None),
+            auto=asked == "auto", spread=None if spread is None else spread(plan, None), why=why,
         )  # fmt: skip
         return fit, plan
     targets = None
@@ -425,6 +427,33 @@ def find_damping(
         problem, stiffness, depth, bounds, (prediction.d, prediction.d), dt=dt,
         progress=progress, prediction=prediction, models=models, max_steps=cap,
         auto=asked == "auto", spread=None if spread is None else spread(plan, targets),
-        settle=plan.settle, targets=targets, distances=plan.distance,
+        settle=plan.settle, targets=targets, distances=plan.distance, why=why,
     )  # fmt: skip
     return fit, plan
+
+
+def strain_notes(problem: Problem, static: np.ndarray, reference: np.ndarray | None) -> list[str]:
+    """Per load case, how far its loads take the solid, for a case that cannot settle: the
+    largest spring strain |l / L - 1| of its static equilibrium ``static`` (L, N, 3) m and the
+    largest displacement of the reference ``reference`` (L, N, 3) m (None: not said) as a
+    share of the solid's smallest bounding-box extent."""
+    springs, rest = problem.solid.springs, problem.rest_lengths
+    extents = np.ptp(problem.nodes, axis=0)
+    extent = float(extents[extents > 0].min())
+    notes = []
+    for j, u in enumerate(static):
+        x = problem.nodes + u
+        strain = float(
+            np.abs(np.linalg.norm(x[springs[:, 1]] - x[springs[:, 0]], axis=1) / rest - 1).max()
+        )
+        note = f"its static equilibrium strains a spring by {100 * strain:.0f}%"
+        if reference is not None:
+            moved = float(np.linalg.norm(reference[j], axis=1).max()) / extent
+            note += (
+                f", and the FEM moves a node by {100 * moved:.0f}% of the solid's smallest "
+                f"extent ({extent:.3g} m)"
+            )
+            if moved > SMALL_STRAIN:
+                note += ", far outside the small strain its linear reference assumes"
+        notes.append(note)
+    return notes
