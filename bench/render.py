@@ -199,7 +199,48 @@ def generic_page(name: str, document: dict[str, Any]) -> list[str]:
     return out + ["", "## Measured", ""] + runs_table(document)
 
 
+def native_page(document: dict[str, Any]) -> list[str]:
+    rows = [r for r in document["records"] if r["part"] == "steps"]
+    out = [
+        "# The native step",
+        "",
+        "Steps per second of the C step (`fpm/native/fpm_step.c`, float64 unless said; its "
+        "default threads) and of the NumPy runtime (`fpm.runtime`) on boxes at the paper's "
+        "spacing with the default model (springs and the volume term), a push that changes "
+        "every step; the stream bound: passes per second of a loop reading the bytes the step "
+        "reads and writes once (`bench/bench_native.py`), in the same run. Wall clock of the "
+        "shared machine, its load average beside; CPU microseconds per step of the C step "
+        "(all its threads) beside that. [The native step](../reference/native-step.md).",
+        "",
+        "| nodes | springs | threads | C steps/s | goal | float32 | NumPy | x NumPy | stream "
+        "bound | C / stream | CPU µs a step | load |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        goal = "-" if r["goal_steps_per_s"] is None else f"{r['goal_steps_per_s']:,.0f}"
+        out.append(
+            f"| {r['nodes']:,} | {r['springs']:,} | {r['threads']} | "
+            f"{r['native_steps_per_s']:,.0f} | {goal} | {r['float32_steps_per_s']:,.0f} | "
+            f"{r['numpy_steps_per_s']:,.1f} | {r['speedup_over_numpy']:.1f} | "
+            f"{r['stream_steps_per_s']:,.0f} | {r['stream_ratio']:.1f} | "
+            f"{r['native_cpu_us_per_step']:,.0f} | {r['load_average']:.1f} |"
+        )
+    met = [r for r in rows if r["meets_goal"]]
+    out += [
+        "",
+        f"Goals met: {len(met)} of {sum(r['goal_steps_per_s'] is not None for r in rows)} "
+        "rates (20,000 steps/s at about 2,000 nodes, 1,000 at 20,000, 150 at 100,000); within "
+        f"2x of the stream bound: {sum(r['meets_stream_goal'] for r in rows)} of {len(rows)}; "
+        f">= 20x NumPy: {sum(r['meets_numpy_goal'] for r in rows)} of {len(rows)}.",
+        "",
+        "## Measured",
+        "",
+    ]
+    return out + runs_table(document)
+
+
 PAGE_MAKERS: dict[str, Callable[[dict[str, Any]], list[str]]] = {
+    "native": native_page,
     "replicate": replicate_page,
     "volume": volume_page,
 }

@@ -137,6 +137,7 @@ def _declare(lib: ctypes.CDLL) -> None:
         "fpm_stable_dt": (dbl, [p]),
         "fpm_set_parameters": (i, [p, dbl, dbl]),
         "fpm_set_threads": (i, [p, i]),
+        "fpm_thread_count": (i, [p]),
         "fpm_internal_forces": (i, [p, p, p]),
         "fpm_reset": (None, [p]),
         "fpm_step": (i, [p, p, p, p, p, p]),
@@ -186,6 +187,11 @@ class NativeStep:
     def threads(self, threads: int) -> None:
         self._check(self._lib.fpm_set_threads(self._model, int(threads)))
         self._threads = int(threads)
+
+    @property
+    def thread_count(self) -> int:
+        """The threads the step runs on."""
+        return int(self._lib.fpm_thread_count(self._model))
 
     @property
     def stable_dt(self) -> float:

@@ -282,6 +282,8 @@ double fpm_dt(const fpm_model *m) { return m ? m->dt : 0.0; }
 double fpm_damping(const fpm_model *m) { return m ? m->d : 0.0; }
 double fpm_stable_dt(const fpm_model *m) { return m ? m->stable_dt : 0.0; }
 
+int fpm_thread_count(const fpm_model *m) { return m ? thread_count(m) : 0; }
+
 int fpm_set_threads(fpm_model *m, int threads) {
     if (!m) return FPM_ERR_ARGUMENT;
     if (threads < 0) return fail(m, FPM_ERR_ARGUMENT, "threads: %d, must be >= 0", threads);

@@ -81,6 +81,8 @@ int fpm_set_parameters(fpm_model *model, double d, double dt);
 /* Threads for the step: 0 = all OpenMP's on lattices of FPM_THREAD_NODES nodes or more, one on
    smaller ones; n = n threads (1 without OpenMP). */
 int fpm_set_threads(fpm_model *model, int threads);
+/* The threads the step runs on (1 without OpenMP). */
+int fpm_thread_count(const fpm_model *model);
 
 /* The rest positions, 3 N values, m. */
 int fpm_rest_positions(const fpm_model *model, fpm_real *x);

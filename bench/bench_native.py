@@ -1,0 +1,213 @@
+"""The native step (fpm/native/fpm_step.c) against the NumPy runtime and a memory-stream bound.
+
+Lattices: boxes at the paper's cube's spacing (h = 0.1/9 m, material A, full connectivity, the
+bottom held), the default model (families+volume at the continuum start), dt auto, d = 0.5
+sqrt(E h m): 10^3 = 1,000 nodes (the paper's cube), 13^3 = 2,197, 27^3 = 19,683 and 47^3 =
+103,823 nodes. Built straight from the box's problem (springs, masses, hexahedra, kappa, rest
+volumes: the JSON export's arrays; no calibration, no export's settle modes), stepped under a
+push on the top centre node that changes every step.
+
+Per lattice: steps/s of the native float64 step (its default threads: OpenMP's from
+FPM_THREAD_NODES nodes, one below), of the float32 step, and of the NumPy runtime; the stream
+bound: the seconds of a loop reading the bytes the step reads and writes once per step (model
+arrays and state, bench/stream.c, same compiler, flags and threads), measured in the same run;
+the ratio native / stream (1 = at the bound). The wall clock of a shared machine: the load
+average is recorded beside, and the CPU seconds of the native step per step as well.
+
+Goals: >= 20,000 steps/s at about 2,000 nodes, >= 1,000 at about 20,000, >= 150 at about
+100,000; within 2x of the stream bound; >= 20x the NumPy runtime.
+
+Run: ``python -m bench native`` (under 3 minutes).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench import results
+
+ROOT = Path(__file__).resolve().parents[1]
+SIDES = tuple(int(s) for s in os.environ.get("BENCH_SIDES", "10,13,27,47").split(","))
+H = 0.1 / 9
+GOALS = {13: 20_000.0, 27: 1_000.0, 47: 150.0}
+"""Nodes per side -> native steps/s goal."""
+STREAM_GOAL, NUMPY_GOAL = 2.0, 20.0
+SECONDS = 1.5
+"""Wall seconds each timed loop runs for (at least 20 steps)."""
+
+
+def box_runtime(side: int, backend: str, precision: str = "float64") -> tuple[Any, np.ndarray]:
+    """(Runtime, (N, 3) push) of the box with ``side`` nodes per edge."""
+    from fpm import load_problem
+    from fpm.dynamics.stability import auto_time_step
+    from fpm.model.forces import cells
+    from fpm.model.stiffness import continuum_start, model_stiffness
+    from fpm.runtime import Runtime
+
+    size = H * (side - 1)
+    centre = H * ((side - 1) // 2)
+    spec = {
+        "name": f"box {side}^3",
+        "material": {"youngs_modulus": 10_000.0, "poisson_ratio": 0.45, "density": 1040.0},
+        "geometry": {"type": "box", "size": [size] * 3, "nodes": [side] * 3,
+                     "connectivity": "full"},
+        "fixed": [{"face": "z-"}],
+        "load_cases": [{"name": "push", "forces": [{"at": [centre, centre, size],
+                                                    "vector": [0.0, 0.0, -0.5]}]}],
+        "fpm": {"stiffness": "families+volume"},
+    }  # fmt: skip
+    problem = load_problem(spec)
+    stiffness = model_stiffness(problem, continuum_start(problem))
+    e = problem.spec.material.youngs_modulus
+    rt = Runtime(
+        rest=problem.nodes,
+        masses=problem.solid.masses,
+        fixed=problem.fixed,
+        springs=problem.solid.springs.astype(np.int64),
+        rest_lengths=problem.rest_lengths,
+        stiffness=stiffness.springs,
+        hexahedra=problem.solid.elements(),
+        kappa=np.asarray(stiffness.volume, dtype=float),
+        rest_volumes=cells(problem).volume,
+        d=0.5 * float(np.sqrt(e * problem.h * problem.solid.masses.mean())),
+        dt=auto_time_step(problem, stiffness),
+        settle_tolerance=0.0,
+        backend=backend,
+        precision=precision,
+    )
+    push = problem.load_cases[0].dense(problem.n_nodes)
+    return rt, push
+
+
+def steps_per_second(rt: Any, push: np.ndarray) -> tuple[float, float]:
+    """(steps/s over wall time, CPU seconds per step) of ``rt`` under a push that changes
+    every step."""
+    pushes = [np.ascontiguousarray(push * (1.0 + 0.5 * np.sin(0.01 * n)), dtype=rt.x.dtype)
+              for n in range(16)]  # fmt: skip
+    for p in pushes[:4]:
+        rt.step(p)
+    count, steps = 20, 0
+    wall = cpu = 0.0
+    while wall < SECONDS:
+        t0, c0 = time.perf_counter(), time.process_time()
+        for n in range(count):
+            rt.step(pushes[n % 16])
+        wall += time.perf_counter() - t0
+        cpu += time.process_time() - c0
+        steps += count
+        count *= 2
+    return steps / wall, cpu / steps
+
+
+def step_bytes(rt: Any) -> int:
+    """Bytes the native step reads and writes once per step: the state (x read, x_next
+    written, v read and written, forces read), per node rest, m g, dt/m, the damping
+    denominator, the fixed flag and two row offsets; per spring end the neighbour, rest length
+    and stiffness; per hexahedron its corners, kappa, rest volume, its corner forces written
+    and read and their slots."""
+    real = np.dtype(rt.x.dtype).itemsize
+    n, s, h = rt.n_nodes, len(rt.springs), len(rt.hexahedra)
+    per_node = (3 + 3 + 6 + 3) * real + (3 + 3 + 1 + 1) * real + 1 + 8
+    per_spring = 2 * (4 + 2 * real)
+    per_hex = 8 * 4 + 2 * real + 2 * 24 * real + 8 * 4
+    return n * per_node + s * per_spring + h * per_hex
+
+
+def stream_library() -> ctypes.CDLL:
+    """bench/stream.c compiled as the native step is (flags, OpenMP), into its cache."""
+    from fpm import native
+
+    cc = native.compiler()
+    if cc is None:
+        raise native.CompilerUnavailable("no C compiler")
+    target = native.cache_dir() / f"stream{native._suffix()}"
+    source = Path(__file__).with_name("stream.c")
+    if not target.exists() or target.stat().st_mtime < source.stat().st_mtime:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        subprocess.run(
+            [cc, *native.FLAGS, "-fopenmp", str(source), "-o", str(target)],
+            check=True, capture_output=True,
+        )  # fmt: skip
+    lib = ctypes.CDLL(str(target))
+    lib.stream_pass.restype = ctypes.c_double
+    lib.stream_pass.argtypes = [ctypes.c_void_p, ctypes.c_long, ctypes.c_int, ctypes.c_long]
+    return lib
+
+
+def stream_seconds(lib: ctypes.CDLL, nbytes: int, threads: int) -> float:
+    """Seconds per pass over ``nbytes`` (best of 5 rounds of passes lasting about 0.1 s)."""
+    data = np.random.default_rng(0).random(max(1, nbytes // 8))
+    passes = 1
+    while True:
+        t0 = time.perf_counter()
+        lib.stream_pass(data.ctypes.data, len(data), threads, passes)
+        if time.perf_counter() - t0 > 0.1:
+            break
+        passes *= 2
+    best = float("inf")
+    for _ in range(5):
+        t0 = time.perf_counter()
+        lib.stream_pass(data.ctypes.data, len(data), threads, passes)
+        best = min(best, (time.perf_counter() - t0) / passes)
+    return best
+
+
+def main() -> None:
+    lib = stream_library()
+    print(
+        f"{'nodes':>8} {'springs':>9} {'native/s':>10} {'goal':>7} {'f32/s':>9} "
+        f"{'numpy/s':>8} {'x numpy':>8} {'stream/s':>9} {'x stream':>8} {'cpu us':>7} {'load':>5}"
+    )
+    for side in SIDES:
+        load = os.getloadavg()[0]
+        rt, push = box_runtime(side, "native")
+        native_rate, cpu = steps_per_second(rt, push)
+        f32, push32 = box_runtime(side, "native", "float32")
+        f32_rate, _ = steps_per_second(f32, push32)
+        numpy_rt, _ = box_runtime(side, "numpy")
+        numpy_rate, _ = steps_per_second(numpy_rt, push)
+        threads = rt._engine.thread_count
+        nbytes = step_bytes(rt)
+        stream = stream_seconds(lib, nbytes, threads)
+        ratio = 1.0 / native_rate / stream
+        goal = GOALS.get(side)
+        print(
+            f"{rt.n_nodes:>8,} {len(rt.springs):>9,} {native_rate:>10,.0f} "
+            f"{goal or 0:>7,.0f} {f32_rate:>9,.0f} {numpy_rate:>8,.1f} "
+            f"{native_rate / numpy_rate:>8.1f} {1 / stream:>9,.0f} {ratio:>8.2f} "
+            f"{cpu * 1e6:>7.0f} {load:>5.2f}",
+            flush=True,
+        )
+        results.record(
+            "native",
+            "steps",
+            nodes=rt.n_nodes,
+            springs=len(rt.springs),
+            hexahedra=len(rt.hexahedra),
+            threads=threads,
+            native_steps_per_s=native_rate,
+            native_cpu_us_per_step=cpu * 1e6,
+            float32_steps_per_s=f32_rate,
+            numpy_steps_per_s=numpy_rate,
+            speedup_over_numpy=native_rate / numpy_rate,
+            step_bytes=nbytes,
+            stream_steps_per_s=1.0 / stream,
+            stream_ratio=ratio,
+            goal_steps_per_s=goal,
+            meets_goal=None if goal is None else native_rate >= goal,
+            meets_stream_goal=ratio <= STREAM_GOAL,
+            meets_numpy_goal=native_rate / numpy_rate >= NUMPY_GOAL,
+            load_average=load,
+        )
+
+
+if __name__ == "__main__":
+    main()
+    results.save("native", "python -m bench.bench_native")
