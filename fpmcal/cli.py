@@ -12,6 +12,7 @@ import argparse
 import json
 import os
 import sys
+from functools import partial
 from pathlib import Path
 from typing import Any, get_args
 
@@ -244,16 +245,26 @@ def cmd_calibrate(args: argparse.Namespace) -> None:
     from fpm.fitting.calibration import calibrate
     from fpm.fitting.diagnosis import check_reference
 
+    from . import cache as stored
+
     problem = _load(args.spec, args.reference)
     a = problem.spec.annealing
     chains = args.chains or a.chains
     print(f"{problem.spec.name}: {problem.n_nodes} nodes, h = {problem.h:.4g} m", file=sys.stderr)
-    # the supplied field, if any: then no FEM
-    reference = reference_for(problem, progress=None if args.quiet else _fem_levels)
+    # the supplied field, if any: then no FEM; else the stored one beside the spec
+    cache = None if args.no_cache else stored.Cache(stored.cache_dir(args.spec))
+    levels = None if args.quiet else _fem_levels
+    say = partial(print, file=sys.stderr)
+    solve = partial(reference_for, problem, progress=levels)
+    reference = stored.reference(cache, problem, solve, say)
     warned = check_reference(problem, reference.displacements)  # a UnitsError stops here
     _warn(warned)
     progress = None if args.quiet else _Bar(chains, a.moves)
-    result = calibrate(problem, chains=chains, progress=progress, reference=reference)
+    done, keep = stored.chains(cache, problem, reference, chains, say)
+    result = calibrate(
+        problem, chains=chains, progress=progress, reference=reference, stored_chains=done,
+        keep_chains=keep,
+    )  # fmt: skip
     _warn([w for w in getattr(result, "warnings", None) or [] if w not in warned])
     if args.json:  # the table still for the person watching: on stderr
         print(result_table(problem, result), file=sys.stderr)
@@ -586,6 +597,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--json", action="store_true", help="print the result as JSON (the table goes to stderr)"
     )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--no-cache",
+        action="store_true",
+        help="neither reuse nor keep the FEM reference and stage 1's chains in SPEC.fpmcache/ "
+        "beside the spec (kept by default before the next stage starts, reused when they are "
+        "still valid: a rerun after a failure or with another damping setting, or a press "
+        "scaled by a factor, starts from them)",
+    )
     p.add_argument(
         "--reference",
         default=None,

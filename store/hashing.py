@@ -65,6 +65,33 @@ def fem_hash(spec: dict[str, Any]) -> str:
     return hashlib.sha256(canonical(identity)).hexdigest()
 
 
+DAMPING_ONLY = ("dt", "max_steps", "settle_distance", "settle_tolerance", "auto_depth_tolerance")
+"""Two-stage: the ``fpm`` settings that only the damping stage reads (stage 1's chains fit the
+stiffness on static equilibria), with ``annealing.bounds.d``: a change in them keeps stage 1's
+chains (:func:`stiffness_spec`)."""
+
+
+def stiffness_spec(spec: dict[str, Any]) -> dict[str, Any]:
+    """The part of ``spec`` stage 1's chains depend on besides their reference: all of it but
+    its name and validation cases and, two-stage, :data:`DAMPING_ONLY` (the paper method
+    anneals d with the stiffness: all of it)."""
+    kept = {k: v for k, v in spec.items() if k not in ("name", "validation_cases")}
+    if spec["annealing"]["method"] != "two-stage":
+        return kept
+    fpm = {k: v for k, v in spec["fpm"].items() if k not in DAMPING_ONLY}
+    bounds = {k: v for k, v in (spec["annealing"].get("bounds") or {}).items() if k != "d"}
+    return kept | {"fpm": fpm, "annealing": spec["annealing"] | {"bounds": bounds}}
+
+
+def stiffness_hash(spec: dict[str, Any]) -> str:
+    """sha256 of :func:`stiffness_spec`, of the FEM reference's identity (:func:`fem_hash`) and
+    of :data:`fpm.model.spec.MODEL_VERSION`: the identity of stage 1's chains, which a
+    calibration of a spec differing only in damping settings, or one run again after a
+    failure, takes as they are."""
+    identity = {"model": MODEL_VERSION, "fem": fem_hash(spec), "spec": stiffness_spec(spec)}
+    return hashlib.sha256(canonical(identity)).hexdigest()
+
+
 def export_hash(parameter_set_id: str, fmt: str) -> str:
     """sha256 of a parameter set id, an export format and
     :data:`fpm.model.spec.EXPORT_VERSION`: the identity of a cached export.

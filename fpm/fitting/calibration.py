@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -250,6 +251,8 @@ def calibrate(
     progress: Progress | None = None,
     reference: Any = None,
     threads: int | None = None,
+    stored_chains: list[ChainResult] | None = None,
+    keep_chains: Callable[[list[ChainResult]], None] | None = None,
 ) -> CalibrationResult:
     """Fit stiffness, d and depth for ``problem`` in-process.
 
@@ -261,6 +264,11 @@ def calibrate(
         reference: FEM result or (L, N, 3) displacements (None = the spec's
             ``reference.displacements`` if given, else solve the FEM now).
         threads: chains run at once (None = one per core).
+        stored_chains: stage 1's chain results from an earlier run of the same problem and
+            reference (e.g. ``fpmcal calibrate``'s cache): no annealing, the stages after it
+            start from them.
+        keep_chains: given stage 1's chain results as soon as they are found, before the
+            stages after it start (so a later failure does not lose them).
 
     Raises:
         fpm.fitting.diagnosis.UnitsError: the FEM reference moves more than the solid's smallest
@@ -286,11 +294,17 @@ def calibrate(
         return run_chain(problem, reference, chain, progress=cb, basis=basis)
 
     workers = min(n, threads or os.cpu_count() or 1)
-    if workers == 1:
+    if stored_chains is not None:
+        if len(stored_chains) != n:
+            raise ValueError(f"stored_chains: {len(stored_chains)} chain results for {n} chains")
+        results = list(stored_chains)
+    elif workers == 1:
         results = [one(c) for c in range(n)]
     else:
         with ThreadPoolExecutor(workers) as pool:
             results = list(pool.map(one, range(n)))
+    if keep_chains is not None and stored_chains is None:
+        keep_chains(results)
     damping = None
     if two_stage:
         damping = fit_damping(problem, reference, results, progress=progress, basis=basis)
