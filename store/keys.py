@@ -90,6 +90,14 @@ def chain_result(calibration_id: str, chain: int) -> str:
     return f"{PREFIX}:calibration:{calibration_id}:chain:{chain}"
 
 
+def fitted_chain(stiffness_hash: str, chain: int) -> str:
+    """String: JSON ChainResult of one chain by the identity of what it fits
+    (:func:`store.hashing.stiffness_hash`), whichever calibration ran it: a calibration of the
+    same stiffness fit (one run again after its damping stage failed, or with other damping
+    settings) takes it instead of annealing again."""
+    return f"{PREFIX}:stiffness:{stiffness_hash}:chain:{chain}"
+
+
 def reduced_basis(calibration_id: str) -> str:
     """Hash: stage 1's first reduced basis of a families+volume calibration (written once by
     its reduced-basis job, read by the chains and the damping job): field ``layout`` (JSON:

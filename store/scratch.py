@@ -6,7 +6,9 @@
 - chain checkpoints (:class:`fpm.fitting.annealing.Checkpoint` as JSON), so that a retried
   chain resumes;
 - chain results (:class:`fpm.fitting.stiffness_stage.ChainResult` as JSON), read by the damping
-  stage and finalize;
+  stage and finalize, and the same by the identity of their fit
+  (:func:`store.hashing.stiffness_hash`), which a later calibration of that fit takes (one run
+  again after its damping stage failed);
 - the damping stage's result (:class:`fpm.fitting.damping_stage.DampingStage` as JSON);
 - the damping stage's load-case tasks (:mod:`worker.spread`): what to run, who runs it (a
   claim its holder renews), and the run (JSON and raw float64 displacements);
@@ -127,6 +129,20 @@ def save_chain_result(
     pipe.delete(keys.chain_checkpoint(calibration_id, chain))
     pipe.incrby(keys.evaluations_total(), evaluations)
     pipe.execute()
+
+
+def save_fitted_chain(
+    redis: Redis, stiffness_hash: str, chain: int, result: dict[str, Any]
+) -> None:
+    """Keep a finished chain's result by the identity of its fit
+    (:func:`store.hashing.stiffness_hash`) for :data:`SCRATCH_TTL` s, for later calibrations
+    of the same fit."""
+    redis.set(keys.fitted_chain(stiffness_hash, chain), json.dumps(result), ex=SCRATCH_TTL)
+
+
+def get_fitted_chain(redis: Redis, stiffness_hash: str, chain: int) -> dict[str, Any] | None:
+    """A chain's result as an earlier calibration of the same fit kept it, or None."""
+    return _json(redis.get(keys.fitted_chain(stiffness_hash, chain)))
 
 
 def get_chain_results(redis: Redis, calibration_id: str, chains: int) -> list[Any]:

@@ -4,9 +4,13 @@ chain, the damping stage (two-stage method), finalize, and the export of a param
 
 Every job takes ids only and reads what it needs from our keys; every job may run twice
 (a retry after its worker died) and writes its results once, under deterministic keys:
-a stored reduced basis is not built again, a finished chain is not re-run, a stopped chain
-resumes from its checkpoint, a finished damping stage is not re-run (an interrupted one starts
-again: it is deterministic), and the parameter set is written with SET NX.
+a stored reduced basis is not built again, a finished chain is not re-run (nor one that an
+earlier calibration of the same stiffness fit ran: its result is kept by the fit's identity,
+:func:`store.hashing.stiffness_hash`, so a calibration run again after its damping stage
+failed, or with other damping settings, resumes from the stored FEM reference and chains), a
+stopped chain resumes from its checkpoint, a finished damping stage is not re-run (an
+interrupted one starts again: it is deterministic), and the parameter set is written with SET
+NX.
 
 Progress goes to the calibration's progress hash (:func:`store.keys.calibration_progress`):
 one field per chain, and the field :data:`store.keys.DAMPING_PROGRESS` for the damping stage.
@@ -43,7 +47,7 @@ from fpm.fitting.reduced import ReducedBasis, first_basis
 from fpm.fitting.validation import validate
 from fpm.io.export import ExportError, export
 from store import keys, records, scratch
-from store.hashing import export_hash
+from store.hashing import export_hash, stiffness_hash
 from store.status import CalibrationStatus, FemStatus, Phase
 from store.timeline import critical_path, numbered
 
@@ -182,6 +186,14 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
             "started": record.started or time.time(),
         },
     )
+    fitted = stiffness_hash(record.spec)
+    kept = scratch.get_fitted_chain(redis, fitted, chain)
+    if kept is not None:  # an earlier calibration of the same fit ran it (its damping failed)
+        scratch.save_chain_result(redis, calibration_id, chain, kept, 0)
+        moves = len(kept["history"])  # a finished chain's report: every move made
+        done = {"move": moves, "moves": moves, "best_cost": kept["cost"]}
+        _ChainProgress(job, calibration_id, chain).report(done, now=True)
+        return {"reused": True, "x": kept["x"], "cost": kept["cost"]}
     problem = problem_of(redis, record.spec)
     memory.check(problem.n_nodes)
     try:
@@ -214,6 +226,7 @@ def anneal_chain(calibration_id: str, chain: int) -> dict[str, Any]:
         return {"failed": True}
     reporter.flush()
     scratch.save_chain_result(redis, calibration_id, chain, result.to_dict(), result.evaluations)
+    scratch.save_fitted_chain(redis, fitted, chain, result.to_dict())  # before the damping stage
     span.add()
     return {"x": result.x, "cost": result.cost, "evaluations": result.evaluations}
 
