@@ -332,3 +332,26 @@ def test_the_backend_from_the_environment(cube, monkeypatch):
         Runtime.from_export(cube, backend="fast")
     with pytest.raises(ValueError, match="precision"):
         Runtime.from_export(cube, backend="numba", precision="float32")
+
+
+# ------------------------------------------------------------------ the engine's damping
+
+
+def test_the_engine_damping_settles_in_fewer_steps_at_the_same_equilibrium(organ):
+    """fpm.dynamics.engine_damping's d and dt: every load case of the organ settles in fewer
+    steps than at the export's d and dt, at the same equilibrium."""
+    from fpm.dynamics.engine_damping import with_engine_damping
+
+    kernel = Runtime.from_export(organ, backend="native")
+    engine, found = with_engine_damping(kernel)
+    assert engine.backend_used == "native" and (engine.d, engine.dt) == (found.d, found.dt)
+    assert found.omega_min < found.omega_max and 0 < found.decay < 1
+    for case in range(len(organ["load_cases"])):
+        push = kernel.load_case_forces(organ, case)
+        kernel.reset()
+        engine.reset()
+        slow = kernel.run(push, max_steps=50_000)
+        fast = engine.run(push, max_steps=50_000)
+        assert engine.settled and fast < slow
+        u = kernel.x - kernel.rest
+        assert np.abs(engine.x - kernel.x).max() <= 1e-6 * np.abs(u).max()
