@@ -17,7 +17,14 @@ average is recorded beside, and the CPU seconds of the native step per step as w
 Goals: >= 20,000 steps/s at about 2,000 nodes, >= 1,000 at about 20,000, >= 150 at about
 100,000; within 2x of the stream bound; >= 20x the NumPy runtime.
 
-Run: ``python -m bench native`` (under 3 minutes).
+Part ``damping``: the paper's cube (material A's forces) calibrated with the default model
+(two-stage, families+volume, dt auto), its JSON export stepped by the C step per load case from
+rest until settled (the export's criterion), at the fitted d and dt (the calibration kernel's)
+and at :mod:`fpm.dynamics.engine_damping`'s d and dt (the all-at-once step's): the steps and the
+simulated seconds each takes, and how far apart the two settled states are. Goal: fewer steps
+with the engine's d in every load case.
+
+Run: ``python -m bench native`` (about 3 minutes); ``BENCH_NATIVE_PARTS=damping`` for one part.
 """
 
 from __future__ import annotations
@@ -159,7 +166,72 @@ def stream_seconds(lib: ctypes.CDLL, nbytes: int, threads: int) -> float:
     return best
 
 
+def damping_part() -> None:
+    """Part ``damping`` (the module docstring)."""
+    import json
+
+    from fpm import calibrate, load_problem
+    from fpm.dynamics.engine_damping import with_engine_damping
+    from fpm.io.export import export
+    from fpm.runtime import Runtime
+
+    spec = json.loads((ROOT / "examples/paper-material-a.json").read_text())
+    spec["fpm"] = {"stiffness": "families+volume"}
+    problem = load_problem(spec)
+    t0 = time.perf_counter()
+    result = calibrate(problem)
+    print(f"cube calibrated in {time.perf_counter() - t0:.1f} s", flush=True)
+    doc = json.loads(export(problem, result.to_dict(), "json"))
+    kernel = Runtime.from_export(doc, backend="native")
+    engine, found = with_engine_damping(kernel)
+    print(
+        f"kernel d {kernel.d:.4g} N s/m at dt {kernel.dt * 1e3:.4g} ms; engine d {found.d:.4g} "
+        f"at dt {found.dt * 1e3:.4g} ms (w {found.omega_min:.4g}..{found.omega_max:.4g} rad/s)"
+    )
+    print(
+        f"{'load case':>10} {'kernel d':>9} {'engine d':>9} {'ratio':>6} {'sim s':>13} {'apart':>8}"
+    )
+    cap = int(doc["parameters"]["max_steps"]) * 20
+    for j, case in enumerate(doc["load_cases"]):
+        push = kernel.load_case_forces(doc, j)
+        kernel.reset()
+        engine.reset()
+        slow, fast = kernel.run(push, cap), engine.run(push, cap)
+        u = np.abs(kernel.x - kernel.rest).max()
+        apart = float(np.abs(engine.x - kernel.x).max() / u)
+        print(
+            f"{case['name']:>10} {slow:>9,} {fast:>9,} {fast / slow:>6.2f} "
+            f"{slow * kernel.dt:>6.3f}/{fast * engine.dt:<6.3f} {apart:>8.1e}",
+            flush=True,
+        )
+        results.record(
+            "native",
+            "damping",
+            load_case=case["name"],
+            kernel_d=kernel.d,
+            kernel_dt=kernel.dt,
+            kernel_steps=slow,
+            kernel_settled=kernel.settled,
+            engine_d=found.d,
+            engine_dt=found.dt,
+            engine_steps=fast,
+            engine_settled=engine.settled,
+            steps_ratio=fast / slow,
+            settled_apart=apart,
+            meets_goal=engine.settled and fast < slow,
+        )
+
+
 def main() -> None:
+    parts = os.environ.get("BENCH_NATIVE_PARTS", "steps,damping").split(",")
+    if "steps" in parts:
+        steps_part()
+    if "damping" in parts:
+        damping_part()
+
+
+def steps_part() -> None:
+    """Part ``steps`` (the module docstring)."""
     lib = stream_library()
     print(
         f"{'nodes':>8} {'springs':>9} {'native/s':>10} {'goal':>7} {'f32/s':>9} "
