@@ -21,7 +21,7 @@ offset its header entry gives from the start of the body, a multiple of 4)::
 
     {"format": "fpm-view", "version": 1, "parameter_set_id", "name", "h", "nodes",
      "vertices", "surface_vertices", "triangles", "bounds": [[x0, y0, z0], [x1, y1, z1]],
-     "units": {...},
+     "gravity": [gx, gy, gz] (the spec's fpm.gravity, m/s^2: the page's up axis), "units": {...},
      "arrays": {name: {"dtype": "float32" | "uint32", "shape": [...], "offset": bytes}},
      "cases": [{"name", "kind": "fitted" | "validation", "relative_discrepancy",
                 "loaded_discrepancy" (fitted only), "discrepancy_h", "fem_max",
@@ -242,6 +242,7 @@ def view_body(
         "surface_vertices": len(on_surface),
         "triangles": 2 * len(quads),
         "bounds": [nodes.min(axis=0).tolist(), nodes.max(axis=0).tolist()],
+        "gravity": [float(g) for g in problem.spec.fpm.gravity],
         "units": {
             "positions": "m",
             "displacements": "m",

@@ -24,21 +24,30 @@ if TYPE_CHECKING:
 
 LINE_TOLERANCE = 1e-3
 """A node is on a profile line if its other two coordinates are within this many h of it."""
+MIN_LINE_NODES = 3
+"""Fewest nodes of an axis-parallel profile line; fewer and the load's own line is used."""
+FORCE_LINE_RADIUS = 0.5
+"""A node is on the load's own line if it is within this many h of it."""
 
 
 def profile_line(problem: Problem, load_case: int = 0) -> tuple[np.ndarray, int, int]:
     """The axis-parallel line through the first loaded node that holds the most nodes.
 
     Ties go to a line across the force (the paper's profiles along the loaded face), then to x
-    before y before z.
+    before y before z. Where no such line holds :data:`MIN_LINE_NODES` nodes (a lattice
+    conformed to an organ's surface moves its surface nodes, the loaded ones among them, off
+    the grid), the profile runs along the load's own line instead: the nodes within
+    :data:`FORCE_LINE_RADIUS` h of the line through the loaded node along the summed force,
+    in order along the force's main axis.
 
     Returns:
-        (node indices (P,) sorted along the line, the axis the line runs along, the force's
-        main axis).
+        (node indices (P,) sorted along the line, the axis the line runs along (the force's
+        main axis on the load's own line), the force's main axis).
     """
     case = problem.load_cases[load_case]
     first = case.nodes[0]
-    direction = int(np.argmax(np.abs(case.forces.sum(axis=0))))
+    force = np.asarray(case.forces, dtype=float).sum(axis=0)
+    direction = int(np.argmax(np.abs(force)))
     x = problem.nodes
     tol = LINE_TOLERANCE * problem.h
     best, along = np.zeros(0, dtype=np.int64), 0
@@ -47,7 +56,14 @@ def profile_line(problem: Problem, load_case: int = 0) -> tuple[np.ndarray, int,
         line = np.flatnonzero(np.all(np.abs(x[:, others] - x[first, others]) <= tol, axis=1))
         if len(line) > len(best):
             best, along = line, axis
-    return best[np.argsort(x[best, along])], along, direction
+    if len(best) < MIN_LINE_NODES and np.linalg.norm(force) > 0:
+        unit = force / np.linalg.norm(force)
+        offset = x - x[first]
+        across = offset - np.outer(offset @ unit, unit)
+        near = np.flatnonzero(np.linalg.norm(across, axis=1) <= FORCE_LINE_RADIUS * problem.h)
+        if len(near) > len(best):
+            best, along = near, direction
+    return best[np.argsort(x[best, along], kind="stable")], along, direction
 
 
 def relative_discrepancy(fpm: np.ndarray, fem: np.ndarray) -> float:

@@ -792,6 +792,20 @@
     return el("a", { href: `#/parameter-sets/${enc(id)}/3d`, class: "view3d-link" }, "3D view");
   }
 
+  // The settle steps of the calibration that made parameter set ``id`` (its result's, one per
+  // fitted case), or null when they cannot be read: the 3D view's figures are the result's.
+  async function resultSettleSteps(id) {
+    try {
+      const ps = (await api("GET", `v1/parameter-sets/${enc(id)}`)).body;
+      const calibration = ps.provenance && ps.provenance.calibration_id;
+      if (!calibration) return null;
+      const c = (await api("GET", `v1/calibrations/${enc(calibration)}`)).body;
+      return c.result ? c.result.settle_steps : null;
+    } catch (error) {
+      return null;
+    }
+  }
+
   async function view3dPage(id, token) {
     const opened = performance.now();
     const status = el("p", { class: "muted", id: "view3d-status" }, "Loading the 3D view…");
@@ -815,9 +829,12 @@
         if (!alive(token)) return;
       }
       const { decodeView, mountView } = await module;
+      const settleSteps = await resultSettleSteps(id);
       if (!alive(token)) return;
       status.remove();
-      view3d = mountView(panel, decodeView(buffer), { request: (path, accept) => request("GET", path, accept) });
+      view3d = mountView(panel, decodeView(buffer), {
+        request: (path, accept) => request("GET", path, accept), settleSteps,
+      });
       await new Promise((resolve) => requestAnimationFrame(() => setTimeout(resolve, 0))); // painted
       if (!alive(token)) return;
       panel.dataset.bytes = String(buffer.byteLength);
@@ -1009,6 +1026,10 @@
   }
 
   // Horizontal bars with their values.
+  // A bar's label that fits the chart's left margin (the whole name in its tooltip).
+  const LABEL_CHARS = 20;
+  const shortLabel = (text) => (text.length > LABEL_CHARS ? `${text.slice(0, LABEL_CHARS - 1)}…` : text);
+
   function barChart(items, label) {
     const width = 560;
     const rowH = 24;
@@ -1025,7 +1046,8 @@
       const y = m.top + rowH * j;
       const w = Number.isFinite(item.value) ? (item.value / top) * plotW : 0;
       root.append(
-        svg("text", { x: m.left - 8, y: y + 15, "text-anchor": "end" }, item.label),
+        svg("text", { x: m.left - 8, y: y + 15, "text-anchor": "end" }, shortLabel(item.label),
+          svg("title", null, item.label)),
         svg("rect", { x: m.left, y: y + 3, width: Math.max(0, w), height: rowH - 8, fill: item.color }),
         svg("text", { x: m.left + w + 6, y: y + 15 }, pct(item.value)));
     });

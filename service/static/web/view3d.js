@@ -111,6 +111,44 @@ function quadEdges(triangles, vertices) {
   return new Uint32Array(out);
 }
 
+// The mesh's up axis, as a coordinate axis ({vector, name: "+z", why}): against gravity when
+// the spec has gravity (the header's), else pointing from the fixed nodes' mean to the centroid of
+// the drawn nodes (a solid held at its feet stands on them), else z. Snapped to the nearest axis, so that the
+// view's horizon is the lattice's.
+export function upAxis(data) {
+  const g = data.header.gravity;
+  let v = null;
+  let why = "z (no gravity, no fixed nodes)";
+  if (Array.isArray(g) && Math.hypot(...g) > 0) {
+    v = g.map((x) => -x);
+    why = "against gravity";
+  } else if (data.fixed.length) {
+    const p = data.positions;
+    const mean = (indices) => {
+      const m = [0, 0, 0];
+      for (const i of indices) for (let a = 0; a < 3; a++) m[a] += p[3 * i + a] / indices.length;
+      return m;
+    };
+    const all = Array.from({ length: p.length / 3 }, (_, i) => i);
+    const fixed = mean(data.fixed);
+    const centroid = mean(all);
+    const away = centroid.map((c, a) => c - fixed[a]);
+    const [lo, hi] = data.header.bounds;
+    if (Math.hypot(...away) > 1e-6 * Math.hypot(...hi.map((x, a) => x - lo[a]))) {
+      v = away;
+      why = "away from the fixed nodes";
+    }
+  }
+  let axis = 2;
+  let sign = 1;
+  if (v) {
+    axis = [0, 1, 2].reduce((best, a) => (Math.abs(v[a]) > Math.abs(v[best]) ? a : best), 0);
+    sign = Math.sign(v[axis]) || 1;
+  }
+  const vector = new THREE.Vector3(0, 0, 0).setComponent(axis, sign);
+  return { vector, name: `${sign > 0 ? "+" : "−"}${"xyz"[axis]}`, why };
+}
+
 export class View3D {
   // container: an element to fill (its width; height from CSS); data: decodeView()'s answer.
   constructor(container, data) {
@@ -135,7 +173,8 @@ export class View3D {
     this.radius = 0.5 * Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]) || 1;
     this.center = center;
     const camera = new THREE.PerspectiveCamera(30, 1, this.radius / 100, this.radius * 100);
-    camera.up.set(0, 0, 1); // z up: the specs' gravity and loads
+    this.up = upAxis(data);
+    camera.up.copy(this.up.vector);
     this.camera = camera;
     const scene = new THREE.Scene();
     this.scene = scene;
@@ -298,7 +337,9 @@ export class View3D {
   }
 
   resetCamera() {
-    const direction = new THREE.Vector3(1.1, -1.7, 0.9).normalize();
+    // From the front, a little to the side and above, as seen with z up, turned to the up axis.
+    const turn = new THREE.Quaternion().setFromUnitVectors(new THREE.Vector3(0, 0, 1), this.up.vector);
+    const direction = new THREE.Vector3(1.1, -1.7, 0.9).normalize().applyQuaternion(turn);
     const distance = (1.15 * this.radius) / Math.sin(THREE.MathUtils.degToRad(this.camera.fov / 2));
     this.camera.position.copy(this.center).addScaledVector(direction, distance);
     this.controls.target.copy(this.center);
@@ -388,21 +429,28 @@ function legend(view) {
       el("span", { class: "view3d-key fem" }, "—"), " FEM shape (with “both”)"));
 }
 
-function caseFacts(view) {
+const count = (n) => Number(n).toLocaleString("en-US");
+
+// The figures above the view: the calibration's own (its result's settle steps, ``steps``: one
+// per fitted case, from options.settleSteps) where the page has them, else this view's run's.
+function caseFacts(view, steps) {
   const c = view.case;
   const validation = c.kind === "validation";
+  const settled = Number.isFinite(steps?.[view.caseIndex])
+    ? `FPM settled in ${count(steps[view.caseIndex])} steps (the calibration's final run)`
+    : `FPM ${c.settled ? "settled" : "did not settle"} in ${count(c.steps)} steps (this view's run)`;
   return el("p", { class: "view3d-facts", id: "view3d-facts" },
     el("strong", { class: "headline" }, `${pct(c.relative_discrepancy)} relative discrepancy`),
     validation ? " (validation case: never fitted)" : ` · loaded nodes ${pct(c.loaded_discrepancy)}`,
     ` · ${pct(c.discrepancy_h)} of h · largest FEM displacement ${num(c.fem_max)} m`,
     ` · largest |p − q| ${num(c.discrepancy_max)} m`,
-    validation ? ` · FPM: static equilibrium${c.settled ? "" : " (not converged)"}`
-      : ` · FPM ${c.settled ? "settled" : "did not settle"} in ${c.steps} steps`);
+    validation ? ` · FPM: static equilibrium${c.settled ? "" : " (not converged)"}` : ` · ${settled}`);
 }
 
 // The 3D view with its controls into ``panel`` (an element): case, shapes, scale factor,
 // lattice lines, markers, the legend, and the push mode (live.js, loaded when pressed;
-// options.request(path, accept) is the page's fetch with its API key). Returns the View3D.
+// options.request(path, accept) is the page's fetch with its API key; options.settleSteps the
+// calibration result's settle steps per fitted case, shown above the view). Returns the View3D.
 export function mountView(panel, data, options = {}) {
   const canvasBox = el("div", { class: "view3d-canvas", id: "view3d-canvas" });
   const facts = el("div");
@@ -432,10 +480,13 @@ export function mountView(panel, data, options = {}) {
     el("p", { class: "muted" },
       `${h.nodes} nodes, h = ${num(h.h * 1e3)} mm; the outer surface: ${h.surface_vertices} nodes, ${h.triangles} triangles. `,
       "Drag to orbit, wheel or pinch to zoom, right-drag to pan. FPM: the run at the set's parameters from rest to ",
-      "settling (fitted cases), the static equilibrium (validation cases)."));
+      "settling (fitted cases), the static equilibrium (validation cases). ",
+      el("span", { id: "view3d-up" })));
   const view = new View3D(canvasBox, data);
+  panel.querySelector("#view3d-up").textContent = `Up: ${view.up.name} (${view.up.why}).`;
+  panel.dataset.up = view.up.name;
   const refresh = () => {
-    facts.replaceChildren(caseFacts(view));
+    facts.replaceChildren(caseFacts(view, options.settleSteps));
     legendBox.replaceChildren(legend(view));
     panel.dataset.case = String(view.caseIndex);
     panel.dataset.mode = view.mode;
