@@ -110,12 +110,13 @@ def hexahedron_faces(hexahedra: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.
 
 
 def boundary_hexahedron_faces(hexahedra: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The faces of :func:`hexahedron_faces` that belong to one hexahedron only."""
+    """The faces of :func:`hexahedron_faces` on the lattice's surface
+    (:func:`fpm.model.geometry.boundary_faces`: of one hexahedron only, graded interfaces
+    excepted)."""
+    from ..model.geometry import boundary_faces
+
     corners, owner, local = hexahedron_faces(hexahedra)
-    _, inverse, counts = np.unique(
-        np.sort(corners, axis=1), axis=0, return_inverse=True, return_counts=True
-    )
-    single = counts[inverse.ravel()] == 1
+    single = boundary_faces(hexahedra).T.ravel()
     return corners[single], owner[single], local[single]
 
 

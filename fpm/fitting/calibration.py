@@ -71,8 +71,8 @@ from .validation import (
     unseen_note,
     validate,
 )
-
 from .verdict import judge
+
 __all__ = [
     # the orchestration
     "calibrate",
@@ -191,9 +191,9 @@ def finalize(
         validation_cases=[c.name for c in problem.validation_cases],
         validation_relative_discrepancy=validation.relative,
         validation_discrepancy_h=validation.h_percent,
-        d=float(d),
         compliance_ratio=final.compliance,
         validation_compliance_ratio=validation.compliance,
+        d=float(d),
         d_min=None if damping is None else damping.d_min,
         d_predicted=None if damping is None else damping.d_predicted,
         max_steps=fixed_max_steps(problem.spec.fpm.max_steps)
@@ -229,6 +229,7 @@ def finalize(
             "total": float(m.sum()),
         },
         warnings=list(warnings or [])
+        + problem.warnings
         + final.notes
         + validation.notes
         + unseen_note(problem)
@@ -240,10 +241,10 @@ def finalize(
         ],
         field=field,
     )
-
-
     result.verdict = judge(problem, result, theta, reference)
     return result
+
+
 def calibrate(
     problem: Problem,
     *,

@@ -33,6 +33,8 @@ class Solid:
         families: (S,) int8 spring family (:data:`fpm.model.hexahedron.FAMILIES`): 0 hexahedron
             edge (axis), 1 face diagonal, 2 body diagonal; all 0 for a network.
         shape: (nx, ny, nz) for a box lattice (node n = i + nx*(j + ny*k)), else None.
+        levels: (H,) int8 each hexahedron's level in a graded lattice (a cell of level L is
+            2^-L the size of a level-0 one: :mod:`fpm.io.meshes.graded`); None: one size.
     """
 
     nodes: np.ndarray
@@ -41,6 +43,7 @@ class Solid:
     masses: np.ndarray
     families: np.ndarray
     shape: tuple[int, int, int] | None = None
+    levels: np.ndarray | None = None
 
     def elements(self) -> np.ndarray | None:
         """(H, 8) hexahedra, built on first use for a box; None for a network."""
@@ -63,7 +66,13 @@ def build_solid(
         nodes = np.asarray(geometry.nodes, dtype=float)
         hexahedra = np.asarray(geometry.hexahedra, dtype=np.int64)
     springs, families = hexahedron_springs(hexahedra, geometry.connectivity)
-    return Solid(nodes, hexahedra, springs, lumped_masses(nodes, hexahedra, density), families)
+    masses = lumped_masses(nodes, hexahedra, density)
+    levels = getattr(geometry, "levels", None)
+    if levels is not None and any(levels):
+        return Solid(
+            nodes, hexahedra, springs, masses, families, levels=np.asarray(levels, np.int8)
+        )
+    return Solid(nodes, hexahedra, springs, masses, families)
 
 
 def box_nodes(g: BoxGeometry) -> np.ndarray:
@@ -211,7 +220,8 @@ THIN_PART_CELLS = 8
 
 def boundary_faces(hexahedra: np.ndarray) -> np.ndarray:
     """(H, 6) bool: whether each local face (``2 * axis + (side > 0)``: r-, r+, s-, s+, t-, t+)
-    of ``hexahedra`` (H, 8) belongs to that hexahedron only (the lattice's surface)."""
+    of ``hexahedra`` (H, 8) is on the lattice's surface: it belongs to that hexahedron only and
+    is not one side of a graded interface (:func:`graded_interfaces`)."""
     hexahedra = np.asarray(hexahedra, dtype=np.int64)
     faces = np.concatenate(
         [
@@ -221,7 +231,62 @@ def boundary_faces(hexahedra: np.ndarray) -> np.ndarray:
         ]
     )  # (6H, 4), face-major
     _, inverse, counts = np.unique(faces, axis=0, return_inverse=True, return_counts=True)
-    return (counts[inverse.ravel()] == 1).reshape(6, len(hexahedra)).T
+    single = counts[inverse.ravel()] == 1
+    single[graded_interfaces(hexahedra, np.flatnonzero(single))] = False
+    return single.reshape(6, len(hexahedra)).T
+
+
+def graded_interfaces(hexahedra: np.ndarray, unmatched: np.ndarray) -> np.ndarray:
+    """Of the faces ``unmatched`` (indices into the face-major (6H,) faces of ``hexahedra``
+    (H, 8), each a face of one hexahedron only), those where a cell of a graded lattice meets
+    four cells of half its size: a coarse face (a, b, c, d) and the four fine faces that
+    cover it, each the quarter with one of its corners and its centre node m, so that (a, m),
+    (b, m), (c, m) and (d, m) are diagonals of unmatched faces. Found on the node graph alone
+    (a lattice whose nodes were moved onto a surface keeps its interfaces); a lattice of one
+    cell size has none (no node is a face diagonal away from all four corners of a face)."""
+    unmatched = np.asarray(unmatched, dtype=np.int64)
+    if len(unmatched) < 5:
+        return np.zeros(0, dtype=np.int64)
+    corners = np.concatenate(  # (6H, 4) face-major, each face's corners in cyclic order
+        [hexahedra[:, _cycle(axis, side)] for axis in range(3) for side in (-1.0, 1.0)]
+    )[unmatched]
+    # A face's diagonals, its corners in cyclic order: (0, 2) and (1, 3).
+    ends = np.concatenate(
+        [corners[:, [0, 2]], corners[:, [2, 0]], corners[:, [1, 3]], corners[:, [3, 1]]]
+    )  # (4U, 2): (node, its diagonal partner)
+    owner = np.tile(np.arange(len(unmatched)), 4)
+    order = np.argsort(ends[:, 0], kind="stable")
+    ends, owner = ends[order], owner[order]
+    # For every face f and each of its corners c, every node m that c is a diagonal away from
+    # (through another unmatched face): (f, m) seen from all four corners makes m f's centre.
+    face = np.repeat(np.arange(len(unmatched)), 4)
+    corner = corners.ravel()
+    lo = np.searchsorted(ends[:, 0], corner, side="left")
+    hi = np.searchsorted(ends[:, 0], corner, side="right")
+    degree = hi - lo
+    rows = np.repeat(np.arange(len(corner)), degree)
+    at = np.arange(int(degree.sum())) - np.repeat(np.cumsum(degree) - degree, degree) + lo[rows]
+    f, c, m, fine = face[rows], corner[rows], ends[at, 1], owner[at]
+    keep = fine != f
+    f, c, m, fine = f[keep], c[keep], m[keep], fine[keep]
+    n = np.int64(int(hexahedra.max()) + 1)
+    key = f.astype(np.int64) * n + m
+    # Count each (f, m) once per corner: a corner may reach m through two faces.
+    _, first = np.unique(np.stack([key, c]), axis=1, return_index=True)
+    _, inverse, counts = np.unique(key[first], return_inverse=True, return_counts=True)
+    centre = np.isin(key, key[first][counts[inverse] == 4])
+    covered = centre
+    if not covered.any():
+        return np.zeros(0, dtype=np.int64)
+    inner = np.union1d(f[covered], fine[covered])
+    return unmatched[inner]
+
+
+def _cycle(axis: int, side: float) -> np.ndarray:
+    """(4,) the local nodes of a hexahedron's face (``axis``, ``side``) in cyclic order."""
+    on = np.flatnonzero(NATURAL[:, axis] == side)
+    u, v = (NATURAL[on][:, b] for b in range(3) if b != axis)
+    return on[np.argsort(np.arctan2(v, u))]
 
 
 def thin_cells(hexahedra: np.ndarray) -> np.ndarray:

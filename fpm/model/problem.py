@@ -86,6 +86,8 @@ class Problem:
             without ``material.regions``.
         loads: how the lattice takes a nodal force, ``"node"`` or ``"hat"`` (``fpm.loads``
             with ``"auto"`` resolved: :func:`resolved_loads`).
+        warnings: what the result must say of the lattice (a part one cell thick at its finest
+            level: :func:`thin_part_warnings`).
     """
 
     spec: ProblemSpec
@@ -100,6 +102,7 @@ class Problem:
     validation_cases: list[LoadCase] = field(default_factory=list)
     regions: RegionMap | None = None
     loads: str = "node"
+    warnings: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.h = float(self.rest_lengths.min())
@@ -208,7 +211,7 @@ def build_problem(spec: ProblemSpec, mesh: dict[str, Any] | None = None) -> Prob
     _check_supplied_reference(spec, len(solid.nodes), errors)
     _check_refine(spec, errors)
     errors.extend(check_material(spec))
-    _check_thin_parts(spec, solid, errors)
+    warnings = thin_part_warnings(spec, solid)
     regions = _material_regions(spec, solid, mesh, errors, finder.notes)
     if spec.fpm.loads == "hat" and solid.elements() is None:
         errors.append(
@@ -240,6 +243,7 @@ def build_problem(spec: ProblemSpec, mesh: dict[str, Any] | None = None) -> Prob
         validation_cases=validation,
         regions=regions,
         loads=loads,
+        warnings=warnings,
     )
 
 
@@ -432,40 +436,33 @@ def _check_stiffness_mode(spec: ProblemSpec, errors: list[tuple[Loc, str]]) -> N
         )
 
 
-def _check_thin_parts(spec: ProblemSpec, solid: Solid, errors: list[tuple[Loc, str]]) -> None:
+def thin_part_warnings(spec: ProblemSpec, solid: Solid) -> list[str]:
     """A lattice made from an organ's mesh (``voxels`` or ``mesh`` geometry with the mesh in
-    ``reference.mesh`` or ``mesh_id``) must not be one cell thick over a part
-    (:func:`fpm.model.geometry.thin_parts`): refused at the first cell of the largest such part,
-    with its place and how to resolve it (a finer spacing)."""
+    ``reference.mesh`` or ``mesh_id``) that is one cell thick over a part
+    (:func:`fpm.model.geometry.thin_parts`) at its finest cells: a warning with the largest
+    part's place and size. The part is modelled as it is (a single layer of cells bends, but
+    too stiffly); ``spec from-mesh`` refines such parts where it can
+    (:mod:`fpm.io.meshes.graded`), so what remains is thinner than its finest level."""
     from .geometry import thin_parts
 
     g = spec.geometry
     organ = spec.reference.mesh is not None or spec.reference.mesh_id is not None
     hexahedra = solid.elements()
     if not organ or isinstance(g, NetworkGeometry | BoxGeometry) or hexahedra is None:
-        return
+        return []
     parts = thin_parts(hexahedra)
     if not parts:
-        return
+        return []
     part = parts[0]
     centre = solid.nodes[hexahedra[part]].mean(axis=(0, 1))
-    cell = int(part[0])
-    spacing = np.median(np.ptp(solid.nodes[hexahedra], axis=1), axis=0)
-    if isinstance(g, MeshGeometry):
-        loc: Loc = ("geometry", "hexahedra", cell)
-    else:  # voxels: the cell's index in the occupancy grid
-        first = solid.nodes[hexahedra[cell]].mean(axis=0)
-        ijk = np.rint((first - np.asarray(g.origin)) / np.asarray(g.spacing) - 0.5).astype(int)
-        loc = ("geometry", "occupancy", *(int(i) for i in ijk))
-    errors.append(
-        (
-            loc,
-            f"the lattice is one cell thick over a part of {len(part)} cells around "
-            f"{_fmt(centre)} m (cell {cell} first; {len(parts)} such part(s)): the spacing "
-            f"{_fmt(spacing)} m is too coarse for the solid there (one layer of cells cannot "
-            "bend); make the spacing at most half of it, or leave that part out of the mesh",
-        )
-    )
+    size = np.median(np.ptp(solid.nodes[hexahedra[part]], axis=1), axis=0)
+    where = f"geometry.hexahedra[{int(part[0])}]" if isinstance(g, MeshGeometry) else "geometry"
+    return [
+        f"{where}: the lattice is one cell thick over a part of {len(part)} cells around "
+        f"{_fmt(centre)} m ({len(parts)} such part(s), cells of {_fmt(size)} m there): modelled "
+        "as it is, a single layer of cells, which bends too stiffly; a finer lattice (--nodes "
+        "more, or a smaller --spacing) resolves more of it"
+    ]
 
 
 def _check_refine(spec: ProblemSpec, errors: list[tuple[Loc, str]]) -> None:

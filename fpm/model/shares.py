@@ -3,7 +3,8 @@
 families+volume and everything built on it (material regions, the per-cell stiffness field)
 assemble the springs from the lattice's cells, as an FEM assembles its elements: each cell
 gives its 12 edges, 12 face diagonals and 4 body diagonals :data:`CELL_SHARE` of their
-family's k. :func:`cell_shares` is that matching, once per problem; :mod:`fpm.model.stiffness`
+family's k (times 2^-L for a cell of level L of a graded lattice: k ~ mu h).
+:func:`cell_shares` is that matching, once per problem; :mod:`fpm.model.stiffness`
 sums it per spring (its assembly weights) or weights it per cell (the field), and
 :mod:`fpm.model.materials` sums it per region.
 """
@@ -50,6 +51,8 @@ def cell_shares(problem: Problem) -> sp.csr_matrix:
         which = order[np.searchsorted(spring_keys, keys, sorter=order)]
         share = np.tile(CELL_SHARE[local_families(connectivity)], len(hexahedra))
         cell = np.repeat(np.arange(len(hexahedra)), len(pairs))
+        if solid.levels is not None:  # a graded lattice: a cell of half the size, half the k
+            share = share * 0.5 ** solid.levels.astype(float)[cell]
         cached = problem.cache["cell_shares"] = sp.csr_matrix(
             (share, (which, cell)), shape=(len(springs), len(hexahedra))
         )

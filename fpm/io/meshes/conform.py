@@ -8,6 +8,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import MeshError
+from .graded import GradedLattice, graded_lattice
+from .voxelise import _fmt
 
 KEPT_JACOBIAN = 0.1
 """:func:`conform_lattice` keeps every hexahedron's smallest Jacobian determinant at least this
@@ -178,6 +180,17 @@ def conform_spec(spec: dict[str, Any]) -> tuple[dict[str, Any], list[str]]:
     hexahedra = problem.solid.elements()
     assert hexahedra is not None
     h = float(min(spec["geometry"]["spacing"]))
+    mesh_nodes = np.asarray(mesh["nodes"], dtype=float)
+    tets = np.asarray(mesh["tetrahedra"])
+    graded = graded_lattice(
+        np.asarray(spec["geometry"]["occupancy"], dtype=bool),
+        np.asarray(spec["geometry"]["origin"], dtype=float),
+        h,
+        mesh_nodes,
+        tets,
+    )
+    if graded.refined:
+        x0, hexahedra = graded.nodes, graded.hexahedra
     lo, hi = x0.min(axis=0), x0.max(axis=0)
     margin = np.max(hi - lo) + h
     boxes: list[tuple[np.ndarray, np.ndarray]] = []
@@ -215,14 +228,8 @@ def conform_spec(spec: dict[str, Any]) -> tuple[dict[str, Any], list[str]]:
             "the face (the surface no longer has flat faces), 'at' selectors the nodes they "
             "named"
         )
-    x = conform_lattice(
-        x0,
-        hexahedra,
-        np.asarray(mesh["nodes"], dtype=float),
-        np.asarray(mesh["tetrahedra"]),
-        boxes=boxes,
-        tol=1e-3 * h,
-    )
+    x = conform_lattice(x0, hexahedra, mesh_nodes, tets, boxes=boxes, tol=1e-3 * h)
+    notes += refined_notes(graded)
     surface = np.any(x != x0, axis=1)
     notes.append(
         f"conforming lattice: {int(surface.sum())} surface nodes moved onto the mesh's surface "
@@ -235,4 +242,22 @@ def conform_spec(spec: dict[str, Any]) -> tuple[dict[str, Any], list[str]]:
         "hexahedra": hexahedra.tolist(),
         "connectivity": spec["geometry"].get("connectivity", "full"),
     }
+    if graded.refined:
+        conformed["geometry"]["levels"] = graded.levels.tolist()
     return conformed, notes
+
+
+def refined_notes(graded: GradedLattice) -> list[str]:
+    """One line per part of ``graded`` refined: where, how many cells, how many nodes it took,
+    and what is still one cell thick at h/2."""
+    out = []
+    for i, part in enumerate(graded.parts):
+        line = (
+            f"graded lattice: part {i + 1} one cell thick at h = {graded.spacing:.4g} m "
+            f"({part.thin_cells} cells around {_fmt(part.centre)} m) refined to "
+            f"h/2 over {part.cells} cells: {part.nodes_added} nodes"
+        )
+        if part.still_thin:
+            line += f"; {part.still_thin} of its cells are one cell thick at h/2 too (modelled so)"
+        out.append(line)
+    return out

@@ -12,7 +12,7 @@ from .conform import conform_spec
 from .geometry import geometry_from_mesh
 from .reading import read_mesh
 from .selectors import FORCE_HELP, SELECTOR_HELP, parse_force, parse_selector
-from .sizing import spacing_for_nodes
+from .sizing import graded_nodes, spacing_for_nodes
 from .voxelise import support_planes
 
 
@@ -92,8 +92,10 @@ def spec_from_mesh(
     )
     if nodes is not None and spacing is not None:
         raise ValueError("give the spacing (--spacing) or the node count (--nodes), not both")
-    if nodes is not None:
-        _, made = spacing_for_nodes(mesh, nodes, **options)
+    if nodes is not None:  # the conforming lattice's count includes its refined parts
+        graded = not voxel_reference and not voxelise and lattice in (None, "conforming")
+        count = graded_nodes if graded else None
+        _, made = spacing_for_nodes(mesh, nodes, count, **options)
     else:
         made = geometry_from_mesh(mesh, spacing=spacing, **options)
     if not forces:

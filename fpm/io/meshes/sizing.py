@@ -7,18 +7,26 @@ spacing; ``fpmcal spec from-mesh --nodes N`` and ``spec_from_mesh(..., nodes=N)`
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from ..errors import MeshError
 from .geometry import MeshGeometry, geometry_from_mesh, mesh_points, positive_scale
+from .graded import graded_lattice
 from .voxelise import _fmt
 
 TRIES = 8
 """:func:`spacing_for_nodes` voxelises the mesh at most this many times."""
 CLOSE = 0.02
 """... and stops at a lattice within this fraction of the node count asked."""
+NEAR = 0.1
+"""When the nearest of those is further than this fraction from the count asked (a graded
+lattice's count jumps as its refined parts come and go with the spacing), spacings within a
+factor :data:`SCAN` of it are tried too, :data:`SCAN_STEPS` a side."""
+SCAN = 1.2
+SCAN_STEPS = 4
 
 
 def lattice_nodes(occupancy: Any) -> int:
@@ -32,10 +40,31 @@ def lattice_nodes(occupancy: Any) -> int:
     return int(corners.sum())
 
 
-def spacing_for_nodes(mesh: Any, nodes: int, **options: Any) -> tuple[float, MeshGeometry]:
+def graded_nodes(made: MeshGeometry) -> int:
+    """The nodes of the lattice ``made`` becomes on the conforming path: its voxels with their
+    parts one cell thick refined (:func:`~fpm.io.meshes.graded.graded_lattice`) where it has
+    tetrahedra to refine from, else its voxels' (:func:`lattice_nodes`)."""
+    if made.tetrahedra is None:
+        return lattice_nodes(made.geometry["occupancy"])
+    g = made.geometry
+    lattice = graded_lattice(
+        np.asarray(g["occupancy"], dtype=bool),
+        np.asarray(g["origin"], dtype=float),
+        float(min(g["spacing"])),
+        np.asarray(made.tetrahedra["nodes"], dtype=float),
+        np.asarray(made.tetrahedra["tetrahedra"]),
+    )
+    return len(lattice.nodes)
+
+
+def spacing_for_nodes(
+    mesh: Any, nodes: int, counter: Callable[[MeshGeometry], int] | None = None, **options: Any
+) -> tuple[float, MeshGeometry]:
     """The spacing h (m, three significant digits) whose lattice of ``mesh`` (a
     ``meshio.Mesh``) has the node count nearest ``nodes``, and that lattice
     (:func:`geometry_from_mesh` with ``options``: scale, connectivity, voxelise, planes).
+    ``counter`` gives a lattice's node count (default: its voxels', :func:`lattice_nodes`;
+    :func:`graded_nodes` for the conforming lattice, refinement included).
 
     The count goes as 1 / h^3: from the guess of the mesh's bounding box half full, each try
     scales h by (count / nodes)^(1/3), until a lattice is within :data:`CLOSE` of ``nodes`` or
@@ -68,10 +97,10 @@ def spacing_for_nodes(mesh: Any, nodes: int, **options: Any) -> tuple[float, Mes
                 "a hexahedral mesh is used as it is, at its own node count: nodes chooses the "
                 "spacing of a voxelised lattice (give voxelise, --voxelise, to resample it)"
             )
-        count = lattice_nodes(made.geometry["occupancy"])
-        if count == 0:  # no cell centre inside: far too coarse
+        if not lattice_nodes(made.geometry["occupancy"]):  # no cell centre inside: far too coarse
             h = _rounded(h / 2)
             continue
+        count = (counter or _voxel_count)(made)
         tried[h] = (count, made)
         if abs(count / nodes - 1) <= CLOSE:
             break
@@ -81,6 +110,14 @@ def spacing_for_nodes(mesh: Any, nodes: int, **options: Any) -> tuple[float, Mes
     if not tried:
         raise MeshError(f"no spacing down to {h:.3g} m puts a lattice cell inside the mesh")
     h = min(tried, key=lambda s: abs(math.log(tried[s][0] / nodes)))
+    if abs(tried[h][0] / nodes - 1) > NEAR:  # the count jumps (refined parts come and go)
+        for factor in np.geomspace(1 / SCAN, SCAN, 2 * SCAN_STEPS + 1):
+            s = _rounded(h * factor)
+            if s not in tried:
+                made = geometry_from_mesh(mesh, spacing=s, **options)
+                if lattice_nodes(made.geometry["occupancy"]):
+                    tried[s] = ((counter or _voxel_count)(made), made)
+        h = min(tried, key=lambda s: abs(math.log(tried[s][0] / nodes)))
     count, made = tried[h]
     made.notes.insert(
         0,
@@ -88,6 +125,10 @@ def spacing_for_nodes(mesh: Any, nodes: int, **options: Any) -> tuple[float, Mes
         f"({len(tried)} spacing(s) tried)",
     )
     return h, made
+
+
+def _voxel_count(made: MeshGeometry) -> int:
+    return lattice_nodes(made.geometry["occupancy"])
 
 
 def _rounded(h: float) -> float:

@@ -109,16 +109,24 @@ def _pairs(first: np.ndarray, last: np.ndarray) -> Any:
 
 
 def voxelise_tetrahedra(
-    points: np.ndarray, tets: np.ndarray, spacing: float, planes: Planes = None
+    points: np.ndarray,
+    tets: np.ndarray,
+    spacing: float,
+    planes: Planes = None,
+    grid: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(cx, cy, cz) bool occupancy and the lattice origin: cells whose centre lies in a
     tetrahedron (barycentric coordinates all >= -:data:`TOLERANCE`); ``planes`` as
-    :func:`lattice`'s."""
+    :func:`lattice`'s. ``grid`` (origin (3,), m; cells per axis (3,)) gives the lattice instead
+    (a graded lattice's finer level on its coarse level's grid)."""
     tets = np.asarray(tets, dtype=np.int64)
     if tets.min() < 0 or tets.max() >= len(points):
         raise MeshError("a cell names a node that is not in the mesh")
     used = points[np.unique(tets)]
-    origin, cells = lattice(used.min(axis=0), used.max(axis=0), spacing, planes)
+    if grid is None:
+        origin, cells = lattice(used.min(axis=0), used.max(axis=0), spacing, planes)
+    else:
+        origin, cells = np.asarray(grid[0], dtype=float), np.asarray(grid[1], dtype=np.int64)
     v = points[tets]  # (T, 4, 3)
     edges = np.transpose(v[:, 1:] - v[:, :1], (0, 2, 1))  # (T, 3, 3): columns b-a, c-a, d-a
     det = np.linalg.det(edges)

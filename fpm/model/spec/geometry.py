@@ -74,6 +74,20 @@ class MeshGeometry(_Strict):
     nodes: list[Vector3] = Field(min_length=8, description="node coordinates, m")
     hexahedra: list[tuple[int, int, int, int, int, int, int, int]] = Field(min_length=1)
     connectivity: Connectivity = "full"
+    levels: list[Annotated[int, Field(ge=0, le=8)]] | None = Field(
+        default=None,
+        description="per hexahedron, its level in a graded lattice: a cell of level L is "
+        "2^-L the size of a level-0 cell, and its springs take 2^-L of their family's k "
+        "(k ~ mu h); None: all 0 (one cell size)",
+    )
+
+    @model_validator(mode="after")
+    def _levels_per_cell(self) -> MeshGeometry:
+        if self.levels is not None and len(self.levels) != len(self.hexahedra):
+            raise ValueError(
+                f"levels: give one per hexahedron ({len(self.hexahedra)}), not {len(self.levels)}"
+            )
+        return self
 
 
 class NetworkGeometry(_Strict):
