@@ -394,7 +394,18 @@ def cmd_export(args: argparse.Namespace) -> None:
         params = _read_json(args.params, "PARAMS")
         if isinstance(params.get("result"), dict):  # a calibration as the service shows it
             params = params["result"]
-        body = export(problem, params, "json" if args.format == "binary" else args.format)
+        fem = None
+        if args.format == "vtu":  # the FEM reference as calibrate stored it beside the spec
+            from fpm.fem.reference import reference_for
+
+            from . import cache as stored
+
+            where = stored.Cache(stored.cache_dir(args.spec))
+            solve = partial(reference_for, problem, progress=_fem_levels)
+            say = partial(print, file=sys.stderr)
+            fem = stored.reference(where, problem, solve, say).displacements
+        fmt = "json" if args.format == "binary" else args.format
+        body = export(problem, params, fmt, fem=fem)
         _warn(export_warnings(problem, args.format))
     if args.format == "binary":
         from fpm.io.export_binary import from_json

@@ -9,6 +9,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+import meshio
 import numpy as np
 import pytest
 
@@ -120,3 +121,27 @@ def test_a_failed_damping_stage_keeps_the_reference_and_the_chains(
     assert "FEM reference: reused" in err and "chain(s) reused" in err
     status, fresh, _ = calibrate(write(tmp_path, SMALL, "fresh.json"), capsys, "--no-cache")
     assert (result["k"], result["d"]) == (fresh["k"], fresh["d"])
+
+
+def test_the_vtu_export_takes_the_stored_reference_with_its_validation_cases(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+):
+    spec = copy.deepcopy(SMALL)
+    spec["validation_cases"] = [
+        {"name": "side", "forces": [{"at": [0.03, 0.01, 0.02], "vector": [-0.02, 0, 0]}]}
+    ]
+    path = write(tmp_path, spec)
+    status, result, _ = calibrate(path, capsys)
+    assert status == 0
+    params = tmp_path / "result.json"
+    params.write_text(json.dumps(result))
+    out = tmp_path / "box.vtu"
+    assert main(["export", str(path), str(params), "--format", "vtu", "-o", str(out)]) == 0
+    assert "FEM reference: reused from" in capsys.readouterr().err
+    data = meshio.read(out).point_data
+    fem = Cache(cache_dir(path)).reference(fpm.load_problem(spec).spec.model_dump(mode="json"))
+    assert fem is not None
+    np.testing.assert_array_equal(
+        data["validation_fem_displacement_1"], fem.reference.displacements[2]
+    )
+    assert np.abs(data["validation_fpm_displacement_1"]).max() > 0

@@ -14,9 +14,10 @@ lattice is rebuilt from the spec they were fitted on. Formats:
   verdict on the fit (good, fair or poor, and why): from it alone
   another program rebuilds
   the model's static equilibrium (tests/test_export.py does, with its own linear solve);
-- ``vtu``: the hexahedra and the springs (VTK_LINE cells) with, per load case, the FPM's and
-  the FEM's displacements, the error between them and the perturbed list's layer as point
-  data (written by meshio; ParaView reads it);
+- ``vtu``: the hexahedra and the springs (VTK_LINE cells) with, per load case and per
+  validation case, the FPM's displacements (its static equilibrium at the parameters, where its
+  runs settle: :func:`fpm_equilibria`) and the FEM's, the error between them and the perturbed
+  list's layer as point data (written by meshio; ParaView reads it);
 - ``sofa``: a SOFA scene (``.scn``) with the positions (``MechanicalObject``), the lumped masses
   (``DiagonalMass vertexMass``), every spring with its stiffness (``SpringForceField spring="i j
   ks kd L"``, kd = 0), the nodal damping d (``UniformVelocityDampingForceField``), the fixed
@@ -212,15 +213,25 @@ class Lattice:
 
 def build_lattice(problem: Problem, params: Parameters) -> Lattice:
     """The lattice of ``problem`` carrying ``params``."""
+    stiffness = model_stiffness(problem, params.theta(problem))
+    layers = _layers(problem, None, params.depth)
+    return Lattice(problem, params, stiffness.springs, layers, stiffness.volume)
+
+
+def _layers(
+    problem: Problem, lattice: Lattice | None, depth: int | None = None
+) -> list[list[np.ndarray]]:
+    """Per load case of ``problem``, its perturbed list's layers (node indices) at the
+    lattice's depth (or ``depth``)."""
     from ..dynamics.simulation import fpm_model
 
-    stiffness = model_stiffness(problem, params.theta(problem))
+    depth = lattice.params.depth if lattice is not None else depth
     model = fpm_model(problem)
-    layers = []
+    out = []
     for j in range(len(problem.load_cases)):
-        plist = model.perturbed_list(j, params.depth)
-        layers.append([plist.layer(i) for i in range(len(plist.layer_start) - 1)])
-    return Lattice(problem, params, stiffness.springs, layers, stiffness.volume)
+        plist = model.perturbed_list(j, depth)
+        out.append([plist.layer(i) for i in range(len(plist.layer_start) - 1)])
+    return out
 
 
 def fpm_displacements(lattice: Lattice) -> tuple[np.ndarray, list[int], list[bool]]:
@@ -237,6 +248,40 @@ def fpm_displacements(lattice: Lattice) -> tuple[np.ndarray, list[int], list[boo
         [r.steps for r in runs],
         [r.settled for r in runs],
     )
+
+
+def fpm_equilibria(lattice: Lattice) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """(L, N, 3) and (V, N, 3) the FPM's static equilibria at the parameters, m, of the load
+    cases and of the validation cases: where its runs settle (d and dt decide only how fast;
+    a run stops within its settle distance of them), as the fit's figures and its validation
+    are taken. The cases are solved on one thread per core, each on a static solver of its own
+    (the same bits as one after another). Also a note per case whose equilibrium did not
+    converge."""
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    from ..dynamics.equilibrium import StaticSolver
+    from ..dynamics.modes import single_threaded_blas
+
+    problem, p = lattice.problem, lattice.params
+    stiffness = model_stiffness(problem, p.theta(problem))
+    checked = problem.validation_problem()
+    cases = [(part, j) for part in (problem, checked) for j in range(len(part.load_cases))]
+
+    def one(case: tuple[Problem, int]) -> Any:
+        part, j = case
+        return StaticSolver(part).solve(j, stiffness, p.depth)
+
+    with single_threaded_blas(), ThreadPoolExecutor(min(len(cases), os.cpu_count() or 1)) as pool:
+        solved = list(pool.map(one, cases))
+    notes = [
+        f"{part.load_cases[j].name}: no static equilibrium ({eq.message})"
+        for (part, j), eq in zip(cases, solved, strict=True)
+        if not eq.converged
+    ]
+    every = np.array([eq.displacements for eq in solved]).reshape(-1, problem.n_nodes, 3)
+    n = len(problem.load_cases)
+    return every[:n], every[n:], notes
 
 
 def load_shares(problem: Problem) -> dict[str, list]:
@@ -370,13 +415,20 @@ def resolved_max_steps(lattice: Lattice) -> int:
     return predicted_max_steps(lattice.problem, stiffness, p.d, p.depth, p.dt)
 
 
-def vtu_bytes(lattice: Lattice, fem: np.ndarray, fpm: np.ndarray) -> bytes:
+def vtu_bytes(
+    lattice: Lattice,
+    fem: np.ndarray,
+    fpm: np.ndarray,
+    validation: tuple[np.ndarray, np.ndarray] | None = None,
+) -> bytes:
     """The ``vtu`` export: hexahedra and springs with point data per load case (1-based
     suffixes in load case order): ``fpm_displacement_J``, ``fem_displacement_J``, ``error_J``
-    (|FPM - FEM|, m) and ``layer_J`` (perturbed-list layer, -1 outside); ``mass`` and
-    ``fixed`` per node; ``stiffness``, ``rest_length`` and ``family`` per cell (-1 / 0 on the
-    hexahedra); ``volume_stiffness`` (kappa, Pa) per hexahedron (0 on the springs and without
-    the volume term)."""
+    (|FPM - FEM|, m) and ``layer_J`` (perturbed-list layer, -1 outside); with ``validation``
+    ((V, N, 3) FEM and FPM displacements of the validation cases, m) the same per validation
+    case, prefixed ``validation_``; ``mass`` and ``fixed`` per node; ``stiffness``,
+    ``rest_length`` and ``family`` per cell (-1 / 0 on the hexahedra); ``volume_stiffness``
+    (kappa, Pa) per hexahedron (0 on the springs and without the volume term). Written by
+    meshio in its binary (base64, zlib) layout."""
     import meshio
 
     problem = lattice.problem
@@ -385,14 +437,18 @@ def vtu_bytes(lattice: Lattice, fem: np.ndarray, fpm: np.ndarray) -> bytes:
         "mass": problem.solid.masses,
         "fixed": problem.fixed.astype(np.int32),
     }
-    for j, layers in enumerate(lattice.layers):
-        layer = np.full(n, -1, dtype=np.int32)
-        for i, nodes in enumerate(layers):
-            layer[nodes] = i
-        point_data[f"fpm_displacement_{j + 1}"] = fpm[j]
-        point_data[f"fem_displacement_{j + 1}"] = fem[j]
-        point_data[f"error_{j + 1}"] = np.linalg.norm(fpm[j] - fem[j], axis=1)
-        point_data[f"layer_{j + 1}"] = layer
+    parts = [("", lattice.layers, fem, fpm)]
+    if validation is not None:
+        parts.append(("validation_", _layers(problem.validation_problem(), lattice), *validation))
+    for prefix, every, fem_u, fpm_u in parts:
+        for j, layers in enumerate(every):
+            layer = np.full(n, -1, dtype=np.int32)
+            for i, nodes in enumerate(layers):
+                layer[nodes] = i
+            point_data[f"{prefix}fpm_displacement_{j + 1}"] = fpm_u[j]
+            point_data[f"{prefix}fem_displacement_{j + 1}"] = fem_u[j]
+            point_data[f"{prefix}error_{j + 1}"] = np.linalg.norm(fpm_u[j] - fem_u[j], axis=1)
+            point_data[f"{prefix}layer_{j + 1}"] = layer
     cell_data = {
         "stiffness": [np.zeros(len(hexes)), lattice.stiffness],
         "rest_length": [np.zeros(len(hexes)), problem.rest_lengths],
@@ -576,7 +632,8 @@ def export(
         problem: the problem of the spec the parameters were fitted on.
         record: a calibration result or a parameter set (:meth:`Parameters.from_record`).
         fmt: ``json``, ``vtu``, ``sofa`` or ``sofa-python``.
-        fem: (L, N, 3) FEM displacements for ``vtu`` (None: solved now).
+        fem: (L, N, 3) FEM displacements for ``vtu``, then (V, N, 3) those of the
+            validation cases if it holds them (a stored reference does; None: solved now).
     """
     import json
 
@@ -605,5 +662,8 @@ def export(
         from ..fem.reference import solve_fem
 
         fem = solve_fem(problem).displacements
-    fpm, _, _ = fpm_displacements(lattice)
-    return vtu_bytes(lattice, np.asarray(fem, dtype=float), fpm)
+    fem = np.asarray(fem, dtype=float)
+    fpm, checked, _ = fpm_equilibria(lattice)
+    n, v = len(problem.load_cases), len(problem.validation_cases)
+    validation = (fem[n : n + v], checked) if v and len(fem) >= n + v else None
+    return vtu_bytes(lattice, fem[:n], fpm, validation)

@@ -18,7 +18,7 @@ FEM_VERSION = "2026.12.08"
 """Version of the FEM reference's numerics; bump it whenever a change alters FEM displacements.
 It is part of a stored reference's identity (references are kept without expiry), so new
 calibrations are never served a reference that older FEM numerics computed."""
-EXPORT_VERSION = "2026.12.09"
+EXPORT_VERSION = "2026.12.10"
 """Version of the export formats (:mod:`fpm.io.export`); bump it whenever a change alters an
 export's bytes. Part of a cached export's identity (:func:`store.hashing.export_hash`), so the
 service never hands out an export written by older code."""
