@@ -570,21 +570,55 @@ ORGANS: dict[str, Organ] = {
 
 
 def describe() -> list[dict[str, Any]]:
-    """Each organ of :data:`ORGANS` built and checked: name, counts, volume, validity, seconds."""
+    """Each organ of :data:`ORGANS` made afresh (the frog's in a scratch folder, the label volume
+    read first, its seconds apart) and checked: name, counts, volume, validity, seconds, presses;
+    each also recorded for ``bench/results/anatomy.json``. The frog meshes are then kept in
+    :data:`CACHE`."""
+    import shutil
+    import tempfile
     import time
 
+    from bench import results
+
+    global CACHE
+    start = time.perf_counter()
+    frog_labels()
+    results.record("anatomy", "frog labels", seconds=time.perf_counter() - start,
+                   wheel=PYVISTA, file=FROG_VTI)  # fmt: skip
     rows = []
-    for name, organ in ORGANS.items():
-        start = time.perf_counter()
-        mesh = organ.mesh()
-        seconds = time.perf_counter() - start
-        found = check(mesh)
-        rows.append({"name": name, **found.__dict__, "valid": found.valid, "seconds": seconds,
-                     "analytic_volume": organ.volume, **organ.presses(mesh)})  # fmt: skip
+    kept, CACHE = CACHE, Path(tempfile.mkdtemp(prefix="fpm-anatomy-"))
+    try:
+        for name, organ in ORGANS.items():
+            start = time.perf_counter()
+            mesh = organ.mesh()
+            seconds = time.perf_counter() - start
+            found = check(mesh)
+            row = {
+                "name": name,
+                **found.__dict__,
+                "valid": found.valid,
+                "seconds": seconds,
+                "analytic_volume": organ.volume,
+                "thin": organ.thin,
+                **organ.presses(mesh),
+            }
+            results.record("anatomy", "meshes", **row)
+            rows.append(row)
+        kept.mkdir(parents=True, exist_ok=True)
+        for path in CACHE.glob("*.vtu"):
+            shutil.move(str(path), kept / path.name)
+    finally:
+        shutil.rmtree(CACHE, ignore_errors=True)
+        CACHE = kept
     return rows
 
 
 if __name__ == "__main__":
-    import json
+    from bench import results
 
-    print(json.dumps(describe(), indent=1))
+    for row in describe():
+        print(
+            f"{row['name']:14s} {row['nodes']:6d} nodes {row['tetrahedra']:6d} tetrahedra "
+            f"{row['volume'] * 1e6:7.1f} cm^3 valid {row['valid']} {row['seconds']:5.1f} s"
+        )
+    results.save("anatomy", "python -m bench.anatomy")
