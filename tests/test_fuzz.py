@@ -29,8 +29,9 @@ pytestmark = pytest.mark.redis
 @st.composite
 def specs(draw: st.DrawFn) -> dict[str, Any]:
     """Small specs: a valid one (2-4 nodes per axis, selectors and forces on nodes, material
-    and settings anywhere in range, edge values included), then in one case of three a single
-    corruption (a value out of range, a point off the grid, a missing or unknown field, ...).
+    and settings anywhere in range, edge values included; in one case of three validation
+    cases, forces as the load cases'), then in one case of three a single corruption (a value
+    out of range, a point off the grid, a missing or unknown field, ...).
     """
     nodes = [draw(st.integers(2, 4)) for _ in range(3)]
     size = [draw(st.sampled_from([0.01, 0.03, 0.1, 1.0])) for _ in range(3)]
@@ -107,6 +108,11 @@ def specs(draw: st.DrawFn) -> dict[str, Any]:
             "k": draw(st.sampled_from([[1.0, 1e4], [1e-6, 1e-5], [1e3, 1e9]])),
             "d": draw(st.sampled_from([[1e-9, 2e-9], [0.01, 10.0]])),
         }
+    if draw(st.integers(0, 2)) == 0:  # validation cases: loads the fit never sees, any size
+        spec["validation_cases"] = [
+            {"name": f"unseen {i}", "forces": [force() for _ in range(draw(st.integers(1, 2)))]}
+            for i in range(draw(st.integers(1, 2)))
+        ]
     if draw(st.integers(0, 2)) == 0:
         draw(st.sampled_from(CORRUPTIONS))(spec, n_nodes)
     return spec
@@ -164,6 +170,10 @@ CORRUPTIONS = [
     _set("annealing.seed", -1),
     _set("annealing.bounds", {"k": [10.0, 1.0]}),
     _set("annealing.bounds", {"d": [0.0, 1.0]}),
+    _set("validation_cases", [{"forces": []}]),
+    _set("validation_cases", [{"forces": [{"node": 10_000, "vector": [0, 0, 1]}]}]),
+    _set("validation_cases", [{"forces": [{"node": 0, "vector": [0, 0, 0]}]}]),
+    _set("validation_cases", [{"forces": [{"at": [0, 0, 0], "vector": [0, 0, 1e9]}]}]),
     _set("colour", "red"),
     _set("fpm", "fast"),
     _set("material", None),
