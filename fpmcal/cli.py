@@ -212,6 +212,10 @@ class _Bar:
             if info.get("phase") != self.phase:  # once per phase, not per report
                 print(f"  {info.get('phase')} ...", file=sys.stderr, flush=True)
             self.phase = info.get("phase")
+            if info.get("phase") == "damping" and "d" in info:  # a line per d tried
+                total = info.get("total_steps")
+                steps = "not settled (or slower)" if total is None else f"{total:,} steps"
+                print(f"    d = {info['d']:.4g} N s/m: {steps}", file=sys.stderr, flush=True)
             return
         if "best_cost" not in info:  # still drawing the chain's starting point
             return

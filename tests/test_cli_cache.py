@@ -1,11 +1,13 @@
 """`fpmcal calibrate`'s work kept beside the spec (fpmcal/cache.py): the FEM reference and stage
 1's chains stored before the damping stage starts, reused on a rerun (as stored, or scaled
-where only the forces scale), kept when the damping stage fails."""
+where only the forces scale), kept when the damping stage fails; and its damping stage's
+progress, a line per d tried."""
 
 from __future__ import annotations
 
 import copy
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -145,3 +147,13 @@ def test_the_vtu_export_takes_the_stored_reference_with_its_validation_cases(
         data["validation_fem_displacement_1"], fem.reference.displacements[2]
     )
     assert np.abs(data["validation_fpm_displacement_1"]).max() > 0
+
+
+def test_the_damping_stage_shows_each_d_it_tries(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+):
+    assert main(["calibrate", str(write(tmp_path, SMALL)), "--json", "--no-cache"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    tried = [line for line in err if re.fullmatch(r"    d = \S+ N s/m: .*", line)]
+    assert tried and err.index("  damping ...") < err.index(tried[0])
+    assert any(re.search(r": [\d,]+ steps$", line) for line in tried)
