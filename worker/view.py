@@ -68,20 +68,22 @@ class ViewError(ValueError):
     """The parameter set does not fit its spec's lattice (the same input fails again)."""
 
 
+FACE_LOCAL = np.array([4, 5, 2, 1, 3, 0])
+"""Each row of :data:`FACES` as a local face of :func:`fpm.model.geometry.boundary_faces`
+(``2 * axis + (side > 0)``)."""
+
+
 def surface_quads(hexahedra: np.ndarray) -> np.ndarray:
-    """(F, 4) the faces of ``hexahedra`` (H, 8) that belong to exactly one of them (the outer
-    surface, holes and cavities included), in :data:`FACES`' orientation."""
-    quads = np.asarray(hexahedra, dtype=np.int64)[:, FACES].reshape(-1, 4)
+    """(F, 4) the faces of ``hexahedra`` (H, 8) on the lattice's surface (of one hexahedron
+    only, holes and cavities included; a graded lattice's interfaces excepted:
+    :func:`fpm.model.geometry.boundary_faces`), in :data:`FACES`' orientation."""
+    from fpm.model.geometry import boundary_faces
+
+    hexahedra = np.asarray(hexahedra, dtype=np.int64)
+    quads = hexahedra[:, FACES].reshape(-1, 4)
     if not len(quads):
         return quads
-    ordered = np.sort(quads, axis=1)
-    order = np.lexsort(ordered.T[::-1])
-    ordered = ordered[order]
-    new = np.ones(len(ordered), dtype=bool)
-    new[1:] = np.any(ordered[1:] != ordered[:-1], axis=1)
-    starts = np.flatnonzero(new)
-    counts = np.diff(np.append(starts, len(ordered)))
-    return quads[np.sort(order[starts[counts == 1]])]
+    return quads[boundary_faces(hexahedra)[:, FACE_LOCAL].ravel()]
 
 
 def triangles_of(quads: np.ndarray) -> np.ndarray:
