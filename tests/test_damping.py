@@ -16,6 +16,7 @@ import fpm
 from fpm.dynamics.equilibrium import StaticSolver, static_equilibrium
 from fpm.dynamics.settle import force_tolerance
 from fpm.dynamics.simulation import FpmModel
+from fpm.dynamics.stability import auto_time_step
 from fpm.dynamics.voigt import SETTLED
 from fpm.fitting.damping import (
     CHUNK,
@@ -30,6 +31,7 @@ from fpm.fitting.damping import (
     _search,
     _smallest_settling,
     _unsure,
+    _what_would_work,
     critical_damping,
     fastest_damping,
     long_decay,
@@ -372,3 +374,28 @@ def test_the_long_decay_reads_the_whole_run():
     assert 10_000 <= long_decay(decaying(4000, 1e-3, math.exp(-10))) <= 11_000
     assert long_decay(decaying(4000, 1e-3, math.exp(-10), rising=True)) == math.inf
     assert long_decay(decaying(1000, 1e-3, math.exp(-10))) == 1000  # too short to read
+
+
+def test_no_probe_repeats_what_the_searchs_own_runs_said(bar: fpm.Problem, monkeypatch):
+    """With the cap at the schema's 10^6 and dt already at the stability estimate's half, the
+    explanation runs nothing more (such a probe would repeat the search's runs); below, it
+    probes once at the smaller dt."""
+    stiffness = spring_stiffness(bar, K)
+    dt = auto_time_step(bar, stiffness)
+    probes: list[float] = []
+    call = _Runs.__call__
+
+    def probe(self: _Runs, d: float, *args: Any, **kwargs: Any) -> Any:
+        probes.append(self.dt)
+        return call(self, d, *args, **kwargs)
+
+    monkeypatch.setattr(_Runs, "__call__", probe)
+    runs, coarse = _Runs(bar, stiffness, None, dt), _Runs(bar, stiffness, None, 2 * dt)
+    try:
+        said = _what_would_work(runs, 0.4, 1_000_000)
+        assert "no d settles within 1000000 steps" in said and probes == []
+        said = _what_would_work(coarse, 0.4, 2000)
+        assert probes == [dt] and "settles within" in said
+    finally:
+        runs.close()
+        coarse.close()

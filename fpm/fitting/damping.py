@@ -718,10 +718,17 @@ schema's 1,000,000) to measure the steps a run needs."""
 def _what_would_work(runs: _Runs, d: float, max_steps: int) -> str:
     """Numbers for a run that cannot settle: the dt 'auto' would take (half the stability
     estimate, at most 1 ms) and the steps a run at d needs there, measured by one probe of up to
-    PROBE_STEPS x max_steps steps per load case."""
+    PROBE_STEPS x max_steps steps per load case (capped at 10^6; none where that is the search's
+    own dt and cap, whose runs already said it)."""
     p = runs.problem
     dt = min(runs.dt, auto_time_step(p, runs.stiffness))
     cap = min(1_000_000, PROBE_STEPS * max_steps)
+    if dt >= runs.dt and cap <= max_steps:  # the search's own runs were that probe
+        return (
+            f"even at fpm.dt = {dt:.3g} s (half the lattice's stability estimate) no d settles "
+            f"within {max_steps} steps: lower the loads, or check that the fixed nodes hold the "
+            "solid; widening annealing.bounds.d may help"
+        )
     probe = _Runs(p, runs.stiffness, runs.depth, dt)
     try:
         results, _ = probe(d, [cap] * probe.cases)
