@@ -11,6 +11,7 @@ dead (or hung).
 from __future__ import annotations
 
 from datetime import timedelta
+from typing import Any
 
 from rq import Queue, worker_registration
 from rq.utils import as_text, now, utcparse
@@ -18,7 +19,7 @@ from rq.worker import BaseWorker
 
 from .timing import WORKER_TTL
 
-__all__ = ["WORKER_TTL", "alive", "workers"]
+__all__ = ["WORKER_TTL", "alive", "count_alive", "workers"]
 
 
 def workers(queue: Queue, window: float = WORKER_TTL) -> tuple[int, int]:
@@ -33,10 +34,15 @@ def workers(queue: Queue, window: float = WORKER_TTL) -> tuple[int, int]:
         pipe.exists(key)
         pipe.hget(key, "last_heartbeat")
     replies = pipe.execute()
+    return count_alive(replies[::2], replies[1::2], window)
+
+
+def count_alive(exists: list[Any], beats: list[Any], window: float = WORKER_TTL) -> tuple[int, int]:
+    """(alive, silent) from each registered worker key's EXISTS and its ``last_heartbeat``."""
     cutoff = now() - timedelta(seconds=window)
-    beats = [b for e, b in zip(replies[::2], replies[1::2], strict=True) if e]
-    found = sum(b is not None and utcparse(as_text(b)) >= cutoff for b in beats)
-    return found, len(beats) - found
+    kept = [b for e, b in zip(exists, beats, strict=True) if e]
+    found = sum(b is not None and utcparse(as_text(b)) >= cutoff for b in kept)
+    return found, len(kept) - found
 
 
 def alive(worker: BaseWorker, window: float = WORKER_TTL) -> bool:

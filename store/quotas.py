@@ -40,19 +40,34 @@ class Usage:
 def usage(redis: Redis, owner: str) -> Usage:
     """The owner's usage now (finished calibrations are dropped from its set)."""
     key = keys.owner_calibrations(owner)
-    members: list[tuple[Any, float]] = redis.zrange(key, 0, -1, withscores=True)  # type: ignore[assignment]
-    active, nodes, done = 0, 0, []
-    for raw, score in members:
-        calibration_id = _str(raw)
-        status = redis.hget(keys.calibration(calibration_id), "status")  # not the whole record
-        if status is not None and _str(status) in ACTIVE_VALUES:
-            active += 1
-            nodes += int(score)
-        else:
-            done.append(calibration_id)
-    if done:
-        redis.zrem(key, *done)
-    return Usage(active, nodes)
+    return usages(redis, {owner: redis.zrange(key, 0, -1, withscores=True)})[owner]  # type: ignore[dict-item]
+
+
+def usages(redis: Redis, members: dict[str, list[tuple[Any, float]]]) -> dict[str, Usage]:
+    """Each owner's usage from its set's (calibration id, nodes) ``members`` as read: the
+    calibrations' statuses in one round trip (not the whole records), and the finished ones
+    dropped from the sets in another (only when there are some)."""
+    pipe = redis.pipeline(transaction=False)
+    for entries in members.values():
+        for raw, _ in entries:
+            pipe.hget(keys.calibration(_str(raw)), "status")
+    statuses = iter(pipe.execute() if any(members.values()) else [])
+    out = {}
+    for owner, entries in members.items():
+        active, nodes, done = 0, 0, []
+        for raw, score in entries:
+            status = next(statuses)
+            if status is not None and _str(status) in ACTIVE_VALUES:
+                active += 1
+                nodes += int(score)
+            else:
+                done.append(_str(raw))
+        if done:
+            pipe.zrem(keys.owner_calibrations(owner), *done)
+        out[owner] = Usage(active, nodes)
+    if len(pipe):
+        pipe.execute()
+    return out
 
 
 def add(redis: Redis, owner: str, calibration_id: str, nodes: int) -> None:

@@ -19,7 +19,7 @@ from rq.serializers import JSONSerializer
 from service.main import create_app
 from service.routers import calibrations
 from stack.redis_server import free_port
-from store import graph, keys, liveness, queue_stats, records
+from store import graph, keys, liveness, queue_stats, quotas, records
 
 pytestmark = pytest.mark.redis
 
@@ -125,6 +125,11 @@ def test_health_counts_are_rqs_without_writing(api, redis, small_spec):
     }
     assert got == expected
     assert expected[keys.QUEUE][2:] == (1, 2, 1)
+    Worker([keys.QUEUE], connection=redis, name="w").register_birth()
+    seen = queue_stats.snapshot(redis)  # the health route's, in two round trips
+    assert seen.jobs == counts
+    assert (seen.alive, seen.silent) == liveness.workers(q) == (1, 0)
+    assert seen.usage == quotas.all_usage(redis) and seen.usage["anonymous"].active == 1
 
     redis.zadd(started.key, {f"{running.id}:gone": time.time() - 60})
     before = redis.zrange(started.key, 0, -1)
