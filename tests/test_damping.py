@@ -26,6 +26,7 @@ from fpm.fitting.damping import (
     TRUST,
     CaseRun,
     DampingError,
+    _hopeless,
     _piece,
     _Runs,
     _search,
@@ -399,3 +400,16 @@ def test_no_probe_repeats_what_the_searchs_own_runs_said(bar: fpm.Problem, monke
     finally:
         runs.close()
         coarse.close()
+
+
+def test_a_case_whose_settling_recedes_as_its_cap_grows_is_named():
+    """The predicted d's case given the cap its decay asked for (30,000 steps, predicted at
+    13,812) and still moving there is creeping: named at once; one that settled, or whose cap
+    did not reach what was asked, is not."""
+    problem = slow_bar(2e-6, "auto")
+    earlier = [(13_812, 30_000.0), (1_803, 1_803.0)]
+    with pytest.raises(DampingError, match="load case 'pull' does not settle: .* creeps"):
+        _hopeless(problem, 0.02, [(55_000, 90_000.0), (1_803, 1_803.0)], 10**6, True, [], earlier)
+    _hopeless(problem, 0.02, [(55_000, 54_000.0), (1_803, 1_803.0)], 10**6, True, [], earlier)
+    _hopeless(problem, 0.02, [(20_000, 90_000.0), (1_803, 1_803.0)], 10**6, True, [], earlier)
+    _hopeless(problem, 0.02, [(55_000, 90_000.0), (1_803, 1_803.0)], 10**6, True, [], None)

@@ -266,6 +266,7 @@ def fastest_damping(
         max_steps = FALLBACK_STEPS if value == "auto" else int(value)
     step = time_step(problem, stiffness) if dt is None else dt
     limit = SCHEMA_MAX_STEPS if auto else max_steps  # the most steps a run may ever be given
+    earlier: list[tuple[int, float]] | None = None  # the predicted d's cases at the last cap
     for attempt in range(RETRIES + 1):
         last = not auto or attempt == RETRIES or max_steps >= SCHEMA_MAX_STEPS
         runs = _Runs(problem, stiffness, depth, step, spread, settle=settle, targets=targets,
@@ -282,13 +283,14 @@ def fastest_damping(
                 explain=last,
                 grow=not last,
                 limit=(limit, auto, list(why or [])),
+                earlier=earlier,
             )
         except _ShortCap as short:  # the predicted d's runs need more steps than the cap
-            need = short.args[0]
+            need, earlier = short.args
         except DampingError:
             if last:
                 raise
-            need = 0.0
+            need, earlier = 0.0, None
         finally:
             runs.close()
         max_steps = int(min(SCHEMA_MAX_STEPS, max(MAX_STEPS_GROWTH * max_steps, 1.5 * need)))
@@ -306,6 +308,7 @@ def _search(
     explain: bool = True,
     grow: bool = False,
     limit: tuple[int, bool, list[str]] | None = None,
+    earlier: list[tuple[int, float]] | None = None,
 ) -> DampingFit:
     """The search (:func:`fastest_damping`); ``explain``: a failure says what would work (one
     probe run of up to PROBE_STEPS times max_steps), else it only says that nothing settled;
@@ -314,7 +317,9 @@ def _search(
     at once, rather than searching on under a cap that is too small; ``limit``: (the step
     budget, whether it is 'auto''s, per load case what may keep it from settling): a case
     that the predicted d's runs show cannot settle within it ends the search
-    (:func:`_hopeless`)."""
+    (:func:`_hopeless`), as does one whose cap grew to what its decay asked for at the last cap
+    (``earlier``: (steps, predicted steps) per case there) and that reached it unsettled
+    again."""
     lo, hi = round(math.log(bounds[0]), 12), round(math.log(bounds[1]), 12)
     max_steps = runs.max_steps
     steps: dict[float, list[int] | None] = {}  # log d -> steps per case (None: not settled)
@@ -326,6 +331,11 @@ def _search(
     short: dict[float, float] = {}  # log d -> steps it needs, for a d stopped by the cap
     # log d -> (steps taken, steps predicted) per case, for a d stopped by the cap
     needs: dict[float, list[tuple[int, float]]] = {}
+
+    def capped(results: Sequence[DynamicRun | CaseRun]) -> bool:
+        """A case stopped at the cap unsettled (its verdict may still read 'done' when the
+        cap falls between two milestones)."""
+        return any(not r.finished and r.steps >= max_steps for r in results)
 
     def key(y: float) -> float:
         """log d within the bounds, rounded: one key per d, whatever path computed it."""
@@ -352,11 +362,16 @@ def _search(
                 slower[y] = int(min(max(budget, verdict.total), 1 << 62))
                 if verdict.predicted:
                     forecast[y] = verdict.predicted
-            elif budget is None and verdict.outcome in ("lost", "failed"):
+            elif budget is None and (verdict.outcome in ("lost", "failed") or capped(results)):
                 steps[y] = None
                 if not any(r.diverged for r in results):  # stopped by the cap
-                    short[y] = max([*verdict.predicted, 2.0 * max_steps])
-                    needs[y] = [(r.steps, long_decay(r)) for r in results]
+                    needs[y] = [
+                        (r.steps, long_decay(r) if not r.finished else float(r.steps))
+                        for r in results
+                    ]
+                    late = [n for _, n in needs[y] if math.isfinite(n)]
+                    extra = late if verdict.outcome == "done" else []  # no prediction made
+                    short[y] = max([*verdict.predicted, *extra, 2.0 * max_steps])
             elif verdict.outcome == "done" and all(r.state == SETTLED for r in results):
                 settled = [r.steps for r in results]
                 steps[y] = settled
@@ -396,9 +411,9 @@ def _search(
         # slender bar it predicted 3-8 times the steps the run took).
         f_mid = total(mid, to_cap=True, beside=beside)
         if limit is not None and key(mid) in needs:
-            _hopeless(runs.problem, math.exp(key(mid)), needs[key(mid)], *limit)
+            _hopeless(runs.problem, math.exp(key(mid)), needs[key(mid)], *limit, earlier)
         if grow and key(mid) in short:
-            raise _ShortCap(short[key(mid)])
+            raise _ShortCap(short[key(mid)], needs.get(key(mid)))
         # A side runs only where the reduced steps cannot rule it out (:func:`_unsure`); both
         # at once where other workers are free: right's budget is mid's total unless left
         # turns out faster (then right runs anew, with left's).
@@ -651,13 +666,24 @@ def _hopeless(
     limit: int,
     auto: bool,
     why: list[str],
+    earlier: list[tuple[int, float]] | None = None,
 ) -> None:
     """Raise :class:`DampingError` naming the load cases whose run at ``d`` (N s/m, the
     predicted d) stopped at its cap with a decay that predicts more than HOPELESS times the
     step budget ``limit``: (steps taken, steps predicted) per case in ``needs``, ``why`` what
-    may keep each from settling (none: nothing said)."""
+    may keep each from settling (none: nothing said). Also the cases that reached their cap
+    unsettled again after it grew to what their decay predicted at the cap before
+    (``earlier``, (steps, predicted) per case there): a run whose settling recedes as it goes
+    (a creep, not the exponential decay the prediction assumes) cannot be given a cap that
+    holds it."""
     slow = [j for j, (_, need) in enumerate(needs) if not need <= HOPELESS * limit]
-    if not slow:
+    receding = []
+    if earlier is not None:
+        receding = [
+            j for j, ((taken, need), (before, asked)) in enumerate(zip(needs, earlier, strict=True))
+            if taken > before and taken >= asked and need > taken and j not in slow
+        ]  # fmt: skip
+    if not slow and not receding:
         return
     budget = (
         f"fpm.max_steps 'auto' grows to at most {limit:,}"
@@ -679,6 +705,19 @@ def _hopeless(
             f"predict, its run is still moving after {taken:,} steps and its distance from "
             f"equilibrium {guess}{cause}"
         )
+    for j in receding:
+        taken, need = needs[j]
+        before, asked = earlier[j] if earlier is not None else (0, 0.0)
+        cause = f" ({why[j]})" if j < len(why) and why[j] else ""
+        after = "no longer shrinks" if not math.isfinite(need) else f"predicts {need:.2g} steps"
+        parts.append(
+            f"load case '{problem.load_cases[j].name}' does not settle: at d = {d:.3g} N s/m, "
+            f"the fastest the lattice's slowest modes predict, its run was still moving after "
+            f"{before:,} steps, where its decay predicted {asked:.2g}; given {taken:,} it is "
+            f"still moving and its distance from equilibrium {after}: it creeps rather than "
+            f"settles{cause}"
+        )
+    slow += receding
     most = max(needs[j][1] for j in slow)
     if not auto and most <= SCHEMA_MAX_STEPS:  # the spec's own cap is what is short
         advice = f"raise fpm.max_steps to about {math.ceil(1.2 * most):,}, or set it 'auto'"
