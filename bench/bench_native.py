@@ -24,7 +24,9 @@ and at :mod:`fpm.dynamics.engine_damping`'s d and dt (the all-at-once step's): t
 simulated seconds each takes, and how far apart the two settled states are. Goal: fewer steps
 with the engine's d in every load case.
 
-Run: ``python -m bench native`` (about 3 minutes); ``BENCH_NATIVE_PARTS=damping`` for one part.
+Part ``probe``: a probe at 1 kHz on the voxel organ (:func:`probe_part`).
+
+Run: ``python -m bench native`` (about 4 minutes); ``BENCH_NATIVE_PARTS=damping`` for one part.
 """
 
 from __future__ import annotations
@@ -52,12 +54,6 @@ SECONDS = 1.5
 
 def box_runtime(side: int, backend: str, precision: str = "float64") -> tuple[Any, np.ndarray]:
     """(Runtime, (N, 3) push) of the box with ``side`` nodes per edge."""
-    from fpm import load_problem
-    from fpm.dynamics.stability import auto_time_step
-    from fpm.model.forces import cells
-    from fpm.model.stiffness import continuum_start, model_stiffness
-    from fpm.runtime import Runtime
-
     size = H * (side - 1)
     centre = H * ((side - 1) // 2)
     spec = {
@@ -70,7 +66,22 @@ def box_runtime(side: int, backend: str, precision: str = "float64") -> tuple[An
                                                     "vector": [0.0, 0.0, -0.5]}]}],
         "fpm": {"stiffness": "families+volume"},
     }  # fmt: skip
-    problem = load_problem(spec)
+    return spec_runtime(spec, backend, precision)
+
+
+def spec_runtime(
+    spec: dict[str, Any], backend: str, precision: str = "float64"
+) -> tuple[Any, np.ndarray]:
+    """(Runtime, (N, 3) forces of the first load case) of ``spec``'s lattice at the continuum
+    start of families+volume, dt auto, d = 0.5 sqrt(E h m): the JSON export's arrays, built
+    without an export."""
+    from fpm import load_problem
+    from fpm.dynamics.stability import auto_time_step
+    from fpm.model.forces import cells
+    from fpm.model.stiffness import continuum_start, model_stiffness
+    from fpm.runtime import Runtime
+
+    problem = load_problem({**spec, "fpm": {"stiffness": "families+volume"}})
     stiffness = model_stiffness(problem, continuum_start(problem))
     e = problem.spec.material.youngs_modulus
     rt = Runtime(
@@ -222,8 +233,91 @@ def damping_part() -> None:
         )
 
 
+PROBE_ORGANS = ((0.007, 2000), (0.005, 2000))
+"""The voxel organ's spacing h (m) and the 1 ms ticks the probe runs for (2 s). The 20k-node
+organ is not run: its engine damping's shift-invert eigensolve alone outlasts the bench's few
+minutes on the shared machine."""
+
+
+def probe_part() -> None:
+    """Part ``probe``: a probe pressed into the voxel organ's top (bench/organ.py) and back at
+    1 kHz: in over 0.5 s to 0.2 h, held 0.5 s, out over 0.5 s, away 0.5 s; a one-sided penalty
+    of 4 times the node's stiffness; the C step at the engine's damping, its dt cut to a whole
+    number of steps a millisecond. Per tick the steps and the probe's force, timed: ticks/s
+    (goal 1,000: the loop keeps its rate), the 99th percentile of a tick, the ticks over 1 ms;
+    the energy's largest rise during the holds (relative to its peak) and at the end."""
+    import dataclasses
+    import math
+
+    from bench.organ import ellipsoid_spec
+    from fpm.dynamics.engine_damping import engine_damping, rest_stiffness
+
+    print(f"{'nodes':>7} {'steps/tick':>10} {'ticks/s':>8} {'p99 ms':>7} {'over 1 ms':>9} "
+          f"{'hold rise':>9} {'end':>8} {'load':>5}")  # fmt: skip
+    for h, ticks in PROBE_ORGANS:
+        load = os.getloadavg()[0]
+        base, push = spec_runtime(ellipsoid_spec(h), "native")
+        found = engine_damping(base)
+        substeps = math.ceil(1e-3 / found.dt)
+        rt = dataclasses.replace(base, d=found.d, dt=1e-3 / substeps)
+        node = int(np.flatnonzero(np.abs(push).sum(axis=1))[0])
+        n = push[node] / np.linalg.norm(push[node])
+        block = rest_stiffness(rt)[3 * node : 3 * node + 3, 3 * node : 3 * node + 3]
+        k = 4.0 * float(block.diagonal().max())
+        depth = 0.2 * h
+        forces = np.zeros_like(rt.rest)
+
+        def gap(
+            t: float, rt: Any = rt, node: int = node, n: np.ndarray = n, depth: float = depth
+        ) -> float:
+            tip = depth * min(1.0, t / 0.5, max(0.0, (1.5 - t) / 0.5)) if t < 1.5 else 0.0
+            return max(0.0, tip - float((rt.x[node] - rt.rest[node]) @ n))
+
+        times, energy = [], []
+        for tick in range(ticks):
+            t = (tick + 1) * 1e-3
+            t0 = time.perf_counter()
+            for _ in range(substeps):
+                forces[node] = k * gap(t) * n
+                rt.step(forces)
+            times.append(time.perf_counter() - t0)
+            if ticks >= 2000:
+                kinetic = 0.5 * float(np.sum(rt.masses[:, None] * rt.v**2))
+                energy.append(kinetic + rt.energy(rt.x) + 0.5 * k * gap(t) ** 2)
+        spent = np.array(times)
+        rise = end = float("nan")
+        if energy:
+            e = np.array(energy)
+            rise = max(float(np.diff(e[a:b]).max()) for a, b in ((500, 1000), (1500, 2000)))
+            rise, end = rise / e.max(), float(e[-1] / e.max())
+        rate = 1.0 / spent.mean()
+        p99 = float(np.percentile(spent, 99)) * 1e3
+        over = int((spent > 1e-3).sum())
+        print(f"{rt.n_nodes:>7,} {substeps:>10} {rate:>8,.0f} {p99:>7.2f} {over:>5}/{ticks:<4} "
+              f"{rise:>9.1e} {end:>8.1e} {load:>5.2f}", flush=True)  # fmt: skip
+        results.record(
+            "native",
+            "probe",
+            h=h,
+            nodes=rt.n_nodes,
+            ticks=ticks,
+            steps_per_tick=substeps,
+            dt=rt.dt,
+            d=rt.d,
+            ticks_per_s=rate,
+            p99_tick_ms=p99,
+            ticks_over_budget=over,
+            hold_energy_rise=rise,
+            end_energy=end,
+            meets_goal=rate >= 1000.0,
+            load_average=load,
+        )
+
+
 def main() -> None:
-    parts = os.environ.get("BENCH_NATIVE_PARTS", "steps,damping").split(",")
+    parts = os.environ.get("BENCH_NATIVE_PARTS", "steps,damping,probe").split(",")
+    if "probe" in parts:
+        probe_part()
     if "steps" in parts:
         steps_part()
     if "damping" in parts:
