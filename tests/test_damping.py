@@ -407,9 +407,10 @@ def test_a_case_whose_settling_recedes_as_its_cap_grows_is_named():
     13,812) and still moving there is creeping: named at once; one that settled, or whose cap
     did not reach what was asked, is not."""
     problem = slow_bar(2e-6, "auto")
-    earlier = [(13_812, 30_000.0), (1_803, 1_803.0)]
+    earlier = [(13_812, 30_000.0, True), (1_803, 1_803.0, False)]
+    settled = (1_803, 1_803.0, False)
     with pytest.raises(DampingError, match="load case 'pull' does not settle: .* creeps"):
-        _hopeless(problem, 0.02, [(55_000, 90_000.0), (1_803, 1_803.0)], 10**6, True, [], earlier)
-    _hopeless(problem, 0.02, [(55_000, 54_000.0), (1_803, 1_803.0)], 10**6, True, [], earlier)
-    _hopeless(problem, 0.02, [(20_000, 90_000.0), (1_803, 1_803.0)], 10**6, True, [], earlier)
-    _hopeless(problem, 0.02, [(55_000, 90_000.0), (1_803, 1_803.0)], 10**6, True, [], None)
+        _hopeless(problem, 0.02, [(55_000, 55_000.0, True), settled], 10**6, True, [], earlier)
+    _hopeless(problem, 0.02, [(41_000, 41_000.0, False), settled], 10**6, True, [], earlier)
+    _hopeless(problem, 0.02, [(20_000, 90_000.0, True), settled], 10**6, True, [], earlier)
+    _hopeless(problem, 0.02, [(55_000, 90_000.0, True), settled], 10**6, True, [], None)

@@ -266,7 +266,7 @@ def fastest_damping(
         max_steps = FALLBACK_STEPS if value == "auto" else int(value)
     step = time_step(problem, stiffness) if dt is None else dt
     limit = SCHEMA_MAX_STEPS if auto else max_steps  # the most steps a run may ever be given
-    earlier: list[tuple[int, float]] | None = None  # the predicted d's cases at the last cap
+    earlier: list[tuple[int, float, bool]] | None = None  # the predicted d's cases at its cap
     for attempt in range(RETRIES + 1):
         last = not auto or attempt == RETRIES or max_steps >= SCHEMA_MAX_STEPS
         runs = _Runs(problem, stiffness, depth, step, spread, settle=settle, targets=targets,
@@ -308,7 +308,7 @@ def _search(
     explain: bool = True,
     grow: bool = False,
     limit: tuple[int, bool, list[str]] | None = None,
-    earlier: list[tuple[int, float]] | None = None,
+    earlier: list[tuple[int, float, bool]] | None = None,
 ) -> DampingFit:
     """The search (:func:`fastest_damping`); ``explain``: a failure says what would work (one
     probe run of up to PROBE_STEPS times max_steps), else it only says that nothing settled;
@@ -317,9 +317,9 @@ def _search(
     at once, rather than searching on under a cap that is too small; ``limit``: (the step
     budget, whether it is 'auto''s, per load case what may keep it from settling): a case
     that the predicted d's runs show cannot settle within it ends the search
-    (:func:`_hopeless`), as does one whose cap grew to what its decay asked for at the last cap
-    (``earlier``: (steps, predicted steps) per case there) and that reached it unsettled
-    again."""
+    (:func:`_hopeless`), as does one whose cap grew to what its decay asked for at the last
+    cap (``earlier``: (steps, predicted steps, still moving) per case there) and that reached
+    it unsettled again."""
     lo, hi = round(math.log(bounds[0]), 12), round(math.log(bounds[1]), 12)
     max_steps = runs.max_steps
     steps: dict[float, list[int] | None] = {}  # log d -> steps per case (None: not settled)
@@ -330,7 +330,7 @@ def _search(
     best: list[Any] = []
     short: dict[float, float] = {}  # log d -> steps it needs, for a d stopped by the cap
     # log d -> (steps taken, steps predicted) per case, for a d stopped by the cap
-    needs: dict[float, list[tuple[int, float]]] = {}
+    needs: dict[float, list[tuple[int, float, bool]]] = {}
 
     def capped(results: Sequence[DynamicRun | CaseRun]) -> bool:
         """A case stopped at the cap unsettled (its verdict may still read 'done' when the
@@ -366,10 +366,14 @@ def _search(
                 steps[y] = None
                 if not any(r.diverged for r in results):  # stopped by the cap
                     needs[y] = [
-                        (r.steps, long_decay(r) if not r.finished else float(r.steps))
+                        (
+                            r.steps,
+                            long_decay(r) if not r.finished else float(r.steps),
+                            not r.finished,
+                        )
                         for r in results
                     ]
-                    late = [n for _, n in needs[y] if math.isfinite(n)]
+                    late = [n for _, n, _ in needs[y] if math.isfinite(n)]
                     extra = late if verdict.outcome == "done" else []  # no prediction made
                     short[y] = max([*verdict.predicted, *extra, 2.0 * max_steps])
             elif verdict.outcome == "done" and all(r.state == SETTLED for r in results):
@@ -662,26 +666,29 @@ def _smallest_settling(
 def _hopeless(
     problem: Problem,
     d: float,
-    needs: list[tuple[int, float]],
+    needs: list[tuple[int, float, bool]],
     limit: int,
     auto: bool,
     why: list[str],
-    earlier: list[tuple[int, float]] | None = None,
+    earlier: list[tuple[int, float, bool]] | None = None,
 ) -> None:
     """Raise :class:`DampingError` naming the load cases whose run at ``d`` (N s/m, the
     predicted d) stopped at its cap with a decay that predicts more than HOPELESS times the
-    step budget ``limit``: (steps taken, steps predicted) per case in ``needs``, ``why`` what
-    may keep each from settling (none: nothing said). Also the cases that reached their cap
-    unsettled again after it grew to what their decay predicted at the cap before
-    (``earlier``, (steps, predicted) per case there): a run whose settling recedes as it goes
+    step budget ``limit``: (steps taken, steps predicted, still moving) per case in
+    ``needs``, ``why`` what may keep each from settling (none: nothing said). Also the cases
+    that reached their cap unsettled again after it grew to what their decay predicted at the
+    cap before (``earlier``, the same per case there): a run whose settling recedes as it goes
     (a creep, not the exponential decay the prediction assumes) cannot be given a cap that
     holds it."""
-    slow = [j for j, (_, need) in enumerate(needs) if not need <= HOPELESS * limit]
+    slow = [
+        j for j, (_, need, moving) in enumerate(needs) if moving and not need <= HOPELESS * limit
+    ]
     receding = []
     if earlier is not None:
         receding = [
-            j for j, ((taken, need), (before, asked)) in enumerate(zip(needs, earlier, strict=True))
-            if taken > before and taken >= asked and need > taken and j not in slow
+            j for j, ((taken, _, moving), (before, asked, _)) in
+            enumerate(zip(needs, earlier, strict=True))
+            if moving and taken > before and taken >= asked and j not in slow
         ]  # fmt: skip
     if not slow and not receding:
         return
@@ -692,7 +699,7 @@ def _hopeless(
     )
     parts = []
     for j in sorted(slow, key=lambda j: -needs[j][1]):
-        taken, need = needs[j]
+        taken, need, _ = needs[j]
         guess = (
             "has not shrunk over the second half of the run"
             if not math.isfinite(need)
@@ -706,8 +713,8 @@ def _hopeless(
             f"equilibrium {guess}{cause}"
         )
     for j in receding:
-        taken, need = needs[j]
-        before, asked = earlier[j] if earlier is not None else (0, 0.0)
+        taken, need, _ = needs[j]
+        before, asked, _ = earlier[j] if earlier is not None else (0, 0.0, False)
         cause = f" ({why[j]})" if j < len(why) and why[j] else ""
         after = "no longer shrinks" if not math.isfinite(need) else f"predicts {need:.2g} steps"
         parts.append(
