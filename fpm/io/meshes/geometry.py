@@ -134,13 +134,24 @@ def geometry_from_mesh(
             f"the mesh has no volume cells and no surface triangles ({types}): give "
             "hexahedra, tetrahedra or a closed triangle surface"
         )
-    occupancy, dropped = one_piece(occupancy)
-    occupancy, origin = _crop(occupancy, origin, spacing)
+    kept, dropped = one_piece(occupancy)
+    thickened = kind == "tetrahedra" and dropped > LOST_SHARE * occupancy.sum()
+    if thickened:  # a wall thinner than h: its cell centres fall in and out of it
+        occupancy = octant_occupancy(points, tets, spacing, origin, np.asarray(occupancy.shape))
+        kept, dropped = one_piece(occupancy)
+    occupancy, origin = _crop(kept, origin, spacing)
     cells = int(occupancy.sum())
     notes = [
         f"voxelised {what} at h = {spacing:.4g} m: {cells} cells of a "
         f"{'x'.join(map(str, occupancy.shape))} lattice"
     ] + repairs
+    if thickened:
+        notes.append(
+            f"the solid is thinner than h = {spacing:.4g} m over much of it (its cell centres "
+            "left it in pieces): a cell is solid where the mesh holds any of its eight octants' "
+            "centres, so the thin parts are one cell thick, thicker than the mesh (a smaller "
+            "spacing, or --nodes more, resolves them)"
+        )
     if dropped:
         volume = dropped * spacing**3
         notes.append(
@@ -167,6 +178,23 @@ def geometry_from_mesh(
             'material.regions may select by it, {"selector": {"tag": t}}'
         )
     return MeshGeometry(geometry, kind, notes, reference)
+
+
+LOST_SHARE = 0.1
+"""When the voxels' largest piece leaves out more than this share of their cells, the solid is
+thinner than the spacing over much of it: :func:`geometry_from_mesh` voxelises it again with
+:func:`octant_occupancy`."""
+
+
+def octant_occupancy(
+    points: np.ndarray, tets: np.ndarray, spacing: float, origin: np.ndarray, cells: np.ndarray
+) -> np.ndarray:
+    """(cx, cy, cz) bool: the cells of the lattice at ``origin`` (3,), ``spacing`` (m),
+    ``cells`` (3,) per axis, where any of the 8 centres of their octants (the cells of h/2)
+    lies in a tetrahedron of ``tets`` (T, 4) on ``points`` (N, 3)."""
+    fine, _ = voxelise_tetrahedra(points, tets, spacing / 2, grid=(origin, 2 * cells))
+    cx, cy, cz = (int(c) for c in cells)
+    return np.asarray(fine.reshape(cx, 2, cy, 2, cz, 2).any(axis=(1, 3, 5)), dtype=bool)
 
 
 def mesh_points(mesh: Any) -> np.ndarray:
