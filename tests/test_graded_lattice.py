@@ -157,3 +157,51 @@ def test_a_tapering_lobe_is_modelled_not_refused_within_the_node_budget():
     for asked in (600, 2000):
         spec, notes = spec_from_mesh(wedge(), nodes=asked, **given)
         assert abs(fpm.load_problem(spec).n_nodes / asked - 1) <= 0.3, notes[0]
+
+
+def test_the_json_export_alone_rebuilds_a_graded_lattice():
+    """The export carries the graded lattice as it is (springs at their cells' sizes, every
+    cell's volume term, the masses): an independent linear solve of the JSON alone equals the
+    project's static equilibrium on the refined plate at a small load; a fine cell's interior
+    edge has half the k of a coarse one's."""
+    import json
+
+    from fpm.dynamics.equilibrium import static_equilibrium
+    from fpm.io.export import export
+    from tests.test_export import independent_linear_solve
+
+    thick = meshio.Mesh(*_plate_on_block())
+    spec, notes = spec_from_mesh(
+        thick,
+        spacing=0.006,
+        fix=["face:z-"],
+        forces=["nearest:0.05,0.02,0.012:0,0,-1e-8", "nearest:0.02,0.02,0.018:1e-8,0,0"],
+        stiffness="families+volume",
+        **MATERIAL,
+    )
+    assert any(n.startswith("graded lattice: part") for n in notes)
+    problem = fpm.load_problem(spec)
+    levels = problem.solid.levels
+    assert levels is not None and 0 < levels.sum() < len(levels)
+    theta = [30.0, 20.0, 4.0, 2e4]
+    record = {"stiffness": {"axis": 30.0, "face": 20.0, "body": 4.0}, "volume_stiffness": 2e4,
+              "d": 0.05, "depth": None, "dt": 1e-4}  # fmt: skip
+    model = json.loads(export(problem, record, "json"))
+    assert len(model["hexahedra"]) == len(levels)
+    k = np.asarray(cell_shares(problem).sum(axis=1)).ravel()
+    assert k.max() == pytest.approx(1.0) and k[k > 0].min() < 0.25  # fine surface edges: 1/8
+    for j in range(2):
+        ours = static_equilibrium(problem, k=theta, load_case=j, tolerance=1e-10).displacements
+        theirs = independent_linear_solve(model, j)
+        assert np.abs(ours - theirs).max() < 1e-5 * np.abs(ours).max()
+
+
+def _plate_on_block() -> tuple[np.ndarray, list[tuple[str, np.ndarray]]]:
+    """A 3.6 x 3.6 x 1.8 cm block with a 6 mm flap standing out 2.4 cm on one side."""
+    from tests.test_fuzz_meshes import grid_tetrahedra
+
+    keep = np.zeros((10, 6, 6), dtype=bool)
+    keep[:6] = True  # the block, x < 0.036
+    keep[6:, :, 2:4] = True  # the flap: two layers of the grid, 6 mm thick, beyond it
+    points, tets = grid_tetrahedra((10, 6, 6), np.array([0.06, 0.036, 0.018]), keep)
+    return points, [("tetra", tets)]
