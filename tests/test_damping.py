@@ -18,6 +18,7 @@ from fpm.dynamics.settle import force_tolerance
 from fpm.dynamics.simulation import FpmModel
 from fpm.dynamics.stability import auto_time_step
 from fpm.dynamics.voigt import SETTLED
+from fpm.fitting import damping
 from fpm.fitting.damping import (
     CHUNK,
     MARGIN_PROBES,
@@ -26,6 +27,7 @@ from fpm.fitting.damping import (
     TRUST,
     CaseRun,
     DampingError,
+    Hopeless,
     _hopeless,
     _piece,
     _Runs,
@@ -414,3 +416,23 @@ def test_a_case_whose_settling_recedes_as_its_cap_grows_is_named():
     _hopeless(problem, 0.02, [(41_000, 41_000.0, False), settled], 10**6, True, [], earlier)
     _hopeless(problem, 0.02, [(20_000, 90_000.0, True), settled], 10**6, True, [], earlier)
     _hopeless(problem, 0.02, [(55_000, 90_000.0, True), settled], 10**6, True, [], None)
+
+
+def test_a_hopeless_case_is_not_retried_under_a_larger_cap(bar: fpm.Problem, monkeypatch):
+    """Under fpm.max_steps 'auto' a failed search is retried with a larger cap; one that found a
+    case that cannot settle whatever its cap (Hopeless) is not."""
+    calls: list[int] = []
+    error: list[type[DampingError]] = []
+
+    def search(runs: _Runs, *args: Any, **kwargs: Any) -> Any:
+        calls.append(runs.max_steps)
+        raise error[0]("nothing settles")
+
+    monkeypatch.setattr(damping, "_search", search)
+    for kind, tries in ((Hopeless, 1), (DampingError, 3)):
+        calls.clear()
+        error[:] = [kind]
+        with pytest.raises(DampingError):
+            fastest_damping(bar, spring_stiffness(bar, K), None, (0.01, 1.0), (0.1, 0.1),
+                            max_steps=1000, auto=True)  # fmt: skip
+        assert len(calls) == tries

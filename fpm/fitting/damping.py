@@ -287,6 +287,8 @@ def fastest_damping(
             )
         except _ShortCap as short:  # the predicted d's runs need more steps than the cap
             need, earlier = short.args
+        except Hopeless:  # no larger cap helps
+            raise
         except DampingError:
             if last:
                 raise
@@ -733,7 +735,7 @@ def _hopeless(
             "lower its forces (a press of a few % of the solid's smallest extent settles in "
             "thousands of steps), or check that the fixed nodes hold the solid"
         )
-    raise DampingError("; ".join(parts) + ": " + advice)
+    raise Hopeless("; ".join(parts) + ": " + advice)
 
 
 def long_decay(run: DynamicRun | CaseRun) -> float:
@@ -797,6 +799,11 @@ def _what_would_work(runs: _Runs, d: float, max_steps: int) -> str:
 
 class DampingError(RuntimeError):
     """No d in the bounds settles every load case."""
+
+
+class Hopeless(DampingError):
+    """A load case cannot settle within the step budget, whatever its cap (:func:`_hopeless`):
+    the search ends at once, with no retry under a larger cap."""
 
 
 class _ShortCap(Exception):
