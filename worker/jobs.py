@@ -41,7 +41,7 @@ from fpm.fitting.calibration import (
     fit_damping,
     run_chain,
 )
-from fpm.fitting.damping import DampingError
+from fpm.fitting.damping import DampingError, Hopeless
 from fpm.fitting.damping_stage import DampingPlan
 from fpm.fitting.reduced import ReducedBasis, first_basis
 from fpm.fitting.validation import validate
@@ -386,7 +386,9 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
     except (RuntimeError, ValueError) as e:
         # DampingError (no d in the bounds settles every load case) or a static solve that
         # failed: a retry would fail the same way, so the calibration fails now.
-        hint = f": {DAMPING_HINT}" if isinstance(e, DampingError) else ""
+        # (a case that cannot settle says what helps it: another cap or dt would not)
+        plain = isinstance(e, DampingError) and not isinstance(e, Hopeless)
+        hint = f": {DAMPING_HINT}" if plain else ""
         _fail(redis, calibration_id, f"damping stage failed: {e}{hint}")
         return {"failed": True}
     scratch.save_damping_result(redis, calibration_id, stage.to_dict())
