@@ -4,8 +4,9 @@
 each organ of :data:`bench.anatomy.ORGANS` (three generated with thin parts, the frog's
 segmented tissues when the ``anatomy`` extra is installed) made into a spec as
 ``fpmcal spec from-mesh MESH --nodes N`` makes it (E 5 kPa, nu 0.45, 1040 kg/m^3, the organ's
-fixed box, two fitted and three unseen presses; no ``fpm`` setting), its converged FEM
-reference (refine auto) and the calibration in process; then the JSON export solved on its own
+fixed box, two fitted and three unseen presses, scaled down where a thin part bends more than
+:data:`MOVE` of the organ's size under them; no ``fpm`` setting), its converged FEM reference
+(refine auto) and the calibration in process; then the JSON export solved on its own
 (:func:`bench.bench_refine.export_figures`). One child process per row (its own memory and
 clock). Recorded in ``bench/results/organs.json``; the manual's table is rendered from it.
 
@@ -23,6 +24,8 @@ import sys
 import time
 from typing import Any
 
+import numpy as np
+
 from bench import child_json, results
 
 SIZES = (2000, 8000)
@@ -33,6 +36,9 @@ GOALS = {2000: 12.0, 8000: 7.0}
 SECONDS = {2000: 60.0, 8000: 300.0}
 """Calibration in process, reference included, s, per size."""
 COMPLIANCE = (0.8, 1.25)
+MOVE = 0.05
+"""The presses are scaled down (all by one factor, recorded as ``press_scale``) until the
+reference moves at most this share of the organ's smallest extent."""
 
 
 def run_case(organ: str, nodes: int) -> dict[str, Any]:
@@ -53,6 +59,19 @@ def run_case(organ: str, nodes: int) -> dict[str, Any]:
     t0 = time.perf_counter()
     reference = fpm.solve_fem(problem)
     t_fem = time.perf_counter() - t0
+    # The presses are sized from the organ's extent; a thin part bends far more under them. As
+    # the product's message asks, a user lowers them: here all by one factor, so that the
+    # reference (linear: the same solve, scaled) moves at most MOVE of the smallest extent.
+    extent = float(np.ptp(problem.nodes, axis=0).min())
+    moved = float(np.linalg.norm(reference.displacements, axis=2).max()) / extent
+    scale = min(1.0, MOVE / moved)
+    if scale < 1.0:
+        for key in ("load_cases", "validation_cases"):
+            for case in spec.get(key, []):
+                for force in case["forces"]:
+                    force["vector"] = [scale * v for v in force["vector"]]
+        problem = fpm.load_problem(spec)
+        reference.displacements = reference.displacements * scale
     t0 = time.perf_counter()
     result = fpm.calibrate(problem, reference=reference)
     t_fit = time.perf_counter() - t0
@@ -62,6 +81,7 @@ def run_case(organ: str, nodes: int) -> dict[str, Any]:
     return {
         "organ": organ,
         "asked": nodes,
+        "press_scale": scale,
         "lattice_nodes": problem.n_nodes,
         "spacing": float(min(spec.get("geometry", {}).get("spacing", [0.0]) or [0.0]))
         if spec["geometry"].get("type") == "voxels"
