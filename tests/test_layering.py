@@ -170,7 +170,7 @@ def test_the_layout_page_matches_the_tree():
 # The numerical core's plan (issue 28, docs/physics.md "Layout"): each subpackage of fpm imports
 # only from the layers below it; fitting and io sit side by side and never import each other;
 # no module imports, even lazily, a module that imports it back.
-LAYERS = {"model": 0, "fem": 1, "dynamics": 2, "fitting": 3, "io": 3}
+LAYERS = {"model": 0, "fem": 1, "dynamics": 2, "fitting": 3, "io": 3, "native": 4}
 
 
 def module_graph(package: str = "fpm") -> dict[str, set[str]]:
