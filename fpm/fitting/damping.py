@@ -137,6 +137,18 @@ otherwise grow and the whole range of d be scanned at the budget's steps per cas
 2,000-node organ pressed by 39% of its smallest extent, 45 minutes before the same verdict).
 The slack covers the decay's error early in a long run (it over-predicted a slender bar's
 steps 3-8 times)."""
+HOPELESS_AFTER = 10_000
+"""... and only once that run has taken at least this many steps (or the whole budget, if
+smaller); a run whose distance has not shrunk at all, only after a tenth of the budget: a
+lattice can ring for tens of thousands of steps before its decay shows (the transversely
+isotropic block of docs/howto/regions-and-anisotropy.md, which settles, had not shrunk after
+29,440)."""
+
+
+def _read_after(need: float, limit: int) -> float:
+    """The steps a run at its cap must have taken before its decay (``need``, the steps it
+    predicts; inf: not shrinking) may stop the search, against the budget ``limit``."""
+    return min(HOPELESS_AFTER, limit) if math.isfinite(need) else limit / 10
 
 
 @dataclass
@@ -683,7 +695,9 @@ def _hopeless(
     (a creep, not the exponential decay the prediction assumes) cannot be given a cap that
     holds it."""
     slow = [
-        j for j, (_, need, moving) in enumerate(needs) if moving and not need <= HOPELESS * limit
+        j
+        for j, (taken, need, moving) in enumerate(needs)
+        if moving and taken >= _read_after(need, limit) and not need <= HOPELESS * limit
     ]
     receding = []
     if earlier is not None:
