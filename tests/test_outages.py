@@ -7,6 +7,7 @@ import os
 import signal
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import httpx
 import pytest
@@ -168,6 +169,12 @@ def answers(redis: Redis) -> bool:
         return False
 
 
+def _on_disk(folder: Path, needle: bytes) -> bool:
+    """Whether an append-only file under ``folder`` (Redis 7's pieces or an older single file)
+    holds ``needle``."""
+    return any(needle in p.read_bytes() for p in folder.rglob("*aof*") if p.is_file())
+
+
 def test_local_stack_restarts_a_dead_worker_and_redis(tmp_path):
     with LocalStack(
         workers=1, port=free_port(), data_dir=tmp_path / "data", log_dir=tmp_path / "logs"
@@ -183,6 +190,10 @@ def test_local_stack_restarts_a_dead_worker_and_redis(tmp_path):
         print(f"worker restarted {time.monotonic() - killed:.1f} s after the kill")
 
         redis.set("fpm:outage-test", "kept")
+        # The append-only file is fsynced every second: a write younger than that may die with
+        # the process (Redis's own guarantee), so the kill waits for it to be on disk.
+        data = stack.redis.data_dir
+        wait_for(lambda: _on_disk(data, b"outage-test"), 10, "the write to reach the AOF")
         port, server = stack.redis.port, stack.redis.process
         assert server is not None
         server.kill()
