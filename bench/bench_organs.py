@@ -149,10 +149,10 @@ def main(argv: list[str] | None = None) -> None:
                 stderr = getattr(error, "stderr", "") or str(error)
                 row = {"organ": organ, "asked": nodes, "error": stderr.strip().splitlines()[-1]}
                 print(f"{organ:<14} {nodes:>5}  FAILED: {row['error']}", flush=True)
-                results.record("organs", organ, **row)
+                results.record("organs", f"{organ} {nodes}", **row)
                 continue
             print(row_line(row), flush=True)
-            results.record("organs", organ, **row)
+            results.record("organs", f"{organ} {nodes}", **row)
 
 
 if __name__ == "__main__":
