@@ -1,4 +1,4 @@
-"""Transversely isotropic material (issue 30, item 4): the FEM (hexahedra, both integrations,
+"""Transversely isotropic material: the FEM (hexahedra, both integrations,
 and 10-node tetrahedra) against the analytic uniaxial stretch along and across the axis; the
 lattice's closed-form start and its fitted axial scale; the spec's refusals."""
 

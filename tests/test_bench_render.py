@@ -1,4 +1,4 @@
-"""Figures that cannot go stale (issue 42): the benchmark pages of the manual and the README's
+"""Figures that cannot go stale: the benchmark pages of the manual and the README's
 headline figures are what ``python -m bench.render`` makes of the committed
 ``bench/results/*.json``, and each results file says how, when, where and on which commit it was
 measured."""

@@ -274,7 +274,7 @@ def test_paper_method_prefers_the_fastest_settling_state_within_a_tenth_of_a_per
 
 def soft_box_spec(**fpm_settings) -> dict:
     """Soft tissue (5 kPa) box 6x4x3 cm, 7x5x4 nodes, a 1 mN probe: displacements far below
-    1% of h, where the first round's absolute tolerance picked depth 0."""
+    1% of h, where an absolute tolerance would pick depth 0."""
     return {
         "name": "soft box",
         "material": {"youngs_modulus": 5000.0, "poisson_ratio": 0.45, "density": 1040.0},
@@ -316,7 +316,7 @@ def test_a_ceiling_costs_ten_times_its_excess():
 
 
 def test_families_beat_one_k_in_every_load_case_of_a_soft_box():
-    """The issue's goal on a small soft solid: families cut the lateral case's relative
+    """The goal on a small soft solid: families cut the lateral case's relative
     discrepancy by at least 2x (measured 39.4 -> 13.4%) and no case ends worse than with one k
     (the families polish runs under ceilings at the single-k fit's case costs). Measured
     against the 2x2x2 ("full") reference; against the default selective one (no volumetric

@@ -1,5 +1,4 @@
-"""/docs (Swagger UI) and /redoc work without internet: every asset comes from the app (issue
-14)."""
+"""/docs (Swagger UI) and /redoc work without internet: every asset comes from the app."""
 
 from __future__ import annotations
 

@@ -642,7 +642,7 @@ def test_the_json_export_alone_rebuilds_the_volume_model():
 
 
 def test_the_fit_figures_agree_with_an_independent_solve_of_the_export():
-    """The issue's check: the relative discrepancy the calibration reports agrees within 2
+    """The export's check: the relative discrepancy the calibration reports agrees within 2
     points with one computed from the exported JSON alone (independent solve) against the FEM."""
     problem = fpm.load_problem(soft_block_spec())
     reference = fpm.solve_fem(problem)
@@ -657,7 +657,7 @@ def test_the_fit_figures_agree_with_an_independent_solve_of_the_export():
 
 
 def test_the_validation_figures_agree_with_an_independent_solve_of_the_export():
-    """Issue 43's check, on loads the fit never saw: the relative discrepancy the calibration
+    """The export's check on loads the fit never saw: the relative discrepancy the calibration
     reports for each load case and each validation case agrees within 1.5 points with one
     computed from the exported JSON alone (the model; the validation forces from the spec, as a
     user applies them) against the FEM."""

@@ -1,4 +1,4 @@
-"""Issue 12, items 1-3 and 6: ids checked before they reach a key, free text without control
+"""Hardening: ids checked before they reach a key, free text without control
 characters or lone surrogates, user text escaped in the worker log, health counting only
 workers with a recent heartbeat."""
 

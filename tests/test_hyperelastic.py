@@ -1,4 +1,4 @@
-"""The neo-Hookean FEM reference (issue 11) against mathematics: the tangent against finite
+"""The neo-Hookean FEM reference against mathematics: the tangent against finite
 differences, the linear limit, the closed-form uniaxial stretch, Newton's quadratic
 convergence, independence of the load steps; and its place in the spec, the FEM reference's
 identity, its report and its failures."""

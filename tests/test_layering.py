@@ -127,8 +127,8 @@ def test_the_store_takes_only_the_spec_from_the_numerical_core():
 
 
 def layout_blocks() -> dict[str, str]:
-    """The manual's layout page (docs/explanation/layout.md; the README's Layout section until
-    issue 42): package path ('fpm', 'fpm/model', ...) -> its text."""
+    """The manual's layout page (docs/explanation/layout.md): package path ('fpm', 'fpm/model',
+    ...) -> its text."""
     page = (ROOT / "docs" / "explanation" / "layout.md").read_text()
     section = page.split("```text\n", 1)[1].split("```")[0]
     blocks: dict[str, str] = {}
@@ -167,7 +167,7 @@ def test_the_layout_page_matches_the_tree():
         assert missing == [], f"docs/explanation/layout.md, {package}/: {missing}"
 
 
-# The numerical core's plan (issue 28, docs/physics.md "Layout"): each subpackage of fpm imports
+# The numerical core's plan (docs/explanation/layout.md): each subpackage of fpm imports
 # only from the layers below it; fitting and io sit side by side and never import each other;
 # no module imports, even lazily, a module that imports it back.
 LAYERS = {"model": 0, "fem": 1, "dynamics": 2, "fitting": 3, "io": 3, "native": 4}

@@ -1,5 +1,5 @@
 """Every code block of the manual's tutorial and how-to guides runs, page by page, as a reader
-would run it (issue 42).
+would run it.
 
 A page's blocks run in order in one fresh working directory (with ``examples/`` linked in), like
 a notebook: ``python`` blocks share one namespace per page, ``sh`` blocks run with ``bash -e``

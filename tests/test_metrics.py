@@ -1,4 +1,4 @@
-"""Prometheus metrics at /metrics (issue 14)."""
+"""Prometheus metrics at /metrics."""
 
 from __future__ import annotations
 

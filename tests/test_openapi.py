@@ -1,5 +1,5 @@
 """The OpenAPI document as client generators read it, and the names and timestamps of the REST
-answers (issue 14)."""
+answers."""
 
 from __future__ import annotations
 

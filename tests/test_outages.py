@@ -1,4 +1,4 @@
-"""Issue 12, items 4 and 5, against real processes: a dead worker's job is re-queued within a
+"""Outages, against real processes: a dead worker's job is re-queued within a
 minute, busy workers ride out a Redis outage, and the local stack restarts what dies."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The fair queues, jobs RQ leaves ready, and what health counts as failed (issue 14)."""
+"""The fair queues, jobs RQ leaves ready, and what health counts as failed."""
 
 from __future__ import annotations
 
@@ -40,8 +40,8 @@ def test_a_job_stopped_by_a_cancel_is_not_a_failure(api, redis):
 def test_a_finished_calibration_does_not_wait_behind_another_ones_chains(redis, small_spec):
     """The damping stage and finalize go to the priority queue, which workers drain first.
 
-    Before, they went to the end of the one queue when their chains finished: behind every
-    chain enqueued meanwhile (the issue saw a finalize wait 2.5 minutes, "302 of 302").
+    On the one queue they would go to its end when their chains finished: behind every chain
+    enqueued meanwhile (a finalize was seen to wait 2.5 minutes so, "302 of 302").
     """
     options = JobOptions(retries=0)
     first, _ = graph.submit_calibration(redis, dump_spec(ProblemSpec(**small_spec)), options)

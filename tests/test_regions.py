@@ -1,4 +1,4 @@
-"""Material regions (issue 30, item 3): the FEM assigns each element its region (hexahedra and
+"""Material regions: the FEM assigns each element its region (hexahedra and
 10-node tetrahedra, by box, sphere or cell-data tag), the lattice's cells the region of their
 centre, and the fit gives each region its own families and kappa; a soft box with a stiff
 inclusion fits about as well as the homogeneous box; the spec's refusals and notes."""

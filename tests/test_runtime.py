@@ -184,8 +184,7 @@ def test_not_an_export():
 
 
 def readme_step() -> str:
-    """The manual's "The step in NumPy" code block (docs/howto/export.md; in the README until
-    issue 42)."""
+    """The manual's "The step in NumPy" code block (docs/howto/export.md)."""
     page = (ROOT / "docs" / "howto" / "export.md").read_text()
     section = page.split("\n## The step in NumPy\n", 1)[1]
     return section.split("```python\n", 1)[1].split("```", 1)[0]

@@ -1,4 +1,4 @@
-"""Settled means near the static equilibrium (fpm.dynamics.settle, issue 41): on lattices small
+"""Settled means near the static equilibrium (fpm.dynamics.settle): on lattices small
 enough to solve exactly, a run that settles on the distance criterion (the bound) or on the
 target criterion (the fit's runs) is within the promised distance of the exact static
 solution, at two sizes, and stays there; the settle distance 'auto' is a share of the case's

@@ -1,4 +1,4 @@
-"""The damping stage's load cases spread over workers (worker.spread, issue 32 item 3): the
+"""The damping stage's load cases spread over workers (worker.spread): the
 same parameters to the bit with 1, 2 and 3 real worker processes and after the worker running
 a load case was killed; the timeline and critical path in the result; the per-case runs and
 the replayed verdict equal to the lockstep runs."""

@@ -1,5 +1,5 @@
-"""The measuring tools of ``bench/surface_cells.py`` (issue 43: what the lattice's own nodes can
-hold, and where its springs lose), checked against mathematics before their figures are
+"""The measuring tools of ``bench/surface_cells.py`` (what the lattice's own nodes can hold, and
+where its springs lose), checked against mathematics before their figures are
 believed: the incompatible-modes hexahedron passes the patch test on a distorted cell and
 bends exactly where the trilinear one locks; the per-cell spring blocks are the product's
 springs and volume term (their linear solve is the static equilibrium under a small load)."""

@@ -400,7 +400,7 @@ def test_voxel_reference_option_and_from_mesh_keep_the_tetrahedra():
 
 
 def test_organ_reference_at_the_lattice_nodes_matches_scikit_fem():
-    """The issue's accuracy target: on a tetrahedral organ (the ellipsoid, E 5 kPa, nu 0.45, a
+    """The accuracy target: on a tetrahedral organ (the ellipsoid, E 5 kPa, nu 0.45, a
     probe force on top and its own weight, bottom centimetre fixed) made into a spec by
     ``spec_from_mesh``, the reference at the lattice nodes within 3% of an independent
     10-node solution (scikit-fem's ElementTetP2: its own assembly, weight, point load by its

@@ -1,4 +1,4 @@
-"""The 3D view of a parameter set (issue 29): its data route ``GET /v1/parameter-sets/{id}/view``
+"""The 3D view of a parameter set: its data route ``GET /v1/parameter-sets/{id}/view``
 (made by a worker, cached like an export: 202 then 200, gzip; 404, 410, 503, recomputed after
 expiry), the body's layout and fields (the outer surface is exactly the unshared hexahedron
 faces; the FEM and FPM fields are the stored reference's and fpm.simulate's / the static

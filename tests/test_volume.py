@@ -292,7 +292,7 @@ def cube_spec(nu: float, integration: str) -> dict:
 def test_the_default_model_is_soft_tissue_on_the_paper_cube(
     nu: float, integration: str, goal: float
 ):
-    """The issue's goal: at nu 0.45 the default model's mean relative discrepancy <= 5% against
+    """The goal: at nu 0.45 the default model's mean relative discrepancy <= 5% against
     the reference its prototype was measured on (2x2x2, measured 3.8%), 7.5% against the default
     selective one (measured 6.8%); <= 10% at nu 0.49 (measured 6.6%), where one k stays at 21-25%.
     The validation figures are the static equilibria of the validation cases at the fitted
