@@ -1,4 +1,4 @@
-"""The damping stage from the spectrum (issue #32, items 1 and 5): the predicted and the found d
+"""The damping stage from the spectrum: the predicted and the found d
 against a 30-point grid of d, and what the stage costs.
 
 Goals (all measured in this one run; the load average is printed beside each part, and on a
@@ -17,7 +17,7 @@ busy machine the wall times are those of a busy machine):
 2. The organ at h = 3 mm (about 20k nodes) in a fresh subprocess (bench_calibration's organ
    child, families+volume, no fpm settings): goal <= 60 s wall; the damping
    stage's seconds beside it. With ``large`` on the command line also h = 1.75 mm (93,705
-   nodes): goal <= 180 s for the whole calibration. Every organ: peak RSS <= 3 GB (issue #32:
+   nodes): goal <= 180 s for the whole calibration. Every organ: peak RSS <= 3 GB (the goal
    per worker; here the whole calibration in one process). Beside the wall time, the child's
    CPU seconds (user + system): on a shared machine the wall time is that of a busy machine,
    while the CPU seconds measure the work, whatever else runs.
@@ -43,7 +43,7 @@ CUBE_TIME_GOAL = 3.0
 ORGAN_GOALS = {0.003: 60.0, 0.00175: 180.0}
 """h -> whole-calibration wall time goal, s."""
 MEMORY_GOAL = 3072.0
-"""Peak RSS of a calibration, MiB (issue #32: <= 3 GB per worker, read as 3 GiB; the peak is
+"""Peak RSS of a calibration, MiB (the goal: <= 3 GB per worker, read as 3 GiB; the peak is
 printed in MiB, the child's ru_maxrss / 1024, so 3 x 10^9 bytes would be 2,861 MiB)."""
 
 

@@ -251,7 +251,7 @@ def run_tet10() -> dict:
         poisson_ratio=0.45,
         density=1040.0,
         spacing=TET10_LATTICE,
-        lattice="voxels",  # the figure measured since round 3 (a conforming lattice: the same FEM)
+        lattice="voxels",  # the figure this bench records (a conforming lattice: the same FEM)
     )
     spec["fpm"]["gravity"] = [0.0, 0.0, -9.81]
     spec["reference"]["refine"] = 0  # the 10-node solve on the mesh as given (bench_refine: auto)

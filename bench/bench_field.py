@@ -1,7 +1,7 @@
 """fpm.stiffness 'field': the per-cell stiffness field beside the four-parameter fit it starts
 from, on loads it was fitted to and on loads it never saw (fpm/fitting/field.py).
 
-Goals (issue #31; every figure is the relative discrepancy 100 sum|p - q| / sum|q|, %):
+Goals (every figure is the relative discrepancy 100 sum|p - q| / sum|q|, %):
 
 1. The paper's cube (material A's geometry and forces, depth 10, nu 0.45, default selective
    reference; validation cases 0.5 N sideways at a pulled node, 0.5 N down at a top corner),

@@ -35,17 +35,16 @@ three validation cases, each force spread over its node's share of the solid.
 3. The voxel check: the same organ's lattice with its hexahedra as the reference (no mesh):
    each case's estimated error, the cases a press on a single voxel leaves unresolved.
 
-4. ``organs`` (issue 43): the organs of :data:`bench.tet_organ.ORGANS` (the 480-tetrahedron
-   organ, its lower half held; a 432-tetrahedron kidney-like bean held at its thin end) as
-   ``spec from-mesh`` makes them with the defaults (the conforming lattice) and their forces at
-   points of the surface (``point:``), at the spacings of :data:`ORGAN_SPACINGS` (a lattice of
-   about 2,000 nodes, and half that spacing), each row in its own process: the refine-auto
-   reference and the fit against it, the validation cases judged against
-   :data:`ORGAN_GOALS` (<= 10% at about 2,000 nodes, <= 6% at half the spacing). Measured:
-   docs/real-organs.md. ``python -m bench.bench_refine organ-case ORGAN H [LATTICE]`` is one
-   row as JSON; ``organ-diagnose ORGAN H REFINE`` says where a row's error is (:func:`diagnose`,
-   with :func:`near_field_imposed`: what a lattice refined only near the loads could at best
-   do).
+4. ``organs``: the organs of :data:`bench.tet_organ.ORGANS` (the 480-tetrahedron organ, its lower
+   half held; a 432-tetrahedron kidney-like bean held at its thin end) as ``spec from-mesh`` makes
+   them with the defaults (the conforming lattice) and their forces at points of the surface
+   (``point:``), at the spacings of :data:`ORGAN_SPACINGS` (a lattice of about 2,000 nodes, and half
+   that spacing), each row in its own process: the refine-auto reference and the fit against it, the
+   validation cases judged against :data:`ORGAN_GOALS` (<= 10% at about 2,000 nodes, <= 6% at half
+   the spacing). Measured: docs/explanation/organs-conforming.md. ``python -m bench.bench_refine
+   organ-case ORGAN H [LATTICE]`` is one row as JSON; ``organ-diagnose ORGAN H REFINE`` says where a
+   row's error is (:func:`diagnose`, with :func:`near_field_imposed`: what a lattice refined only
+   near the loads could at best do).
 
 ``python -m bench.bench_refine auto|fit|check|organs`` runs one part (``fit`` about 20 min on 2 busy
 cores), ``python -m bench.bench_refine fit-case H LATTICE`` one row of part 2 (h in m) as JSON.
@@ -84,7 +83,7 @@ their surface nodes moved onto the mesh's surface (``spec from-mesh --conform``,
 ORGAN_SPACINGS = {"organ": (0.0065, 0.00325), "kidney": (0.0045, 0.00225)}
 """Per organ, m: a lattice of about 2,000 nodes (2,148 and 1,819), and half that spacing."""
 ORGAN_GOALS = (10.0, 6.0)
-"""Every validation case at most this, %, at the first spacing and at half of it (issue 43)."""
+"""Every validation case at most this, %, at the first spacing and at half of it (the goals)."""
 
 
 def fmt(values: list[float] | None) -> str:
@@ -310,7 +309,7 @@ def run_organ(organ: str, spacing: float, lattice: str = "conforming") -> dict[s
 
 
 EXPORT_GAP = 1.5
-"""Issue 43: the reported figures within this many points of an independent solve of the JSON
+"""The goal: the reported figures within this many points of an independent solve of the JSON
 export (:mod:`bench.export_solve`), fitted and validation cases."""
 
 
@@ -401,12 +400,12 @@ def organs() -> list[str]:
 
 
 def diagnose(organ: str, spacing: float, refine: int) -> None:
-    """Where part 4's error is, printed (docs/real-organs.md, *What remains*): ``organ`` at
-    ``spacing`` (m) against a ``refine``-times refined reference (quicker than 'auto'), fitted
-    (families+volume, then the per-cell field); per fitted case the share of the relative
-    discrepancy from the nodes within 1, 2 and 3 h of the load; and the lattice's own
-    hexahedra as an FEM continuum (8-node, B-bar) with the same nodal forces, as they are and
-    refined once, against the reference (% per case)."""
+    """Where part 4's error is, printed (docs/notes/2026-11-29-organs-what-the-nodes-hold.md):
+    ``organ`` at ``spacing`` (m) against a ``refine``-times refined reference (quicker than 'auto'),
+    fitted (families+volume, then the per-cell field); per fitted case the share of the relative
+    discrepancy from the nodes within 1, 2 and 3 h of the load; and the lattice's own hexahedra as
+    an FEM continuum (8-node, B-bar) with the same nodal forces, as they are and refined once,
+    against the reference (% per case)."""
     import copy
 
     import numpy as np

@@ -6,14 +6,14 @@
 2. GET /v1/calibrations/{id} at 200 requests/s for 30 s over loopback: p50/p99 latency
    (goal p99 < 25 ms) and failures.
 3. The same polling while a client (in its own process) asks for the exports (json, then
-   sofa) of a parameter set on a box of EXPORT_SIDE^3 nodes (46^3 = 97,336 by default, ~10^5:
-   issue 22), each made by
+   sofa) of a parameter set on a box of EXPORT_SIDE^3 nodes (46^3 = 97,336 by default, ~10^5),
+   each made by
    a worker and then downloaded again from the cache: the API's p99 must stay under 25 ms.
    The parameter set is the burst's first, moved onto the big box (a copy of its calibration
    record with the big spec; the stiffness stays the small box's, the numbers are not the
    point). ``FPM_BENCH_EXPORT_SIDE`` (46; (side - 1) divisible by 3 so that the small box's
    load points are nodes) and ``FPM_BENCH_EXPORT_SECONDS`` (60) shrink it.
-4. The web view's 3D view of that parameter set (issue 29): its FEM reference is solved, the
+4. The web view's 3D view of that parameter set: its FEM reference is solved, the
    worker makes the view data (``GET /v1/parameter-sets/{id}/view``: 202 until then), which is
    downloaded again from the cache; then the 3D page is opened VIEW_OPENS times in headless
    Chromium (a fresh profile each time, so three.js is fetched too; WebGL in software, by

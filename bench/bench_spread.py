@@ -1,6 +1,6 @@
-"""One calibration over 1, 2 and 3 workers (issue 32, item 3): wall time, critical path and
+"""One calibration over 1, 2 and 3 workers: wall time, critical path and
 the timeline of the organ at h = 3 mm (``python -m bench spread``; ``spread 5`` for h = 5 mm;
-``spread 1.75`` for the 93,705-node organ on 2 workers, against issue 32's 180 s wall, 120 s
+``spread 1.75`` for the 93,705-node organ on 2 workers, against the goals of 180 s wall, 120 s
 critical path and 3 GB per worker).
 
 Each run starts its own redis-server and ``python -m worker`` processes, submits the organ
@@ -26,9 +26,9 @@ from bench.bench_calibration import load, organ_settings, verdict
 ROOT = Path(__file__).resolve().parents[1]
 WORKERS = (1, 2, 3)
 LARGE_WALL_GOAL, LARGE_PATH_GOAL = 180.0, 120.0
-"""Issue 32, ``spread 1.75`` (the 93,705-node organ): wall with 2 workers, critical path, s."""
+"""The goals of ``spread 1.75`` (the 93,705-node organ): wall with 2 workers, critical path, s."""
 MEMORY_GOAL = 3e9
-"""Issue 32: bytes per worker (its process and its work horse together, PSS)."""
+"""The goal: bytes per worker (its process and its work horse together, PSS)."""
 SAMPLE = 0.5
 """Seconds between the memory sampler's looks."""
 
@@ -154,7 +154,7 @@ def main() -> None:
     args = sys.argv[2:]
     h = 0.005 if "5" in args else 0.00175 if "1.75" in args else 0.003
     counts = tuple(int(a.split("=")[1]) for a in args if a.startswith("workers="))
-    # the 10^5-node organ: issue 32's 2 workers unless named (workers=1 workers=2 workers=3)
+    # the 10^5-node organ: 2 workers unless named (workers=1 workers=2 workers=3)
     workers = counts or ((2,) if h == 0.00175 else WORKERS)
     problem = fpm.load_problem(organ_settings(h, "families+volume")[0])
     spec = dump_spec(problem.spec)

@@ -7,7 +7,7 @@ Goals (all measured in this run; the load average is printed beside each part):
    with the FEM solved outside the timing and the kernels warmed up: one k (the paper's model)
    and families+volume at nu 0.45 and 0.49 against the default (selective) reference, and
    families+volume at nu 0.45 against the 2x2x2 ("full") one. Goals: families+volume mean
-   relative discrepancy <= 5% at nu 0.45 against the 2x2x2 reference (the one the issue's
+   relative discrepancy <= 5% at nu 0.45 against the 2x2x2 reference (the one the
    prototype measured on), <= 10% at nu 0.49; wall time <= 5 s at nu 0.45. Two more rows
    without a goal say how much of the gap to the selective reference is the reference's own
    small-strain error: every force at 1/100 (small strain, where the linear FEM is the solid),

@@ -1,4 +1,4 @@
-"""An independent static solve of the JSON export (issue 43's check on organ-sized lattices).
+"""An independent static solve of the JSON export (the check on organ-sized lattices).
 
 From the exported model alone (its nodes, springs, hexahedra with their volume stiffness and
 rest volumes, fixed nodes), written here from the export's documented energy and not from fpm's

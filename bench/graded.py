@@ -1,4 +1,4 @@
-"""What a lattice graded from the surface inwards could give (issue 43): a bound, measured.
+"""What a lattice graded from the surface inwards could give: a bound, measured.
 
 ``python -m bench.graded ORGAN H [BANDS]`` (an organ of :data:`bench.tet_organ.ORGANS`, h in
 m, BANDS a comma list of node layers, default ``1,2``; about 4 minutes at 2,600 nodes, most of
@@ -17,7 +17,7 @@ reference; BAND 99 keeps every node (the fine lattice itself). Two placements of
 
 The bound says whether building such a lattice (transition cells or hanging nodes through the
 perturbed lists, the export, the runtime, the browser and the SOFA scene) would reach the
-issue's goal at its node count; it is not a model the product has.
+goal at its node count; it is not a model the product has.
 """
 
 from __future__ import annotations

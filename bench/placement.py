@@ -1,4 +1,4 @@
-"""How much the lattice's placement moves an organ's figures (issue 43).
+"""How much the lattice's placement moves an organ's figures.
 
 ``python -m bench.placement ORGAN H DX DY`` (an organ of :data:`bench.tet_organ.ORGANS`, h in
 m, DX and DY fractions of h): the row of ``python -m bench.bench_refine organ-case ORGAN H``

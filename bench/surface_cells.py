@@ -1,4 +1,4 @@
-"""Where the conforming lattice's springs lose (issue 43): its own cells as finite elements.
+"""Where the conforming lattice's springs lose: its own cells as finite elements.
 
 ``python -m bench.surface_cells ORGAN H [--no-refit]`` (an organ of
 :data:`bench.tet_organ.ORGANS`, h in m; about 4-5 minutes at 2,000 nodes, most of it the

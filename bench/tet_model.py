@@ -1,4 +1,4 @@
-"""Issue 43, item 3: models on the organ's own tetrahedra, measured beside the lattice.
+"""Models on the organ's own tetrahedra, measured beside the lattice.
 
 ``python -m bench.tet_model ORGAN H [LEVEL ...]`` (ORGAN a key of
 :data:`bench.tet_organ.ORGANS`, H the lattice spacing in m whose loads are used, LEVEL the
@@ -8,23 +8,23 @@ the validation cases) of three small-strain models whose nodes are the refined m
 
 1. **linear tetrahedra** (4-node FEM) with the organ's E and nu: what the tetrahedra themselves
    can do, with nothing fitted;
-2. **springs on the tetrahedra's edges and a volume term per tetrahedron**, the candidate of
-   the issue (springs of Van Gelder's form k_e = a E sum_{t holding e} V_t / l_e^2, as Lloyd et
+2. **springs on the tetrahedra's edges and a volume term per tetrahedron**, the candidate
+   measured (springs of Van Gelder's form k_e = a E sum_{t holding e} V_t / l_e^2, as Lloyd et
    al. 2007 derive for tetrahedra up to their constant, which the fit absorbs; the volume term
    0.5 kappa (V - V0)^2 / V0 per tetrahedron, as :mod:`fpm.model.volume` per hexahedron), a and
    kappa fitted on the fitted cases (Nelder-Mead on their logarithms, the mean of Eq. 2);
 3. linear tetrahedra with E and nu fitted the same way: the best a linear tetrahedral model
    on those nodes does with two parameters.
 
-The loads are the lattice's own (``surface_spec(ORGAN, H)``: every force at a surface point,
-spread over its surface cell's lattice nodes, each lattice force over its hat,
-:mod:`fpm.fem.loads`), applied to each mesh as the consistent loads of the same samples, so
-every model carries the very load the lattice's reference carries. The reference is 10-node
-tetrahedra on the mesh refined twice (the issue's), read at each model's nodes; held nodes are
-left out of the sums. Small strain throughout: a fit of the FPM's nonlinear springs would agree
-to the loads' geometric nonlinearity (a few % on the kidney, whose pull moves it 15 mm).
+The loads are the lattice's own (``surface_spec(ORGAN, H)``: every force at a surface point, spread
+over its surface cell's lattice nodes, each lattice force over its hat, :mod:`fpm.fem.loads`),
+applied to each mesh as the consistent loads of the same samples, so every model carries the very
+load the lattice's reference carries. The reference is 10-node tetrahedra on the mesh refined twice
+(the organs' reference), read at each model's nodes; held nodes are left out of the sums. Small
+strain throughout: a fit of the FPM's nonlinear springs would agree to the loads' geometric
+nonlinearity (a few % on the kidney, whose pull moves it 15 mm).
 
-Measured: docs/explanation/organs-conforming.md (*Candidates*).
+Measured: docs/notes/2026-11-30-organs-candidates.md (*The organ's own tetrahedra*).
 """
 
 from __future__ import annotations
