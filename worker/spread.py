@@ -1,12 +1,11 @@
-"""The damping stage's runs spread over the free workers (issue 32, item 3).
+"""The damping stage's runs spread over the free workers.
 
 The d search's dearest runs are the predicted d's, every load case run to its end
-(docs/physics.md, *d from the spectrum*): each case's run is independent of the others'
-(:func:`fpm.fitting.damping.run_case`). Then come the two d that confirm it, handed out
-with them under a budget known before they end (:data:`fpm.fitting.damping.CONFIRM_AHEAD`),
-and the margin's probes, each a d's lockstep runs whose requests the search can name before it
-needs them (:meth:`fpm.fitting.damping._Runs.prefetch`). The damping job hands them out as
-tasks:
+(docs/explanation/physics/damping-search.md, *Confirmation*): each case's run is independent of
+the others' (:func:`fpm.fitting.damping.run_case`). Then come the d that confirm it, where the
+reduced steps cannot rule them out, and the margin's probes, each a d's lockstep runs whose
+requests the search can name before it needs them (:meth:`fpm.fitting.damping._Runs.prefetch`).
+The damping job hands them out as tasks:
 
 - each task (the plan, and one load case at d with its cap, or one d's request) is stored
   under its digest (:func:`task_digest`) and, when other workers are idle, enqueued as a
