@@ -26,8 +26,9 @@ from numba import njit
 from ..fem.linear_solver import v_cycle
 
 MODES = 16
-"""Lowest modes the prediction keeps (measured: 12-24 agree on the fastest d within 3%; 4-6
-miss couplings that set it on the paper's cube)."""
+"""Lowest modes the prediction keeps: enough to hold the couplings that set the fastest d (too
+few miss them on the paper's cube; more do not move it). The measurements:
+docs/notes/2026-11-28-calibration-measured.md, *The prediction's settings*."""
 EXTRA = 4
 """LOBPCG iterates this many vectors more than it keeps (the last ones converge slowest)."""
 DENSE_UP_TO = 600
@@ -37,18 +38,16 @@ COARSE_UP_TO = 600
 unknowns (a dense eigensolve there), carried up to the lattice."""
 TOLERANCE = 0.1
 """LOBPCG stops once every kept mode's residual |K x - w^2 M x| is below this times |K x|
-(the eigenvalues are then good to about its square; measured: the predicted fastest d moves
-by 0.2-0.5% from 0.01 to 0.1, by 1% at 0.3)."""
+(the eigenvalues are then good to about its square, and the predicted fastest d hardly moves
+with it)."""
 SETTLED_VALUES = 1e-3
 """LOBPCG also stops once no kept eigenvalue moved by more than this (relative) in an
 iteration."""
 MAX_ITERATIONS = 3
 """LOBPCG iterations at most on each level. The prediction needs the slow modes' span more
-than converged vectors (the reduced step is a Galerkin model on whatever basis it gets):
-measured, the predicted fastest d with 2, 3, 4 and 6 iterations on the lattice against
-converged ones (residuals below 0.1): 1.1%, 1.5%, 0%, 0% apart on the soft organ at h = 5 mm,
-0.3%, 0.7%, 1.0%, 0.3% at h = 3 mm (converging took 6-9 iterations there and 13 on the
-93,705-node organ, each one costing 20 V-cycles of the lattice)."""
+than converged vectors (the reduced step is a Galerkin model on whatever basis it gets), and
+each iteration on a large lattice costs tens of V-cycles: a few iterations predict the fastest
+d within about a percent of converged modes."""
 
 _BLAS_LOCK = threading.Lock()
 _BLAS: list[tuple[Callable[[int], None], Callable[[], int]]] | None = None
@@ -92,10 +91,10 @@ def _blas_controls() -> list[tuple[Callable[[int], None], Callable[[], int]]]:
 
 @contextmanager
 def single_threaded_blas() -> Iterator[None]:
-    """Run the block with OpenBLAS on one thread. Its threads wait on each other: on a busy
-    2-core machine a 600 x 600 generalised eigensolve took 3.2 s with two threads and 0.36 s
-    with one, a 60 x 60 one 29 ms and 0.6 ms (:func:`_gram` explains the tall products). The
-    dense algebra here is small or done in compiled loops, so one thread loses nothing."""
+    """Run the block with OpenBLAS on one thread. Its threads wait on each other on a busy
+    machine, making small dense eigensolves many times slower (:func:`_gram` explains the tall
+    products). The dense algebra here is small or done in compiled loops, so one thread loses
+    nothing."""
     global _BLAS
     with _BLAS_LOCK:
         if _BLAS is None:
@@ -246,8 +245,8 @@ def _cycles(hierarchy: object, r: np.ndarray, level: int, threads: int | None = 
 @njit(cache=True, nogil=True)
 def _gram(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """x^T y for tall x (n, a), y (n, b): (a, b). Compiled rather than BLAS: a threaded BLAS
-    on a busy 2-core machine took 6 s for what one thread does in 0.1 s (n = 280,000, a = b =
-    48; :func:`fpm.fem.linear_solver.conjugate_gradients` avoids it for the same reason)."""
+    on a busy machine spends far longer waiting between its threads than one thread takes
+    (:func:`fpm.fem.linear_solver.conjugate_gradients` avoids it for the same reason)."""
     out = np.zeros((x.shape[1], y.shape[1]))
     _gram_into(out, x, y)
     return out
@@ -326,11 +325,9 @@ def _lobpcg(
     Lean on memory: S stays three blocks (never side by side), its Gram matrices are summed
     block by block, K is applied to one block at a time for S^T K S (K X is kept from the
     residual) and the new X and P are each one combination of the blocks (P's coefficients
-    follow from S^T M S): at most five blocks at once (X, T, P, the new X and P). Measured on
-    the 3 mm organ's list (tracemalloc, the whole of :func:`lowest_modes`): a peak of 138
-    columns of the lattice against 244 when S and K S were held side by side (0.54 GB on the
-    93,705-node organ), for two more products by K per iteration (K X and K P); the
-    eigenvalues within 3e-13 of before. Returns (w^2, X, K X, iterations taken), ascending, X
+    follow from S^T M S): at most five blocks at once (X, T, P, the new X and P), about half the
+    columns of the lattice that S and K S side by side would hold, for two more products by K
+    per iteration (K X and K P). Returns (w^2, X, K X, iterations taken), ascending, X
     M-orthonormal."""
     block = x.shape[1]
 

@@ -1,8 +1,8 @@
 """The static equilibrium of the FPM: the state a settled dynamic run reaches, found directly.
 
-A settled run's state does not depend on the damping d (physics.md, Round 2): it is the
-minimum, over the displacements u_i of the perturbed-list nodes, of the springs' energy minus
-the work of the constant nodal forces,
+A settled run's state does not depend on the damping d (docs/physics.md, *Static
+equilibrium*): it is the minimum, over the displacements u_i of the perturbed-list nodes, of
+the springs' energy minus the work of the constant nodal forces,
 
     E(u) = sum_s 1/2 k_s (|r_s| - L_s)^2 - sum_i F_i . u_i,     r_s = x_j - x_i,  x = X + u,
 

@@ -4,10 +4,9 @@
 A run of one load case stops once it is settled. Near the static equilibrium x* of its list,
 with K the free nodes' tangent (SPD) and r the unbalanced force (N), the error is
 ``x - x* = -K^-1 r``. A criterion on the force alone ("largest |r_i| below a tolerance times
-the largest applied force", the paper's and the project's first) is not scale-free: K's
-lowest eigenvalues fall like h^2 as the lattice is refined, so the same force tolerance lets
-the state sit further from rest on a finer lattice (measured on the soft organ with 1e-5:
-settled cost / static cost 0.995 at 4.7k nodes, 1.32 at 19.7k, 6.0 at 93.7k).
+the largest applied force", the paper's) is not scale-free: K's lowest eigenvalues fall like
+h^2 as the lattice is refined, so the same force tolerance lets the state sit further from rest
+on a finer lattice (the figures: docs/explanation/physics/settle.md).
 
 **The distance criterion.** With Euclidean norms over the list's unknowns,
 ``|x - x*| <= |r| / lambda_min(K)``: a run is settled when
@@ -25,8 +24,8 @@ refined, and with it the force the criterion accepts): it means the same on a 4.
 93.7k-node organ. (1) is the kernel's ``settle_stiffness = settle_distance * lambda``
 (:func:`fpm.dynamics.voigt.run_steps`), checked every sweep. 2-norms, not largest nodal
 values: the calibration's cost sums over every node, and a point load's peak displacement is
-many times the typical one, so a distance relative to the peak let the state sit 25% above the
-static cost on the 4.6k-node organ while its peak was 0.1% from equilibrium.
+many times the typical one, so a distance relative to the peak would let the state sit well
+above the static cost while its peak is close to equilibrium.
 
 **The target criterion.** Where the static equilibrium u* of the list is known (the damping
 stage solves it before its d search), the distance need not be bounded: it is measured, in the
@@ -47,8 +46,7 @@ the same for every case: the settled cost (paper Eq. 2, a sum over the cases) is
 (1 + SHARE) of the static cost, whatever the lattice's size or the load, and no case is more
 than :data:`NOMINAL` (1%) from its static equilibrium. One distance for all, not each case's
 own share: a case the model fits closely would otherwise settle the more closely and take the
-longest (the shear case of the 93,705-node organ, fitted to 0.38%, settled to 0.019% in 3,489
-steps, the calibration's longest run, while the presses settled to 0.1%).
+longest.
 
 The estimate is what the run knows; the damping stage also *measures* the settled state's
 distance against the static equilibrium it has solved (:func:`measured_distance`), and the
@@ -73,8 +71,7 @@ from ..model.spec import ProblemSpec
 FORCE_TOLERANCE = 1e-5
 """The force criterion's tolerance where the spec names none but the distance criterion has
 no modes to read (the paper method; a mechanism): settled when the largest unbalanced nodal
-force is below this times the largest applied nodal force (the default before the distance
-criterion)."""
+force is below this times the largest applied nodal force."""
 
 PROMISE = 1.0
 """The settled state is promised within this times its settle distance of its static

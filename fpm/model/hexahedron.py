@@ -78,7 +78,8 @@ SPRING_FAMILIES: dict[str, list[tuple[int, int]]] = {
 
 
 FAMILIES = ("axis", "face", "body")
-"""Spring families: hexahedron edges, face diagonals, body diagonals (physics.md, Round 2)."""
+"""Spring families: hexahedron edges, face diagonals, body diagonals (docs/physics.md,
+*Springs*)."""
 
 
 GAUSS_POINTS = np.array(list(product((-1, 1), repeat=3)), dtype=float) / np.sqrt(3.0)
