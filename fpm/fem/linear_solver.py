@@ -45,10 +45,9 @@ AMG_MAX_ITERATIONS = 1000
 
 COMPILED_SMOOTHER_FROM = 50_000
 """The FEM's ``"amg"`` smooths with the compiled sweep (:func:`amg_hierarchy`) from this many
-unknowns on. It saves about a third of the CG time (0.15 s at 22,800 unknowns, 0.8 s at 78,300,
-1.4 s at 187,200) but costs ~0.5 s once per process (importing numba, loading the compiled
-code); break-even is near 50,000 unknowns in a fresh process (bench/bench_fem.py runs each
-case in one)."""
+unknowns on. It saves about a third of the CG time but costs a fixed start-up once per process
+(importing numba, loading the compiled code); this is the break-even in a fresh process
+(bench/bench_fem.py runs each case in one)."""
 
 
 class SingularStiffnessError(ValueError):
@@ -123,9 +122,8 @@ def factorize(
 
 COLUMN_THREADS = 2
 """The load cases' CG solves run on this many threads at once (the compiled smoother and
-SciPy's sparse products release the GIL): each column is the same solve, bit for bit, as alone.
-Measured on the organ at h = 3 mm (6 load cases, 59,000 unknowns, load average 8 on 2 cores):
-the reference in 22-26 s of wall time instead of 32-34 s, the same 5.5 CPU s, the same bits."""
+SciPy's sparse products release the GIL): each column is the same solve, bit for bit, as alone,
+in less wall time for the same CPU time."""
 
 
 def each_column(
@@ -199,7 +197,7 @@ def _smooth(
 @cache
 def _compiled_sweep() -> Callable[..., None]:
     """:func:`_block_gauss_seidel` compiled by numba, imported on first use: the FEM's LU path
-    and its smaller AMG solves do without it (~0.2 s and ~55 MB)."""
+    and its smaller AMG solves do without it (its import costs time and memory)."""
     from numba import njit
 
     return njit(cache=True, nogil=True)(_block_gauss_seidel)
@@ -313,7 +311,7 @@ def conjugate_gradients(
     at most ``nodal_stop``; stops quietly after ``max_iterations`` (``converged`` False).
 
     Hand-written rather than pyamg's or scipy's so that no step calls multithreaded BLAS: on a
-    busy 2-core machine a threaded dot product of 1e5 numbers took 5 ms instead of 0.02 ms.
+    busy machine a threaded dot product waits for its threads far longer than one thread takes.
 
     Raises:
         NegativeCurvature: a search direction p with p.a p <= 0 (``a`` is not positive
