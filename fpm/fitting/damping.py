@@ -7,8 +7,8 @@ real dynamic kernel (:class:`fpm.dynamics.simulation.FpmModel`).
 
 Where the search starts. Normally from the prediction of :mod:`fpm.dynamics.modes`: the
 lattice's slowest modes at the fitted stiffness, the FPM step reduced to them, and the d with
-the fewest predicted steps (on the paper's cube and the soft organ within 1-3% of the runs'
-fastest). The search (:func:`fastest_damping`) then confirms it with a run on either side,
+the fewest predicted steps (how close it comes: docs/explanation/physics/damping-prediction.md).
+The search (:func:`fastest_damping`) then confirms it with a run on either side,
 CONFIRM apart, each stopped as soon as its decay predicts it slower than the prediction's own
 runs (a few hundred steps; a side is not run where the reduced steps rule it out:
 :func:`_unsure`), walks on only if one of them is faster (each step 1.6x longer,
@@ -109,12 +109,11 @@ MARGIN_PROBES = 2
 """With a prediction, the margin search asks for at most this many probes: the reduced step's
 edge (run at once beside the predicted d's runs where a worker is free), and half a walk's step
 (12%) below it only where the edge settles. d_min is then the smallest d found that settles,
-bracketed to 1.12x or by the tried d above the edge. On the 93,705-node organ the open walk
-down had taken 5 probes of up to 2 x 2,400 steps per load case, more than the fastest d's own
-runs; the edge, 12% below it and a step further took 3. On the target criterion the runs 12%
-below the edge do not settle within the caps, neither on the organ at 3 mm nor at 93,705 nodes
-(measured, round 5): probed first, with the edge beside it, that probe cost 27 CPU s there and
-told nothing the edge's own failure does not."""
+bracketed to 1.12x or by the tried d above the edge. The edge comes first because on the target
+criterion runs 12% below it do not settle within the caps on the organs measured, so a probe
+there tells nothing the edge's own failure does not; an open walk down would take more probes
+than the fastest d's own runs (docs/notes/2026-11-28-calibration-measured.md, *The margin's
+order*)."""
 CONFIRM = 1.04
 """The runs that confirm a predicted d sit this factor below and above it."""
 TRUST = 2.0
@@ -133,16 +132,14 @@ the predicted d reaches its cap unsettled and the decay of its residual, which i
 distance from equilibrium shrinks towards its settle distance
 (:func:`long_decay`), predicts more than this many times the step
 budget: fpm.max_steps, or under 'auto' the schema's 10^6 its cap may grow to. Its cap would
-otherwise grow and the whole range of d be scanned at the budget's steps per case (on a
-2,000-node organ pressed by 39% of its smallest extent, 45 minutes before the same verdict).
-The slack covers the decay's error early in a long run (it over-predicted a slender bar's
-steps 3-8 times)."""
+otherwise grow and the whole range of d be scanned at the budget's steps per case, only to reach
+the same verdict. The slack covers the decay's error early in a long run (it can over-predict a
+slender bar's steps several times)."""
 HOPELESS_AFTER = 10_000
 """... and only once that run has taken at least this many steps (or the whole budget, if
 smaller); a run whose distance has not shrunk at all, only after a tenth of the budget: a
 lattice can ring for tens of thousands of steps before its decay shows (the transversely
-isotropic block of docs/howto/regions-and-anisotropy.md, which settles, had not shrunk after
-29,440)."""
+isotropic block of docs/howto/regions-and-anisotropy.md settles, but only after that long)."""
 
 
 def _read_after(need: float, limit: int) -> float:
@@ -426,7 +423,7 @@ def _search(
             beside.append(Request(math.exp(round(edge, 12)), caps, None, estimate=True,
                                   caps_later=True))  # fmt: skip
         # The predicted d runs to the cap: early in a long run its decay is no guide (on a
-        # slender bar it predicted 3-8 times the steps the run took).
+        # slender bar it can over-predict the steps several times).
         f_mid = total(mid, to_cap=True, beside=beside)
         if limit is not None and key(mid) in needs:
             _hopeless(runs.problem, math.exp(key(mid)), needs[key(mid)], *limit, earlier)
@@ -519,10 +516,9 @@ def _unsure(models: list[StepModel], measured: list[int] | None, y: float, y_mid
     ``y_mid``), whose runs settled in ``measured`` steps per case (None: they did not): yes
     unless the reduced steps predict ``y`` slower than ``y_mid`` by more than TRUST times
     their own relative error at ``y_mid``. The reduced steps' error is mostly an offset
-    shared by nearby d (on the organ at 5 and 3 mm they predicted the fastest d's total 1% and
-    8% under its runs, and the confirming runs 4% away were slower every time, at a cost of
-    up to 4 times the predicted d's own steps): a side the model puts clearly beyond its own
-    error cannot be faster, and a run there would only say so."""
+    shared by nearby d (docs/notes/2026-11-28-calibration-measured.md, *Confirming runs
+    skipped*): a side the model puts clearly beyond its own error cannot be faster, and a run
+    there would only say so."""
     if not measured:
         return True
     predicted = total_steps(models, math.exp(y_mid), SCHEMA_MAX_STEPS)
