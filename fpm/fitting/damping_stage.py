@@ -216,10 +216,9 @@ def _fit_damping(
 ) -> DampingStage:
     """:func:`fit_damping`'s work; ``validator`` starts the validation cases' static solves
     while the stage goes on (they need the final stiffness and depth, not d), once the depth is
-    chosen and the depth probes' systems are dropped, beside the slowest modes' prediction.
-    (Started beside the depth probes, the validation's systems and theirs took the 93,705-node
-    organ's peak from 2,740 to 3,448 MiB, over 3 GB.) A field's model is validated by
-    finalize."""
+    chosen and the depth probes' systems are dropped, beside the slowest modes' prediction:
+    started beside the depth probes, the validation's systems and theirs would sit in memory
+    together, at the calibration's peak. A field's model is validated by finalize."""
     t0 = time.perf_counter()
     disp = reference_displacements(reference, problem)
     best = chain_to_polish(problem, chains)
