@@ -71,10 +71,10 @@ from .settle import force_tolerance
 from .spring_system import Params, SpringSystem, shared_system, spring_lists
 
 AMG_FROM_UNKNOWNS = 300
-"""Free unknowns from which the Newton steps use multigrid-preconditioned CG instead of LU.
-Measured on `full` lattices (first solve, hierarchy built in it): 300 unknowns 5.6 ms with CG
-against 8.7 ms with LU, 2,700 unknowns 25 ms against 220 ms (SuperLU's fill-in on the 27-point
-stencil grows fast); below ~150 unknowns LU is as fast and copes with singular tangents."""
+"""Free unknowns from which the Newton steps use multigrid-preconditioned CG instead of LU: from
+about here CG is the faster, and SuperLU's fill-in on the 27-point stencil grows fast with size;
+below, LU is as fast and copes with singular tangents (the timings:
+docs/notes/2026-11-28-calibration-measured.md, *Thresholds*)."""
 
 MAX_ITERATIONS = 100
 """Newton iterations before a solve gives up (a cold solve of the paper's cube at 1 N needs 4,

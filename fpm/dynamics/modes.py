@@ -35,8 +35,8 @@ C = 2 h + h^2, at
 All nodes at once (L = 0) this is d* = (2 h + h^2) / (dt phi^T phi), the critical damping
 2 w / (phi^T phi) plus dt w^2 / (phi^T phi). The node-by-node order takes (g - s^2) / 2 off the
 damping: for a slow mode g >> s^2 (its springs barely stretch, but every node feels its
-neighbours' pull), so the fastest d sits 2-4 times above the lowest mode's critical damping,
-as the search had measured.
+neighbours' pull), so the fastest d sits 2-4 times above the lowest mode's critical
+damping.
 
 **3. The reduced step** (:class:`StepModel`): (1) projected on the modes, e = Phi q, with
 P = Phi^T Phi (1/kg), Kr = Phi^T K Phi = diag(w^2) and Lr = Phi^T L Phi (1/s^2),
@@ -54,12 +54,10 @@ first step it falls below the settle force. On the target criterion of
 which the slowest modes hold: there the reduced step sees what the run reads. The fastest d
 (:func:`fastest_predicted`) minimises the predicted steps summed over the load cases.
 
-Measured (the modes and the reduced steps against the dynamic kernel): on the paper's cube
-(material A, k = 38.78 N/m, dt = 1 ms) the predicted total over a grid of d follows the runs'
-within 3-12% and the predicted fastest d is within 1-4% of the runs' best; on the soft organ at
-h = 5 mm (families+volume) within 5-10%, the predicted fastest d within 3% of the best
-(tests/test_spectrum.py checks the parts on lattices small enough for dense eigensolves and on
-a 1-D chain whose modes are known in closed form).
+How close the prediction comes to the dynamic kernel's runs:
+docs/explanation/physics/damping-prediction.md. tests/test_spectrum.py checks the parts on
+lattices small enough for dense eigensolves and on a 1-D chain whose modes are known in closed
+form.
 """
 
 from __future__ import annotations
