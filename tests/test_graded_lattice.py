@@ -127,6 +127,43 @@ def test_a_plate_one_cell_thick_is_refined_to_two_from_the_mesh():
     assert thin_parts(lattice.hexahedra) == []
 
 
+def test_a_wall_thinner_than_h_half_between_the_cell_centres_is_kept():
+    """A 3 mm plate lying between z = 3 and 6 mm, on a lattice of h = 10 mm from z = 0, holds
+    none of its cells' octant centres (z = 2.5, 7.5 mm), nor of the h/2 cells' centres: its
+    tetrahedra's centroids keep it, in the voxels and through the refinement (the hollow
+    organ's flat caps fell between them, and its wall was open at both ends)."""
+    from fpm.io.meshes.geometry import octant_occupancy
+
+    points, tets, _ = kuhn_box([0, 0, 0.003], [0.06, 0.06, 0.006], 4)
+    cells = np.array([6, 6, 1])
+    occ = octant_occupancy(points, tets, 0.01, np.zeros(3), cells)
+    assert occ.all()
+    lattice = graded_lattice(occ, np.zeros(3), 0.01, points, tets)
+    assert lattice.refined and set(lattice.levels.tolist()) == {1}
+    assert len(lattice.hexahedra) == 12 * 12 * 2  # the cells of h/2 it crosses, all kept
+
+
+def test_the_hollow_organ_is_closed_at_both_caps_and_pressed_where_asked():
+    """The generated hollow organ (a 5.6-8 mm wall) at about 2,000 nodes: every point of the
+    mesh lies within a spacing of a lattice node (its flat caps were lost, a hole of 5 cm
+    across at the top and the bottom), and the press at the top's centre finds a node there."""
+    from scipy.spatial import cKDTree
+
+    from bench.anatomy import ORGANS
+
+    organ = ORGANS["hollow"]
+    mesh = organ.mesh()
+    spec, notes = spec_from_mesh(mesh, nodes=2000, **organ.presses(mesh), **MATERIAL)
+    problem = fpm.load_problem(spec)
+    h = float(min(spec["geometry"].get("spacing", [0.0]) or [0.0])) or next(
+        float(n.split("h = ")[1].split(" m")[0]) for n in notes if n.startswith("voxelised")
+    )
+    gap, _ = cKDTree(problem.nodes).query(np.asarray(mesh.points))
+    assert gap.max() < h, notes[1]
+    press = [n for n in notes if n.startswith("load_cases.0.forces.0.nearest")]
+    assert not press or float(press[0].split(" is ")[1].split(" mm")[0]) < 1e3 * h / 2
+
+
 def wedge(n: int = 10) -> meshio.Mesh:
     """A lobe 0.2 x 0.1 m tapering from 40 mm thick to 1 mm along x."""
     points, tets, _ = kuhn_box([0, 0, -0.5], [1, 1, 0.5], n)

@@ -13,6 +13,7 @@ from .voxelise import (
     Planes,
     _crop,
     _fmt,
+    centroid_cells,
     one_piece,
     voxelise_surface,
     voxelise_tetrahedra,
@@ -149,7 +150,8 @@ def geometry_from_mesh(
         notes.append(
             f"the solid is thinner than h = {spacing:.4g} m over much of it (its cell centres "
             "left it in pieces): a cell is solid where the mesh holds any of its eight octants' "
-            "centres, so the thin parts are one cell thick, thicker than the mesh (a smaller "
+            "centres or its tetrahedra a point of theirs in it, so the thin parts are one cell "
+            "thick, thicker than the mesh (a smaller "
             "spacing, or --nodes more, resolves them)"
         )
     if dropped:
@@ -191,10 +193,14 @@ def octant_occupancy(
 ) -> np.ndarray:
     """(cx, cy, cz) bool: the cells of the lattice at ``origin`` (3,), ``spacing`` (m),
     ``cells`` (3,) per axis, where any of the 8 centres of their octants (the cells of h/2)
-    lies in a tetrahedron of ``tets`` (T, 4) on ``points`` (N, 3)."""
+    lies in a tetrahedron of ``tets`` (T, 4) on ``points`` (N, 3), or that hold a
+    tetrahedron's centroid (:func:`~fpm.io.meshes.voxelise.centroid_cells`: a wall thinner
+    than h/2 can pass between the octants' centres, as the hollow organ's flat caps did, which
+    left the wall open at both ends)."""
     fine, _ = voxelise_tetrahedra(points, tets, spacing / 2, grid=(origin, 2 * cells))
     cx, cy, cz = (int(c) for c in cells)
-    return np.asarray(fine.reshape(cx, 2, cy, 2, cz, 2).any(axis=(1, 3, 5)), dtype=bool)
+    octants = fine.reshape(cx, 2, cy, 2, cz, 2).any(axis=(1, 3, 5))
+    return np.asarray(octants | centroid_cells(points, tets, spacing, origin, cells), dtype=bool)
 
 
 def mesh_points(mesh: Any) -> np.ndarray:

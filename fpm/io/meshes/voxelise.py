@@ -147,6 +147,41 @@ def voxelise_tetrahedra(
     return occupancy, origin
 
 
+SAMPLES_MAX = 8
+""":func:`centroid_cells` samples a tetrahedron with at most this many points along an edge."""
+
+
+def centroid_cells(
+    points: np.ndarray, tets: np.ndarray, spacing: float, origin: np.ndarray, cells: np.ndarray
+) -> np.ndarray:
+    """(cx, cy, cz) bool: the cells of the lattice at ``origin`` (3,), ``spacing`` (m),
+    ``cells`` (3,) per axis, that hold a point inside a tetrahedron of ``tets`` (T, 4) on
+    ``points`` (N, 3): its centroid, and for one longer than a cell, points of a barycentric
+    grid at most a cell apart (n per edge, ``(m + 1/4) / (n + 1)`` for the 4-tuples m of sum n,
+    all strictly inside it). A wall thinner than the cells' centres are apart can pass between
+    every centre (a flat cap parallel to a plane of the lattice holds none); its tetrahedra's
+    own points still fall in every cell it crosses."""
+    cells = np.asarray(cells, dtype=np.int64)
+    occupancy = np.zeros(cells, dtype=bool)
+    tets = np.asarray(tets, dtype=np.int64)
+    if not len(tets):
+        return occupancy
+    v = points[tets]  # (T, 4, 3)
+    longest = np.linalg.norm(v[:, :, None] - v[:, None], axis=3).max(axis=(1, 2))
+    per_edge = np.clip(np.ceil(longest / spacing) - 1, 0, SAMPLES_MAX).astype(np.int64)
+    for n in np.unique(per_edge):
+        m = np.array([c for c in np.ndindex(*(n + 1,) * 3) if sum(c) <= n], dtype=float).reshape(
+            -1, 3
+        )
+        m = np.column_stack([m, n - m.sum(axis=1)])
+        weights = (m + 0.25) / (n + 1)  # (P, 4), each row sums to 1
+        inside = np.einsum("pc,tcx->tpx", weights, v[per_edge == n]).reshape(-1, 3)
+        index = np.floor((inside - origin) / spacing).astype(np.int64)
+        index = index[((index >= 0) & (index < cells)).all(axis=1)]
+        occupancy[index[:, 0], index[:, 1], index[:, 2]] = True
+    return occupancy
+
+
 def open_edges(triangles: np.ndarray) -> np.ndarray:
     """(E, 2) edges (sorted node pairs) that belong to an odd number of ``triangles``: empty
     for a surface that encloses a volume."""
