@@ -35,13 +35,12 @@ PR_SET_PDEATHSIG = 1
 
 HORSE_PRIORITY = "idle"
 """A work horse's CPU priority unless ``FPM_WORKER_PRIORITY`` says otherwise: ``idle`` (Linux's
-SCHED_IDLE: the horse gets the CPU that every other process leaves) or a niceness to add to
-the worker's (``0``: the same priority). A job is all computation; on a machine it shares with
-the API, the API must answer first. Measured (``python -m bench service``, part 3, 2 cores):
-while a worker built a 97,336-node JSON export, 114 of 2,520 status polls took over 25 ms with
-the horse at niceness 10, 20-36 of about 2,300 under SCHED_IDLE, in the same time (10.5-12.6 s).
-On an idle machine a job runs as fast either way, and the horses of several workers share the
-CPU evenly among themselves."""
+SCHED_IDLE: the horse gets the CPU that every other process leaves) or a niceness to add to the
+worker's (``0``: the same priority). A job is all computation; on a machine it shares with the API,
+the API must answer first: while a worker builds a large export, several times fewer status polls
+exceed 25 ms under SCHED_IDLE than at niceness 10, and the export takes as long (``python -m bench
+service``, part 3, measures it). On an idle machine a job runs as fast either way, and the horses of
+several workers share the CPU evenly among themselves."""
 
 
 def die_with_parent(parent: int) -> None:

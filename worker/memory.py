@@ -3,8 +3,9 @@
 A job that its worker's memory cannot hold must be refused before it starts, with the reason,
 instead of being killed by the kernel's OOM killer halfway (which looks like a crash and is
 retried on the same kind of worker). The estimate is linear in the lattice's nodes, fitted to
-peaks measured on this project's organs (README, *Performance*: the default model calibrated
-in one process, both stage-1 chains at once, which bounds every single job of it):
+peaks measured on this project's organs (docs/notes/2026-11-28-calibration-measured.md: the
+default model calibrated in one process, both stage-1 chains at once, which bounds every single
+job of it):
 
     bytes = BASE + PER_NODE * nodes:  0.90 GB at 19,692 nodes (3 mm), 2.90 GB at 93,705 (1.75 mm)
 

@@ -5,9 +5,9 @@ list's slowest modes off the static solver's multigrid hierarchy of that list: i
 level's matrix is the stiffness the modes solve, its V-cycle their preconditioner
 (:func:`fpm.dynamics.modes.reduced_steps`). That hierarchy is built by the polish's first
 round (:func:`fpm.fitting.reduced.fit_reduced`, on the tangent at rest at the round's
-parameters) and kept while CG stays fast on it; the modes themselves took 10.6 s of the
-93,705-node organ's damping job after the polish, on one core, while the polish had left a
-core's half idle for 45 s (docs/explanation/service/many-workers.md).
+parameters) and kept while CG stays fast on it. Found after the polish, the modes would run
+alone on the damping job's critical path, while the polish leaves part of a core idle
+(docs/explanation/physics/calibration-speed.md, *The modes beside the polish*).
 
 :class:`ModesAhead` takes the hierarchies as they stand after a round of the polish and finds
 their modes on one thread (one V-cycle at a time, so the polish keeps its two threads); the

@@ -11,10 +11,9 @@ cut. A depth passes when, in every load case, at that stiffness:
   from full depth's by at most tolerance times the case's relative discrepancy at full depth,
   in Eq. 2's norm (the sum of nodal lengths, relative to full depth's response). A load at the
   same place in another direction, which the fit never saw, then changes by at most what the
-  cost test lets the fitted loads lose. With the cost test alone, the organ at h = 6.5 mm
-  (docs/explanation/organs-conforming.md) was cut to 10 of its 11 layers, where its response
-  along x changes by 2.8% against an allowance of 0.19%, and its unseen lateral press lost
-  8.3 points.
+  cost test lets the fitted loads lose. With the cost test alone, the bench's organ at
+  h = 6.5 mm was cut to 10 of its 11 layers, and its unseen lateral press lost 8.3 points
+  (docs/explanation/organs-spec.md, *Why every layer*).
 
 A truncated list holds the nodes beyond it at rest, so the share of full depth's response
 beyond the list is a lower bound of the change: a depth whose share exceeds the allowance fails

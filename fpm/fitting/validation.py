@@ -294,8 +294,8 @@ def geometry_notes(
     are)
     against the reference ``truth`` (V, N, 3), m: the part of the figure that is the springs'
     change of geometry (they rotate and stretch; the FEM reference is linear, small strain),
-    which a finer lattice does not remove. Measured on the organ of
-    docs/explanation/organs-conforming.md at 3 mm: 1.9 of a press's 9.2%."""
+    which a finer lattice does not remove (how much it is on an organ:
+    docs/explanation/organs-conforming.md, *Large loads*)."""
     checked = cost.problem
     stiffness = model_stiffness(checked, theta)
     try:

@@ -16,10 +16,7 @@ its sum: on a flat surface 4/9 of ``f`` stays at the node, 1/9 goes to each edge
 1/36 to each diagonal one. The shares sum to 1 (the resultant is kept; the share that falls on
 a held node goes to the support, as the reference's traction there does).
 
-Measured (docs/explanation/organs-conforming.md): on the organ of ``bench/tet_organ.py`` at
-h = 6.5 mm with the lattice held where the reference is, the four parameters fitted on two
-presses predict three unseen presses within 13.1 / 14.7 / 9.1% with hat loads and 25.0 / 29.4 /
-17.8% with node loads (linear solves, reference refined twice).
+Why, measured on an organ: docs/explanation/organs-loads.md.
 
 Units: m, N. Integrals by 2 x 2 (faces) and 2 x 2 x 2 (cells) Gauss points.
 """

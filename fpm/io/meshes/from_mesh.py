@@ -65,8 +65,8 @@ def spec_from_mesh(
             nodes moved onto the mesh's surface, a hexahedral ``mesh`` geometry: the organ's
             solid, not its staircase (as continua against the tetrahedra on the organ of
             ``bench/tet_organ.py`` at h = 5 mm the voxels are 5-22% off, the conforming
-            lattice 1-2%; docs/real-organs.md). ``"voxels"``: the ``voxels`` occupancy grid
-            (the default before; also what ``voxel_reference`` gets, which has no mesh to
+            lattice 1-2%; docs/explanation/organs-lattice.md). ``"voxels"``: the ``voxels``
+            occupancy grid (also what ``voxel_reference`` gets, which has no mesh to
             conform to). Hexahedral meshes and closed surfaces take no choice (None).
         conform: ``True`` is ``lattice="conforming"`` (the flag of before the default).
         stiffness: ``fpm.stiffness`` (a :data:`fpm.model.spec.settings.StiffnessMode`); None:
@@ -169,13 +169,10 @@ def default_stiffness(spec: dict[str, Any], problem: Problem) -> tuple[str | Non
     factor per cell on the families' springs and on kappa, chosen by cross-validation and
     returned only where it predicts a left-out load better: docs/explanation/physics/
     stiffness-field.md) for an organ whose reference is its own tetrahedra, loaded in two
-    force patterns or more; else None (the schema's default, families+volume). Why: on the
-    organs of ``bench/tet_organ.py`` at about 2,000 lattice nodes, with node loads on a lattice
-    held half a cell off its plane, the four parameters left 18-20% on unseen presses, the
-    field 10-14% (docs/explanation/organs-conforming.md); with hat loads on a lattice held
-    on its plane the four parameters leave 9-15% and the field is not returned there, but it
-    costs only its cross-validation where it does not help. With one pattern there is nothing
-    to cross-validate, so it would never be returned."""
+    force patterns or more; else None (the schema's default, families+volume). Why: a load it
+    was not fitted on decides whether it is returned, and where it is not it costs only its
+    cross-validation (docs/explanation/organs-spec.md, *Why the stiffness field for organs*).
+    With one pattern there is nothing to cross-validate, so it would never be returned."""
     if "mesh" not in spec.get("reference", {}):
         return None, ""
     if len(load_patterns(problem)) < 2:
