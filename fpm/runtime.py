@@ -25,6 +25,13 @@ node at once. Both rest at the same static equilibrium (dE/dx = 0 over the free 
 the tests check against :func:`fpm.simulate` to 1e-9; at the fitted dt the all-at-once step is
 the more stable of the two (docs/physics.md, *Engines*).
 
+Which d and dt: the export's ``parameters.d`` and ``dt`` are the fastest-settling ones of the
+calibration's kernel; its ``parameters.engine`` block holds those of this step
+(:mod:`fpm.dynamics.engine_damping`: fewer steps to the same equilibrium).
+:meth:`Runtime.from_export` steps at the engine's when the export carries them
+(``damping="engine"``, the default) and at the kernel's with ``damping="kernel"`` (or when an
+older export has no engine block).
+
 This file is the recipe, in NumPy. :meth:`Runtime.step` runs it compiled where it can
 (``backend``, :mod:`fpm.native`): the C step of ``fpm/native/fpm_step.c``, compiled on first
 use with the system's C compiler, else the same arithmetic in numba, else this NumPy; in
@@ -112,6 +119,9 @@ class Runtime:
         rest_volumes: (H,) m^3.
         d: nodal damping, N s/m.
         dt: time step, s.
+        damping: where d and dt came from: ``"kernel"`` (the export's ``parameters.d`` and
+            ``dt``, the calibration kernel's), ``"engine"`` (its ``parameters.engine``, this
+            step's fastest-settling ones) or ``"given"`` (set by the caller).
         settle_tolerance: settled when the largest unbalanced nodal force is below this times
             the largest applied nodal force (of the step, or of the last loaded step when the
             forces are zero).
@@ -146,6 +156,7 @@ class Runtime:
     dt: float
     settle_tolerance: float
     settle_stiffness: float = 0.0
+    damping: str = "given"
     gravity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     shares: sp.csr_matrix | None = None
     backend: str | None = None
@@ -189,13 +200,31 @@ class Runtime:
         export: dict[str, Any] | str | Path,
         backend: str | None = None,
         precision: str = "float64",
+        damping: str | None = None,
     ) -> Runtime:
         """The runtime of a JSON export (the parsed dict, or the path of the file), stepped by
-        ``backend`` in ``precision`` (the attributes')."""
+        ``backend`` in ``precision`` (the attributes').
+
+        ``damping``: ``"engine"``, the d and dt of the export's ``parameters.engine`` (this
+        step's fastest-settling ones; an export without that block is refused), ``"kernel"``,
+        its ``parameters.d`` and ``dt`` (the calibration kernel's), or None: the engine's where
+        the export carries them, else the kernel's. ``damping`` on the runtime says which."""
         doc = export if isinstance(export, dict) else json.loads(Path(export).read_text())
         if doc.get("format") != "fpm-lattice":
             raise ExportFormatError("not an FPM lattice export (its format is not 'fpm-lattice')")
         p = doc["parameters"]
+        engine = p.get("engine")
+        if damping is None:
+            damping = "engine" if engine else "kernel"
+        if damping not in ("engine", "kernel"):
+            raise ValueError(f"damping: 'engine' or 'kernel', not {damping!r}")
+        if damping == "engine" and not engine:
+            raise ExportFormatError(
+                "this export has no parameters.engine block (an export made before it was "
+                "added, or one whose engine damping could not be computed): step it with "
+                "damping='kernel', or fpm.dynamics.engine_damping.with_engine_damping"
+            )
+        chosen = engine if damping == "engine" else p
         nodes = np.asarray(doc["nodes"], dtype=float).reshape(-1, 3)
         springs = np.asarray(doc["springs"], dtype=float).reshape(-1, 4)
         fixed = np.zeros(len(nodes), dtype=bool)
@@ -223,10 +252,11 @@ class Runtime:
             hexahedra=hexahedra,
             kappa=kappa,
             rest_volumes=rest_volumes,
-            d=float(p["d"]),
-            dt=float(p["dt"]),
+            d=float(chosen["d"]),
+            dt=float(chosen["dt"]),
             settle_tolerance=float(p["settle_tolerance"]),
             settle_stiffness=float(p.get("settle_stiffness", 0.0)),
+            damping=damping,
             gravity=np.asarray(p.get("gravity", (0.0, 0.0, 0.0)), dtype=float),
             shares=shares,
             backend=backend,
