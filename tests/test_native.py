@@ -343,7 +343,7 @@ def test_the_engine_damping_settles_in_fewer_steps_at_the_same_equilibrium(organ
     steps than at the export's d and dt, at the same equilibrium."""
     from fpm.dynamics.engine_damping import with_engine_damping
 
-    kernel = Runtime.from_export(organ, backend="native")
+    kernel = Runtime.from_export(organ, backend="native", damping="kernel")
     engine, found = with_engine_damping(kernel)
     assert engine.backend_used == "native" and (engine.d, engine.dt) == (found.d, found.dt)
     assert found.omega_min < found.omega_max and 0 < found.decay < 1
