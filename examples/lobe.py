@@ -2,8 +2,8 @@
 
 Semi-axes 7, 4.5, 3.5 cm, 1,567 nodes and 7,547 tetrahedra (SciPy's Delaunay of evenly spread
 surface points and a jittered interior grid): a stand-in for an organ exported from a
-segmentation tool, to try `fpmcal spec from-mesh` on (README, *Using the parameters in your
-engine*). Run: .venv/bin/python examples/lobe.py
+segmentation tool, to try `fpmcal spec from-mesh` on (docs/tutorial/organ-mesh.md).
+Run: .venv/bin/python examples/lobe.py
 """
 
 from pathlib import Path

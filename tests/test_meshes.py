@@ -1,4 +1,4 @@
-"""Mesh import (fpm/io/meshes.py): hexahedral meshes as they are, tetrahedra and closed surfaces
+"""Mesh import (fpm/io/meshes/): hexahedral meshes as they are, tetrahedra and closed surfaces
 voxelised with exact inside tests, open surfaces refused, and `fpmcal spec from-mesh`."""
 
 from __future__ import annotations
