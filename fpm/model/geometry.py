@@ -208,9 +208,9 @@ def _network(g: NetworkGeometry) -> Solid:
 # :data:`THIN_PART_CELLS` or more of them joined together are a sheet or a rod of the solid one
 # cell thick (a thin flap, a lobe's edge), which the lattice cannot bend (one layer of cells has
 # no through-thickness gradient) and which the surface-conforming lattice
-# (:func:`fpm.io.meshes.conform_lattice`) squashes onto both its faces at once. A spec made from
-# an organ's mesh with such a part is refused (:func:`fpm.model.problem.load_problem`), naming
-# the cell and its place: a finer spacing resolves it.
+# (:func:`fpm.io.meshes.conform_lattice`) squashes onto both its faces at once. ``spec from-mesh``
+# refines such parts (:mod:`fpm.io.meshes.graded`); what remains at the finest level is named in
+# the result's warnings (:func:`fpm.model.problem.thin_part_warnings`).
 #
 # NumPy and SciPy only (the service checks specs with it).
 

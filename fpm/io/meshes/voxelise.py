@@ -57,7 +57,7 @@ def support_planes(selectors: list[dict[str, Any]]) -> Planes:
     a cell, the lattice holds a layer the reference leaves free (or frees one it holds): on the
     organ of ``bench/tet_organ.py`` at h = 6.5 mm, held below z = 0 with its node planes at
     z = +-3.25 mm, the lattice's own hexahedra as a continuum (refined once) were 16-27% from
-    the tetrahedra, and 2.3-4.6% with a plane at z = 0 (docs/explanation/organs-conforming.md)."""
+    the tetrahedra, and 2.3-4.6% with a plane at z = 0 (docs/explanation/organs-lattice.md)."""
     planes: list[list[float]] = [[], [], []]
     for selector in selectors:
         box = selector.get("box")
