@@ -28,7 +28,14 @@ import fpm
 from client import Client
 from fpm.dynamics.equilibrium import static_equilibrium
 from fpm.dynamics.simulation import fpm_model
-from fpm.io.export import ExportError, Parameters, build_lattice, export, fpm_displacements
+from fpm.io.export import (
+    ExportError,
+    Parameters,
+    build_lattice,
+    engine_parameters,
+    export,
+    fpm_displacements,
+)
 from fpm.model.perturbed_list import perturbed_list
 from fpmcal.cli import main
 from store import graph, keys, records, scratch
@@ -227,11 +234,15 @@ def test_vtu_export_carries_the_validation_cases_and_parses_as_vtk_xml(tmp_path:
 
 
 def test_sofa_scene_parses_with_the_right_counts_and_numbers(problem):
-    root = ET.fromstring(export(problem, RECORD, "sofa"))
+    text = export(problem, RECORD, "sofa").decode()
+    root = ET.fromstring(text)
     for element in root.iter():
         assert element.tag in SOFA_ATTRIBUTES, element.tag
         assert set(element.attrib) <= SOFA_ATTRIBUTES[element.tag], element.tag
-    assert root.get("dt") == "0.001" and numbers(root.get("gravity")).tolist() == [0, 0, 0]
+    n, lattice = problem.n_nodes, build_lattice(problem, Parameters.from_record(problem, RECORD))
+    engine = engine_parameters(lattice)  # the engine's d and dt, not the kernel's 0.15 and 1 ms
+    assert engine is not None and engine["dt"] != 0.001 and engine["d"] != 0.15
+    assert root.get("dt") == repr(engine["dt"]) and numbers(root.get("gravity")).tolist() == [0] * 3
     plugins = {e.get("name") for e in root.iter("RequiredPlugin")}
     assert {"Sofa.Component.SolidMechanics.Spring", "Sofa.Component.Mass"} <= plugins
 
@@ -239,7 +250,6 @@ def test_sofa_scene_parses_with_the_right_counts_and_numbers(problem):
         (element,) = root.iter(tag)
         return element
 
-    n, lattice = problem.n_nodes, build_lattice(problem, Parameters.from_record(problem, RECORD))
     np.testing.assert_array_equal(numbers(one("MechanicalObject").get("position")).reshape(n, 3),
                                   problem.nodes)  # fmt: skip
     masses = numbers(one("DiagonalMass").get("vertexMass"))
@@ -252,7 +262,10 @@ def test_sofa_scene_parses_with_the_right_counts_and_numbers(problem):
     assert (springs[:, 3] == 0).all()  # kd: the damping is nodal
     np.testing.assert_array_equal(springs[:, 4], problem.rest_lengths)
     damping = one("UniformVelocityDampingForceField")
-    assert float(damping.get("dampingCoefficient")) == 0.15 and damping.get("implicit") == "true"
+    assert float(damping.get("dampingCoefficient")) == engine["d"]
+    assert damping.get("implicit") == "true"
+    (comment,) = [c for c in re.findall(r"<!-- (.*?) -->", text) if "FPM lattice" in c]
+    assert "the calibration's d = 0.15 N s/m was fitted at dt = 0.001 s" in comment
     fixed = numbers(one("FixedProjectiveConstraint").get("indices")).astype(int)
     np.testing.assert_array_equal(fixed, np.flatnonzero(problem.fixed))
     topology = one("MeshTopology")

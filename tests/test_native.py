@@ -60,7 +60,7 @@ _recipe: dict[str, tuple] = {}
 def drive(doc, backend, steps, precision="float64"):
     """``steps`` steps under load case 1 scaled by 1 + sin: (runtime, (steps, N, 3) positions
     every 100th step, the unbalanced forces, the settled flags)."""
-    rt = Runtime.from_export(doc, backend=backend, precision=precision)
+    rt = Runtime.from_export(doc, backend=backend, precision=precision, damping="kernel")
     assert rt.backend_used == backend
     push = rt.load_case_forces(doc, 0)
     seen, unbalanced, settled = [], [], []
@@ -93,9 +93,12 @@ def test_the_compiled_step_is_the_numpy_recipe(request, lattice, backend):
 
 
 def test_runs_settle_in_the_same_steps(organ):
+    """At the kernel's d, which is overdamped: at the engine's every mode oscillates as it
+    decays, the unbalanced force crosses the settle threshold more than once, and a rounding
+    difference can pick another crossing (474 against 480 steps on this organ)."""
     counts = {}
     for backend in ("numpy", "native", "numba"):
-        rt = Runtime.from_export(organ, backend=backend)
+        rt = Runtime.from_export(organ, backend=backend, damping="kernel")
         counts[backend] = rt.run(rt.load_case_forces(organ, 1), max_steps=20_000)
     assert counts["numpy"] < 20_000
     assert counts["native"] == counts["numba"] == counts["numpy"]
@@ -176,7 +179,7 @@ def test_the_cli_writes_the_binary_export_the_c_example_reads(tmp_path):
     )  # fmt: skip
     run = subprocess.run([str(program), "box.fpmb"], cwd=tmp_path, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
-    rt = Runtime.from_export(doc, backend="numpy")
+    rt = Runtime.from_export(doc, backend="numpy", damping="kernel")  # the binary's d and dt
     loaded = rt.run(rt.load_case_forces(doc, 0))
     largest = np.abs(rt.x - rt.rest).max()
     released = rt.run(None)

@@ -139,7 +139,9 @@ def volume_field(scene):
 def test_the_scene_carries_the_whole_model(scene):
     problem, doc, module = scene
     root = module.createScene(Node())
-    assert root.dt == doc["parameters"]["dt"]
+    engine = doc["parameters"]["engine"]  # the engine's d and dt, not the kernel's 0.05
+    assert root.dt == engine["dt"] != doc["parameters"]["dt"]
+    assert module.MODEL["parameters"]["engine"] == engine
     (body,) = root.children
     objects = {
         kind if isinstance(kind, str) else "VolumeForceField": data for kind, data in body.objects
@@ -153,7 +155,7 @@ def test_the_scene_carries_the_whole_model(scene):
     assert objects["MeshTopology"]["hexahedra"] == doc["hexahedra"]
     assert objects["FixedProjectiveConstraint"]["indices"] == doc["fixed"]
     assert objects["ConstantForceField"]["forces"] == doc["load_cases"][0]["forces"]
-    assert objects["UniformVelocityDampingForceField"]["dampingCoefficient"] == 0.05
+    assert objects["UniformVelocityDampingForceField"]["dampingCoefficient"] == engine["d"]
     assert "VolumeForceField" in objects
 
 

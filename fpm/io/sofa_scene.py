@@ -7,7 +7,8 @@ needs SOFA); the tests load it with a stand-in ``Sofa.Core.ForceField``.
 
 The scene: positions (``MechanicalObject``), the hexahedra (``MeshTopology``), lumped masses
 (``DiagonalMass``), every spring
-(``SpringForceField``, kd = 0), the nodal damping d (``UniformVelocityDampingForceField``), the
+(``SpringForceField``, kd = 0), the nodal damping d (``UniformVelocityDampingForceField``) at dt
+(both the engine's, ``parameters.engine``, where the export has them, else the kernel's), the
 fixed nodes (``FixedProjectiveConstraint``), load case 1 (``ConstantForceField``), and the volume
 term, which SOFA has no component for, as :class:`VolumeForceField`: per trilinear hexahedron c
 the energy 1/2 kappa_c (V_c - V0_c)^2 / V0_c, so
@@ -38,8 +39,9 @@ import Sofa.Core
 
 MODEL: dict[str, Any] = json.loads("{}")
 """The lattice (the exporter writes it here): nodes, masses, fixed, springs [i, j, L, k],
-hexahedra, volume_stiffness, rest_volumes, parameters (d, dt, gravity, loads), load_cases, and
-for a hat fit load_shares (each surface node's shares: nodes, indptr, indices, weights)."""
+hexahedra, volume_stiffness, rest_volumes, parameters (d, dt, engine, gravity, loads),
+load_cases, and for a hat fit load_shares (each surface node's shares: nodes, indptr, indices,
+weights)."""
 
 NATURAL = np.array(
     [[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1],
@@ -193,7 +195,8 @@ def numbers(values: Any) -> list[float]:
 def createScene(root: Any) -> Any:  # noqa: N802 (the name SOFA looks for)
     """The scene: the lattice, its springs, the volume term, d, the fixed nodes, load case 1."""
     p = MODEL["parameters"]
-    root.dt = p["dt"]
+    damping = p.get("engine") or p  # the engine's d and dt where the export has them
+    root.dt = damping["dt"]
     root.gravity = list(p["gravity"])
     root.addObject(
         "RequiredPlugin",
@@ -231,7 +234,7 @@ def createScene(root: Any) -> Any:  # noqa: N802 (the name SOFA looks for)
             )
         )
     body.addObject(
-        "UniformVelocityDampingForceField", name="damping", dampingCoefficient=p["d"],
+        "UniformVelocityDampingForceField", name="damping", dampingCoefficient=damping["d"],
         implicit=True,
     )  # fmt: skip
     if MODEL["fixed"]:

@@ -24,6 +24,11 @@
 // with Runtime's to a few 1e-15 of the displacement after 1,000 steps (tests/test_live_step.py
 // checks 1e-9 with forces that change every step).
 //
+// Which d and dt (as Runtime.from_export): the export's parameters.engine, the fastest-settling
+// pair of this all-at-once step (fpm.dynamics.engine_damping), where it has one; else, or with
+// fromExport(doc, {damping: "kernel"}), parameters.d and dt, the calibration kernel's. The
+// model's `damping` says which.
+//
 // Fast: flat typed arrays, nothing allocated per step (the force buffers are the model's own),
 // one pass over the springs (scatter, each node's own run of springs summed in registers), one
 // over the hexahedra, one over the nodes.
@@ -67,6 +72,7 @@ export class FpmModel {
    * @param {number} [p.settleStiffness] or once the 2-norm of the unbalanced forces is below
    *   this (N/m) times the 2-norm of the displacements (the distance criterion; 0: none)
    * @param {number[]} [p.gravity] m/s^2
+   * @param {string} [p.damping] where d and dt came from: "engine", "kernel" or "given"
    */
   constructor(p) {
     this.rest = p.rest;
@@ -80,6 +86,7 @@ export class FpmModel {
     this.restVolumes = p.restVolumes;
     this.d = p.d;
     this.dt = p.dt;
+    this.damping = p.damping || "given";
     this.settleTolerance = p.settleTolerance;
     this.settleStiffness = p.settleStiffness || 0;
     this.gravity = Float64Array.from(p.gravity || [0, 0, 0]);
@@ -99,12 +106,28 @@ export class FpmModel {
     this.reset();
   }
 
-  /** The model of a parsed JSON export (`format: "fpm-lattice"`). */
-  static fromExport(doc) {
+  /**
+   * The model of a parsed JSON export (`format: "fpm-lattice"`).
+   * @param {object} doc the export
+   * @param {object} [options]
+   * @param {string} [options.damping] "engine" (parameters.engine's d and dt: refused if the
+   *   export has none), "kernel" (parameters.d and dt), or unset: the engine's where the export
+   *   carries them, else the kernel's
+   */
+  static fromExport(doc, options = {}) {
     if (!doc || doc.format !== "fpm-lattice") {
       throw new ExportFormatError("not an FPM lattice export (its format is not 'fpm-lattice')");
     }
     const p = doc.parameters;
+    const engine = p.engine || null;
+    const damping = options.damping || (engine ? "engine" : "kernel");
+    if (damping !== "engine" && damping !== "kernel") {
+      throw new Error(`damping: "engine" or "kernel", not ${JSON.stringify(damping)}`);
+    }
+    if (damping === "engine" && !engine) {
+      throw new ExportFormatError("this export has no parameters.engine block: use damping 'kernel'");
+    }
+    const chosen = damping === "engine" ? engine : p;
     const n = doc.nodes.length;
     const rest = new Float64Array(3 * n);
     doc.nodes.forEach((node, i) => rest.set(node, 3 * i));
@@ -139,8 +162,9 @@ export class FpmModel {
       corners,
       kappa,
       restVolumes,
-      d: Number(p.d),
-      dt: Number(p.dt),
+      d: Number(chosen.d),
+      dt: Number(chosen.dt),
+      damping,
       settleTolerance: Number(p.settle_tolerance),
       settleStiffness: Number(p.settle_stiffness || 0),
       gravity: p.gravity || [0, 0, 0],
@@ -167,6 +191,29 @@ export class FpmModel {
   }
 
   /** For each node, the sum of the stiffness of its springs, N/m (e.g. a drag handle's). */
+  /**
+   * Per node, the largest force a drag should put on it, N: 0.5 m L / dt^2, L the node's
+   * shortest spring. From rest such a force moves the node half of L in one step; a pull of
+   * the node's own springs' stiffness times several spacings, applied at once, moves it more
+   * and inverts cells (at the engine's dt, about three times the kernel's, a 4 cm pull on the
+   * paper's cube diverged within 17 steps; capped so, 20 cm pulls settle).
+   */
+  stepForceLimit() {
+    const shortest = new Float64Array(this.nNodes).fill(Infinity);
+    const sp = this.springs;
+    for (let s = 0; s < this.nSprings; s++) {
+      const length = this.restLengths[s];
+      if (length < shortest[sp[2 * s]]) shortest[sp[2 * s]] = length;
+      if (length < shortest[sp[2 * s + 1]]) shortest[sp[2 * s + 1]] = length;
+    }
+    const out = new Float64Array(this.nNodes);
+    const scale = 0.5 / (this.dt * this.dt);
+    for (let i = 0; i < this.nNodes; i++) {
+      out[i] = Number.isFinite(shortest[i]) ? scale * this.masses[i] * shortest[i] : 0;
+    }
+    return out;
+  }
+
   nodeStiffness() {
     const out = new Float64Array(this.nNodes);
     const sp = this.springs;

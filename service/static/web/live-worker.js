@@ -5,14 +5,18 @@
 // Messages in (postMessage objects, by `type`):
 //   load     {model: <parsed JSON export>} | {text: <its JSON text>} | {buffer: <its UTF-8 bytes,
 //            an ArrayBuffer (transfer it)>} | {url, headers}: build the model (a URL is fetched
-//            here; a 202 is asked again after its Retry-After) and start.
+//            here; a 202 is asked again after its Retry-After) and start; damping? "engine" |
+//            "kernel" (FpmModel.fromExport's: unset, the export's engine d and dt where it has
+//            them).
 //   push     {node, force: [fx, fy, fz]}: a constant force on a node, N, until changed
 //            (force null or [0, 0, 0] takes it away). A model fitted with fpm.loads "hat" (its
 //            export has load_shares) takes a push or drag on a surface node as the fit took a
 //            force there: shared over the nodes around it (fpm.runtime.Runtime.applied).
 //   drag     {node, target: [x, y, z], stiffness?, maxForce?}: a spring-like force toward the
 //            target, k (target - x_node), each step from the node's current position; k defaults
-//            to the sum of the node's spring stiffnesses; target null lets go.
+//            to the sum of the node's spring stiffnesses, maxForce (N) to FpmModel.stepForceLimit's
+//            (the pull that moves the node half its shortest spring in one step); target null
+//            lets go.
 //   release  {}: every push and drag let go.
 //   reset    {}: back to rest (forces kept).
 //   pause / resume {}: stop / start stepping.
@@ -21,7 +25,8 @@
 //   step     {count}: exactly `count` steps now, then one frame posted (for tests and benches).
 //   recycle  {buffer}: a positions buffer the page is done with, to be filled again.
 // Messages out:
-//   ready    {nodes, springs, hexahedra, dt, d, rest: Float32Array(3 N)}
+//   ready    {nodes, springs, hexahedra, dt, d, damping ("engine" or "kernel"),
+//            rest: Float32Array(3 N)}
 //   frame    {positions: Float32Array(3 N) (transferred), steps (in all), stepsThisFrame,
 //            stepsPerSecond, unbalanced, settled, ms (stepping time of the frame), dragForce (the
 //            largest drag's pull in the last step, N)}
@@ -36,6 +41,7 @@ let forces = null; // Float64Array(3 N): what the pushes and drags put on the no
 let shares = null; // node -> [nodes, weights] of the export's load_shares ("hat"), or null
 const touched = []; // the nodes whose forces this step's applyForces wrote
 let handleStiffness = null; // per node: the default drag stiffness
+let handleLimit = null; // per node: the default largest drag force (FpmModel.stepForceLimit)
 const pushes = new Map(); // node -> [fx, fy, fz]
 const drags = new Map(); // node -> {target, stiffness, maxForce}
 const pool = []; // positions buffers handed back by the page
@@ -82,12 +88,13 @@ function readShares(table) {
   return out;
 }
 
-function load(doc) {
-  model = FpmModel.fromExport(doc);
+function load(doc, damping) {
+  model = FpmModel.fromExport(doc, { damping });
   forces = new Float64Array(3 * model.nNodes);
   shares = readShares(doc.load_shares);
   touched.length = 0;
   handleStiffness = model.nodeStiffness();
+  handleLimit = model.stepForceLimit();
   pushes.clear();
   drags.clear();
   pool.length = 0;
@@ -100,6 +107,7 @@ function load(doc) {
       hexahedra: model.nHexahedra,
       dt: model.dt,
       d: model.d,
+      damping: model.damping,
       rest,
     },
     [rest.buffer],
@@ -224,10 +232,11 @@ function schedule(delay = 0) {
 
 const handlers = {
   async load(m) {
-    if (m.model) load(m.model);
-    else if (typeof m.text === "string") load(JSON.parse(m.text));
-    else if (m.buffer instanceof ArrayBuffer) load(JSON.parse(new TextDecoder().decode(m.buffer)));
-    else if (m.url) load(await fetchExport(m.url, m.headers));
+    if (m.model) load(m.model, m.damping);
+    else if (typeof m.text === "string") load(JSON.parse(m.text), m.damping);
+    else if (m.buffer instanceof ArrayBuffer) {
+      load(JSON.parse(new TextDecoder().decode(m.buffer)), m.damping);
+    } else if (m.url) load(await fetchExport(m.url, m.headers), m.damping);
     else throw new Error("load: give model, text or url");
   },
   push(m) {
@@ -247,7 +256,7 @@ const handlers = {
     drags.set(m.node, {
       target: m.target.map(Number),
       stiffness: m.stiffness > 0 ? m.stiffness : handleStiffness[m.node],
-      maxForce: m.maxForce > 0 ? m.maxForce : 0,
+      maxForce: m.maxForce > 0 ? m.maxForce : handleLimit[m.node],
     });
   },
   release() {

@@ -6,7 +6,9 @@
 // the parameter set's JSON export (GET v1/parameter-sets/{id}/export?format=json: 202 while a
 // worker makes it, asked again after Retry-After; `request` is the page's fetch with its API
 // key, plain fetch without), hands the bytes to live-worker.js (a module worker stepping
-// fpm-step.js, fpm.runtime's step in JavaScript, at the fitted dt, at most in real time), and
+// fpm-step.js, fpm.runtime's step in JavaScript, at the export's engine d and dt (the
+// all-at-once step's fastest-settling pair; the kernel's fitted ones in an export without
+// them), at most in real time), and
 // from then on:
 //   - a pointer pressed on the surface grabs the nearest node of the triangle under it (fixed
 //     nodes cannot be grabbed): while the pointer moves, the node is pulled toward it by a
@@ -124,7 +126,8 @@ export class PushMode {
     // Capture phase on the container: a press on the surface never reaches OrbitControls.
     this.container.addEventListener("pointerdown", this.onDown, true);
     this.container.dataset.live = "ready";
-    this.say(`Live: ${model.nodes.toLocaleString()} nodes, stepped at the fitted dt = ` +
+    const which = model.damping === "engine" ? "the engine's" : "the fitted";
+    this.say(`Live: ${model.nodes.toLocaleString()} nodes, stepped at ${which} dt = ` +
       `${fmt(model.dt * 1e3)} ms in a worker. Drag a surface node to pull it; a drag off the ` +
       "surface orbits. ");
     text(this.state, "At rest.");
