@@ -1,4 +1,4 @@
-"""Export of a fitted parameter set with its lattice (fpm/io/export.py): json consistent with the
+"""Export of a fitted parameter set with its lattice (fpm/io/export/): json consistent with the
 lattice and re-simulated by a plain loop, vtu read back by meshio, the SOFA scene checked
 against SOFA's documented component and attribute names, `fpmcal export`, and
 GET /v1/parameter-sets/{id}/export on the in-process app and the live stack."""
