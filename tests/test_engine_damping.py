@@ -43,7 +43,8 @@ def test_the_stiffness_at_rest_is_the_tangent_of_the_forces(cube):
 
 def test_the_multigrid_eigensolve_agrees_with_shift_invert(monkeypatch):
     """Above DIRECT_UP_TO unknowns w_min comes from LOBPCG (an upper bound): on a 13^3 box
-    within 0.5% of shift-invert's, d within 1%, the same w_max, dt within 1e-4; the same bits twice."""
+    within 0.5% of shift-invert's, d within 1%, the same w_max, dt within 1e-4; the same bits
+    twice."""
     from bench.bench_native import box_runtime
 
     rt, _ = box_runtime(13, "numpy")
