@@ -210,7 +210,7 @@ def _network(g: NetworkGeometry) -> Solid:
 # no through-thickness gradient) and which the surface-conforming lattice
 # (:func:`fpm.io.meshes.conform_lattice`) squashes onto both its faces at once. ``spec from-mesh``
 # refines such parts (:mod:`fpm.io.meshes.graded`); what remains at the finest level is named in
-# the result's warnings (:func:`fpm.model.problem.thin_part_warnings`).
+# the result's warnings (:func:`fpm.model.checks.thin_part_warnings`).
 #
 # NumPy and SciPy only (the service checks specs with it).
 

@@ -7,7 +7,6 @@ Data flow: JSON -> :class:`fpm.model.spec.ProblemSpec` (schema checks) -> :func:
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -16,24 +15,19 @@ import numpy as np
 from pydantic import ValidationError
 from pydantic_core import InitErrorDetails, PydanticCustomError
 
-from .geometry import Solid, SurfacePoint, build_solid, lumped_masses, spring_lengths, surface_point
+from .checks import (
+    SpecError,
+    check_indices,
+    check_refine,
+    check_stiffness_mode,
+    check_supplied_reference,
+    thin_part_warnings,
+)
+from .geometry import Solid, build_solid, lumped_masses, spring_lengths
 from .hat_loads import hat_shares, spread_forces
 from .regions import RegionMap, check_material, lattice_regions
-from .spec import BoxGeometry, MeshGeometry, NetworkGeometry, ProblemSpec, Selector
-
-Loc = tuple[str | int, ...]
-
-
-class SpecError(ValueError):
-    """A spec that passed the schema but does not fit its own solid; ``errors`` is [(loc, msg)].
-
-    Converted to a pydantic :class:`ValidationError` by :func:`load_problem`, so callers see
-    one kind of error for every bad spec.
-    """
-
-    def __init__(self, errors: list[tuple[Loc, str]]):
-        super().__init__("; ".join(f"{'.'.join(map(str, loc))}: {msg}" for loc, msg in errors))
-        self.errors = errors
+from .selectors import Loc, NodeFinder, dotted, fmt
+from .spec import ProblemSpec, Selector
 
 
 @dataclass
@@ -87,7 +81,7 @@ class Problem:
         loads: how the lattice takes a nodal force, ``"node"`` or ``"hat"`` (``fpm.loads``
             with ``"auto"`` resolved: :func:`resolved_loads`).
         warnings: what the result must say of the lattice (a part one cell thick at its finest
-            level: :func:`thin_part_warnings`).
+            level: :func:`fpm.model.checks.thin_part_warnings`).
     """
 
     spec: ProblemSpec
@@ -188,9 +182,9 @@ def load_problem(
 
 
 def build_problem(spec: ProblemSpec, mesh: dict[str, Any] | None = None) -> Problem:
-    """Arrays for a schema-valid spec; raises :class:`SpecError` where it does not fit its solid
-    (``mesh`` as :func:`load_problem`'s)."""
-    _check_indices(spec)
+    """Arrays for a schema-valid spec; raises :class:`fpm.model.checks.SpecError` where it does not
+    fit its solid (``mesh`` as :func:`load_problem`'s)."""
+    check_indices(spec)
     solid = build_solid(spec.geometry, spec.material.density)
     errors: list[tuple[Loc, str]] = []
     lengths = spring_lengths(solid.nodes, solid.springs)
@@ -198,7 +192,7 @@ def build_problem(spec: ProblemSpec, mesh: dict[str, Any] | None = None) -> Prob
         errors.append((("geometry",), "a spring joins two nodes at the same point"))
         raise SpecError(errors)
     h = float(lengths.min())
-    finder = _NodeFinder(solid.nodes, tol=1e-3 * h, cells=solid.elements)
+    finder = NodeFinder(solid.nodes, tol=1e-3 * h, cells=solid.elements)
 
     fixed = np.zeros(len(solid.nodes), dtype=bool)
     for i, sel in enumerate(spec.fixed):
@@ -207,9 +201,9 @@ def build_problem(spec: ProblemSpec, mesh: dict[str, Any] | None = None) -> Prob
 
     load_cases = _load_cases(spec.load_cases, "load_cases", finder, fixed, errors)
     validation = _load_cases(spec.validation_cases, "validation_cases", finder, fixed, errors)
-    _check_stiffness_mode(spec, errors)
-    _check_supplied_reference(spec, len(solid.nodes), errors)
-    _check_refine(spec, errors)
+    check_stiffness_mode(spec, errors)
+    check_supplied_reference(spec, len(solid.nodes), errors)
+    check_refine(spec, errors)
     errors.extend(check_material(spec))
     warnings = thin_part_warnings(spec, solid)
     regions = _material_regions(spec, solid, mesh, errors, finder.notes)
@@ -271,13 +265,13 @@ def select_nodes(problem: Problem, selector: Selector) -> np.ndarray:
     """(K,) indices of the lattice nodes ``selector`` names in ``problem`` (as :func:`load_problem`
     resolved it; the spec was checked, so it names at least one)."""
     errors: list[tuple[Loc, str]] = []
-    return _NodeFinder(problem.nodes, tol=1e-3 * problem.h).select(selector, (), errors)
+    return NodeFinder(problem.nodes, tol=1e-3 * problem.h).select(selector, (), errors)
 
 
 def _load_cases(
     cases: list[Any],
     field: str,
-    finder: _NodeFinder,
+    finder: NodeFinder,
     fixed: np.ndarray,
     errors: list[tuple[Loc, str]],
 ) -> list[LoadCase]:
@@ -289,7 +283,7 @@ def _load_cases(
         vec: list[np.ndarray] = []
         for f, force in enumerate(case.forces):
             loc: Loc = (field, c, "forces", f)
-            where = _dotted((*loc, force.kind))
+            where = dotted((*loc, force.kind))
             if force.point is not None:
                 spread = finder.surface(force.point, (*loc, "point"), errors)
                 if spread is None:
@@ -324,8 +318,8 @@ def _load_cases(
                 vector = vector / len(picked)
             elif len(picked) > 1:
                 finder.notes.append(
-                    f"{where}: {len(picked)} nodes each get {_fmt(force.vector)} N (total "
-                    f'{_fmt(vector * len(picked))} N); set "distribute": true to split the '
+                    f"{where}: {len(picked)} nodes each get {fmt(force.vector)} N (total "
+                    f'{fmt(vector * len(picked))} N); set "distribute": true to split the '
                     "vector over them instead"
                 )
             idx.extend(picked.tolist())
@@ -390,134 +384,6 @@ def _hat_loads(solid: Solid, fixed: np.ndarray, cases: list[LoadCase]) -> list[L
     ]
 
 
-def _check_stiffness_mode(spec: ProblemSpec, errors: list[tuple[Loc, str]]) -> None:
-    """families+volume (and field, built on it) needs cells (hexahedra) with face diagonals; a
-    field needs two load cases or more (its smoothness is chosen by leaving one out) and the
-    two-stage method."""
-    mode = spec.fpm.stiffness
-    if mode == "field":
-        if len(spec.load_cases) < 2:
-            errors.append(
-                (
-                    ("load_cases",),
-                    f"fpm.stiffness 'field' needs at least two load cases, not "
-                    f"{len(spec.load_cases)}: its smoothness weight is chosen by leaving one "
-                    "load case out at a time (nothing to cross-validate with one); add a load "
-                    "case, or use 'families+volume'",
-                )
-            )
-        if spec.annealing.method != "two-stage":
-            errors.append(
-                (
-                    ("annealing", "method"),
-                    "fpm.stiffness 'field' is fitted on static equilibria after the two-stage "
-                    "method's stiffness stage: use annealing.method 'two-stage'",
-                )
-            )
-    if mode not in ("families+volume", "field"):
-        return
-    g = spec.geometry
-    if isinstance(g, NetworkGeometry):
-        errors.append(
-            (
-                ("fpm", "stiffness"),
-                f"a network geometry has no cells for the volume term of {mode!r}: "
-                "use 'single' or 'families'",
-            )
-        )
-    elif g.connectivity == "axis":
-        errors.append(
-            (
-                ("fpm", "stiffness"),
-                f"{mode!r} needs face diagonals for shear (geometry.connectivity "
-                "'axis+face' or 'full'; an 'axis' lattice has no shear stiffness): change the "
-                "connectivity, or use 'single' or 'families'",
-            )
-        )
-
-
-def thin_part_warnings(spec: ProblemSpec, solid: Solid) -> list[str]:
-    """A lattice made from an organ's mesh (``voxels`` or ``mesh`` geometry with the mesh in
-    ``reference.mesh`` or ``mesh_id``) that is one cell thick over a part
-    (:func:`fpm.model.geometry.thin_parts`) at its finest cells: a warning with the largest
-    part's place and size. The part is modelled as it is (a single layer of cells bends, but
-    too stiffly); ``spec from-mesh`` refines such parts where it can
-    (:mod:`fpm.io.meshes.graded`), so what remains is thinner than its finest level."""
-    from .geometry import thin_parts
-
-    g = spec.geometry
-    organ = spec.reference.mesh is not None or spec.reference.mesh_id is not None
-    hexahedra = solid.elements()
-    if not organ or isinstance(g, NetworkGeometry | BoxGeometry) or hexahedra is None:
-        return []
-    parts = thin_parts(hexahedra)
-    if not parts:
-        return []
-    part = parts[0]
-    centre = solid.nodes[hexahedra[part]].mean(axis=(0, 1))
-    size = np.median(np.ptp(solid.nodes[hexahedra[part]], axis=1), axis=0)
-    where = f"geometry.hexahedra[{int(part[0])}]" if isinstance(g, MeshGeometry) else "geometry"
-    return [
-        f"{where}: the lattice is one cell thick over a part of {len(part)} cells around "
-        f"{_fmt(centre)} m ({len(parts)} such part(s), cells of {_fmt(size)} m there): modelled "
-        "as it is, a single layer of cells, which bends too stiffly; a finer lattice (--nodes "
-        "more, or a smaller --spacing) resolves more of it"
-    ]
-
-
-def _check_refine(spec: ProblemSpec, errors: list[tuple[Loc, str]]) -> None:
-    """reference.refine (n >= 1, 'auto', 'check') refines the linear FEM reference only."""
-    reference = spec.reference
-    if reference.refine in (None, 0):
-        return
-    loc: Loc = ("reference", "refine")
-    if reference.displacements is not None:
-        errors.append(
-            (
-                loc,
-                "a supplied reference (reference.displacements) is not solved, so it cannot be "
-                "refined: drop reference.refine",
-            )
-        )
-    elif spec.material.model != "linear":
-        errors.append(
-            (
-                loc,
-                "refinement applies to the linear reference: use material.model 'linear', or "
-                "drop reference.refine",
-            )
-        )
-
-
-def _check_supplied_reference(
-    spec: ProblemSpec, n_nodes: int, errors: list[tuple[Loc, str]]
-) -> None:
-    """reference.displacements: one (N, 3) field per load case, then one per validation case."""
-    supplied = spec.reference.displacements
-    if supplied is None:
-        return
-    field_loc: Loc = ("reference", "displacements")
-    cases, extra = len(spec.load_cases), len(spec.validation_cases)
-    if len(supplied) != cases + extra:
-        more = (
-            f" and one per validation case after them ({extra}): the validation figures need "
-            "their own fields (or drop validation_cases)"
-            if extra
-            else ""
-        )
-        errors.append(
-            (field_loc, f"need one field per load case ({cases}){more}; got {len(supplied)}")
-        )
-    for c, one in enumerate(supplied):
-        if len(one) != n_nodes:
-            errors.append(
-                (
-                    (*field_loc, c),
-                    f"need one [ux, uy, uz] per lattice node ({n_nodes}), got {len(one)}",
-                )
-            )
-
-
 def _all_fixed(picked: np.ndarray) -> str:
     if len(picked) == 1:
         return f"node {int(picked[0])} is fixed; a force on it does nothing (load a free node)"
@@ -525,156 +391,3 @@ def _all_fixed(picked: np.ndarray) -> str:
         f"all {len(picked)} nodes it selects are fixed; a force on them does nothing (select "
         "free nodes)"
     )
-
-
-def _dotted(loc: Loc) -> str:
-    return ".".join(map(str, loc))
-
-
-def _fmt(v: Any) -> str:
-    """A vector as [a, b, c] with 4 significant digits."""
-    return "[" + ", ".join(f"{float(x):.4g}" for x in v) + "]"
-
-
-def _check_indices(spec: ProblemSpec) -> None:
-    """Index checks that must pass before the solid can be built."""
-    g = spec.geometry
-    errors: list[tuple[Loc, str]] = []
-    if isinstance(g, MeshGeometry):
-        n = len(g.nodes)
-        for e, hexa in enumerate(g.hexahedra):
-            if max(hexa) >= n or min(hexa) < 0:
-                bad = max(hexa) if max(hexa) >= n else min(hexa)
-                errors.append(
-                    (("geometry", "hexahedra", e), f"node index {bad} out of range (0..{n - 1})")
-                )
-            elif len(set(hexa)) != 8:
-                errors.append((("geometry", "hexahedra", e), "a hexahedron needs 8 distinct nodes"))
-        if not errors:  # a node in no hexahedron would have no mass and no stiffness
-            used = np.zeros(n, dtype=bool)
-            used[np.asarray(g.hexahedra).ravel()] = True
-            errors.extend(
-                (("geometry", "nodes", int(i)), f"node {i} belongs to no hexahedron")
-                for i in np.flatnonzero(~used)
-            )
-    if isinstance(g, NetworkGeometry):
-        n = len(g.nodes)
-        for s, (a, b) in enumerate(g.springs):
-            if max(a, b) >= n or min(a, b) < 0:
-                errors.append((("geometry", "springs", s), f"node index out of range (0..{n - 1})"))
-            elif a == b:
-                errors.append((("geometry", "springs", s), "a spring needs two distinct nodes"))
-        if isinstance(g.masses, list) and len(g.masses) != n:
-            errors.append(
-                (("geometry", "masses"), f"need {n} masses (one per node), got {len(g.masses)}")
-            )
-    mesh = spec.reference.mesh
-    if mesh is not None:
-        from .tetrahedra import check_tetrahedra
-
-        errors.extend(
-            (("reference", "mesh", field) + (() if index is None else (index,)), msg)
-            for field, index, msg in check_tetrahedra(
-                np.asarray(mesh.nodes, dtype=float), np.asarray(mesh.tetrahedra, dtype=np.int64)
-            )
-        )
-    if errors:
-        raise SpecError(errors[:20])
-
-
-class _NodeFinder:
-    """Resolves selectors to node indices; ``tol`` (m) is how far ``at`` may miss a node.
-
-    ``notes`` collects what the user should know about a selection (a ``nearest`` node's
-    distance), as ``field.path: text`` lines.
-    """
-
-    def __init__(
-        self,
-        nodes: np.ndarray,
-        tol: float,
-        cells: Callable[[], np.ndarray | None] = lambda: None,
-    ):
-        self.nodes = nodes
-        self.tol = tol
-        self.cells = cells  # the lattice's hexahedra, built only for a force at a point
-        self.lo = nodes.min(axis=0)
-        self.hi = nodes.max(axis=0)
-        self.notes: list[str] = []
-
-    def select(self, sel: Selector, loc: Loc, errors: list[tuple[Loc, str]]) -> np.ndarray:
-        """Indices (ascending for face and box) of the nodes ``sel`` names; on a miss, an error
-        is appended to ``errors`` at ``loc`` + the selector's field and none is returned."""
-        n = len(self.nodes)
-        none = np.zeros(0, dtype=np.int64)
-        if sel.node is not None:
-            if sel.node >= n:
-                errors.append(((*loc, "node"), f"node index {sel.node} out of range (0..{n - 1})"))
-                return none
-            return np.array([sel.node])
-        point = sel.at if sel.at is not None else sel.nearest
-        if point is not None:
-            dist = np.linalg.norm(self.nodes - np.asarray(point), axis=1)
-            best = int(np.argmin(dist))
-            if sel.nearest is not None:
-                self.notes.append(
-                    f"{_dotted((*loc, 'nearest'))}: node {best} at {_fmt(self.nodes[best])} is "
-                    f"{dist[best] * 1e3:.3g} mm from the point"
-                )
-            elif dist[best] > self.tol:
-                errors.append(
-                    (
-                        (*loc, "at"),
-                        f"no node at {list(point)} (nearest node {best} is {dist[best]:.3g} m "
-                        f"away, at {_fmt(self.nodes[best])}): give a node's coordinates, or use "
-                        '"nearest" to take the nearest node',
-                    )
-                )
-                return none
-            return np.array([best])
-        if sel.face is not None:
-            axis = "xyz".index(sel.face[0])
-            edge = self.lo[axis] if sel.face[1] == "-" else self.hi[axis]
-            return np.flatnonzero(np.abs(self.nodes[:, axis] - edge) <= self.tol)
-        assert sel.box is not None
-        lo, hi = np.asarray(sel.box[0]), np.asarray(sel.box[1])
-        inside = np.all((self.nodes >= lo - self.tol) & (self.nodes <= hi + self.tol), axis=1)
-        picked = np.flatnonzero(inside)
-        if not len(picked):
-            errors.append(
-                (
-                    (*loc, "box"),
-                    f"selects no node: the solid's nodes span {_fmt(self.lo)} to "
-                    f"{_fmt(self.hi)} m; move or widen the box",
-                )
-            )
-        return picked
-
-    def surface(self, point: Any, loc: Loc, errors: list[tuple[Loc, str]]) -> SurfacePoint | None:
-        """Where ``point`` (m) falls on the lattice's surface
-        (:func:`fpm.model.geometry.surface_point`); None, with an error at ``loc``, when the
-        lattice has no cells or the point is more than the lattice spacing from its surface."""
-        hexahedra = self.cells()
-        if hexahedra is None:
-            errors.append((loc, "a force at a point needs a lattice of cells (not a network)"))
-            return None
-        found = surface_point(self.nodes, hexahedra, np.asarray(point, dtype=float))
-        x = self.nodes[hexahedra]
-        spacing = float(np.median(x.max(axis=1) - x.min(axis=1), axis=0).max())
-        if found.distance > spacing:
-            errors.append(
-                (
-                    loc,
-                    f"{_fmt(point)} is {found.distance:.3g} m from the solid's surface (nearest "
-                    f"surface point {_fmt(found.point)}), more than the lattice spacing "
-                    f"{spacing:.3g} m: a force at a point acts on the surface; give a point on "
-                    "it (lengths in m), or select a node (node, nearest)",
-                )
-            )
-            return None
-        self.notes.append(
-            f"{_dotted(loc)}: acts at {_fmt(found.point)} ({found.distance * 1e3:.3g} mm from "
-            f"the point given), spread over nodes {found.nodes.tolist()} by weights "
-            f"{_fmt(found.weights)}"
-        )
-        return found

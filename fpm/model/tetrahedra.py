@@ -2,7 +2,7 @@
 points lie in them (:func:`locate`), nodes numbered twice (:func:`merge_coincident`) and pieces
 (:func:`face_pieces`; :func:`lattice_pieces`: those a lattice joins).
 
-NumPy and SciPy only, so that :mod:`fpm.model.problem` and the service can check a mesh without
+NumPy and SciPy only, so that :mod:`fpm.model.checks` and the service can check a mesh without
 the FEM's solvers. The 10-node element built on these tetrahedra is :mod:`fpm.fem.tet10`.
 """
 
