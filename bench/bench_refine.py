@@ -412,7 +412,7 @@ def diagnose(organ: str, spacing: float, refine: int) -> None:
 
     import fpm
     from bench.tet_organ import surface_spec
-    from fpm.fem.refine import relative_change
+    from fpm.fem.levels import relative_change
     from fpm.fitting.cost import StaticCost
     from fpm.fitting.validation import reference_displacements
     from fpm.model.stiffness import fitted_theta
@@ -541,7 +541,7 @@ def continuum_gap(spacing: float, lattice: str, reference: Any) -> list[float]:
     lattice's geometry alone (the voxels' staircase) is from the organ's."""
     import fpm
     from bench.tet_organ import organ_spec
-    from fpm.fem.refine import relative_change
+    from fpm.fem.levels import relative_change
 
     spec = organ_spec(FIT_CELLS, spacing, refine=2, conforming=lattice != "voxels")
     del spec["reference"]["mesh"]

@@ -114,7 +114,7 @@ def judged(
 ) -> list[float]:
     """The relative discrepancy, % per load, at the ``kept`` nodes, of K u = f solved for
     u = T q (K from the cells' ``blocks`` (H, 24, 24), T from :func:`coarse_constraint`)."""
-    from fpm.fem.refine import relative_change
+    from fpm.fem.levels import relative_change
 
     hexahedra = problem.solid.elements()
     n = problem.n_nodes

@@ -136,8 +136,8 @@ def solve(problem: Any, blocks: np.ndarray, loads: list[np.ndarray]) -> list[np.
 
 def judged(problem: Any, blocks: np.ndarray, loads: list, truth: list) -> list[float]:
     """The relative discrepancy, % per load, of :func:`solve` against ``truth`` (N, 3) per load
-    (:func:`fpm.fem.refine.relative_change`: 100 sum_i |u_i - q_i| / sum_i |q_i|)."""
-    from fpm.fem.refine import relative_change
+    (:func:`fpm.fem.levels.relative_change`: 100 sum_i |u_i - q_i| / sum_i |q_i|)."""
+    from fpm.fem.levels import relative_change
 
     return relative_change(np.stack(solve(problem, blocks, loads)), np.stack(truth))
 

@@ -125,7 +125,6 @@ def measure(organ: str, spacing: float, levels: list[int]) -> None:
         tetrahedron_surface_samples,
         tetrahedron_volume_samples,
     )
-    from fpm.fem.refine import refine_tetrahedra
     from fpm.fem.tet10 import (
         fixed_nodes,
         interpolate,
@@ -133,6 +132,7 @@ def measure(organ: str, spacing: float, levels: list[int]) -> None:
         solve_p_multigrid,
         stiffness_matrix,
     )
+    from fpm.fem.uniform_refinement import refine_tetrahedra
     from fpm.model.tetrahedra import boundary_faces, locate
 
     spec = surface_spec(organ, spacing, refine=2)

@@ -1,4 +1,5 @@
-"""A reference that says how far it is from converged (fpm/fem/refine.py, fpm/fem/loads.py):
+"""A reference that says how far it is from converged (fpm/fem/refine.py, fpm/fem/levels.py,
+fpm/fem/uniform_refinement.py, fpm/fem/loads.py):
 uniform 1-to-8 refinement, the lattice's forces spread over the nodes' shares of the solid,
 the convergence rate on a known solution, the auto loop and its estimate, the check of a voxel
 reference, the spec field and the paper's examples."""
@@ -17,6 +18,7 @@ import fpm
 from bench.tet_organ import organ_mesh
 from fpm.fem import tet10
 from fpm.fem.elasticity import constitutive_matrix, min_jacobian_determinants
+from fpm.fem.levels import Mesh, converge, relative_change, summarise
 from fpm.fem.linear_solver import factorize
 from fpm.fem.loads import (
     Samples,
@@ -28,17 +30,9 @@ from fpm.fem.loads import (
     tetrahedron_nodal_loads,
     triangle_rule,
 )
-from fpm.fem.refine import (
-    Mesh,
-    converge,
-    hexahedron_loads,
-    refine_hexahedra,
-    refine_tetrahedra,
-    relative_change,
-    summarise,
-    tetrahedron_loads,
-)
+from fpm.fem.refine import hexahedron_loads, tetrahedron_loads
 from fpm.fem.solution import FemError, FemResult
+from fpm.fem.uniform_refinement import refine_hexahedra, refine_tetrahedra
 from fpm.fitting.validation import check_reference
 from fpm.model import tetrahedra
 from fpm.model.tetrahedra import tetrahedron_volumes

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from ..model.problem import Problem
+from ..model.problem import Problem, resolved_refine
 from ..model.support import unheld_reason
 from .assembly import body_forces, stiffness_matrix
 from .elasticity import constitutive_matrix, min_jacobian_determinants
@@ -101,7 +101,7 @@ def solve_fem(
         mesh: the mesh ``reference.mesh_id`` names, ``{"nodes": (N, 3), "tetrahedra": (T, 4)}``
             (m, 0-based), as the service stored it; ignored when the spec has none.
         progress: told each level of a refined reference as it starts (``reference.refine``
-            a number or "auto": :func:`fpm.fem.refine.converge`).
+            a number or "auto": :func:`fpm.fem.levels.converge`).
 
     Raises:
         FemError: a network geometry, an inverted or degenerate hexahedron, a solid that is
@@ -112,7 +112,7 @@ def solve_fem(
     if method not in ("auto", "direct", "amg"):
         raise ValueError(f"unknown method {method!r} (use 'auto', 'direct' or 'amg')")
     settings = problem.spec.reference
-    from .refine import refined_hex_reference, refined_tet_reference, resolved_refine
+    from .refine import refined_hex_reference, refined_tet_reference
 
     refine = resolved_refine(problem.spec)  # 0: the mesh as given, point loads, no estimate
     asked = method

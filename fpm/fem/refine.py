@@ -12,8 +12,8 @@ measure), in %.
   each corner, the inner octahedron cut along its shortest diagonal into 4), a hexahedron into
   8 by its own trilinear map; nodes at the middle of every edge (and of every face and
   hexahedron), shared by neighbours, the coarse mesh's nodes first, so the lattice's nodes keep
-  their numbers in a refined voxel mesh. Volume is conserved exactly, and every child is
-  positive (tests/test_refine.py).
+  their numbers in a refined voxel mesh (:mod:`fpm.fem.uniform_refinement`). Volume is
+  conserved exactly, and every child is positive (tests/test_refine.py).
 - **Loads.** A point load's displacement does not converge under refinement, so every level
   applies a lattice nodal force as a load on that node's share of the solid
   (:mod:`fpm.fem.loads`: a traction on the surface within its hat, the lattice's trilinear
@@ -27,13 +27,14 @@ measure), in %.
   it is, exactly the lattice's held region. Where a held region meets the free surface the
   solid has a singular line, and the reference converges more slowly the more obliquely they
   meet (bench/tet_organ.py).
-- **Levels** (:func:`converge`). ``refine: n`` solves levels n - 1 and n (each one refinement
-  finer) and hands back level n with the change between them; ``refine: "auto"`` (the default
-  for a tetrahedral mesh) solves levels 0, 1, 2, ... until the change is below
-  :data:`TOLERANCE` (1%) in every load case or the next level would have more FEM nodes than
-  ``reference.node_budget`` (:data:`DEFAULT_NODE_BUDGET`), or would cost as much as that many
-  nodes of a well-shaped mesh (its nodes times the CG iterations the level before needed,
-  over :data:`WORK_ITERATIONS`), and hands back the last level with its last change.
+- **Levels** (:func:`fpm.fem.levels.converge`). ``refine: n`` solves levels n - 1 and n (each
+  one refinement finer) and hands back level n with the change between them; ``refine: "auto"``
+  (the default for a tetrahedral mesh) solves levels 0, 1, 2, ... until the change is below
+  :data:`~fpm.fem.levels.TOLERANCE` (1%) in every load case or the next level would have more
+  FEM nodes than ``reference.node_budget`` (:data:`~fpm.fem.levels.DEFAULT_NODE_BUDGET`), or
+  would cost as much as that many nodes of a well-shaped mesh (its nodes times the CG
+  iterations the level before needed, over :data:`~fpm.fem.levels.WORK_ITERATIONS`), and hands
+  back the last level with its last change.
   ``refine: "check"`` (the default for hexahedra) keeps the 8-node reference
   on the voxels as it is, nodal point loads and all (bit for bit), and estimates its error by
   one refinement with the spread loads: the change between the two is how far the reference
@@ -43,17 +44,16 @@ measure), in %.
   the mesh as given, point loads, no estimate (the paper's examples name it).
 - **Reported**: :attr:`FemResult.estimated_error` per load case (then validation case), the
   refinements used, each level's FEM nodes, change and seconds (:attr:`FemResult.levels`) and
-  notes (a level the budget refused); a calibration warns above :data:`WARN_ERROR` (5%).
+  notes (a level the budget refused); a calibration warns above
+  :data:`~fpm.fem.levels.WARN_ERROR` (5%).
 
 Units: m, N, Pa; changes in %.
 """
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
-from typing import Any
+from dataclasses import replace
 
 import numpy as np
 
@@ -62,6 +62,7 @@ from ..model.problem import Problem, resolved_refine
 from ..model.tetrahedra import EDGES, Location, boundary_faces
 from .assembly import body_forces, stiffness_matrix
 from .elasticity import constitutive_matrix
+from .levels import DEFAULT_NODE_BUDGET, Mesh, Progress, checked, converge, summarise
 from .linear_solver import choose_method
 from .loads import (
     Samples,
@@ -78,300 +79,12 @@ from .loads import (
 from .materials import has_materials, hexahedron_densities, hexahedron_stiffness
 from .solution import FemError, FemResult, solve_dirichlet
 from .tet10 import Tet10Mesh, tet10_reference
+from .uniform_refinement import refine_hexahedra, refine_tetrahedra
 
-TOLERANCE = 1.0
-"""``refine: "auto"`` stops when the change between two levels is below this, %, in every case."""
-WARN_ERROR = 5.0
-"""A calibration warns about a load case whose reference's estimated error is above this, %."""
-DEFAULT_NODE_BUDGET = 400_000
-"""``reference.node_budget`` when not given: a refined level has at most this many FEM nodes."""
-WORK_ITERATIONS = 100
-"""``refine: "auto"`` also stops before a level whose predicted work, its FEM nodes times the
-CG iterations per case the level before needed (refinement does not lower them), is over
-``reference.node_budget`` times this: about what a well-shaped mesh needs, where one of
-slivers needs many times as many (examples/lobe.vtu: 717 at the mesh as given, the cap of
-1,000 once refined, 85,000 nodes taking longer than 340,000 of a well-shaped organ)."""
 CHECK_NODES = 60_000
 """The default check of a hexahedral reference (``refine`` not given) runs when its refined mesh
 has at most this many nodes (a lattice of about 7,500 nodes: a second or two); name
 ``refine: "check"`` to check a larger one (up to the node budget)."""
-
-__all__ = [
-    "CHECK_NODES",
-    "DEFAULT_NODE_BUDGET",
-    "TOLERANCE",
-    "WARN_ERROR",
-    "WORK_ITERATIONS",
-    "converge",
-    "refine_hexahedra",
-    "refine_tetrahedra",
-    "relative_change",
-]
-
-
-# ------------------------------------------------------------------ refinement
-
-_OCTAHEDRON = {
-    # diagonal (as mid-edge slots 0-5 of EDGES: 01, 12, 02, 03, 13, 23) -> its ring of 4
-    (0, 5): (2, 3, 4, 1),
-    (2, 4): (0, 3, 5, 1),
-    (3, 1): (0, 2, 5, 4),
-}
-
-
-def refine_tetrahedra(
-    nodes: np.ndarray, tets: np.ndarray, fixed: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One uniform 1-to-8 refinement of ``tets`` (T, 4) on ``nodes`` (N, 3), m.
-
-    Returns (N + E, 3) nodes (the old ones first, then one per distinct edge at its middle),
-    (8T, 4) tetrahedra, children of tetrahedron t at 8t .. 8t + 7, all of positive volume, and
-    (N + E,) bool held nodes: a new node is held when both ends of its edge are (``fixed``
-    (N,), none when None), so the refined mesh holds exactly the region the coarse one held.
-    """
-    nodes = np.asarray(nodes, dtype=float)
-    tets = np.asarray(tets, dtype=np.int64)
-    n = len(nodes)
-    ends = np.sort(tets[:, EDGES].reshape(-1, 2), axis=1)
-    keys, edge = np.unique(ends[:, 0] * n + ends[:, 1], return_inverse=True)
-    mid = (nodes[keys // n] + nodes[keys % n]) / 2
-    all_nodes = np.concatenate([nodes, mid])
-    held = np.zeros(n, dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool)
-    held = np.concatenate([held, held[keys // n] & held[keys % n]])
-    m = n + edge.reshape(-1, 6)  # (T, 6) mid-edge nodes, EDGES order
-    x = tets
-    corners = [
-        (x[:, 0], m[:, 0], m[:, 2], m[:, 3]),
-        (m[:, 0], x[:, 1], m[:, 1], m[:, 4]),
-        (m[:, 2], m[:, 1], x[:, 2], m[:, 5]),
-        (m[:, 3], m[:, 4], m[:, 5], x[:, 3]),
-    ]
-    # The inner octahedron along its shortest diagonal (the best shaped children).
-    lengths = np.stack(
-        [np.linalg.norm(all_nodes[m[:, a]] - all_nodes[m[:, b]], axis=1) for a, b in _OCTAHEDRON],
-        axis=1,
-    )
-    choice = np.argmin(lengths, axis=1)
-    inner = np.zeros((len(tets), 4, 4), dtype=np.int64)
-    for option, ((a, b), ring) in enumerate(_OCTAHEDRON.items()):
-        rows = choice == option
-        for k in range(4):
-            inner[rows, k] = np.stack(
-                [m[rows, a], m[rows, b], m[rows, ring[k]], m[rows, ring[(k + 1) % 4]]], axis=1
-            )
-    children = np.concatenate(
-        [np.stack([np.stack(c, axis=1) for c in corners], axis=1), inner], axis=1
-    ).reshape(-1, 4)
-    coords = all_nodes[children]
-    volume = np.linalg.det(np.transpose(coords[:, 1:] - coords[:, :1], (0, 2, 1)))
-    flip = volume < 0
-    children[flip] = children[flip][:, [0, 2, 1, 3]]
-    return all_nodes, children, held
-
-
-_LOCAL = np.array([(i, j, k) for k in (-1, 0, 1) for j in (-1, 0, 1) for i in (-1, 0, 1)])
-"""(27, 3) natural coordinates of a hexahedron's nodes after a split: r fastest, then s, t."""
-_CORNER = ((NATURAL + 1) // 2).astype(int)  # (8, 3) each corner's 0/1 offsets
-_CHILDREN = np.array(
-    [
-        [(a + i) + 3 * (b + j) + 9 * (c + k) for i, j, k in _CORNER]
-        for c in (0, 1)
-        for b in (0, 1)
-        for a in (0, 1)
-    ]
-)
-"""(8, 8) the 27-point slots of each child's corners (:mod:`fpm.model.hexahedron` order)."""
-
-
-def refine_hexahedra(
-    nodes: np.ndarray, hexahedra: np.ndarray, fixed: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One uniform 1-to-8 refinement of ``hexahedra`` (H, 8) on ``nodes`` (N, 3), m, by each
-    hexahedron's trilinear map.
-
-    Returns (M, 3) nodes (the old N first; then edge middles, face centres, hexahedron
-    centres, shared by neighbours), (8H, 8) hexahedra (children of h at 8h .. 8h + 7) and (M,)
-    bool fixed nodes: a new node is fixed when every corner spanning it is (``fixed`` (N,), none
-    when None), so a held face stays held.
-    """
-    nodes = np.asarray(nodes, dtype=float)
-    hexahedra = np.asarray(hexahedra, dtype=np.int64)
-    held = np.zeros(len(nodes), dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool)
-    n = len(nodes)
-    slots = np.empty((len(hexahedra), 27), dtype=np.int64)
-    new_nodes, new_fixed = [nodes], [held]
-    count = n
-    for size in (1, 2, 4, 8):
-        spans = [
-            (a, np.flatnonzero(np.all((NATURAL == p) | (p == 0), axis=1)))
-            for a, p in enumerate(_LOCAL)
-        ]
-        spans = [(a, s) for a, s in spans if len(s) == size]
-        if size == 1:
-            for a, s in spans:
-                slots[:, a] = hexahedra[:, s[0]]
-            continue
-        ids = np.stack([hexahedra[:, s] for _, s in spans], axis=1)  # (H, K, size)
-        flat = np.sort(ids.reshape(-1, size), axis=1)
-        unique, inverse = np.unique(flat, axis=0, return_inverse=True)
-        inverse = inverse.ravel().reshape(len(hexahedra), len(spans))
-        for k, (a, _) in enumerate(spans):
-            slots[:, a] = count + inverse[:, k]
-        new_nodes.append(nodes[unique].mean(axis=1))
-        new_fixed.append(held[unique].all(axis=1))
-        count += len(unique)
-    children = slots[:, _CHILDREN].reshape(-1, 8)
-    return np.concatenate(new_nodes), children, np.concatenate(new_fixed)
-
-
-# ------------------------------------------------------------------ levels
-
-
-def relative_change(coarse: np.ndarray, fine: np.ndarray) -> list[float]:
-    """Per load case, ``100 sum_i |u_fine - u_coarse| / sum_i |u_fine|`` over the nodes, %
-    (``coarse``, ``fine``: (L, N, 3) displacements at the lattice nodes, m)."""
-    diff = np.linalg.norm(fine - coarse, axis=2).sum(axis=1)
-    scale = np.linalg.norm(fine, axis=2).sum(axis=1)
-    return [float(100 * d / s) if s > 0 else 0.0 for d, s in zip(diff, scale, strict=True)]
-
-
-Progress = Callable[[dict[str, Any]], None]
-"""Told each level of a refined reference as it starts (:func:`converge`)."""
-
-
-@dataclass
-class Level:
-    """One solve of the reference.
-
-    Attributes:
-        refinements: uniform refinements of the given mesh (0: as given).
-        fem_nodes: the FEM's nodes at this level.
-        result: its :class:`FemResult` on the lattice.
-        seconds: wall time of this level (mesh, loads, assembly and solve), s.
-    """
-
-    refinements: int
-    fem_nodes: int
-    result: FemResult
-    seconds: float
-
-
-@dataclass
-class Mesh:
-    """A level's mesh before it is solved: its FEM node count and how to solve it."""
-
-    refinements: int
-    fem_nodes: int
-    solve: Callable[[], FemResult]
-    finer: Callable[[], Mesh]
-
-
-def converge(
-    first: Mesh,
-    refine: int | str,
-    budget: int,
-    *,
-    tolerance: float = TOLERANCE,
-    progress: Progress | None = None,
-) -> tuple[list[Level], list[str]]:
-    """Solve the levels ``refine`` asks for, starting from the mesh ``first`` (level 0).
-
-    ``refine`` n >= 1: levels n - 1 and n; ``"auto"``: 0, 1, ... until the change is below
-    ``tolerance`` (%) in every case or the next level has more than ``budget`` FEM nodes or
-    more predicted work than ``budget`` times :data:`WORK_ITERATIONS` (its FEM nodes times
-    the most CG iterations a case of the level before needed).
-    ``progress`` is told each level as it starts: ``{"level": refinements, "fem_nodes": n,
-    "last_change": the largest change so far (%, None before two levels)}``.
-    Returns the levels solved and notes (a level refused by the budget).
-    """
-    notes: list[str] = []
-    mesh = first
-    if isinstance(refine, int):
-        for _ in range(max(0, refine - 1)):
-            mesh = mesh.finer()
-            _within(mesh, budget)  # before any solve: the spec asks for more than it allows
-    levels: list[Level] = []
-    last: float | None = None
-    while True:
-        if mesh.fem_nodes > budget and mesh.refinements > 0:  # the mesh as given always runs
-            if not isinstance(refine, int) and levels:
-                notes.append(
-                    f"reference.refine: stopped at {levels[-1].refinements} refinement(s): the "
-                    f"next would have {mesh.fem_nodes:,} FEM nodes, over reference.node_budget "
-                    f"({budget:,})"
-                )
-                break
-            _within(mesh, budget)
-        iterations = max(levels[-1].result.iterations, default=0) if levels else 0
-        if not isinstance(refine, int) and mesh.fem_nodes * iterations > budget * WORK_ITERATIONS:
-            notes.append(
-                f"reference.refine: stopped at {levels[-1].refinements} refinement(s): the next "
-                f"would have {mesh.fem_nodes:,} FEM nodes, and at the {iterations:,} CG "
-                f"iterations per case this level needed (a well-shaped mesh needs about "
-                f"{WORK_ITERATIONS}; slivers need more) it would cost as much as "
-                f"{mesh.fem_nodes * iterations // WORK_ITERATIONS:,} nodes, over "
-                f"reference.node_budget ({budget:,}): improve the mesh's worst tetrahedra, or "
-                "raise reference.node_budget"
-            )
-            break
-        if progress is not None:
-            progress({"level": mesh.refinements, "fem_nodes": mesh.fem_nodes, "last_change": last})
-        t0 = time.perf_counter()
-        result = mesh.solve()
-        levels.append(Level(mesh.refinements, mesh.fem_nodes, result, time.perf_counter() - t0))
-        if isinstance(refine, int):
-            if mesh.refinements >= refine:
-                break
-        elif len(levels) >= 2:
-            change = relative_change(levels[-2].result.displacements, result.displacements)
-            last = max(change, default=0.0)
-            if last < tolerance:
-                break
-        mesh = mesh.finer()
-    return levels, notes
-
-
-def _within(mesh: Mesh, budget: int) -> None:
-    """Raise when a level the spec names has more FEM nodes than the budget."""
-    if mesh.fem_nodes > budget:
-        raise FemError(
-            f"reference.refine: {mesh.refinements} refinement(s) make {mesh.fem_nodes:,} FEM "
-            f"nodes, over reference.node_budget ({budget:,}): ask for fewer, or 'auto', or raise "
-            "reference.node_budget"
-        )
-
-
-def summarise(levels: list[Level], notes: list[str], loads: str = "spread") -> FemResult:
-    """The last level's result, with the estimated error (its change from the level before)
-    and every level's figures."""
-    last = levels[-1].result
-    table: list[dict[str, Any]] = []
-    for i, level in enumerate(levels):
-        change = (
-            relative_change(levels[i - 1].result.displacements, level.result.displacements)
-            if i
-            else None
-        )
-        table.append(
-            {
-                "refinements": level.refinements,
-                "fem_nodes": level.fem_nodes,
-                "change": change,
-                "seconds": round(level.seconds, 3),
-                "iterations": list(level.result.iterations),
-            }
-        )
-    error = table[-1]["change"]
-    if error is None:
-        notes = [*notes, "reference.refine: one level only, so its error is not estimated"]
-    return replace(
-        last,
-        estimated_error=error,
-        refinements=levels[-1].refinements,
-        levels=table,
-        loads=loads,
-        notes=list(last.notes) + notes,
-    )
 
 
 # ------------------------------------------------------------------ tetrahedra
@@ -453,47 +166,9 @@ def refined_tet_reference(
     first = level(0, x0, t0)
     if refine == "check":
         base = tet10_reference(problem, x0, t0, method)
-        return _checked(base, first.fem_nodes, first.finer, budget, None)
+        return checked(base, first.fem_nodes, first.finer, budget, None)
     levels, notes = converge(first, refine, budget, progress=progress)
     return summarise(levels, notes)
-
-
-def _checked(
-    base: FemResult,
-    base_nodes: int,
-    refined: Callable[[], Mesh],
-    budget: int,
-    limit: int | None,
-) -> FemResult:
-    """``base`` (the reference as given, ``base_nodes`` FEM nodes) with its error estimated
-    against one refinement with spread loads (``refined``), unless that has more FEM nodes than
-    ``budget`` (or ``limit``)."""
-    cap = budget if limit is None else min(budget, limit)
-    finer = refined() if 4 * base_nodes <= cap else None  # a refined mesh has ~8x the nodes
-    if finer is None or finer.fem_nodes > cap:
-        if limit is not None:  # the default check, on a lattice too large for it: no estimate
-            return base
-        size = f"{finer.fem_nodes:,}" if finer is not None else f"about {8 * base_nodes:,}"
-        why = (
-            f"reference.refine 'check': not run, its refined mesh would have {size} FEM nodes, "
-            f"over reference.node_budget ({cap:,}); the reference's error is not estimated"
-        )
-        return replace(base, notes=[*base.notes, why])
-    t0 = time.perf_counter()
-    check = finer.solve()
-    seconds = time.perf_counter() - t0
-    error = relative_change(base.displacements, check.displacements)
-    table: list[dict[str, Any]] = [
-        {"refinements": 0, "fem_nodes": base_nodes, "change": None, "loads": "nodal"},
-        {
-            "refinements": 1,
-            "fem_nodes": finer.fem_nodes,
-            "change": error,
-            "seconds": round(seconds, 3),
-            "loads": "spread",
-        },
-    ]
-    return replace(base, estimated_error=error, refinements=0, levels=table)
 
 
 # ------------------------------------------------------------------ hexahedra
@@ -623,6 +298,6 @@ def refined_hex_reference(
         if base is None:
             raise ValueError("the check needs the reference as given")
         limit = None if problem.spec.reference.refine == "check" else CHECK_NODES
-        return _checked(base, problem.n_nodes, first.finer, budget, limit)
+        return checked(base, problem.n_nodes, first.finer, budget, limit)
     levels, notes = converge(first, refine, budget, progress=progress)
     return summarise(levels, notes)

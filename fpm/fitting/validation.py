@@ -82,7 +82,7 @@ def resolution_notes(problem: Problem, reference: Any) -> list[str]:
     """Warnings on how far the reference is from converged (:mod:`fpm.fem.refine`): a load or
     validation case whose estimated error is above WARN_ERROR, and the reference's own notes
     (a refinement the node budget refused, an error not estimated)."""
-    from ..fem.refine import WARN_ERROR
+    from ..fem.levels import WARN_ERROR
 
     error = getattr(reference, "estimated_error", None)
     notes = [str(n) for n in getattr(reference, "notes", None) or []]

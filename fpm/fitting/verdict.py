@@ -20,7 +20,7 @@ fitted parameters and reference, and returns its :class:`~fpm.fitting.result.Ver
   too coarse for a part (:func:`fpm.model.geometry.thin_parts`, or fewer than
   :attr:`VerdictSettings.cells_across` cells across the solid), Poisson's ratio near 0.5, a
   compliance ratio out of range, a parameter at a bound, a reference that does not resolve its
-  load (:data:`fpm.fem.refine.WARN_ERROR`), the model family itself, an unsettled run.
+  load (:data:`fpm.fem.levels.WARN_ERROR`), the model family itself, an unsettled run.
 
 A poor fit is still a calibration that succeeded: the verdict says it is poor and why.
 """
@@ -235,7 +235,7 @@ def _causes(
     grade: str,
 ) -> list[Cause]:
     """The likely causes of a fit short of good, each with its action."""
-    from ..fem.refine import WARN_ERROR
+    from ..fem.levels import WARN_ERROR
 
     s = SETTINGS
     causes = []
