@@ -37,7 +37,7 @@ def grid_indices(nodes: np.ndarray, hexahedra: np.ndarray, h: float) -> np.ndarr
     from: the interior nodes (unmoved by the conforming) by position, the surface nodes by
     their place in a cell (corner bits of :data:`bench.surface_cells.CORNER_BITS`) next to
     a node whose index is known."""
-    from fpm.fem.loads import lattice_surface
+    from fpm.fem.samples import lattice_surface
 
     bits = np.array(surface_cells.CORNER_BITS)
     inner = ~lattice_surface(hexahedra, len(nodes))
@@ -132,7 +132,7 @@ def main() -> None:
 
     import fpm
     from bench.tet_organ import surface_spec
-    from fpm.fem.loads import lattice_surface
+    from fpm.fem.samples import lattice_surface
 
     organ, spacing = sys.argv[1], float(sys.argv[2])
     bands = [int(b) for b in (sys.argv[3] if len(sys.argv) > 3 else "1,2").split(",")]

@@ -195,7 +195,7 @@ def rows(problem: Any, reference: Any, refitted: bool = True) -> list[tuple[str,
     ``refitted`` False leaves out the refitted rows (each refit solves the lattice up to 80
     times: minutes at 15,000 nodes)."""
     from fpm.fem.elasticity import constitutive_matrix, element_stiffness
-    from fpm.fem.loads import lattice_surface
+    from fpm.fem.samples import lattice_surface
 
     result, theta, truth, loads = calibrated_linear(problem, reference)
     hexahedra = problem.solid.elements()

@@ -116,12 +116,11 @@ def measure(organ: str, spacing: float, levels: list[int]) -> None:
     import fpm
     from bench.tet_organ import surface_spec
     from fpm.fem.elasticity import constitutive_matrix
-    from fpm.fem.loads import (
+    from fpm.fem.loads import spread, tetrahedron_nodal_loads
+    from fpm.fem.samples import (
         Samples,
         lattice_spacing,
         lattice_surface,
-        spread,
-        tetrahedron_nodal_loads,
         tetrahedron_surface_samples,
         tetrahedron_volume_samples,
     )

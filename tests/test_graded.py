@@ -5,7 +5,7 @@ import pytest
 
 import fpm
 from bench.graded import coarse_constraint, grid_indices, surface_depth
-from fpm.fem.loads import lattice_surface
+from fpm.fem.samples import lattice_surface
 from tests.helpers_fpm import box_spec
 
 

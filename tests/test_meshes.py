@@ -443,7 +443,7 @@ def test_the_conforming_lattice_lies_on_the_mesh_surface_and_calibrates(tmp_path
     Jacobian, the fixed face held at the same nodes (now a box), and a calibration runs."""
     from bench.tet_organ import organ_mesh
     from fpm.fem.elasticity import min_jacobian_determinants
-    from fpm.fem.loads import lattice_surface
+    from fpm.fem.samples import lattice_surface
     from fpm.io.meshes import KEPT_JACOBIAN
     from fpm.model.tetrahedra import nearest_on_boundary
 

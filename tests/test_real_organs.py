@@ -97,7 +97,7 @@ def test_the_conforming_lattice_folds_no_voxel_step_onto_the_surface():
     surface node stays far from the mesh's surface, every cell keeps KEPT_JACOBIAN of its
     voxel's."""
     from fpm.fem.elasticity import min_jacobian_determinants
-    from fpm.fem.loads import boundary_hexahedron_faces, lattice_surface
+    from fpm.fem.samples import boundary_hexahedron_faces, lattice_surface
     from fpm.io.meshes.conform import KEPT_JACOBIAN
     from fpm.model.tetrahedra import nearest_on_boundary
 

@@ -1,5 +1,5 @@
 """A reference that says how far it is from converged (fpm/fem/refine.py, fpm/fem/levels.py,
-fpm/fem/uniform_refinement.py, fpm/fem/loads.py):
+fpm/fem/uniform_refinement.py, fpm/fem/loads.py, fpm/fem/samples.py):
 uniform 1-to-8 refinement, the lattice's forces spread over the nodes' shares of the solid,
 the convergence rate on a known solution, the auto loop and its estimate, the check of a voxel
 reference, the spec field and the paper's examples."""
@@ -20,17 +20,16 @@ from fpm.fem import tet10
 from fpm.fem.elasticity import constitutive_matrix, min_jacobian_determinants
 from fpm.fem.levels import Mesh, converge, relative_change, summarise
 from fpm.fem.linear_solver import factorize
-from fpm.fem.loads import (
+from fpm.fem.loads import spread, tetrahedron_nodal_loads
+from fpm.fem.refine import hexahedron_loads, tetrahedron_loads
+from fpm.fem.samples import (
     Samples,
     hexahedron_surface_samples,
     hexahedron_volume_samples,
     lattice_spacing,
     lattice_surface,
-    spread,
-    tetrahedron_nodal_loads,
     triangle_rule,
 )
-from fpm.fem.refine import hexahedron_loads, tetrahedron_loads
 from fpm.fem.solution import FemError, FemResult
 from fpm.fem.uniform_refinement import refine_hexahedra, refine_tetrahedra
 from fpm.fitting.validation import check_reference

@@ -64,19 +64,17 @@ from .assembly import body_forces, stiffness_matrix
 from .elasticity import constitutive_matrix
 from .levels import DEFAULT_NODE_BUDGET, Mesh, Progress, checked, converge, summarise
 from .linear_solver import choose_method
-from .loads import (
+from .loads import hexahedron_nodal_loads, spread, tetrahedron_nodal_loads
+from .materials import has_materials, hexahedron_densities, hexahedron_stiffness
+from .samples import (
     Samples,
-    hexahedron_nodal_loads,
     hexahedron_surface_samples,
     hexahedron_volume_samples,
     lattice_spacing,
     lattice_surface,
-    spread,
-    tetrahedron_nodal_loads,
     tetrahedron_surface_samples,
     tetrahedron_volume_samples,
 )
-from .materials import has_materials, hexahedron_densities, hexahedron_stiffness
 from .solution import FemError, FemResult, solve_dirichlet
 from .tet10 import Tet10Mesh, tet10_reference
 from .uniform_refinement import refine_hexahedra, refine_tetrahedra

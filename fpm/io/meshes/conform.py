@@ -25,7 +25,7 @@ sqrt(3) h / 2 of the surface when the voxels are the cells whose centres are ins
 def outward_normals(hexahedra: np.ndarray, n_nodes: int) -> np.ndarray:
     """(N, 3) per lattice node the sum of the outward unit normals (lattice axes) of the
     boundary faces of ``hexahedra`` (H, 8) it is a corner of; zero off the surface."""
-    from ...fem.loads import boundary_hexahedron_faces
+    from ...fem.samples import boundary_hexahedron_faces
 
     corners, _, local = boundary_hexahedron_faces(hexahedra)
     faces = np.zeros((len(local), 3))
@@ -109,7 +109,7 @@ def conform_lattice(
     would end up in one does not move.
     """
     from ...fem.elasticity import min_jacobian_determinants
-    from ...fem.loads import lattice_spacing, lattice_surface
+    from ...fem.samples import lattice_spacing, lattice_surface
     from ...model.tetrahedra import boundary_faces, nearest_on_boundary
 
     x0 = np.asarray(nodes, dtype=float)
