@@ -14,9 +14,18 @@ from pydantic import ValidationError
 
 import fpm
 from fpm.dynamics.equilibrium import StaticSolver
+from fpm.fitting import adjoint as A
 from fpm.fitting import field as F
+from fpm.fitting import field_parameters as P
 from fpm.io.export import export
-from fpm.model.stiffness import continuum_start, field_stiffness, fitted_theta, model_stiffness
+from fpm.model.problem import load_patterns
+from fpm.model.stiffness import (
+    cell_shares,
+    continuum_start,
+    field_stiffness,
+    fitted_theta,
+    model_stiffness,
+)
 from service.schemas import DampingProgress
 from tests.test_export import independent_linear_solve
 
@@ -58,12 +67,12 @@ def block() -> tuple[fpm.Problem, np.ndarray]:
 def test_cell_adjacency_is_the_face_graph_and_drops_edges_between_regions():
     problem = fpm.load_problem(block_spec())
     hexahedra = problem.solid.elements()
-    edges = F.cell_adjacency(hexahedra)
+    edges = P.cell_adjacency(hexahedra)
     assert len(edges) == 3 * 3 * 3 * 2  # 3 x 3 x 3 cells: 3 axes x 3 x 3 lines of 2 edges
     shared = [len(set(hexahedra[a]) & set(hexahedra[b])) for a, b in edges]
     assert shared == [4] * len(edges)
     regions = (problem.nodes[hexahedra].mean(axis=1)[:, 0] > 0.015).astype(int)
-    kept = F.cell_adjacency(hexahedra, regions)
+    kept = P.cell_adjacency(hexahedra, regions)
     assert len(kept) == len(edges) - 9  # the 9 face pairs across x = 0.015 are dropped
     assert np.all(regions[kept[:, 0]] == regions[kept[:, 1]])
 
@@ -92,12 +101,12 @@ def test_the_adjoint_gradient_equals_central_differences(pulled, load_case):
     problem, reference = pulled
     solver = StaticSolver(problem, warm=False)
     assert 3 * 48 < solver.amg_from  # LU: exact linear solves
-    edges = F.cell_adjacency(problem.solid.elements())
-    field = F.FieldMap(problem, continuum_start(problem), edges)
+    edges = P.cell_adjacency(problem.solid.elements())
+    field = P.FieldMap(problem, continuum_start(problem), edges)
     x = 0.3 * np.random.default_rng(load_case).standard_normal(field.size)
 
-    def case(x: np.ndarray) -> F.CaseGradient:
-        return F.case_gradient(
+    def case(x: np.ndarray) -> A.CaseGradient:
+        return A.case_gradient(
             solver, load_case, reference[load_case], field.stiffness(x), None, tolerance=1e-13
         )
 
@@ -120,8 +129,8 @@ def test_the_adjoint_gradient_equals_central_differences(pulled, load_case):
 def test_the_four_parameter_gradient_equals_central_differences(pulled):
     problem, reference = pulled
     solver = StaticSolver(problem, warm=False)
-    family = F.FamilyMap(problem)
-    objective = F.Objective(F.Solvers([solver] * 3), reference, [0, 1, 2], None, family)
+    family = P.FamilyMap(problem)
+    objective = A.Objective(A.Solvers([solver] * 3), reference, [0, 1, 2], None, family)
     y = np.log(continuum_start(problem))
     _, grad = objective(y)
     for i in range(len(y)):
@@ -133,8 +142,8 @@ def test_the_four_parameter_gradient_equals_central_differences(pulled):
 
 def test_the_smoothness_penalty_and_its_gradient(block):
     problem, _ = block
-    edges = F.cell_adjacency(problem.solid.elements())
-    field = F.FieldMap(problem, continuum_start(problem), edges)
+    edges = P.cell_adjacency(problem.solid.elements())
+    field = P.FieldMap(problem, continuum_start(problem), edges)
     x = np.random.default_rng(1).standard_normal(field.size)
     value, grad = field.smoothness(x)
     a, b = x[: field.cells], x[field.cells :]
@@ -181,14 +190,14 @@ def test_the_left_out_mean_counts_each_force_pattern_once():
 def test_a_field_no_better_than_the_four_parameters_is_refused_with_a_warning(block, monkeypatch):
     """The rule itself: the field's left-out figures made worse than the four parameters'."""
     problem, reference = block
-    real = F.relative
+    real = A.relative
 
     def worse_for_fields(solver, reference, cases, stiffness, depth):
         figures = real(solver, reference, cases, stiffness, depth)
         varied = np.ptp(stiffness.volume) > 0  # a field (the four parameters give one kappa)
         return [f + 50.0 for f in figures] if varied else figures
 
-    monkeypatch.setattr(F, "relative", worse_for_fields)
+    monkeypatch.setattr(A, "relative", worse_for_fields)
     stage = F.fit_field(
         problem, reference, StaticSolver(problem), continuum_start(problem), None,
         weights=(1.0,), iterations=FAST,
@@ -207,7 +216,7 @@ def test_scaled_copies_of_one_load_cannot_validate_a_field():
     spec["load_cases"] = [up, twice]
     problem = fpm.load_problem(spec)
     reference = fpm.solve_fem(problem).displacements
-    assert F.load_patterns(problem) == [[0, 1]]
+    assert load_patterns(problem) == [[0, 1]]
     stage = F.fit_field(
         problem, reference[:2], StaticSolver(problem), continuum_start(problem), None,
         weights=(1.0,), iterations=FAST,
@@ -353,7 +362,7 @@ def test_a_field_on_regions_multiplies_each_cells_own_region():
     a, b = ones.copy(), ones.copy()
     a[c], b[c] = 3.0, 0.5
     field = field_stiffness(problem, theta, a, b)
-    shares = F.cell_shares(problem)[:, c].toarray().ravel()
+    shares = cell_shares(problem)[:, c].toarray().ravel()
     k_stiff = theta[4:7][problem.solid.families]
     assert np.allclose(field.springs - four.springs, 2.0 * shares * k_stiff, rtol=1e-12)
     assert field.volume[c] == pytest.approx(0.5 * theta[7], rel=1e-15)
@@ -366,13 +375,13 @@ def test_the_adjoint_gradient_on_regions_equals_central_differences():
     problem = fpm.load_problem(region_block(100.0))
     reference = fpm.solve_fem(problem).displacements
     solver = StaticSolver(problem, warm=False)
-    field = F.FieldMap(
-        problem, continuum_start(problem), F.cell_adjacency(problem.solid.elements())
+    field = P.FieldMap(
+        problem, continuum_start(problem), P.cell_adjacency(problem.solid.elements())
     )
     x = 0.3 * np.random.default_rng(7).standard_normal(field.size)
 
-    def cost(x: np.ndarray) -> F.CaseGradient:
-        return F.case_gradient(solver, 1, reference[1], field.stiffness(x), None, tolerance=1e-13)
+    def cost(x: np.ndarray) -> A.CaseGradient:
+        return A.case_gradient(solver, 1, reference[1], field.stiffness(x), None, tolerance=1e-13)
 
     at = cost(x)
     grad = field.pull_back(x, at.springs, at.kappa)
@@ -380,8 +389,8 @@ def test_the_adjoint_gradient_on_regions_equals_central_differences():
         [(cost(x + e).cost - cost(x - e).cost) / 2e-5 for e in 1e-5 * np.eye(field.size)]
     )
     assert np.abs(grad - central).max() <= 1e-6 * np.abs(central).max()
-    family = F.FamilyMap(problem)
-    objective = F.Objective(F.Solvers([solver] * 3), reference, [0, 1, 2], None, family)
+    family = P.FamilyMap(problem)
+    objective = A.Objective(A.Solvers([solver] * 3), reference, [0, 1, 2], None, family)
     y = np.log(continuum_start(problem))
     _, grad = objective(y)
     central = np.array(
@@ -404,15 +413,15 @@ def test_a_stiff_inclusion_box_fits_a_field_smoothed_within_each_region():
     problem = fpm.load_problem(spec)
     reference = fpm.solve_fem(problem).displacements
     solver = StaticSolver(problem)
-    family = F.FamilyMap(problem)
-    refit = F.Objective(F.Solvers([solver] * 3), reference, [0, 1, 2], None, family)
-    y, _ = F.minimise(refit, np.log(continuum_start(problem)), 15)
+    family = P.FamilyMap(problem)
+    refit = A.Objective(A.Solvers([solver] * 3), reference, [0, 1, 2], None, family)
+    y, _ = A.minimise(refit, np.log(continuum_start(problem)), 15)
     theta = np.exp(y)
     stage = F.fit_field(problem, reference, solver, theta, None, iterations=FAST)
     hexahedra = problem.solid.elements()
     cells = problem.regions.cells
-    kept = F.cell_adjacency(hexahedra, cells)
-    assert stage.edges == len(kept) == len(F.cell_adjacency(hexahedra)) - 96
+    kept = P.cell_adjacency(hexahedra, cells)
+    assert stage.edges == len(kept) == len(P.cell_adjacency(hexahedra)) - 96
     assert np.all(cells[kept[:, 0]] == cells[kept[:, 1]])
     assert sum(stage.field_relative) <= sum(stage.four_relative) + 1e-9
     assert max(stage.four_relative) < 20.0 and max(stage.field_relative) < 20.0
@@ -438,7 +447,7 @@ def test_calibrate_fits_a_field_on_regions_and_the_export_carries_it():
     assert [r["name"] for r in result.regions] == ["base", "stiff"]
     field = result.field
     cells = problem.regions.cells
-    assert field.edges == len(F.cell_adjacency(problem.solid.elements(), cells)) == 54 - 9
+    assert field.edges == len(P.cell_adjacency(problem.solid.elements(), cells)) == 54 - 9
     record = result.model_dump()
     record["field"]["returned"] = True  # the export of a returned field, whatever the CV said
     stiffness = fitted_theta(problem, record)

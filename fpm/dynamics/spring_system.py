@@ -21,7 +21,7 @@ F_i (N) the constant nodal forces; and its derivatives:
 - Q^T K Q on a basis Q (M, 3, m), for the warm starts' reduced model
   (:mod:`fpm.dynamics.predictor`);
 - the gradient's derivatives by each spring's k and each cell's kappa against a field w
-  (:meth:`SpringSystem.sensitivity`), for adjoint gradients (:mod:`fpm.fitting.field`).
+  (:meth:`SpringSystem.sensitivity`), for adjoint gradients (:mod:`fpm.fitting.adjoint`).
 
 The loops over springs are compiled (numba: :func:`_spring_forces` and friends). A system
 depends only on the problem and its free nodes and is read only: :func:`shared_system` and
@@ -245,7 +245,7 @@ class SpringSystem:
         field w (M, 3): per active spring w . d(dE/du)/dk_s = (|r_s| - L_s) n_s . (w_j - w_i),
         m, and per active cell w . d(dE/du)/dkappa_c = (V_c - V0_c) / V0_c sum_n g_n . w_n,
         m^3 / Pa (held nodes: w = 0). With w the adjoint of a cost J, minus these are dJ/dk_s
-        and dJ/dkappa_c (:mod:`fpm.fitting.field`). Returns ((A,), (C,); empty without cells)."""
+        and dJ/dkappa_c (:mod:`fpm.fitting.adjoint`). Returns ((A,), (C,); empty without cells)."""
         zero = np.zeros((1, 3))
         padded_u, padded_w = np.vstack([u, zero]), np.vstack([w, zero])
         i, j = self.ends[:, 0], self.ends[:, 1]
