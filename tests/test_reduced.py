@@ -13,13 +13,8 @@ from helpers_fpm import box_spec
 import fpm
 from fpm.dynamics.equilibrium import StaticSolver
 from fpm.fitting.cost import StaticCost
-from fpm.fitting.reduced import (
-    RTOL,
-    ReducedBasis,
-    ReducedLinearModel,
-    first_basis,
-    unit_matrices,
-)
+from fpm.fitting.reduced import RTOL, ReducedBasis, ReducedLinearModel, first_basis
+from fpm.fitting.unit_matrices import unit_matrices
 from fpm.model.stiffness import (
     continuum_start,
     family_names,
@@ -153,7 +148,7 @@ def test_the_defect_corrected_fit_runs_once_per_calibration(monkeypatch):
     from fpm.fitting.bounds import stiffness_bounds
     from fpm.fitting.calibration import calibrate
     from fpm.fitting.damping_stage import fit_damping
-    from fpm.fitting.reduced import fit_reduced
+    from fpm.fitting.defect_correction import fit_reduced
     from fpm.fitting.stiffness_stage import run_chain
 
     problem, reference = small_fit(validation=False)
@@ -183,7 +178,7 @@ def test_the_fit_is_the_same_on_one_or_two_threads():
     two solvers' shares run one after the other or at once, and every case's equilibrium at
     the answer is a warm start of the cost's solver."""
     from fpm.fitting.bounds import stiffness_bounds
-    from fpm.fitting.reduced import fit_reduced
+    from fpm.fitting.defect_correction import fit_reduced
 
     spec = box_spec(
         (5, 4, 6), 0.01,

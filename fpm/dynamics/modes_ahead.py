@@ -4,7 +4,7 @@ The prediction of the fastest d (:func:`fpm.dynamics.modes.predict_damping`) rea
 list's slowest modes off the static solver's multigrid hierarchy of that list: its finest
 level's matrix is the stiffness the modes solve, its V-cycle their preconditioner
 (:func:`fpm.dynamics.modes.reduced_steps`). That hierarchy is built by the polish's first
-round (:func:`fpm.fitting.reduced.fit_reduced`, on the tangent at rest at the round's
+round (:func:`fpm.fitting.defect_correction.fit_reduced`, on the tangent at rest at the round's
 parameters) and kept while CG stays fast on it. Found after the polish, the modes would run
 alone on the damping job's critical path, while the polish leaves part of a core idle
 (docs/explanation/physics/calibration-speed.md, *The modes beside the polish*).

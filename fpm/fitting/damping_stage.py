@@ -44,10 +44,11 @@ from ..model.stiffness import has_volume, is_extended, is_field, model_stiffness
 from .bounds import damping_bounds, fit_depth, full_depth, stiffness_bounds
 from .cost import StaticCost
 from .damping import DampingFit, Spread, critical_damping, fastest_damping
+from .defect_correction import fit_reduced
 from .depth import resolve_depth
 from .diagnosis import SMALL_STRAIN
 from .field import fit_field
-from .reduced import ReducedBasis, first_basis, fit_reduced
+from .reduced import ReducedBasis, first_basis
 from .stiffness_stage import (
     POLISH_SPAN,
     UNIFORM_SPAN,
@@ -175,9 +176,9 @@ def fit_damping(
     at), resolve the depth, find d.
 
     families+volume (and field): the polish is the defect-corrected reduced fit
-    (:func:`fpm.fitting.reduced.fit_reduced`) from the best chain's state on ``basis``, the
-    calibration's first basis (built here when None: the same bits); its last round's static
-    equilibria are the warm starts of the stage's static solves at the answer.
+    (:func:`fpm.fitting.defect_correction.fit_reduced`) from the best chain's state on
+    ``basis``, the calibration's first basis (built here when None: the same bits); its last
+    round's static equilibria are the warm starts of the stage's static solves at the answer.
 
     ``spread``: given the :class:`DampingPlan` (what a run needs besides d and its caps) and
     the static equilibria (L, N, 3) m its runs settle towards (None: none),

@@ -11,28 +11,22 @@ responses (per load case, orthonormal) the reduced model
 costs an m x m solve (m <= a few tens) instead of a sparse solve with 10^4-10^5 unknowns, and the
 Eq. (2) cost of the linear model can be evaluated hundreds of times.
 
-The model is nonlinear (springs rotate, cells change volume), and a probe's load moves its node
-a good fraction of h. Each round therefore (1) minimises
-the reduced cost (Nelder-Mead in log theta from the last minimiser), (2) solves the full linear
-model at the minimiser and adds that response to the basis, (3) solves the static equilibria
-there and keeps their difference delta_j from the linear responses, a *defect correction* added
-to the reduced model's displacements, ``Q y(theta) + delta_j``; until the minimiser stops moving.
-delta changes slowly with theta, so a few rounds (one linear and one warm-started static solve
-per load case each) reach the minimiser of the nonlinear cost, where a derivative-free polish
-on static solves would need a hundred.
+The model is nonlinear (springs rotate, cells change volume): the fit of the nonlinear cost
+corrects the reduced model's displacements by the defect of the static equilibria, round by
+round (:mod:`fpm.fitting.defect_correction`). The K_p are kept as their nonzero blocks, shared
+in one process (:mod:`fpm.fitting.unit_matrices`).
 
 Who does what in a calibration: the first basis (:func:`first_basis`: the response at the
 chains' start and how it turns) depends on the lattice, the loads and the start only, so it is
 built once (:class:`ReducedBasis`; the service's reduced-basis job, beside the FEM job); every
 chain anneals the reduced cost on it (no full solve); the defect-corrected fit
-(:func:`fit_reduced`) runs once, from the best chain's state, as the damping stage's polish.
+(:func:`fpm.fitting.defect_correction.fit_reduced`) runs once, from the best chain's state, as
+the damping stage's polish.
 """
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable, Iterable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import partial
 from typing import Any
@@ -40,26 +34,18 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 from numba import njit
-from scipy.optimize import minimize
 
-from ..dynamics.equilibrium import Equilibrium, StaticSolver
+from ..dynamics.equilibrium import StaticSolver
 from ..dynamics.modes import single_threaded_blas
 from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
-from ..model.forces import Stiffness
 from ..model.problem import Problem
-from ..model.stiffness import continuum_start, linear_parts, model_stiffness
+from ..model.stiffness import continuum_start, linear_parts
 from .annealing import AnnealingError
 from .bounds import fit_depth, stiffness_bounds
-from .cost import StaticCost
+from .unit_matrices import UnitMatrices, unit_matrices
 
-CONVERGED = 2e-3
-"""The fit has converged when no parameter moved more than this (relative) in a round."""
-FIRST_STEP = 0.2
-"""The first reduced fit's Nelder-Mead simplex, log units (later ones: twice the last move)."""
 RTOL = 1e-6
 """Relative residual of the full linear solves that enrich the basis."""
-MAX_EVALUATIONS = 400
-"""Nelder-Mead evaluations of the reduced cost per round."""
 
 
 @dataclass(frozen=True)
@@ -233,110 +219,6 @@ def _reduced_cost(basis: np.ndarray, y: np.ndarray, offset: np.ndarray) -> float
     return total
 
 
-SUM_PIECE = 1 << 16
-"""Blocks per piece when K(theta) is summed (:meth:`UnitMatrices.at`): 4.7 MB of products."""
-
-
-@dataclass(frozen=True)
-class _Unit:
-    """One K_p: its nonzero 3x3 blocks, where they sit in the list's block pattern, and their
-    own pattern (``scipy.sparse.bsr_matrix``'s indices and indptr)."""
-
-    values: np.ndarray  # (b, 3, 3)
-    positions: np.ndarray  # (b,) indices into the list's blocks
-    indices: np.ndarray
-    indptr: np.ndarray
-
-
-@dataclass(frozen=True)
-class UnitMatrices:
-    """The K_p of one perturbed list, (3M, 3M) N/m each (M the list's free nodes), each kept as
-    its nonzero 3x3 blocks only (a family's springs touch 7, 13 or 9 of the 27 blocks of a row,
-    the cells all 27), and K(theta) = sum_p theta_p K_p formed as block values on the list's
-    one block pattern (the springs' and cells'), not as a sum of sparse matrices. On the
-    93,705-node organ the four K_p take 0.36 GB (1.03 GB as CSR matrices, 0.68 GB on the full
-    pattern each) and K(theta) 0.17 GB, where the sum of scaled copies built several 0.26 GB
-    intermediates.
-
-    Attributes:
-        units: the K_p.
-        n_blocks: blocks of the list's pattern; indices, indptr: that pattern.
-    """
-
-    units: tuple[_Unit, ...]
-    n_blocks: int
-    indices: np.ndarray
-    indptr: np.ndarray
-
-    @classmethod
-    def of(cls, tangents: Iterable[sp.bsr_matrix]) -> UnitMatrices:
-        """From the K_p assembled on one block pattern, taken one at a time (their zero blocks
-        are dropped before the next is assembled)."""
-        units: list[_Unit] = []
-        indices = indptr = row = np.zeros(0, dtype=np.int32)
-        n_blocks = 0
-        for tangent in tangents:
-            if not units:
-                indices, indptr, n_blocks = tangent.indices, tangent.indptr, len(tangent.data)
-                row = np.repeat(np.arange(len(indptr) - 1), np.diff(indptr))
-            assert np.array_equal(tangent.indices, indices)  # one block pattern
-            positions = np.flatnonzero(np.any(tangent.data != 0.0, axis=(1, 2)))
-            own = np.zeros_like(indptr)
-            np.cumsum(np.bincount(row[positions], minlength=len(indptr) - 1), out=own[1:])
-            units.append(
-                _Unit(
-                    values=np.ascontiguousarray(tangent.data[positions]),
-                    positions=positions.astype(np.int32),
-                    indices=np.ascontiguousarray(indices[positions]),
-                    indptr=own,
-                )
-            )
-        return cls(tuple(units), n_blocks, indices, indptr)
-
-    def __len__(self) -> int:
-        return len(self.units)
-
-    def _bsr(self, data: np.ndarray, indices: np.ndarray, indptr: np.ndarray) -> sp.bsr_matrix:
-        n = 3 * (len(indptr) - 1)
-        return sp.bsr_matrix((data, indices, indptr), shape=(n, n), copy=False)
-
-    def matrix(self, p: int) -> sp.bsr_matrix:
-        """K_p on its own blocks (a view of the shared values: read only)."""
-        u = self.units[p]
-        return self._bsr(u.values, u.indices, u.indptr)
-
-    def at(self, theta: np.ndarray) -> sp.bsr_matrix:
-        """K(theta) = sum_p theta_p K_p (new values on the list's block pattern), summed a
-        piece of :data:`SUM_PIECE` blocks at a time (whole, the products and the gathered
-        blocks would be two more K(theta)-sized transients, 0.3 GB on the 93,705-node organ)."""
-        values = np.zeros((self.n_blocks, 3, 3))
-        for t, u in zip(np.asarray(theta, dtype=float), self.units, strict=True):
-            for start in range(0, len(u.positions), SUM_PIECE):
-                piece = slice(start, start + SUM_PIECE)
-                values[u.positions[piece]] += t * u.values[piece]  # positions are distinct
-        return self._bsr(values, self.indices, self.indptr)
-
-
-_UNITS = threading.Lock()
-
-
-def unit_matrices(
-    problem: Problem, system: Any, units: list[Any], depth: int | None
-) -> UnitMatrices:
-    """The K_p of one perturbed list, linearised at rest: built once per (depth, list) and kept
-    in ``problem.cache``, so that load cases with the same list and the chains running at once
-    in one process share them (read only)."""
-    key = (depth, system.free.tobytes())
-    with _UNITS:
-        cache = problem.cache.setdefault("reduced_units", {})
-        if key not in cache:
-            rest = np.zeros((system.n_free, 3))
-            cache[key] = UnitMatrices.of(
-                system.tangent(rest, system.parameters(s), modified=True) for s in units
-            )
-        return cache[key]
-
-
 class ReducedLinearModel:
     """The linear lattice of every load case on a growing basis (this module's docstring):
     Eq. (2) of the reduced model at any theta (:meth:`__call__`, given the reference by
@@ -489,142 +371,3 @@ def first_basis(problem: Problem) -> ReducedBasis:
 
 def _fmt(values: np.ndarray) -> str:
     return " / ".join(f"{v:.3g}" for v in values)
-
-
-DEFECT_ROUNDS = 8
-"""At most this many rounds: a reduced fit, then a full linear and a static solve per load case
-at its minimiser (the basis grows, the defect is renewed)."""
-
-
-CASE_SOLVERS = 2
-"""A round of :func:`fit_reduced` splits its solves over this many static solvers, each
-solving its share one after the other on a thread of its own: solver 0 (the cost's) every
-load case's full linear response (a CG from the reduced model's answer: after the first round
-a tenth of a static solve) and case 0's static equilibrium, the others the other cases'
-static equilibria in turn. On the organ at h = 3 mm the fit took 3.75-4.0 instead of 5.5 s on
-a quiet 2-core machine with case j wholly on solver j mod 2; with this split the 93,705-node
-organ's rounds are closer to even (static solves 2-6 s, responses 0.1-4.6 s). The answer does
-not depend on the threads (a solver's solves always run in the same order); each more solver
-would hold a multigrid hierarchy and a tangent buffer more (a third: +420 MiB at 93,705
-nodes, for 2.4 s)."""
-
-
-def fit_reduced(
-    cost: StaticCost,
-    basis: ReducedBasis,
-    start: list[float],
-    bounds: tuple[np.ndarray, np.ndarray],
-    progress: Callable[[dict[str, Any]], None] | None = None,
-    threads: int = CASE_SOLVERS,
-    after_round: Callable[[int], None] | None = None,
-) -> tuple[list[float], float, int]:
-    """Minimise Eq. (2) of the nonlinear static equilibria within ``bounds`` from ``start``:
-    reduced linear fits on ``basis`` with enrichment, corrected by the nonlinear defect until
-    the minimiser stops moving (this module's docstring).
-
-    Each round's full linear and static solves are split over static solvers
-    (:data:`CASE_SOLVERS`), the solvers' shares at once on ``threads`` threads with the same
-    answer to the bit. The static equilibria at the answer are left as ``cost``'s
-    warm starts, so a static solve there takes no Newton step. ``progress`` gets {phase:
-    "polish", round, evaluations} after each round; ``after_round`` the round's number, after
-    each round that goes on, while no solve runs (the damping stage starts the modes there:
-    :class:`fpm.dynamics.modes_ahead.ModesAhead`).
-
-    Returns (parameters, their normalised static cost (inf if a load case has no equilibrium),
-    the full linear solves it made)."""
-    problem = cost.problem
-    model = ReducedLinearModel.of(problem, basis, cost.reference)
-    n_cases = len(model.cases)
-    solvers = [cost.solver] + [StaticSolver(problem) for _ in range(1, min(CASE_SOLVERS, n_cases))]
-    # whose static equilibrium each solver finds (solver 0 also every linear response)
-    others = len(solvers) - 1
-    statics = [0 if j == 0 or not others else 1 + (j - 1) % others for j in range(n_cases)]
-    model.attach([solvers[0]] * n_cases, cost.depth)
-    lo, hi = np.log(bounds[0]), np.log(bounds[1])
-    y = np.clip(np.log(np.asarray(start, dtype=float)), lo, hi)
-    static = float("inf")
-    step = FIRST_STEP
-    solved: list[Equilibrium] = []
-    with ThreadPoolExecutor(threads, thread_name_prefix="reduced") as pool:
-        for rounds in range(1, DEFECT_ROUNDS + 1):
-            previous = y
-            y = _reduced_minimum(model, y, lo, hi, step)
-            step = max(min(step, 2 * float(np.abs(y - previous).max())), 10 * CONVERGED)
-            theta = np.exp(y)
-            stiffness = model_stiffness(problem, theta)
-            responses = model.responses(theta)
-            tasks = [
-                partial(_solver_round, list(enumerate(responses)) if g == 0 else [],
-                        [j for j in range(n_cases) if statics[j] == g], solver, stiffness,
-                        cost.depth)
-                for g, solver in enumerate(solvers)
-            ]  # fmt: skip
-            linear: dict[int, np.ndarray] = {}
-            equilibria: dict[int, Equilibrium] = {}
-            for found, solved_here in pool.map(lambda run: run(), tasks):
-                linear.update(found)
-                equilibria.update(solved_here)
-            model.add(linear[j] for j in range(n_cases))  # the basis grows
-            solved = [equilibria[j] for j in range(n_cases)]
-            if not all(e.converged for e in solved):
-                static = float("inf")
-                break
-            cost.evaluations += 1
-            static = sum(cost.case_cost(j, e.displacements) for j, e in enumerate(solved))
-            static /= cost.reference_cost
-            for case, equilibrium in zip(model.cases, solved, strict=True):
-                assert case.last is not None
-                defect = equilibrium.displacements[case.free] - case.last.reshape(-1, 3)
-                case.set_correction(defect)
-            if progress is not None:
-                progress({"phase": "polish", "round": rounds, "evaluations": cost.evaluations})
-            if float(np.abs(y - previous).max()) < CONVERGED:
-                break
-            if after_round is not None:
-                after_round(rounds)
-    for j, equilibrium in enumerate(solved):  # the other solvers' answers as cost's warm starts
-        if statics[j] and equilibrium.converged:
-            cost.solver.seed(j, stiffness, cost.depth, equilibrium.displacements)
-    return list(np.exp(y)), static, model.solves
-
-
-def _solver_round(
-    responses: list[tuple[int, Callable[[], np.ndarray]]],
-    statics: list[int],
-    solver: StaticSolver,
-    stiffness: Stiffness,
-    depth: int | None,
-) -> tuple[dict[int, np.ndarray], dict[int, Equilibrium]]:
-    """One solver's share of a round of :func:`fit_reduced`, one solve after the other: the
-    full linear responses of ``responses`` (load case j, the call from
-    :meth:`ReducedLinearModel.responses`, which solves on this solver), then the static
-    equilibria of load cases ``statics`` at ``stiffness`` on ``solver``. Returns ({j: response
-    (3M,)}, {j: equilibrium})."""
-    linear = {j: response() for j, response in responses}
-    return linear, {j: solver.solve(j, stiffness, depth) for j in statics}
-
-
-def _reduced_minimum(
-    model: ReducedLinearModel, y: np.ndarray, lo: np.ndarray, hi: np.ndarray, step: float
-) -> np.ndarray:
-    """log theta minimising the (corrected) reduced cost, Nelder-Mead from ``y`` with an initial
-    simplex of ``step`` (log units) along each parameter."""
-
-    def f(z: np.ndarray) -> float:
-        return model(np.exp(np.clip(z, lo, hi)))
-
-    value = f(y)
-    simplex = np.vstack([y] + [y + step * row for row in np.eye(len(y))])
-    r = minimize(
-        f,
-        y,
-        method="Nelder-Mead",
-        bounds=list(zip(lo, hi, strict=True)),
-        options={
-            "xatol": 0.1 * CONVERGED,
-            "fatol": 1e-7 * value,
-            "maxfev": MAX_EVALUATIONS,
-            "initial_simplex": np.clip(simplex, lo, hi),
-        },
-    )
-    return np.asarray(r.x)

@@ -19,9 +19,8 @@ JSON-able: the service runs each chain as a job and stores it.
 
 After the chains (two-stage, :func:`fpm.fitting.damping_stage.fit_damping`), :func:`polish`
 refines the best state by a bounded local minimisation of the static cost in log theta
-(families+volume: :func:`fpm.fitting.reduced.fit_reduced` instead); a families fit is polished
-under ceilings, the single-k fit's per-case costs
-(:func:`constrained_cost`).
+(families+volume: :func:`fpm.fitting.defect_correction.fit_reduced` instead); a families fit
+is polished under ceilings, the single-k fit's per-case costs (:func:`constrained_cost`).
 """
 
 from __future__ import annotations
