@@ -28,7 +28,7 @@ import pytest
 from helpers_fpm import box_spec, chain_spec, network_spec, spring_forces
 
 import fpm
-import fpm.dynamics.equilibrium as equilibrium
+import fpm.dynamics.newton as newton
 from fpm.dynamics.equilibrium import (
     Equilibrium,
     EquilibriumError,
@@ -183,7 +183,7 @@ def test_an_unheld_solid_fails_clearly():
 
 
 def test_gives_up_after_the_iteration_limit(paper: fpm.Problem, monkeypatch: pytest.MonkeyPatch):
-    monkeypatch.setattr(equilibrium, "MAX_ITERATIONS", 1)
+    monkeypatch.setattr(newton, "MAX_ITERATIONS", 1)
     result = StaticSolver(paper).solve(2, spring_stiffness(paper, K_A), None)
     assert not result.converged and result.iterations == 1
     assert "no convergence in 1 Newton iterations" in result.message
