@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 import fpm
@@ -89,3 +91,24 @@ def test_the_default_depth_is_every_layer():
     assert fit_depth(problem) is None
     assert problem.spec.fpm.layers is None
     assert fpm.load_problem({**problem.spec.model_dump(), "fpm": {"depth": 4}}).spec.fpm.layers == 4
+
+
+def test_no_equilibrium_at_full_depth_keeps_full_depth(monkeypatch):
+    """A stiffness with no finite cost at full depth (a load case diverged: its case costs stop
+    there, shorter than the load cases) leaves nothing to cut against: full depth, no probe.
+    (A fuzzed spec, nu -0.999 on a 2 x 3 x 2 bar 1 m long, ended in a ValueError of zip.)"""
+    problem = bar_problem()
+    theta = continuum_start(problem)
+    cost = StaticCost(problem, np.zeros((1, problem.n_nodes, 3)), None)
+    called = []
+    real = StaticCost.__call__
+
+    def diverged_at_full_depth(self, theta, depth=None):
+        called.append(depth)
+        ev = real(self, theta, depth)
+        return dataclasses.replace(ev, cost=float("inf"), case_costs=[]) if depth is None else ev
+
+    monkeypatch.setattr(StaticCost, "__call__", diverged_at_full_depth)
+    depth, deepest, probed = resolve_depth(cost, theta, TOLERANCE)
+    assert depth == deepest == full_depth(problem) and probed == {deepest: []}
+    assert called == [None]

@@ -52,14 +52,17 @@ def resolve_depth(
     the probe's list. The answer is usually close to full depth (32 of 33 layers on the organ at
     h = 3 mm with the cost test alone: 2 probes where bisection from 0 takes 6, each of the
     deepest, costliest lists). Returns (depth, full depth, {depth probed: case costs, m}; a
-    depth the response test's bound refused has no costs).
+    depth the response test's bound refused has no costs). Where full depth has no finite cost
+    (a load case diverged or found no equilibrium: its case costs stop there), full depth.
     """
     full = cost(theta, None)
     deepest = full_depth(cost.problem)
     probed: dict[int, list[float]] = {deepest: full.case_costs}
+    if not math.isfinite(full.cost):  # no equilibrium at full depth: nothing to cut against
+        return deepest, deepest, probed
     stiffness = model_stiffness(cost.problem, theta)
     # each probe starts from full depth's equilibria (a warm solve returns them as they are)
-    cases = range(len(cost.problem.load_cases)) if math.isfinite(full.cost) else range(0)
+    cases = range(len(cost.problem.load_cases))
     shapes = [cost.displacements(theta, j, None).displacements for j in cases]
     responses = OwnResponses.at_full_depth(cost, stiffness, full.case_costs, tolerance)
 
