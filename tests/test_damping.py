@@ -20,17 +20,11 @@ from fpm.dynamics.stability import auto_time_step
 from fpm.dynamics.voigt import SETTLED
 from fpm.fitting import damping
 from fpm.fitting.damping import (
-    CHUNK,
     MARGIN_PROBES,
-    PREDICT_AFTER,
-    SAMPLE,
     TRUST,
-    CaseRun,
     DampingError,
     Hopeless,
     _hopeless,
-    _piece,
-    _Runs,
     _search,
     _smallest_settling,
     _unsure,
@@ -38,9 +32,17 @@ from fpm.fitting.damping import (
     critical_damping,
     fastest_damping,
     long_decay,
-    predicted_steps,
 )
 from fpm.fitting.damping_stage import find_damping
+from fpm.fitting.lockstep import (
+    CHUNK,
+    PREDICT_AFTER,
+    SAMPLE,
+    CaseRun,
+    _piece,
+    _Runs,
+    predicted_steps,
+)
 from fpm.model.forces import Stiffness
 from fpm.model.stiffness import model_stiffness, spring_stiffness
 
@@ -203,7 +205,7 @@ class _Edge:
         self.ahead: list[float] = []
 
     def __call__(self, d: float, caps: list[int], *, estimate: bool = False) -> tuple[list, Any]:
-        from fpm.fitting.damping import Verdict
+        from fpm.fitting.lockstep import Verdict
 
         self.probed.append(d)
         return [], Verdict("settles" if d >= self.edge else "failed")

@@ -12,8 +12,9 @@ import pytest
 import scipy.linalg as sla
 
 import fpm
+from fpm.dynamics.eigen import lowest_modes
 from fpm.dynamics.equilibrium import StaticSolver
-from fpm.dynamics.modes import case_models, lowest_modes, predict_damping
+from fpm.dynamics.modes import case_models, predict_damping
 from fpm.dynamics.settle import (
     FLOOR,
     NOMINAL,

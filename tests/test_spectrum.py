@@ -13,15 +13,9 @@ import scipy.sparse as sp
 from pydantic import ValidationError
 
 import fpm
+from fpm.dynamics.eigen import DENSE_UP_TO, Modes, lowest_modes, single_threaded_blas
 from fpm.dynamics.equilibrium import StaticSolver
-from fpm.dynamics.modes import (
-    DENSE_UP_TO,
-    Modes,
-    lowest_modes,
-    mode_damping,
-    predict_damping,
-    single_threaded_blas,
-)
+from fpm.dynamics.modes import mode_damping, predict_damping
 from fpm.dynamics.settle import nominal_distance, run_criterion
 from fpm.dynamics.simulation import FpmModel
 from fpm.dynamics.spring_system import Params

@@ -2,9 +2,9 @@
 
 The d search's dearest runs are the predicted d's, every load case run to its end
 (docs/explanation/physics/damping-search.md, *Confirmation*): each case's run is independent of
-the others' (:func:`fpm.fitting.damping.run_case`). Then come the d that confirm it, where the
+the others' (:func:`fpm.fitting.lockstep.run_case`). Then come the d that confirm it, where the
 reduced steps cannot rule them out, and the margin's probes, each a d's lockstep runs whose
-requests the search can name before it needs them (:meth:`fpm.fitting.damping._Runs.prefetch`).
+requests the search can name before it needs them (:meth:`fpm.fitting.lockstep._Runs.prefetch`).
 The damping job hands them out as tasks:
 
 - each task (the plan, and one load case at d with its cap, or one d's request) is stored
@@ -44,7 +44,8 @@ from rq.job import Job
 from rq.worker import BaseWorker
 
 from fpm.dynamics.simulation import FpmModel
-from fpm.fitting.damping import (
+from fpm.fitting.damping_stage import DampingPlan
+from fpm.fitting.lockstep import (
     LATER,
     CaseRun,
     Outcome,
@@ -56,7 +57,6 @@ from fpm.fitting.damping import (
     run_case,
     run_request,
 )
-from fpm.fitting.damping_stage import DampingPlan
 from fpm.fitting.validation import Validation, validate
 from fpm.model.stiffness import model_stiffness
 from store import graph, keys, records, scratch
@@ -227,7 +227,7 @@ def run_task(
 
 def task_clock() -> float:
     """A task run on one of the damping job's threads: that thread's CPU seconds and those
-    its lockstep runs spent on the pool's threads (:func:`fpm.fitting.damping.lockstep_cpu`)."""
+    its lockstep runs spent on the pool's threads (:func:`fpm.fitting.lockstep.lockstep_cpu`)."""
     return time.thread_time() + lockstep_cpu()
 
 
@@ -264,7 +264,7 @@ def local_threads(redis: Redis, me: str, cores: int, queued: int = 0) -> int:
 
 
 class CaseSpread:
-    """The damping job's :class:`fpm.fitting.damping.Spread`: its runs as tasks, handed to
+    """The damping job's :class:`fpm.fitting.lockstep.Spread`: its runs as tasks, handed to
     free workers and run here when nobody took them (the module docstring).
 
     Args:

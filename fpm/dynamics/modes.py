@@ -72,16 +72,7 @@ import scipy.sparse as sp
 from ..fem.linear_solver import SingularStiffnessError
 from ..model.forces import Stiffness
 from ..model.problem import Problem
-
-# The modes themselves live in fpm.dynamics.eigen; their names stay importable from here.
-from .eigen import COARSE_UP_TO as COARSE_UP_TO
-from .eigen import CYCLE_THREADS as CYCLE_THREADS
 from .eigen import DENSE_UP_TO, MODES, Modes, _gram, _gram_into, lowest_modes, single_threaded_blas
-from .eigen import EXTRA as EXTRA
-from .eigen import MAX_ITERATIONS as MAX_ITERATIONS
-from .eigen import SETTLED_VALUES as SETTLED_VALUES
-from .eigen import THREADED_FROM as THREADED_FROM
-from .eigen import TOLERANCE as TOLERANCE
 from .equilibrium import StaticSolver
 from .settle import by_distance, force_tolerance, mode_stiffness, nodal_size, nominal_distance
 from .spring_system import Params, SpringSystem

@@ -62,13 +62,8 @@ from ..dynamics.stability import auto_time_step, time_step
 from ..dynamics.voigt import SETTLED
 from ..model.forces import Stiffness
 from ..model.problem import Problem
-
-# The runs and verdicts live in fpm.fitting.lockstep; their names stay importable from here.
-from .lockstep import CHUNK as CHUNK
-from .lockstep import HOLD as HOLD
-from .lockstep import LATER as LATER
-from .lockstep import LOOK as LOOK
 from .lockstep import (
+    CHUNK,
     MARGIN_CAP,
     PRUNE,
     CaseRun,
@@ -76,20 +71,6 @@ from .lockstep import (
     Spread,
     _Runs,
 )
-from .lockstep import PREDICT_AFTER as PREDICT_AFTER
-from .lockstep import SAMPLE as SAMPLE
-from .lockstep import Outcome as Outcome
-from .lockstep import Resolve as Resolve
-from .lockstep import Verdict as Verdict
-from .lockstep import _piece as _piece
-from .lockstep import lockstep_cpu as lockstep_cpu
-from .lockstep import named_later as named_later
-from .lockstep import predicted_steps as predicted_steps
-from .lockstep import replay_verdict as replay_verdict
-from .lockstep import run_case as run_case
-from .lockstep import run_request as run_request
-from .lockstep import settled_total as settled_total
-from .lockstep import verdict_at as verdict_at
 
 BRACKET_STEP = 1.25
 """Smallest first step of the bracket, as a factor on d (used when the two guesses are closer

@@ -26,14 +26,9 @@ from typing import Any
 
 import numpy as np
 
+from ..dynamics.eigen import Modes, single_threaded_blas
 from ..dynamics.equilibrium import StaticSolver
-from ..dynamics.modes import (
-    FALLBACK_STEPS,
-    Modes,
-    auto_max_steps,
-    predict_damping,
-    single_threaded_blas,
-)
+from ..dynamics.modes import FALLBACK_STEPS, auto_max_steps, predict_damping
 from ..dynamics.modes_ahead import ModesAhead
 from ..dynamics.settle import by_distance, case_distances, nominal_distance
 from ..dynamics.stability import stable_time_step, time_step
@@ -43,11 +38,12 @@ from ..model.problem import Problem
 from ..model.stiffness import has_volume, is_extended, is_field, model_stiffness
 from .bounds import damping_bounds, fit_depth, full_depth, stiffness_bounds
 from .cost import StaticCost
-from .damping import DampingFit, Spread, critical_damping, fastest_damping
+from .damping import DampingFit, critical_damping, fastest_damping
 from .defect_correction import fit_reduced
 from .depth import resolve_depth
 from .diagnosis import SMALL_STRAIN
 from .field import fit_field
+from .lockstep import Spread
 from .reduced import ReducedBasis, first_basis
 from .stiffness_stage import (
     POLISH_SPAN,
@@ -182,7 +178,7 @@ def fit_damping(
 
     ``spread``: given the :class:`DampingPlan` (what a run needs besides d and its caps) and
     the static equilibria (L, N, 3) m its runs settle towards (None: none),
-    the :class:`~fpm.fitting.damping.Spread` that runs the predicted d's load cases and the
+    the :class:`~fpm.fitting.lockstep.Spread` that runs the predicted d's load cases and the
     d tried next over other processes (None: here); the worker hands them to free workers
     (:mod:`worker.spread`). The answer does not depend on it. ``validator``: where the
     validation cases are solved (None: on a thread beside the stage).

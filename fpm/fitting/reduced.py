@@ -35,8 +35,8 @@ import numpy as np
 import scipy.sparse as sp
 from numba import njit
 
+from ..dynamics.eigen import single_threaded_blas
 from ..dynamics.equilibrium import StaticSolver
-from ..dynamics.modes import single_threaded_blas
 from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
 from ..model.problem import Problem
 from ..model.stiffness import continuum_start, linear_parts

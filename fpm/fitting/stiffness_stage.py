@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize, minimize_scalar
 
-from ..dynamics.modes import single_threaded_blas
+from ..dynamics.eigen import single_threaded_blas
 from ..dynamics.settle import force_tolerance
 from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
 from ..model.problem import Problem

@@ -45,8 +45,8 @@ def fpm_equilibria(lattice: Lattice) -> tuple[np.ndarray, np.ndarray, list[str]]
     import os
     from concurrent.futures import ThreadPoolExecutor
 
+    from ...dynamics.eigen import single_threaded_blas
     from ...dynamics.equilibrium import StaticSolver
-    from ...dynamics.modes import single_threaded_blas
 
     problem, p = lattice.problem, lattice.params
     stiffness = model_stiffness(problem, p.theta(problem))
