@@ -14,7 +14,7 @@ import scipy.linalg as sla
 import fpm
 from fpm.dynamics.eigen import lowest_modes
 from fpm.dynamics.equilibrium import StaticSolver
-from fpm.dynamics.modes import case_models, predict_damping
+from fpm.dynamics.modes import predict_damping
 from fpm.dynamics.settle import (
     FLOOR,
     NOMINAL,
@@ -29,6 +29,7 @@ from fpm.dynamics.settle import (
 )
 from fpm.dynamics.simulation import fpm_model
 from fpm.dynamics.stability import stable_time_step
+from fpm.dynamics.step_caps import case_models
 from fpm.fitting.bounds import damping_bounds
 from fpm.fitting.lockstep import run_case
 from fpm.model.stiffness import continuum_start, model_stiffness

@@ -15,7 +15,8 @@ from pydantic import ValidationError
 import fpm
 from fpm.dynamics.eigen import DENSE_UP_TO, Modes, lowest_modes, single_threaded_blas
 from fpm.dynamics.equilibrium import StaticSolver
-from fpm.dynamics.modes import mode_damping, predict_damping
+from fpm.dynamics.modes import predict_damping
+from fpm.dynamics.reduced_step import mode_damping
 from fpm.dynamics.settle import nominal_distance, run_criterion
 from fpm.dynamics.simulation import FpmModel
 from fpm.dynamics.spring_system import Params
@@ -237,7 +238,7 @@ def test_max_steps_auto_is_the_default_and_numbers_stay_valid():
 
 
 def test_simulate_resolves_auto_from_the_modes_and_an_explicit_number_bounds_the_work():
-    from fpm.dynamics.modes import AUTO_MIN_STEPS, predicted_max_steps
+    from fpm.dynamics.step_caps import AUTO_MIN_STEPS, predicted_max_steps
 
     problem = box((6, 4, 4), "families+volume")
     theta = theta_of(problem)

@@ -408,7 +408,7 @@ def simulate(
     distance = tolerance is None and by_distance(problem.spec)
     models = None
     if cap == "auto" or distance:  # from the lattice's slowest modes (fpm.dynamics.modes)
-        from .modes import FALLBACK_STEPS, SCHEMA_MAX_STEPS, auto_max_steps, case_models
+        from .step_caps import FALLBACK_STEPS, SCHEMA_MAX_STEPS, auto_max_steps, case_models
 
         model = stiffness if isinstance(stiffness, Stiffness) else model_stiffness(problem, k)
         models = case_models(problem, model, depth, step, [load_case])

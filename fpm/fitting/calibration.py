@@ -51,7 +51,7 @@ from typing import Any
 
 import numpy as np
 
-from ..dynamics.modes import fixed_max_steps
+from ..dynamics.step_caps import fixed_max_steps
 from ..model import materials
 from ..model.problem import Problem
 from ..model.stiffness import has_volume, stiffness_dict, volume_stiffness

@@ -19,9 +19,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..dynamics.modes import fixed_max_steps
 from ..dynamics.settle import force_tolerance
 from ..dynamics.simulation import FpmModel
+from ..dynamics.step_caps import fixed_max_steps
 from ..model.forces import Stiffness
 from ..model.problem import Problem
 from ..model.stiffness import model_stiffness

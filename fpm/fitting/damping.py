@@ -50,15 +50,11 @@ from typing import Any
 
 import numpy as np
 
-from ..dynamics.modes import (
-    FALLBACK_STEPS,
-    SCHEMA_MAX_STEPS,
-    Prediction,
-    StepModel,
-    total_steps,
-)
+from ..dynamics.modes import Prediction, total_steps
+from ..dynamics.reduced_step import StepModel
 from ..dynamics.simulation import DynamicRun
 from ..dynamics.stability import auto_time_step, time_step
+from ..dynamics.step_caps import FALLBACK_STEPS, SCHEMA_MAX_STEPS
 from ..dynamics.voigt import SETTLED
 from ..model.forces import Stiffness
 from ..model.problem import Problem

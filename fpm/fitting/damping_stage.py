@@ -28,10 +28,11 @@ import numpy as np
 
 from ..dynamics.eigen import Modes, single_threaded_blas
 from ..dynamics.equilibrium import StaticSolver
-from ..dynamics.modes import FALLBACK_STEPS, auto_max_steps, predict_damping
+from ..dynamics.modes import predict_damping
 from ..dynamics.modes_ahead import ModesAhead
 from ..dynamics.settle import by_distance, case_distances, nominal_distance
 from ..dynamics.stability import stable_time_step, time_step
+from ..dynamics.step_caps import FALLBACK_STEPS, auto_max_steps
 from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
 from ..model.forces import Stiffness
 from ..model.problem import Problem

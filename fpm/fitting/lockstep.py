@@ -26,9 +26,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from ..dynamics.modes import fixed_max_steps
 from ..dynamics.settle import run_criterion
 from ..dynamics.simulation import DynamicRun, FpmModel
+from ..dynamics.step_caps import fixed_max_steps
 from ..dynamics.voigt import DIVERGED, INVERTED, RUNNING, SETTLED
 from ..model.forces import Stiffness
 from ..model.problem import Problem

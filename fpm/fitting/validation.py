@@ -24,7 +24,6 @@ from typing import Any
 import numpy as np
 
 from ..dynamics.equilibrium import Equilibrium, static_equilibrium
-from ..dynamics.modes import fixed_max_steps
 from ..dynamics.settle import (
     PROMISE,
     estimated_distance,
@@ -34,6 +33,7 @@ from ..dynamics.settle import (
     run_criterion,
 )
 from ..dynamics.simulation import SimulationResult, fpm_model, simulate
+from ..dynamics.step_caps import fixed_max_steps
 from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
 from ..model.problem import Problem
 from ..model.stiffness import fitted_theta, model_stiffness

@@ -231,7 +231,7 @@ def settle_parameters(lattice: Lattice) -> dict[str, Any]:
     cases = len(problem.load_cases)
     models = None
     if by_distance(problem.spec):
-        from ...dynamics.modes import case_models
+        from ...dynamics.step_caps import case_models
 
         p = lattice.params
         stiffness = model_stiffness(problem, p.theta(problem))
@@ -249,7 +249,7 @@ def resolved_max_steps(lattice: Lattice) -> int:
     value = lattice.problem.spec.fpm.max_steps
     if value != "auto":
         return int(value)
-    from ...dynamics.modes import predicted_max_steps
+    from ...dynamics.step_caps import predicted_max_steps
 
     p = lattice.params
     stiffness = model_stiffness(lattice.problem, p.theta(lattice.problem))
