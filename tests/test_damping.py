@@ -19,20 +19,7 @@ from fpm.dynamics.simulation import FpmModel
 from fpm.dynamics.stability import auto_time_step
 from fpm.dynamics.voigt import SETTLED
 from fpm.fitting import damping
-from fpm.fitting.damping import (
-    MARGIN_PROBES,
-    TRUST,
-    DampingError,
-    Hopeless,
-    _hopeless,
-    _search,
-    _smallest_settling,
-    _unsure,
-    _what_would_work,
-    critical_damping,
-    fastest_damping,
-    long_decay,
-)
+from fpm.fitting.damping import TRUST, _search, _unsure, critical_damping, fastest_damping
 from fpm.fitting.damping_stage import find_damping
 from fpm.fitting.lockstep import (
     CHUNK,
@@ -43,6 +30,8 @@ from fpm.fitting.lockstep import (
     _Runs,
     predicted_steps,
 )
+from fpm.fitting.margin import MARGIN_PROBES, smallest_settling
+from fpm.fitting.unsettled import DampingError, Hopeless, hopeless, long_decay, what_would_work
 from fpm.model.forces import Stiffness
 from fpm.model.stiffness import model_stiffness, spring_stiffness
 
@@ -227,9 +216,9 @@ def test_the_margin_uses_the_searchs_own_runs_and_finds_the_edge(edge):
     forecast = {math.log(d): (150.0, 150.0) if d >= edge else (500.0, 500.0) for d in (0.4, 0.7)}
     with_runs, blind = _Edge(edge), _Edge(edge)
     d_min = math.exp(
-        _smallest_settling(with_runs, steps, forecast, y_best, math.log(0.01), 1000, step)
+        smallest_settling(with_runs, steps, forecast, y_best, math.log(0.01), 1000, step)
     )
-    d_blind = math.exp(_smallest_settling(blind, steps, {}, y_best, math.log(0.01), 1000, step))
+    d_blind = math.exp(smallest_settling(blind, steps, {}, y_best, math.log(0.01), 1000, step))
     for found in (d_min, d_blind):
         assert edge <= found <= edge * math.exp(step / 2) * (1 + 1e-9)
     assert len(with_runs.probed) <= len(blind.probed)
@@ -250,9 +239,7 @@ def test_the_margin_from_the_reduced_steps_edge_probes_it_first(edge):
     steps = {0.0: [100, 100]}
     runs = _Edge(edge)
     predicted = math.log(0.9)
-    d_min = math.exp(
-        _smallest_settling(runs, steps, {}, 0.0, math.log(0.01), 1000, step, predicted)
-    )
+    d_min = math.exp(smallest_settling(runs, steps, {}, 0.0, math.log(0.01), 1000, step, predicted))
     below = 0.9 / math.exp(step / 2)
     assert len(runs.probed) <= MARGIN_PROBES
     assert d_min >= edge and all(d < 1.0 for d in runs.probed)
@@ -397,9 +384,9 @@ def test_no_probe_repeats_what_the_searchs_own_runs_said(bar: fpm.Problem, monke
     monkeypatch.setattr(_Runs, "__call__", probe)
     runs, coarse = _Runs(bar, stiffness, None, dt), _Runs(bar, stiffness, None, 2 * dt)
     try:
-        said = _what_would_work(runs, 0.4, 1_000_000)
+        said = what_would_work(runs, 0.4, 1_000_000)
         assert "no d settles within 1000000 steps" in said and probes == []
-        said = _what_would_work(coarse, 0.4, 2000)
+        said = what_would_work(coarse, 0.4, 2000)
         assert probes == [dt] and "settles within" in said
     finally:
         runs.close()
@@ -414,10 +401,10 @@ def test_a_case_whose_settling_recedes_as_its_cap_grows_is_named():
     earlier = [(13_812, 30_000.0, True), (1_803, 1_803.0, False)]
     settled = (1_803, 1_803.0, False)
     with pytest.raises(DampingError, match="load case 'pull' does not settle: .* creeps"):
-        _hopeless(problem, 0.02, [(55_000, 55_000.0, True), settled], 10**6, True, [], earlier)
-    _hopeless(problem, 0.02, [(41_000, 41_000.0, False), settled], 10**6, True, [], earlier)
-    _hopeless(problem, 0.02, [(20_000, 90_000.0, True), settled], 10**6, True, [], earlier)
-    _hopeless(problem, 0.02, [(55_000, 90_000.0, True), settled], 10**6, True, [], None)
+        hopeless(problem, 0.02, [(55_000, 55_000.0, True), settled], 10**6, True, [], earlier)
+    hopeless(problem, 0.02, [(41_000, 41_000.0, False), settled], 10**6, True, [], earlier)
+    hopeless(problem, 0.02, [(20_000, 90_000.0, True), settled], 10**6, True, [], earlier)
+    hopeless(problem, 0.02, [(55_000, 90_000.0, True), settled], 10**6, True, [], None)
 
 
 def test_a_hopeless_case_is_not_retried_under_a_larger_cap(bar: fpm.Problem, monkeypatch):

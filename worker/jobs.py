@@ -41,9 +41,9 @@ from fpm.fitting.calibration import (
     fit_damping,
     run_chain,
 )
-from fpm.fitting.damping import DampingError, Hopeless
 from fpm.fitting.damping_stage import DampingPlan
 from fpm.fitting.reduced import ReducedBasis, first_basis
+from fpm.fitting.unsettled import DampingError, Hopeless
 from fpm.fitting.validation import validate
 from fpm.io.export import ExportError, export
 from store import keys, records, scratch

@@ -53,20 +53,20 @@ import numpy as np
 from ..dynamics.modes import Prediction, total_steps
 from ..dynamics.reduced_step import StepModel
 from ..dynamics.simulation import DynamicRun
-from ..dynamics.stability import auto_time_step, time_step
+from ..dynamics.stability import time_step
 from ..dynamics.step_caps import FALLBACK_STEPS, SCHEMA_MAX_STEPS
 from ..dynamics.voigt import SETTLED
 from ..model.forces import Stiffness
 from ..model.problem import Problem
 from .lockstep import (
-    CHUNK,
-    MARGIN_CAP,
     PRUNE,
     CaseRun,
     Request,
     Spread,
     _Runs,
 )
+from .margin import predicted_edge, smallest_settling
+from .unsettled import DampingError, Hopeless, ShortCap, hopeless, long_decay, what_would_work
 
 BRACKET_STEP = 1.25
 """Smallest first step of the bracket, as a factor on d (used when the two guesses are closer
@@ -82,15 +82,6 @@ REFINE_STEPS = 4
 FLAT = 0.02
 """The refinement stops once both neighbours of the best d settle within this fraction of its
 total steps (the steps-versus-d curve is flat there)."""
-MARGIN_PROBES = 2
-"""With a prediction, the margin search asks for at most this many probes: the reduced step's
-edge (run at once beside the predicted d's runs where a worker is free), and half a walk's step
-(12%) below it only where the edge settles. d_min is then the smallest d found that settles,
-bracketed to 1.12x or by the tried d above the edge. The edge comes first because on the target
-criterion runs 12% below it do not settle within the caps on the organs measured, so a probe
-there tells nothing the edge's own failure does not; an open walk down would take more probes
-than the fastest d's own runs (docs/notes/2026-11-28-calibration-measured.md, *The margin's
-order*)."""
 CONFIRM = 1.04
 """The runs that confirm a predicted d sit this factor below and above it."""
 TRUST = 2.0
@@ -103,26 +94,6 @@ RETRIES = 2
 """With fpm.max_steps 'auto', a search in which nothing settles within the predicted cap is
 repeated this many times more with MAX_STEPS_GROWTH times the cap (up to the schema's 10^6)."""
 MAX_STEPS_GROWTH = 4
-HOPELESS = 10.0
-"""The search stops at once (:class:`DampingError` naming the load case) when a case's run at
-the predicted d reaches its cap unsettled and the decay of its residual, which is how fast its
-distance from equilibrium shrinks towards its settle distance
-(:func:`long_decay`), predicts more than this many times the step
-budget: fpm.max_steps, or under 'auto' the schema's 10^6 its cap may grow to. Its cap would
-otherwise grow and the whole range of d be scanned at the budget's steps per case, only to reach
-the same verdict. The slack covers the decay's error early in a long run (it can over-predict a
-slender bar's steps several times)."""
-HOPELESS_AFTER = 10_000
-"""... and only once that run has taken at least this many steps (or the whole budget, if
-smaller); a run whose distance has not shrunk at all, only after a tenth of the budget: a
-lattice can ring for tens of thousands of steps before its decay shows (the transversely
-isotropic block of docs/howto/regions-and-anisotropy.md settles, but only after that long)."""
-
-
-def _read_after(need: float, limit: int) -> float:
-    """The steps a run at its cap must have taken before its decay (``need``, the steps it
-    predicts; inf: not shrinking) may stop the search, against the budget ``limit``."""
-    return min(HOPELESS_AFTER, limit) if math.isfinite(need) else limit / 10
 
 
 @dataclass
@@ -239,12 +210,12 @@ def fastest_damping(
             ``distances`` (L,) their settle distances: with ``settle``, the runs settle on the
             target criterion (``spread`` has them too).
         why: per load case, what may keep it from settling (its strain), said when it cannot
-            settle within the budget (:data:`HOPELESS`).
+            settle within the budget (:data:`fpm.fitting.unsettled.HOPELESS`).
 
     Raises:
         DampingError: no d in the bounds settles every load case within max_steps; or, as
             soon as the predicted d's runs say so, a load case cannot settle within the step
-            budget (:data:`HOPELESS`), naming it.
+            budget (:data:`fpm.fitting.unsettled.HOPELESS`), naming it.
     """
     if max_steps is None:
         value = problem.spec.fpm.max_steps
@@ -271,7 +242,7 @@ def fastest_damping(
                 limit=(limit, auto, list(why or [])),
                 earlier=earlier,
             )
-        except _ShortCap as short:  # the predicted d's runs need more steps than the cap
+        except ShortCap as short:  # the predicted d's runs need more steps than the cap
             need, earlier = short.args
         except Hopeless:  # no larger cap helps
             raise
@@ -301,13 +272,13 @@ def _search(
     """The search (:func:`fastest_damping`); ``explain``: a failure says what would work (one
     probe run of up to PROBE_STEPS times max_steps), else it only says that nothing settled;
     ``grow``: the cap may grow (fpm.max_steps 'auto'), so if the predicted d's runs reach it
-    unsettled, :class:`_ShortCap` says how many steps they need (their decay's prediction)
+    unsettled, :class:`ShortCap` says how many steps they need (their decay's prediction)
     at once, rather than searching on under a cap that is too small; ``limit``: (the step
     budget, whether it is 'auto''s, per load case what may keep it from settling): a case
     that the predicted d's runs show cannot settle within it ends the search
-    (:func:`_hopeless`), as does one whose cap grew to what its decay asked for at the last
-    cap (``earlier``: (steps, predicted steps, still moving) per case there) and that reached
-    it unsettled again."""
+    (:func:`fpm.fitting.unsettled.hopeless`), as does one whose cap grew to what its decay
+    asked for at the last cap (``earlier``: (steps, predicted steps, still moving) per case
+    there) and that reached it unsettled again."""
     lo, hi = round(math.log(bounds[0]), 12), round(math.log(bounds[1]), 12)
     max_steps = runs.max_steps
     steps: dict[float, list[int] | None] = {}  # log d -> steps per case (None: not settled)
@@ -391,11 +362,10 @@ def _search(
         caps = (max_steps,) * runs.cases
         sides = [y for y in dict.fromkeys(key(y) for y in (left, right)) if y != key(mid)]
         # Where other workers are free the margin's edge probe runs beside the predicted d's,
-        # its caps named from their steps should it stay the fastest (:func:`_smallest_settling`).
+        # its caps named from their steps should it stay the fastest
+        # (:func:`fpm.fitting.margin.smallest_settling`).
         beside: list[Request] = []
-        edge = (
-            None if models is None else _predicted_edge(models, math.exp(key(mid)), lo, max_steps)
-        )
+        edge = None if models is None else predicted_edge(models, math.exp(key(mid)), lo, max_steps)
         if edge is not None and round(edge, 12) < key(mid):
             beside.append(Request(math.exp(round(edge, 12)), caps, None, estimate=True,
                                   caps_later=True))  # fmt: skip
@@ -403,9 +373,9 @@ def _search(
         # slender bar it can over-predict the steps several times).
         f_mid = total(mid, to_cap=True, beside=beside)
         if limit is not None and key(mid) in needs:
-            _hopeless(runs.problem, math.exp(key(mid)), needs[key(mid)], *limit, earlier)
+            hopeless(runs.problem, math.exp(key(mid)), needs[key(mid)], *limit, earlier)
         if grow and key(mid) in short:
-            raise _ShortCap(short[key(mid)], needs.get(key(mid)))
+            raise ShortCap(short[key(mid)], needs.get(key(mid)))
         # A side runs only where the reduced steps cannot rule it out (:func:`_unsure`); both
         # at once where other workers are free: right's budget is mid's total unless left
         # turns out faster (then right runs anew, with left's).
@@ -451,7 +421,7 @@ def _search(
             raise DampingError(
                 f"no d in [{bounds[0]:.3g}, {bounds[1]:.3g}] N s/m settles every load case "
                 f"within max_steps={max_steps} at dt = {runs.dt:.3g} s"
-                + (": " + _what_would_work(runs, math.exp(y0), max_steps) if explain else "")
+                + (": " + what_would_work(runs, math.exp(y0), max_steps) if explain else "")
             )
     # Refine: golden-section steps between the best d and its tried neighbours.
     for _ in range(REFINE_STEPS):
@@ -464,13 +434,13 @@ def _search(
     y_best, displacements, residuals = best
     edge = None
     if models is not None:
-        edge = _predicted_edge(models, math.exp(y_best), lo, max_steps)
+        edge = predicted_edge(models, math.exp(y_best), lo, max_steps)
     return DampingFit(
         d=math.exp(y_best),
         steps=list(steps[y_best] or []),
         displacements=displacements,
         d_min=math.exp(
-            _smallest_settling(
+            smallest_settling(
                 runs, steps, forecast, y_best, lo, max_steps, math.log(BRACKET_STEP), edge
             )
         ),
@@ -506,30 +476,6 @@ def _unsure(models: list[StepModel], measured: list[int] | None, y: float, y_mid
     return not excess > TRUST * error
 
 
-def _predicted_edge(models: list[StepModel], d_best: float, lo: float, cap: int) -> float | None:
-    """log d of the reduced steps' estimate of the margin: the smallest d (by bisection on log
-    d, to 1%) whose predicted steps stay within MARGIN_CAP times their own at ``d_best`` in
-    every load case; None if they do not settle at ``d_best``."""
-    fastest = [m.steps(d_best, cap) for m in models]
-    if not all(math.isfinite(f) and f > 0 for f in fastest):
-        return None
-    caps = [MARGIN_CAP * f for f in fastest]
-
-    def within(y: float) -> bool:
-        return all(m.steps(math.exp(y), int(c) + 1) <= c for m, c in zip(models, caps, strict=True))
-
-    ok, fail = math.log(d_best), lo
-    if within(fail):
-        return fail
-    while ok - fail > math.log(1.01):
-        middle = (ok + fail) / 2
-        if within(middle):
-            ok = middle
-        else:
-            fail = middle
-    return ok
-
-
 def _total(steps: list[int] | None) -> int:
     return sum(steps) if steps is not None else 1 << 62
 
@@ -560,238 +506,3 @@ def _next_point(tried: list[float], y_best: float) -> float | None:
     if abs(wide) < 2 * math.log(RESOLUTION):
         return None
     return y_best + GOLDEN * wide
-
-
-def _smallest_settling(
-    runs: _Runs,
-    steps: dict[float, list[int] | None],
-    forecast: dict[float, tuple[float, ...]],
-    y_best: float,
-    lo: float,
-    max_steps: int,
-    step: float,
-    edge: float | None = None,
-) -> float:
-    """log d of the smallest d whose runs all settle within MARGIN_CAP times their steps at the
-    fastest d. The d tried by the search answer first, from their settled steps or from the
-    predictions they were stopped on (``forecast``): from the smallest that settles, the
-    largest below it that does not brackets the edge. With ``edge`` (log d; the reduced
-    steps' estimate) the edge itself is probed next (run ahead where a worker is free), and
-    where it settles, ``step / 2`` below it. Without a bracket the walk goes down
-    by ``step`` while d settles; bisection narrows the bracket to ``step / 2`` (log); with an
-    ``edge`` at most MARGIN_PROBES probes in all (d_min is then the smallest d found that
-    settles). A probe stops once its decay predicts the answer (past PREDICT_AFTER steps):
-    d_min is an estimate where runs are long, exact where they settle sooner."""
-    fastest = steps[y_best] or []
-    caps = [min(max_steps, MARGIN_CAP * s) for s in fastest]
-
-    def known(y: float) -> bool | None:
-        """Whether the search's own runs at y settle within the caps (None: not known)."""
-        if steps.get(y) is not None:
-            return all(s <= c for s, c in zip(steps[y] or [], caps, strict=True))
-        if y in forecast:
-            return all(p <= c for p, c in zip(forecast[y], caps, strict=True))
-        return None
-
-    answers = {y: known(y) for y in [*steps, *forecast] if y <= y_best}
-
-    probes = [0]
-
-    def settles(y: float) -> bool:
-        answer = answers.get(y)
-        if answer is None:
-            probes[0] += 1
-            results, verdict = runs(math.exp(y), caps, estimate=True)
-            answer = verdict.outcome == "settles" or (
-                verdict.outcome == "done"
-                and all(
-                    r.state == SETTLED and r.steps <= c for r, c in zip(results, caps, strict=True)
-                )
-            )
-            answers[y] = answer
-        return answer
-
-    y_ok = min(y for y, ok in answers.items() if ok)
-    failing = [y for y, ok in answers.items() if ok is False and y < y_ok]
-    y_fail = max(failing) if failing else None
-
-    def open_(y: float) -> bool:
-        """y lies inside the bracket (y_fail, y_ok)."""
-        return y < y_ok and (y_fail is None or y > y_fail)
-
-    if edge is not None and open_(round(edge, 12)):
-        edge = round(edge, 12)
-        if answers.get(edge) is None:  # at once where another worker is free
-            runs.prefetch([Request(math.exp(edge), tuple(caps), None, estimate=True)])
-        if settles(edge):  # then half a walk's step below it
-            y_ok = edge
-            below = round(max(edge - step / 2, lo), 12)
-            if open_(below):
-                if settles(below):
-                    y_ok = below
-                else:
-                    y_fail = below
-        else:
-            y_fail = edge
-    limit = MARGIN_PROBES if edge is not None else math.inf
-    if y_fail is None:
-        while y_ok > lo and probes[0] < limit:
-            y = round(max(y_ok - step, lo), 12)
-            if not settles(y):
-                y_fail = y
-                break
-            y_ok = y
-    while y_fail is not None and y_ok - y_fail > step / 2 + 1e-12 and probes[0] < limit:
-        middle = (y_fail + y_ok) / 2
-        if settles(middle):
-            y_ok = middle
-        else:
-            y_fail = middle
-    return y_ok
-
-
-def _hopeless(
-    problem: Problem,
-    d: float,
-    needs: list[tuple[int, float, bool]],
-    limit: int,
-    auto: bool,
-    why: list[str],
-    earlier: list[tuple[int, float, bool]] | None = None,
-) -> None:
-    """Raise :class:`DampingError` naming the load cases whose run at ``d`` (N s/m, the
-    predicted d) stopped at its cap with a decay that predicts more than HOPELESS times the
-    step budget ``limit``: (steps taken, steps predicted, still moving) per case in
-    ``needs``, ``why`` what may keep each from settling (none: nothing said). Also the cases
-    that reached their cap unsettled again after it grew to what their decay predicted at the
-    cap before (``earlier``, the same per case there): a run whose settling recedes as it goes
-    (a creep, not the exponential decay the prediction assumes) cannot be given a cap that
-    holds it."""
-    slow = [
-        j
-        for j, (taken, need, moving) in enumerate(needs)
-        if moving and taken >= _read_after(need, limit) and not need <= HOPELESS * limit
-    ]
-    receding = []
-    if earlier is not None:
-        receding = [
-            j for j, ((taken, _, moving), (before, asked, _)) in
-            enumerate(zip(needs, earlier, strict=True))
-            if moving and taken > before and taken >= asked and j not in slow
-        ]  # fmt: skip
-    if not slow and not receding:
-        return
-    budget = (
-        f"fpm.max_steps 'auto' grows to at most {limit:,}"
-        if auto
-        else (f"fpm.max_steps = {limit:,}")
-    )
-    parts = []
-    for j in sorted(slow, key=lambda j: -needs[j][1]):
-        taken, need, _ = needs[j]
-        guess = (
-            "has not shrunk over the second half of the run"
-            if not math.isfinite(need)
-            else f"predicts about {need:.2g} steps"
-        )
-        cause = f" ({why[j]})" if j < len(why) and why[j] else ""
-        parts.append(
-            f"load case '{problem.load_cases[j].name}' cannot settle within the step budget "
-            f"({budget}): at d = {d:.3g} N s/m, the fastest the lattice's slowest modes "
-            f"predict, its run is still moving after {taken:,} steps and its distance from "
-            f"equilibrium {guess}{cause}"
-        )
-    for j in receding:
-        taken, need, _ = needs[j]
-        before, asked, _ = earlier[j] if earlier is not None else (0, 0.0, False)
-        cause = f" ({why[j]})" if j < len(why) and why[j] else ""
-        after = "no longer shrinks" if not math.isfinite(need) else f"predicts {need:.2g} steps"
-        parts.append(
-            f"load case '{problem.load_cases[j].name}' does not settle: at d = {d:.3g} N s/m, "
-            f"the fastest the lattice's slowest modes predict, its run was still moving after "
-            f"{before:,} steps, where its decay predicted {asked:.2g}; given {taken:,} it is "
-            f"still moving and its distance from equilibrium {after}: it creeps rather than "
-            f"settles{cause}"
-        )
-    slow += receding
-    most = max(needs[j][1] for j in slow)
-    if not auto and most <= SCHEMA_MAX_STEPS:  # the spec's own cap is what is short
-        advice = f"raise fpm.max_steps to about {math.ceil(1.2 * most):,}, or set it 'auto'"
-    else:
-        advice = (
-            "lower its forces (a press of a few % of the solid's smallest extent settles in "
-            "thousands of steps), or check that the fixed nodes hold the solid"
-        )
-    raise Hopeless("; ".join(parts) + ": " + advice)
-
-
-def long_decay(run: DynamicRun | CaseRun) -> float:
-    """The steps ``run`` (stopped at its cap) would take to settle, predicted from the decay of
-    its residual over the whole run: the envelope (largest sample) over its last quarter
-    against that over the quarter before, extrapolated exponentially down to its settle
-    force (as :func:`fpm.fitting.lockstep.predicted_steps` does over the last two pieces of
-    CHUNK steps, which a slow mode's swing, thousands of steps long, can fill with a rising
-    envelope); inf when the envelope has not fallen; its steps when it never settles (settle
-    force 0) or is too short to read (under 2 CHUNK steps a quarter, the first swing)."""
-    at = run.steps
-    span = at // 4
-    last = [r for n, r in run.history if at - span < n <= at]
-    before = [r for n, r in run.history if at - 2 * span < n <= at - span]
-    if run.settle_force <= 0 or span < 2 * CHUNK or not last or not before:
-        return float(at)
-    e1, e2 = max(before), max(last)
-    if not (0 < e2 < e1):
-        return math.inf
-    return at + max(math.log(e2 / run.settle_force), 0.0) / (math.log(e1 / e2) / span)
-
-
-PROBE_STEPS = 20
-"""When nothing settles, the probe run may take this many times max_steps (capped at the
-schema's 1,000,000) to measure the steps a run needs."""
-
-
-def _what_would_work(runs: _Runs, d: float, max_steps: int) -> str:
-    """Numbers for a run that cannot settle: the dt 'auto' would take (half the stability
-    estimate, at most 1 ms) and the steps a run at d needs there, measured by one probe of up to
-    PROBE_STEPS x max_steps steps per load case (capped at 10^6; none where that is the search's
-    own dt and cap, whose runs already said it)."""
-    p = runs.problem
-    dt = min(runs.dt, auto_time_step(p, runs.stiffness))
-    cap = min(1_000_000, PROBE_STEPS * max_steps)
-    if dt >= runs.dt and cap <= max_steps:  # the search's own runs were that probe
-        return (
-            f"even at fpm.dt = {dt:.3g} s (half the lattice's stability estimate) no d settles "
-            f"within {max_steps} steps: lower the loads, or check that the fixed nodes hold the "
-            "solid; widening annealing.bounds.d may help"
-        )
-    probe = _Runs(p, runs.stiffness, runs.depth, dt)
-    try:
-        results, _ = probe(d, [cap] * probe.cases)
-    finally:
-        probe.close()
-    steps = [r.steps for r in results]
-    if all(r.state == SETTLED for r in results):
-        need = max(steps)
-        return (
-            f"at fpm.dt = {dt:.3g} s (half the lattice's stability estimate, at most 1 ms) and "
-            f"d = {d:.3g} N s/m every load case settles within {need} steps: set fpm.dt <= "
-            f"{dt:.3g} and fpm.max_steps >= {int(math.ceil(1.2 * need))}"
-        )
-    return (
-        f"even at fpm.dt = {dt:.3g} s (half the lattice's stability estimate) and d = "
-        f"{d:.3g} N s/m a run does not settle within {cap} steps: lower the loads, or check "
-        "that the fixed nodes hold the solid; widening annealing.bounds.d may help"
-    )
-
-
-class DampingError(RuntimeError):
-    """No d in the bounds settles every load case."""
-
-
-class Hopeless(DampingError):
-    """A load case cannot settle within the step budget, whatever its cap (:func:`_hopeless`):
-    the search ends at once, with no retry under a larger cap."""
-
-
-class _ShortCap(Exception):
-    """The predicted d's runs reached the cap unsettled; ``args[0]``: the steps they need."""
