@@ -236,7 +236,7 @@ def fig7(failures: list[str]):
     from fpm.model.perturbed_list import perturbed_list
 
     problem = fpm.load_problem(fig7_spec())
-    model = problem.cache["fpm_model"] = FpmModel(problem)  # the one fpm.simulate uses
+    model = problem.cache.fpm_model = FpmModel(problem)  # the one fpm.simulate uses
     stimulated = problem.load_cases[0].nodes
     print(
         f"1. Paper Fig. 7: {'x'.join(map(str, FIG7_NODES))} lattice ({problem.n_nodes} nodes), "
@@ -411,7 +411,7 @@ def run_scale(n: int, steps: int) -> dict:
     t_load = time.perf_counter() - t0
     rss_load = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     t0 = time.perf_counter()
-    model = problem.cache["fpm_model"] = FpmModel(problem)  # the one fpm.simulate uses
+    model = problem.cache.fpm_model = FpmModel(problem)  # the one fpm.simulate uses
     t_model = time.perf_counter() - t0
     rss_model = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     t0 = time.perf_counter()

@@ -634,4 +634,4 @@ def test_solvers_on_threads_share_one_system_and_agree_with_a_solver_alone():
     assert solvers[0]._buffers[key] is not solvers[1]._buffers[key]
     del first, second, solvers, threads
     gc.collect()
-    assert len(problem.cache["spring_systems"]) == 0
+    assert len(problem.cache.spring_systems) == 0

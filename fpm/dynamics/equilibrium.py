@@ -297,11 +297,13 @@ _SOLVERS = threading.Lock()
 
 def static_solver(problem: Problem) -> StaticSolver:
     """This thread's :class:`StaticSolver` of ``problem``, built on first use and kept on the
-    problem (``problem.cache["static_solvers"]``, one per thread)."""
-    local = problem.cache.get("static_solvers")
+    problem (``problem.cache.static_solvers``, one per thread)."""
+    local = problem.cache.static_solvers
     if local is None:
         with _SOLVERS:
-            local = problem.cache.setdefault("static_solvers", threading.local())
+            local = problem.cache.static_solvers
+            if local is None:
+                local = problem.cache.static_solvers = threading.local()
     solver = getattr(local, "solver", None)
     if solver is None:
         solver = local.solver = StaticSolver(problem)

@@ -346,9 +346,9 @@ class DynamicRun:
 
 def fpm_model(problem: Problem) -> FpmModel:
     """The problem's :class:`FpmModel`, built on first use and kept on the problem."""
-    model = problem.cache.get("fpm_model")
+    model = problem.cache.fpm_model
     if model is None:
-        model = problem.cache["fpm_model"] = FpmModel(problem)
+        model = problem.cache.fpm_model = FpmModel(problem)
     return model
 
 

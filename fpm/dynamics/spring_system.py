@@ -441,25 +441,28 @@ def spring_lists(problem: Problem) -> PerturbedListCache:
     (the adjacency of the 93,705-node organ is about 50 MB; two threads asking for a new list
     at once may both build it, the same list)."""
     with _SHARED_SYSTEMS:
-        found = problem.cache.get("spring_lists")
+        found = problem.cache.spring_lists
         if found is None:
             solid = problem.solid
             adjacency = Adjacency.from_springs(
                 len(solid.nodes), solid.springs, problem.rest_lengths, None
             )
-            found = problem.cache["spring_lists"] = PerturbedListCache(adjacency, problem.fixed)
+            found = problem.cache.spring_lists = PerturbedListCache(adjacency, problem.fixed)
         return found
 
 
 def shared_system(problem: Problem, free: np.ndarray) -> SpringSystem:
     """The problem's :class:`SpringSystem` on the free nodes ``free`` (ascending), built once
     and shared by every solver of the problem that holds it (a system is read only: each
-    solver keeps its own tangent buffer, hierarchy and warm starts). Kept in ``problem.cache``
-    by weak reference, so it lives as long as some solver keeps it: the chains running at once
-    on threads hold one copy (on the 93,705-node organ about 0.2 GB) instead of one each."""
+    solver keeps its own tangent buffer, hierarchy and warm starts). Kept in
+    ``problem.cache.spring_systems`` by weak reference, so it lives as long as some solver
+    keeps it: the chains running at once on threads hold one copy (on the 93,705-node organ
+    about 0.2 GB) instead of one each."""
     key = free.tobytes()
     with _SHARED_SYSTEMS:
-        systems = problem.cache.setdefault("spring_systems", weakref.WeakValueDictionary())
+        systems = problem.cache.spring_systems
+        if systems is None:
+            systems = problem.cache.spring_systems = weakref.WeakValueDictionary()
         system = systems.get(key)
         if system is None:
             system = systems[key] = SpringSystem(problem, free)

@@ -51,13 +51,13 @@ def case_models(
     """The reduced steps of ``cases`` (None: every load case) at (``stiffness``, ``depth``,
     ``dt`` s), each starting from the modes' linear response; None where there are none (the
     lattice at rest a mechanism). The modes of the last stiffness asked for are kept on the
-    problem (``problem.cache["modes"]``)."""
+    problem (``problem.cache.modes``)."""
     from .equilibrium import static_solver
 
     key = (stiffness.parameters().tobytes(), depth)
-    kept = problem.cache.get("modes")
+    kept = problem.cache.modes
     if kept is None or kept[0] != key:
-        kept = problem.cache["modes"] = (key, {})
+        kept = problem.cache.modes = (key, {})
     try:
         with single_threaded_blas():
             return reduced_steps(

@@ -236,7 +236,7 @@ def _fit_damping(
                 cost, basis or first_basis(problem), best.x, bounds, progress,
                 after_round=ahead.start,
             )  # fmt: skip
-        problem.cache.pop("reduced_units", None)  # its unit matrices are not needed again
+        problem.cache.reduced_units = None  # its unit matrices are not needed again
     else:
         theta = _polish(cost, best.x, bounds, progress)
     static_cost = cost(theta).cost / cost.reference_cost

@@ -247,9 +247,9 @@ class ReducedLinearModel:
 
     def attach(self, solvers: Sequence[StaticSolver], depth: int | None) -> None:
         """Give each case what its basis grows by: its list's unit matrices (shared through
-        ``problem.cache``: :func:`unit_matrices`) and loads, and ``solvers[j]`` for load case
-        j's linear solves at ``depth`` (its multigrid hierarchies serve them; one solver may
-        serve several cases)."""
+        ``problem.cache.reduced_units``: :func:`unit_matrices`) and loads, and ``solvers[j]``
+        for load case j's linear solves at ``depth`` (its multigrid hierarchies serve them; one
+        solver may serve several cases)."""
         self.solvers, self.depth = list(solvers), depth
         for j, case in enumerate(self.cases):
             system, _ = self.solvers[j].system(j, depth)

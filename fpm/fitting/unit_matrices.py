@@ -108,14 +108,16 @@ def unit_matrices(
     problem: Problem, system: Any, units: list[Any], depth: int | None
 ) -> UnitMatrices:
     """The K_p of one perturbed list, linearised at rest: built once per (depth, list) and kept
-    in ``problem.cache``, so that load cases with the same list and the chains running at once
-    in one process share them (read only)."""
+    in ``problem.cache.reduced_units``, so that load cases with the same list and the chains
+    running at once in one process share them (read only)."""
     key = (depth, system.free.tobytes())
     with _UNITS:
-        cache = problem.cache.setdefault("reduced_units", {})
-        if key not in cache:
+        kept = problem.cache.reduced_units
+        if kept is None:
+            kept = problem.cache.reduced_units = {}
+        if key not in kept:
             rest = np.zeros((system.n_free, 3))
-            cache[key] = UnitMatrices.of(
+            kept[key] = UnitMatrices.of(
                 system.tangent(rest, system.parameters(s), modified=True) for s in units
             )
-        return cache[key]
+        return kept[key]

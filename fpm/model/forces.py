@@ -63,12 +63,12 @@ def cells(problem: Problem) -> Cells:
     """
     from .volume import Cells  # compiled (numba): loaded only where a volume term is used
 
-    found = problem.cache.get("cells")
+    found = problem.cache.cells
     if found is None:
         hexahedra = problem.solid.elements()
         if hexahedra is None:
             raise ValueError("a network geometry has no cells: it cannot carry a volume term")
-        found = problem.cache["cells"] = Cells.from_hexahedra(problem.nodes, hexahedra)
+        found = problem.cache.cells = Cells.from_hexahedra(problem.nodes, hexahedra)
     return found
 
 

@@ -91,7 +91,7 @@ def region_weights(problem: Problem) -> np.ndarray:
     cells that contain the spring of the share they give it (:func:`fpm.model.shares.cell_shares`
     times each region's indicator over the cells): the rows add up to
     :func:`fpm.model.stiffness.assembly_weights`. Kept in the problem's cache."""
-    cached = problem.cache.get("region_weights")
+    cached = problem.cache.region_weights
     if cached is None:
         shares = cell_shares(problem)
         count = len(region_names(problem))
@@ -104,18 +104,18 @@ def region_weights(problem: Problem) -> np.ndarray:
             (np.ones(len(cells)), (np.arange(len(cells)), cells)), shape=(len(cells), count)
         )
         # Sums of 1/4, 1/2 and 1: exact in any order.
-        cached = problem.cache["region_weights"] = (shares @ indicator).T.toarray()
+        cached = problem.cache.region_weights = (shares @ indicator).T.toarray()
     return cached
 
 
 def spring_axial_cosines(problem: Problem) -> np.ndarray:
     """(S,) ``(e . a)^2`` of every spring's rest direction e and the material axis a."""
-    cached = problem.cache.get("axial_cosines")
+    cached = problem.cache.axial_cosines
     if cached is None:
         s = problem.solid
         e = (s.nodes[s.springs[:, 1]] - s.nodes[s.springs[:, 0]]) / problem.rest_lengths[:, None]
         axis = getattr(problem.spec.material, "axis", (0.0, 0.0, 1.0))
-        cached = problem.cache["axial_cosines"] = axial_cosines(e, axis)
+        cached = problem.cache.axial_cosines = axial_cosines(e, axis)
     return cached
 
 

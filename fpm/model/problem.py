@@ -7,9 +7,11 @@ Data flow: JSON -> :class:`fpm.model.spec.ProblemSpec` (schema checks) -> :func:
 from __future__ import annotations
 
 import json
+import threading
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pydantic import ValidationError
@@ -28,6 +30,12 @@ from .hat_loads import hat_shares, spread_forces
 from .regions import RegionMap, check_material, lattice_regions
 from .selectors import Loc, NodeFinder, dotted, fmt
 from .spec import ProblemSpec, Selector
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
+
+    from .perturbed_list import PerturbedListCache
+    from .volume import Cells
 
 
 @dataclass
@@ -61,6 +69,65 @@ class LoadCase:
 
 
 @dataclass
+class ProblemCache:
+    """What is derived from a :class:`Problem` once and kept with it: each attribute is None
+    until the function named beside it fills it on first use. Spring arrays are in the solid's
+    spring order (S springs), cell arrays in its hexahedra's (H cells).
+
+    The dynamics and fitting layers' objects sit above :mod:`fpm.model`, which imports
+    nothing of theirs: their attributes are typed ``Any`` (or containers of it) and name
+    their class here; the function that fills one returns it with its own type.
+
+    Attributes:
+        cells: the lattice cells, :class:`fpm.model.volume.Cells`
+            (:func:`fpm.model.forces.cells`).
+        cell_shares: (S, H) sparse CSR, the share of its family's k each cell gives each spring,
+            dimensionless (:func:`fpm.model.shares.cell_shares`).
+        assembly_weights: (S,) the row sums of ``cell_shares``, dimensionless
+            (:func:`fpm.model.stiffness.assembly_weights`).
+        axis_factors: (S,) per-spring factor of the spec's stiffness_scale, dimensionless
+            (:func:`fpm.model.stiffness.axis_factors`; stays None for a scale of (1, 1, 1)).
+        validation_problem: the solid with the validation cases as its load cases
+            (:meth:`Problem.validation_problem`).
+        region_weights: (R, S) per material region and spring, the share its cells give it,
+            dimensionless (:func:`fpm.model.materials.region_weights`).
+        axial_cosines: (S,) ``(e . a)^2`` of each spring's rest direction and the material axis,
+            dimensionless (:func:`fpm.model.materials.spring_axial_cosines`).
+        modes: the slowest modes of the last stiffness asked for: ((the stiffness parameters'
+            bytes, depth in layers or None), {a perturbed list's nodes' bytes:
+            ``fpm.dynamics.modes.Modes``}) (:func:`fpm.dynamics.step_caps.case_models`).
+        fpm_model: the problem's ``fpm.dynamics.simulation.FpmModel``
+            (:func:`fpm.dynamics.simulation.fpm_model`).
+        spring_lists: the perturbed lists over the springs' adjacency, shared by the static
+            solvers (:func:`fpm.dynamics.spring_system.spring_lists`).
+        spring_systems: free nodes' bytes -> ``fpm.dynamics.spring_system.SpringSystem``, held
+            by weak reference: a system lives as long as some solver keeps it
+            (:func:`fpm.dynamics.spring_system.shared_system`).
+        static_solvers: a ``threading.local`` whose ``solver`` is this thread's
+            ``fpm.dynamics.equilibrium.StaticSolver``
+            (:func:`fpm.dynamics.equilibrium.static_solver`).
+        reduced_units: (depth in layers or None, free nodes' bytes) ->
+            ``fpm.fitting.unit_matrices.UnitMatrices``, one perturbed list's K_p at rest
+            (:func:`fpm.fitting.unit_matrices.unit_matrices`); set back to None by the damping
+            stage once its reduced fit is done (:mod:`fpm.fitting.damping_stage`).
+    """
+
+    cells: Cells | None = None
+    cell_shares: sp.csr_matrix | None = None
+    assembly_weights: np.ndarray | None = None
+    axis_factors: np.ndarray | None = None
+    validation_problem: Problem | None = None
+    region_weights: np.ndarray | None = None
+    axial_cosines: np.ndarray | None = None
+    modes: tuple[tuple[bytes, int | None], dict[bytes, Any]] | None = None
+    fpm_model: Any = None
+    spring_lists: PerturbedListCache | None = None
+    spring_systems: weakref.WeakValueDictionary[bytes, Any] | None = None
+    static_solvers: threading.local | None = None
+    reduced_units: dict[tuple[int | None, bytes], Any] | None = None
+
+
+@dataclass
 class Problem:
     """A problem ready to compute.
 
@@ -72,7 +139,8 @@ class Problem:
         rest_lengths: (S,) spring rest lengths, m.
         h: shortest spring rest length, m (discrepancies are quoted in % of h).
         size: bounding-box diagonal, m (a node moving further than this has diverged).
-        cache: derived models kept with the problem (e.g. the FPM's neighbour arrays).
+        cache: what is derived from the problem once and kept with it (e.g. the FPM's
+            neighbour arrays): :class:`ProblemCache`.
         validation_cases: the spec's validation cases (never fitted), as load cases.
         notes: what the spec left to interpretation, one line each, for the user to check
             (e.g. which node a ``nearest`` selector took and how far it is from the point).
@@ -91,7 +159,7 @@ class Problem:
     rest_lengths: np.ndarray
     h: float = field(init=False)
     size: float = field(init=False)
-    cache: dict[str, Any] = field(init=False, repr=False, default_factory=dict)
+    cache: ProblemCache = field(init=False, repr=False, default_factory=ProblemCache)
     notes: list[str] = field(default_factory=list)
     validation_cases: list[LoadCase] = field(default_factory=list)
     regions: RegionMap | None = None
@@ -119,9 +187,9 @@ class Problem:
     def validation_problem(self) -> Problem:
         """The same solid with the validation cases as its load cases (none of its own), for
         simulating them at fitted parameters; kept in the cache."""
-        found = self.cache.get("validation_problem")
+        found = self.cache.validation_problem
         if found is None:
-            found = self.cache["validation_problem"] = Problem(
+            found = self.cache.validation_problem = Problem(
                 self.spec,
                 self.solid,
                 self.fixed,

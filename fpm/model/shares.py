@@ -33,7 +33,7 @@ def cell_shares(problem: Problem) -> sp.csr_matrix:
     Raises:
         ValueError: the geometry is a network (no cells).
     """
-    cached = problem.cache.get("cell_shares")
+    cached = problem.cache.cell_shares
     if cached is None:
         solid = problem.solid
         hexahedra = solid.elements()
@@ -53,7 +53,7 @@ def cell_shares(problem: Problem) -> sp.csr_matrix:
         cell = np.repeat(np.arange(len(hexahedra)), len(pairs))
         if solid.levels is not None:  # a graded lattice: a cell of half the size, half the k
             share = share * 0.5 ** solid.levels.astype(float)[cell]
-        cached = problem.cache["cell_shares"] = sp.csr_matrix(
+        cached = problem.cache.cell_shares = sp.csr_matrix(
             (share, (which, cell)), shape=(len(springs), len(hexahedra))
         )
     return cached

@@ -75,11 +75,11 @@ def assembly_weights(problem: Problem) -> np.ndarray:
     """(S,) per spring, the sum over the cells that contain it of the share of its family's k
     that cell gives it (:data:`fpm.model.shares.CELL_SHARE`): 1 for an interior spring of a
     regular lattice, less on the surface."""
-    cached = problem.cache.get("assembly_weights")
+    cached = problem.cache.assembly_weights
     if cached is None:
         # Sums of 1/4, 1/2 and 1: exact in any order.
         weights = np.asarray(cell_shares(problem).sum(axis=1)).ravel()
-        cached = problem.cache["assembly_weights"] = weights
+        cached = problem.cache.assembly_weights = weights
     return cached
 
 
@@ -110,12 +110,12 @@ def axis_factors(problem: Problem) -> np.ndarray | None:
     scale = np.asarray(problem.spec.fpm.stiffness_scale, dtype=float)
     if np.all(scale == 1.0):
         return None
-    cached = problem.cache.get("axis_factors")
+    cached = problem.cache.axis_factors
     if cached is None:
         s = problem.solid
         e = s.nodes[s.springs[:, 1]] - s.nodes[s.springs[:, 0]]
         e /= problem.rest_lengths[:, None]
-        cached = problem.cache["axis_factors"] = (e * e) @ scale
+        cached = problem.cache.axis_factors = (e * e) @ scale
     return cached
 
 
