@@ -137,7 +137,9 @@ def main() -> None:
     organ, spacing = sys.argv[1], float(sys.argv[2])
     bands = [int(b) for b in (sys.argv[3] if len(sys.argv) > 3 else "1,2").split(",")]
     problem = fpm.load_problem(surface_spec(organ, spacing))
-    result, theta, truth, loads = surface_cells.calibrated_linear(problem, fpm.solve_fem(problem))
+    result, theta, truth, loads, units = surface_cells.calibrated_linear(
+        problem, fpm.solve_fem(problem)
+    )
     hexahedra = problem.solid.elements()
     index = grid_indices(problem.solid.nodes, hexahedra, spacing)  # (problem.h: shortest spring)
     surface = lattice_surface(hexahedra, problem.n_nodes)
@@ -168,7 +170,7 @@ def main() -> None:
             t = coarse_constraint(index, kept, problem.fixed, np.array(parity))
 
             def solved(scale: np.ndarray, t: sp.csr_matrix = t, kept: np.ndarray = kept) -> list:
-                blocks = surface_cells.cell_blocks(problem, theta * scale, None, every)
+                blocks = surface_cells.cell_blocks(units, theta * scale, None, every)
                 return judged(problem, blocks, t, kept, loads, truth)
 
             found = minimize(

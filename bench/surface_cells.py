@@ -105,11 +105,12 @@ def spring_blocks(coords: np.ndarray) -> np.ndarray:
 
 
 def cell_blocks(
-    problem: Any, theta: np.ndarray, element: np.ndarray | None, cells: np.ndarray
+    units: np.ndarray, theta: np.ndarray, element: np.ndarray | None, cells: np.ndarray
 ) -> np.ndarray:
     """(H, 24, 24) each cell's block: ``element`` (H, 24, 24) where ``cells`` (H,) bool, else
-    the springs and volume term at ``theta`` (k_axis, k_face, k_body N/m, kappa Pa)."""
-    blocks = np.einsum("f,hfab->hab", np.asarray(theta, dtype=float), problem.cache["blocks"])
+    the springs and volume term at ``theta`` (k_axis, k_face, k_body N/m, kappa Pa), from
+    ``units`` (H, 4, 24, 24), the cells' :func:`spring_blocks`."""
+    blocks = np.einsum("f,hfab->hab", np.asarray(theta, dtype=float), units)
     if element is not None:
         blocks[cells] = element[cells]
     return blocks
@@ -144,20 +145,22 @@ def judged(problem: Any, blocks: np.ndarray, loads: list, truth: list) -> list[f
 
 def refit(
     problem: Any,
+    units: np.ndarray,
     theta: np.ndarray,
     element: np.ndarray,
     cells: np.ndarray,
     loads: list,
     truth: list,
 ) -> np.ndarray:
-    """The four parameters refitted with ``element`` in ``cells``: Nelder-Mead on log theta,
-    the fitted cases' mean relative discrepancy, from ``theta``."""
+    """The four parameters refitted with ``element`` in ``cells`` (the other cells' blocks from
+    ``units``, :func:`cell_blocks`): Nelder-Mead on log theta, the fitted cases' mean relative
+    discrepancy, from ``theta``."""
     from scipy.optimize import minimize
 
     fitted = len(problem.load_cases)
 
     def cost(y: np.ndarray) -> float:
-        blocks = cell_blocks(problem, theta * np.exp(y), element, cells)
+        blocks = cell_blocks(units, theta * np.exp(y), element, cells)
         return float(np.mean(judged(problem, blocks, loads[:fitted], truth[:fitted])))
 
     simplex = np.vstack([np.zeros(4), 0.3 * np.eye(4)])
@@ -170,11 +173,13 @@ def refit(
     return theta * np.exp(found.x)
 
 
-def calibrated_linear(problem: Any, reference: Any) -> tuple[Any, np.ndarray, list, list]:
+def calibrated_linear(
+    problem: Any, reference: Any
+) -> tuple[Any, np.ndarray, list, list, np.ndarray]:
     """The calibration of ``problem`` against ``reference`` and what the linear models need:
     (result, theta (4,) its four parameters, the reference (N, 3) per fitted then validation
-    case, the nodal loads (N, 3) N of those cases). Also puts :func:`spring_blocks` of the
-    lattice's cells in ``problem.cache["blocks"]`` (:func:`cell_blocks` reads them)."""
+    case, the nodal loads (N, 3) N of those cases, the lattice's cells' :func:`spring_blocks`
+    (H, 4, 24, 24), which :func:`cell_blocks` takes)."""
     import fpm
     from fpm.fitting.validation import reference_displacements, validation_reference
 
@@ -186,8 +191,8 @@ def calibrated_linear(problem: Any, reference: Any) -> tuple[Any, np.ndarray, li
     ]
     cases = [*problem.load_cases, *problem.validation_problem().load_cases]
     loads = [case.dense(problem.n_nodes) for case in cases]
-    problem.cache["blocks"] = spring_blocks(problem.solid.nodes[problem.solid.elements()])
-    return result, theta, truth, loads
+    units = spring_blocks(problem.solid.nodes[problem.solid.elements()])
+    return result, theta, truth, loads, units
 
 
 def rows(problem: Any, reference: Any, refitted: bool = True) -> list[tuple[str, list[float]]]:
@@ -197,7 +202,7 @@ def rows(problem: Any, reference: Any, refitted: bool = True) -> list[tuple[str,
     from fpm.fem.elasticity import constitutive_matrix, element_stiffness
     from fpm.fem.samples import lattice_surface
 
-    result, theta, truth, loads = calibrated_linear(problem, reference)
+    result, theta, truth, loads, units = calibrated_linear(problem, reference)
     hexahedra = problem.solid.elements()
     coords = problem.solid.nodes[hexahedra]
     material = problem.spec.material
@@ -217,19 +222,19 @@ def rows(problem: Any, reference: Any, refitted: bool = True) -> list[tuple[str,
         ),
         (
             "springs, the four parameters (linear)",
-            judged_all(cell_blocks(problem, theta, None, every)),
+            judged_all(cell_blocks(units, theta, None, every)),
         ),
         ("FEM full", judged_all(full)),
         ("FEM B-bar", judged_all(element_stiffness(coords, c, "selective"))),
         ("FEM QM6", judged_all(qm6)),
     ]
     for name, element in (("full", full), ("QM6", qm6)):
-        out.append((f"surface {name}", judged_all(cell_blocks(problem, theta, element, surface))))
+        out.append((f"surface {name}", judged_all(cell_blocks(units, theta, element, surface))))
         if not refitted:
             continue
-        again = refit(problem, theta, element, surface, loads, truth)
+        again = refit(problem, units, theta, element, surface, loads, truth)
         out.append(
-            (f"surface {name} refitted", judged_all(cell_blocks(problem, again, element, surface)))
+            (f"surface {name} refitted", judged_all(cell_blocks(units, again, element, surface)))
         )
     errors = [*(result.reference_error or []), *(result.validation_reference_error or [])]
     print(

@@ -84,10 +84,10 @@ def test_the_spring_blocks_are_the_products_springs_and_volume_term():
     problem = fpm.load_problem(spec)
     theta = np.array(continuum_start(problem)) * [1.3, 0.8, 50.0, 1.1]
     hexahedra = problem.solid.elements()
-    problem.cache["blocks"] = spring_blocks(problem.solid.nodes[hexahedra])
+    units = spring_blocks(problem.solid.nodes[hexahedra])
     linear = solve(
         problem,
-        cell_blocks(problem, theta, None, np.ones(len(hexahedra), bool)),
+        cell_blocks(units, theta, None, np.ones(len(hexahedra), bool)),
         [problem.load_cases[0].dense(problem.n_nodes)],
     )[0]
     static = static_equilibrium(problem, k=theta).displacements
