@@ -26,8 +26,7 @@ from .predictor import ARMIJO, _galerkin, _largest, _Predictor, _Stats
 from .spring_system import Params, SpringSystem
 
 MAX_ITERATIONS = 100
-"""Newton iterations before a solve gives up (a cold solve of the paper's cube at 1 N needs 4,
-of the organ at 20k nodes 3-4; a warm one 0-2)."""
+"""Newton iterations before a solve gives up."""
 
 ETA_MAX = 0.1
 """Largest relative CG tolerance of an inexact Newton step (Eisenstat-Walker's eta)."""

@@ -153,8 +153,8 @@ def amg_hierarchy(
     blocks (BSR) aggregates nodes; any other format is converted to CSR. One forward block
     Gauss-Seidel sweep before the coarse correction, one backward after. ``compiled``: on a
     finest level in 3x3 blocks, sweep with :func:`_block_gauss_seidel` compiled by numba
-    (pyamg's sweeps bit for bit, 3-4 times faster than its generic block code; the first use in
-    a process costs ~0.5 s, see :data:`COMPILED_SMOOTHER_FROM`). Sorts the indices of a BSR
+    (pyamg's sweeps bit for bit; compiled on first use, see :data:`COMPILED_SMOOTHER_FROM`).
+    Sorts the indices of a BSR
     ``k`` in place.
     """
     hierarchy = pyamg.smoothed_aggregation_solver(
