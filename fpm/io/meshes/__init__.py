@@ -26,7 +26,7 @@ cropped to the solid cells. :func:`spec_from_mesh` adds the material, fixed node
 cases given as short selector strings (:func:`parse_selector`, :func:`parse_force`) and
 ``fpmcal spec from-mesh`` is its command line.
 
-The package's modules, one idea each (public names as before, all imported from here):
+The package's modules, one idea each (public names all imported from here):
 :mod:`.reading`, :mod:`.voxelise`, :mod:`.geometry`, :mod:`.selectors`, :mod:`.conform`,
 :mod:`.from_mesh`, :mod:`.sizing` (the spacing for a node count).
 """

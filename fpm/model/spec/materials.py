@@ -23,8 +23,8 @@ class Material(_Strict):
 
     ``model``: ``"linear"`` (small-strain linear elasticity, the paper's, default) or
     ``"neo-hookean"`` (compressible neo-Hookean, large deformation: :mod:`fpm.fem.hyperelastic`),
-    both from the same E and nu. ``"linear"`` is left out of dumps, so the identity (content
-    hash) of a linear spec is what it was before the field existed.
+    both from the same E and nu. ``"linear"`` is left out of dumps, so a linear spec's
+    identity (content hash) does not depend on the field.
     """
 
     youngs_modulus: float = Field(gt=0, description="Young's modulus E, Pa")
