@@ -44,15 +44,11 @@ from .from_mesh import (  # noqa: F401
     spec_from_mesh,
 )
 from .geometry import (  # noqa: F401
-    _MIRROR,
-    _SPLIT,
     HEXAHEDRA,
     SURFACE_CELLS,
     TAG_NAMES,
     VOLUME_CELLS,
     MeshGeometry,
-    _hexahedral,
-    _reference_mesh,
     cell_tags,
     geometry_from_mesh,
 )
@@ -62,25 +58,9 @@ from .reading import (  # noqa: F401
     read_mesh,
     read_reference,
 )
-from .selectors import (  # noqa: F401
-    FORCE_HELP,
-    SELECTOR_HELP,
-    _selector,
-    _vector,
-    parse_force,
-    parse_selector,
-)
+from .selectors import FORCE_HELP, SELECTOR_HELP, parse_force, parse_selector  # noqa: F401
 from .sizing import lattice_nodes, spacing_for_nodes  # noqa: F401
 from .voxelise import (  # noqa: F401
-    CHUNK,
-    ORIENT_BOUND,
-    TOLERANCE,
-    _crop,
-    _fmt,
-    _index_ranges,
-    _orientation,
-    _pairs,
-    cell_centres,
     lattice,
     one_piece,
     open_edges,
