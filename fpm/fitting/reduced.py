@@ -310,10 +310,9 @@ class ReducedLinearModel:
     def _matrix(
         self, case: _Case, theta: np.ndarray, formed: dict[int, sp.bsr_matrix]
     ) -> sp.bsr_matrix:
-        """K(theta) of ``case``'s list, formed once per call site for the load cases that share
-        the list's unit matrices (at full depth every case); ``formed`` keeps them by the unit
-        matrices' identity. Its
-        indices sorted here, so that the solves sharing it on threads only read it (a
+        """K(theta) of ``case``'s list, formed once per call site for the load cases that share the
+        list's unit matrices (at full depth every case); ``formed`` keeps them by the unit matrices'
+        identity. Its indices sorted here, so that the solves sharing it on threads only read it (a
         hierarchy built on it would sort them in place)."""
         assert case.unit is not None  # attached
         key = id(case.unit)
