@@ -19,8 +19,7 @@ import numpy as np
 from .model.spec import BoxGeometry, MeshGeometry, NetworkGeometry, ProblemSpec, VoxelGeometry
 
 MAX_NODES = 100_000
-"""Largest solid, in lattice nodes (a 93,705-node organ calibrates within the job timeouts in
-under 5 GB)."""
+"""Largest solid, in lattice nodes."""
 MAX_LOAD_CASES = 20
 """Most load cases of a spec."""
 MAX_CHAINS = 16

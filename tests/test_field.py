@@ -19,8 +19,8 @@ from fpm.fitting import field as F
 from fpm.fitting import field_parameters as P
 from fpm.io.export import export
 from fpm.model.problem import load_patterns
+from fpm.model.shares import cell_shares
 from fpm.model.stiffness import (
-    cell_shares,
     continuum_start,
     field_stiffness,
     fitted_theta,

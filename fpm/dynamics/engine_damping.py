@@ -25,9 +25,7 @@ them by default.
 The two modes: w_max by Lanczos on M^-1/2 K M^-1/2 (ARPACK, largest); w_min exactly by
 shift-invert (a sparse LU of K) up to :data:`DIRECT_UP_TO` unknowns, above by LOBPCG
 preconditioned by a multigrid V-cycle of K (:func:`fpm.dynamics.eigen.lowest_modes`, the same
-hierarchy as the static solver's), whose w_min is an upper bound within about 0.3% (measured on
-a 10,648-node box: 8.955 rad/s against 8.930); the LU's fill-in made the exact one take 33 s
-there.
+hierarchy as the static solver's), whose w_min is an upper bound.
 """
 
 from __future__ import annotations

@@ -60,7 +60,7 @@ from .spring_system import SpringSystem, shared_system, spring_lists
 
 MAX_SYSTEMS = 6
 """Spring systems (distinct perturbed lists) a solver keeps, with their multigrid hierarchies
-and warm starts: at 20k nodes one full-depth system with its hierarchy takes ~150 MB."""
+and warm starts."""
 
 
 class EquilibriumError(RuntimeError):
@@ -182,9 +182,8 @@ class StaticSolver(Newton, LinearSolves):
 
     def keep_only(self, depth: int | None) -> None:
         """Forget every system (with its hierarchy and warm starts) that no load case's list at
-        ``depth`` uses: the depth search's probes, once the depth is chosen (on the 93,705-node
-        organ about 0.5 GB that the d prediction would otherwise hold). Solves at ``depth``
-        are unchanged to the bit: their systems and warm starts stay."""
+        ``depth`` uses: the depth search's probes, once the depth is chosen. Solves at
+        ``depth`` are unchanged to the bit: their systems and warm starts stay."""
         wanted = {self._list(j, depth)[0] for j in range(len(self.problem.load_cases))}
         for key in [k for k in self._systems if k not in wanted]:
             self._drop(key)

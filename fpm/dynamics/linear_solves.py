@@ -46,7 +46,7 @@ singular one: a mechanism)."""
 _MULTIGRID_SETUP = threading.Lock()
 """One multigrid setup at a time in a process: the solvers of chains running at once on threads
 would otherwise hold two setups' transients together (a tangent and smoothed aggregation's
-intermediates, about 0.5 GB each on the 93,705-node organ), the peak of the calibration."""
+intermediates), the peak of the calibration's memory."""
 
 
 class LinearSolves:

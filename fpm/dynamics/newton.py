@@ -1,16 +1,15 @@
 """The static solver's Newton iteration (:class:`fpm.dynamics.equilibrium.StaticSolver`):
 from where it starts to the equilibrium.
 
-Each Newton step tries the exact tangent first (quadratic convergence: a press compresses
-springs, and clamping them cost 2-3 times the iterations); where it is not positive definite
-(CG meets negative curvature, or the step does not descend) the step is redone with the factor
-(1 - L/|r|) clamped at 0, a positive semi-definite tangent whose steps always descend; where
-that is singular (a mechanism), with a small diagonal shift. A backtracking (Armijo) line
-search on E makes every step decrease it (energy changes are computed without cancellation:
+Each Newton step tries the exact tangent first (quadratic convergence); where it is not positive
+definite (CG meets negative curvature, or the step does not descend) the step is redone with the
+factor (1 - L/|r|) clamped at 0, a positive semi-definite tangent whose steps always descend; where
+that is singular (a mechanism), with a small diagonal shift. A backtracking (Armijo) line search on
+E makes every step decrease it (energy changes are computed without cancellation:
 :meth:`~fpm.dynamics.spring_system.SpringSystem.energy_change`). Inexact Newton: CG stops at a
 residual relative to the current one (Eisenstat-Walker, choice 2), or once every node's linear
-residual is below half the target. Newton starts from rest or from the warm starts'
-prediction refined on a Galerkin reduced model (:mod:`fpm.dynamics.predictor`).
+residual is below half the target. Newton starts from rest or from the warm starts' prediction
+refined on a Galerkin reduced model (:mod:`fpm.dynamics.predictor`).
 """
 
 from __future__ import annotations
@@ -26,8 +25,7 @@ from .predictor import ARMIJO, _galerkin, _largest, _Predictor, _Stats
 from .spring_system import Params, SpringSystem
 
 MAX_ITERATIONS = 100
-"""Newton iterations before a solve gives up (a cold solve of the paper's cube at 1 N needs 4,
-of the organ at 20k nodes 3-4; a warm one 0-2)."""
+"""Newton iterations before a solve gives up."""
 
 ETA_MAX = 0.1
 """Largest relative CG tolerance of an inexact Newton step (Eisenstat-Walker's eta)."""

@@ -158,11 +158,8 @@ def _galerkin(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Minimise E over u + span(basis) (basis (M, 3, m) orthonormal): chord-Newton steps on
     the m x m reduced tangent Q^T K Q at the start (exact; clamped where the exact one is not
-    positive definite), each with an Armijo line search on E.
-
-    One reduced tangent per solve: it costs O(A m^2), against O(A) for a gradient; the answer
-    in the span is limited by the span rather than by these iterations (measured: exact
-    Newton in the span gets no closer).
+    positive definite), each with an Armijo line search on E. One reduced tangent per solve,
+    O(A m^2).
     """
     m = basis.shape[2]
     q = basis.reshape(-1, m)

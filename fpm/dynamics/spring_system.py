@@ -216,7 +216,7 @@ class SpringSystem:
         wherever no spring is compressed and no cell has changed volume). ``shift`` adds
         shift * (largest diagonal entry) to the diagonal. ``out``: a (B, 3, 3) buffer
         (:meth:`blocks`) to fill rather than new memory (the matrix is then valid until the
-        buffer's next use; at 20k nodes 34 MB, whose first touch costs more than the assembly).
+        buffer's next use).
         """
         if out is not None:
             data = out
@@ -438,8 +438,7 @@ def _reduced_tangent(
 def spring_lists(problem: Problem) -> PerturbedListCache:
     """The problem's perturbed lists over its springs' adjacency (no stiffness factors: the
     static solvers pass every spring's stiffness), built once and shared by its static solvers
-    (the adjacency of the 93,705-node organ is about 50 MB; two threads asking for a new list
-    at once may both build it, the same list)."""
+    (two threads asking for a new list at once may both build it, the same list)."""
     with _SHARED_SYSTEMS:
         found = problem.cache.spring_lists
         if found is None:
@@ -456,8 +455,7 @@ def shared_system(problem: Problem, free: np.ndarray) -> SpringSystem:
     and shared by every solver of the problem that holds it (a system is read only: each
     solver keeps its own tangent buffer, hierarchy and warm starts). Kept in
     ``problem.cache.spring_systems`` by weak reference, so it lives as long as some solver
-    keeps it: the chains running at once on threads hold one copy (on the 93,705-node organ
-    about 0.2 GB) instead of one each."""
+    keeps it: the chains running at once on threads hold one copy instead of one each."""
     key = free.tobytes()
     with _SHARED_SYSTEMS:
         systems = problem.cache.spring_systems

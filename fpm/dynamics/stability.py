@@ -26,17 +26,10 @@ damping taken implicitly)::
 4. Node-by-node order. Node i sees its predecessors' new positions; linearised,
    M (u+ - 2u + u-) = -dt^2 (K u + L (u+ - u)), L the strictly lower part of K in list order.
    The extra term, -dt^3 L v+, is not symmetric: it feeds energy into modes whose neighbours
-   move against each other, so without damping the step is weakly unstable at every dt (the
-   spectral radius is about 1 + 0.1 (dt / dt_max)^2 per step on examples/small-box.json with
-   k = 38.8 N/m), and with damping its limit sits below the all-at-once one. Measured on
-   small-box, the paper's cube (k = 38.8 N/m) and bench/organ.py's ellipsoid (h = 10 mm,
-   k = 20 N/m) with d = 0.5 sqrt(E h m) (m the mean node mass; the default d range is 0.1 to 5
-   times that): runs at 0.5 dt_max settle, at 1.0 dt_max they do not diverge, at 1.5 dt_max
-   they do (at 1.25 already on the cube and the ellipsoid), at 3 dt_max within a few steps.
-   With d = 0.3 sqrt(E h m), 1.0 dt_max already diverges; with 0.1, runs diverge even at
-   0.5 dt_max. The factor 2 of step 3 (about 1.5 too generous for the all-at-once step: its
-   true limit is 1.7 dt_max on small-box) thus roughly pays for the order. dt_max is an
-   estimate, not a guarantee: take dt at most about dt_max, and enough damping.
+   move against each other, so without damping the step is weakly unstable at every dt, and
+   with damping its limit sits below the all-at-once one; the factor 2 of step 3 roughly pays
+   for the order (tests/test_volume.py, tests/test_diagnosis.py). dt_max is an estimate, not a
+   guarantee: take dt at most about dt_max, and enough damping.
 5. The volume term. Near rest a cell c adds (kappa_c / V0_c) g g^T to K (g = dV_c/dx, 24
    values, at rest): the 3x3 block (i, n) is (kappa_c / V0_c) g_i g_n^T, of norm
    (kappa_c / V0_c) |g_i| |g_n|. Gershgorin's row sum of node i therefore grows by
@@ -44,11 +37,7 @@ damping taken implicitly)::
 
        dt_max = 2 / sqrt(max_i (2 sum_j k_ij + r_i) / m_i)
 
-   (without cells, the formula of step 3). For an interior node of a cubic lattice at the
-   continuum start (k1 = k2 = mu h, kappa = lambda - mu) at nu = 0.45 this shortens dt_max by
-   1.9x; the same measurements as in step 4 hold for it (tests/test_volume.py,
-   tests/test_diagnosis.py).
-
+   (without cells, the formula of step 3).
 """
 
 from __future__ import annotations

@@ -35,19 +35,18 @@ from pyamg.util.utils import get_block_diag
 from scipy.sparse.linalg import splu
 
 AMG_FROM_UNKNOWNS = 5_000
-"""``"auto"`` uses AMG from this many unknowns on (see bench/bench_fem.py for the crossover)."""
+"""``"auto"`` uses AMG from this many unknowns on (bench/bench_fem.py)."""
 
 AMG_TOLERANCE = 1e-9
 """The FEM's relative residual ||K x - f|| / ||f|| at which conjugate gradients stops."""
 
 AMG_MAX_ITERATIONS = 1000
-"""The FEM's CG iterations per load case before giving up (a well-held solid needs ~50)."""
+"""The FEM's CG iterations per load case before giving up."""
 
 COMPILED_SMOOTHER_FROM = 50_000
 """The FEM's ``"amg"`` smooths with the compiled sweep (:func:`amg_hierarchy`) from this many
-unknowns on. It saves about a third of the CG time but costs a fixed start-up once per process
-(importing numba, loading the compiled code); this is the break-even in a fresh process
-(bench/bench_fem.py runs each case in one)."""
+unknowns on: below, the sweep's start-up once per process (importing numba, loading the
+compiled code) outweighs what it saves (bench/bench_fem.py)."""
 
 
 class SingularStiffnessError(ValueError):
@@ -153,8 +152,8 @@ def amg_hierarchy(
     blocks (BSR) aggregates nodes; any other format is converted to CSR. One forward block
     Gauss-Seidel sweep before the coarse correction, one backward after. ``compiled``: on a
     finest level in 3x3 blocks, sweep with :func:`_block_gauss_seidel` compiled by numba
-    (pyamg's sweeps bit for bit, 3-4 times faster than its generic block code; the first use in
-    a process costs ~0.5 s, see :data:`COMPILED_SMOOTHER_FROM`). Sorts the indices of a BSR
+    (pyamg's sweeps bit for bit; compiled on first use, see :data:`COMPILED_SMOOTHER_FROM`).
+    Sorts the indices of a BSR
     ``k`` in place.
     """
     hierarchy = pyamg.smoothed_aggregation_solver(
@@ -163,10 +162,9 @@ def amg_hierarchy(
         symmetry="symmetric",
         improve_candidates=None,  # the rigid-body modes are exact: no need to smooth them
         # Gershgorin row weights instead of a spectral-radius estimate: deterministic (the
-        # estimate starts from np.random) and no threaded BLAS, for ~10% more iterations.
+        # estimate starts from np.random) and no threaded BLAS.
         smooth=("jacobi", {"weighting": "local"}),
-        # one forward sweep before, one backward after: a symmetric V-cycle, as CG needs,
-        # at half the cost of symmetric sweeps for ~25% more iterations (bench_fem).
+        # one forward sweep before, one backward after: a symmetric V-cycle, as CG needs
         presmoother=("block_gauss_seidel", {"sweep": "forward"}),
         postsmoother=("block_gauss_seidel", {"sweep": "backward"}),
     )

@@ -15,12 +15,8 @@ beyond, 2 h_k across; ``h_k`` the lattice's spacing along axis k,
 - where the hat holds no surface (the solid's surface runs past the node's share), its volume;
   where it holds neither, a point load at the node's place in the solid.
 
-Why the hat and not a uniform load on the points nearest the node (a patch about h x h, which
-this module spread before): the hat's load falls to zero continuously at the edge of its
-support where the patch's jumps, and a refined mesh resolves it sooner. On the 480-tetrahedron
-organ of ``bench refine`` at h = 3.5 mm the last change of ``refine: "auto"`` (three
-refinements, 342,225 FEM nodes) fell from 1.70 / 1.34 / 2.17 / 1.55 / 2.01% to 1.47 / 1.10 /
-1.74 / 1.18 / 1.66% per load case, the loaded nodes' own change from 11-28% to 10-21%.
+The hat's load falls to zero continuously at the edge of its support, so a refined mesh
+resolves it sooner than a uniform patch's, which jumps.
 
 The surface and the volume are sampled (:class:`fpm.fem.samples.Samples`: points no further
 apart than h / :data:`~fpm.fem.samples.SAMPLES_PER_H`, each with its area or volume), so the

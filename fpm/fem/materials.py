@@ -6,8 +6,7 @@ own tag, a refined element its parent's), with that region's C and density; a tr
 isotropic material (:mod:`fpm.model.anisotropy`) gives every element its rotated C. The
 hexahedra integrate an anisotropic C with the general mean-dilatation B-bar
 (:func:`fpm.fem.elasticity.mean_dilatation_stiffness`) under ``"selective"``, the 10-node
-tetrahedra exactly as before. Specs with neither never come here (:func:`has_materials`), so
-their references are what they were, bit for bit.
+tetrahedra exactly. Specs with neither never come here (:func:`has_materials`).
 """
 
 from __future__ import annotations

@@ -37,9 +37,7 @@ from .field_parameters import Parameters
 
 ADJOINT_RTOL = 1e-2
 """Relative residual of the adjoint solves in a fit (multigrid CG; exact LU on small lists):
-the gradient to about this, enough for L-BFGS-B. On the organ at 5 mm an adjoint took 8-9 CG
-iterations at 1e-2, 12-13 at 1e-3, 14-16 at 1e-4, and 12 iterations of the field fit ended
-at the same normalised cost (0.04076, 0.04078, 0.04076)."""
+the gradient to about this, enough for L-BFGS-B."""
 FIT_TOLERANCE = 1e-6
 """The static equilibria in a fit are solved to this (largest unbalanced nodal force over the
 largest applied one; the reported figures to the solver's default, a tenth of the settle

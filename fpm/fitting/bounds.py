@@ -23,9 +23,10 @@ import numpy as np
 
 from ..dynamics.simulation import fpm_model
 from ..model import materials
+from ..model.materials import is_extended
 from ..model.problem import Problem
 from ..model.spec import lame_constants
-from ..model.stiffness import FLOOR, family_names, has_volume, is_extended
+from ..model.stiffness import FLOOR, family_names, has_volume
 
 
 def stiffness_bounds(problem: Problem) -> tuple[np.ndarray, np.ndarray]:

@@ -45,12 +45,9 @@ CASE_SOLVERS = 2
 solving its share one after the other on a thread of its own: solver 0 (the cost's) every
 load case's full linear response (a CG from the reduced model's answer: after the first round
 a tenth of a static solve) and case 0's static equilibrium, the others the other cases'
-static equilibria in turn. On the organ at h = 3 mm the fit took 3.75-4.0 instead of 5.5 s on
-a quiet 2-core machine with case j wholly on solver j mod 2; with this split the 93,705-node
-organ's rounds are closer to even (static solves 2-6 s, responses 0.1-4.6 s). The answer does
-not depend on the threads (a solver's solves always run in the same order); each more solver
-would hold a multigrid hierarchy and a tangent buffer more (a third: +420 MiB at 93,705
-nodes, for 2.4 s)."""
+static equilibria in turn. The answer does not depend on the threads (a solver's solves
+always run in the same order); each more solver holds one more multigrid hierarchy and tangent
+buffer."""
 
 
 def fit_reduced(

@@ -66,22 +66,13 @@ WEIGHTS = (1.0, 0.01)
 """Smoothness weights the cross-validation tries first, strongest first (units: the normalised
 cost per mean squared log-factor step between neighbouring cells); where their left-out means
 differ by more than :data:`CV_FLAT`, the geometric mean of the best and its neighbour is tried
-too (coarse to fine). On the organ at 5 mm the mean left-out figure was 5.62 / 5.57 / 5.58 /
-5.58% at 1 / 0.1 / 0.01 / 0.001 (bench field), at 3 mm 1.77 / 1.84 / 1.79% at 1 / 0.1 / 0.01:
-flat, so two weights two decades apart."""
+too (coarse to fine)."""
 CV_FLAT = 0.1
-"""Left-out means (%, absolute) closer than this are flat: no weight between them is tried.
-Within one fold's fit the left-out figure moves by 0.1-0.7 points from one L-BFGS-B iteration
-to the next (the organ at 5 mm), so finer differences are noise."""
+"""Left-out means (%, absolute) closer than this are flat: no weight between them is tried."""
 CV_ITERATIONS = 10
-"""L-BFGS-B iterations of a fold's field fit at one weight (it starts from the last weight's).
-6 were tried on the organ at 3 mm: the fields at weight 1 stopped short (left out 1.91%
-against 1.79% after 10), the coarse means then differed by more than :data:`CV_FLAT`, the
-middle weight was fitted too, and the stage cost as much (111 evaluations against 114)."""
+"""L-BFGS-B iterations of a fold's field fit at one weight (it starts from the last weight's)."""
 FINAL_ITERATIONS = 15
-"""L-BFGS-B iterations of the field fit on every load case at the chosen weight. On the organ
-at 5 mm the normalised cost went 0.0467 (first iteration), 0.0410 (10), 0.0406 (15), 0.0402
-(30): past 15 the fit on the given loads improves by 1% of itself."""
+"""L-BFGS-B iterations of the field fit on every load case at the chosen weight."""
 FOUR_ITERATIONS = 5
 """L-BFGS-B iterations of a fold's refit of the four parameters (from the fit on every case)."""
 
@@ -166,16 +157,9 @@ def fit_field(
     progress: Progress | None = None,
 ) -> FieldStage:
     """The field on top of the families+volume fit ``theta``, its smoothness weight chosen by
-    cross-validation (this module's docstring), at ``depth``.
-
-    The folds leave out one force pattern at a time (:func:`load_patterns`: scaled copies of
-    one load are one pattern). With a single pattern there is no other load to predict: the
-    folds then leave out one load case at a time to choose the weight, the field is fitted
-    and reported, but the four parameters are returned (a warning says why).
-
-    Each fold fits at ``weights`` (strongest first, each from the last); where the best two
-    of their left-out means differ by more than :data:`CV_FLAT`, every fold also fits at the
-    geometric mean of the two, from the stronger one's field (coarse to fine).
+    cross-validation (this module's docstring), at ``depth``. With a single force pattern the
+    folds leave out one load case at a time to choose the weight, and the four parameters are
+    returned (a warning says why).
 
     Args:
         reference: (L, N, 3) the load cases' reference displacements, m (the validation cases
@@ -310,11 +294,7 @@ def fit_field(
 def _mean(figures: np.ndarray, folds: Sequence[Sequence[int]]) -> float:
     """The mean left-out figure, %, over the ``folds`` (each the mean of its left-out cases'
     ``figures``), inf where a case had no equilibrium. A fold is one force pattern, so a
-    pattern given at three sizes counts once, as one given at one size does: a mean over the
-    cases would weigh it three times in telling whether the field predicts other loads (the
-    paper's cube with a second pattern: the field left out 3.7% on the pulls and 3.0% on the
-    push, the four parameters 3.3-3.4% and 4.0%; per case 3.55 against 3.50%, per pattern 3.35
-    against 3.67%)."""
+    pattern given at three sizes counts once, as one given at one size does."""
     if not np.isfinite(figures).all():
         return float("inf")
     return float(np.mean([np.mean(figures[list(fold)]) for fold in folds]))

@@ -24,9 +24,9 @@ import scipy.sparse as sp
 from ..model.forces import Stiffness
 from ..model.hexahedron import NATURAL
 from ..model.problem import Problem
+from ..model.shares import cell_shares
 from ..model.stiffness import (
     axis_factors,
-    cell_shares,
     field_stiffness,
     field_terms,
     linear_parts,

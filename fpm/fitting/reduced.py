@@ -186,9 +186,7 @@ class _Case:
         """Eq. (2) of the reduced linear model at theta, m (inf if it is not positive definite).
 
         One compiled pass over the basis (:func:`_reduced_cost`): the node's displacement
-        from y, the correction, the distance to the reference, summed. Evaluated hundreds of
-        times per round, it was 44% of a chain's time on the organ at h = 3 mm as NumPy
-        (the matrix-vector product on a threaded BLAS and the temporaries of the norms)."""
+        from y, the correction, the distance to the reference, summed."""
         a = np.einsum("p,pab->ab", theta, self.projected)
         try:
             y = np.linalg.solve(a, self.rhs)
@@ -312,10 +310,9 @@ class ReducedLinearModel:
     def _matrix(
         self, case: _Case, theta: np.ndarray, formed: dict[int, sp.bsr_matrix]
     ) -> sp.bsr_matrix:
-        """K(theta) of ``case``'s list, formed once per call site for the load cases that share
-        the list's unit matrices (at full depth every case: 3 sums of 0.16 s each became one
-        on the organ at h = 3 mm); ``formed`` keeps them by the unit matrices' identity. Its
-        indices sorted here, so that the solves sharing it on threads only read it (a
+        """K(theta) of ``case``'s list, formed once per call site for the load cases that share the
+        list's unit matrices (at full depth every case); ``formed`` keeps them by the unit matrices'
+        identity. Its indices sorted here, so that the solves sharing it on threads only read it (a
         hierarchy built on it would sort them in place)."""
         assert case.unit is not None  # attached
         key = id(case.unit)

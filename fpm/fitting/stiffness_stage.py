@@ -250,9 +250,7 @@ def linear_estimate(cost: StaticCost, lower: float, upper: float) -> float:
     The lattice linearised at rest responds to the loads as ``u(k) = u1 / k`` (u1: the
     response at k = 1 N/m for every spring, one linear solve per load case), so Eq. (2) of the
     linear model, ``sum_ij |s u1_ij - r_ij|`` with ``s = 1/k``, is convex in s; its minimum
-    within [lower, upper] (N/m) is found by bounded Brent. Starting there rather than from
-    random draws over a 1000x box spares the chains the candidates many times too soft, whose
-    large rotations cost tens of Newton iterations at 20,000 nodes. Falls back to the
+    within [lower, upper] (N/m) is found by bounded Brent. Falls back to the
     geometric mean of the bounds when the linear lattice is not held (an 'axis' lattice).
     """
     p = cost.problem

@@ -18,7 +18,7 @@ import scipy.sparse as sp
 from ..model.problem import Problem
 
 SUM_PIECE = 1 << 16
-"""Blocks per piece when K(theta) is summed (:meth:`UnitMatrices.at`): 4.7 MB of products."""
+"""Blocks per piece when K(theta) is summed (:meth:`UnitMatrices.at`)."""
 
 
 @dataclass(frozen=True)
@@ -37,10 +37,8 @@ class UnitMatrices:
     """The K_p of one perturbed list, (3M, 3M) N/m each (M the list's free nodes), each kept as
     its nonzero 3x3 blocks only (a family's springs touch 7, 13 or 9 of the 27 blocks of a row,
     the cells all 27), and K(theta) = sum_p theta_p K_p formed as block values on the list's
-    one block pattern (the springs' and cells'), not as a sum of sparse matrices. On the
-    93,705-node organ the four K_p take 0.36 GB (1.03 GB as CSR matrices, 0.68 GB on the full
-    pattern each) and K(theta) 0.17 GB, where the sum of scaled copies built several 0.26 GB
-    intermediates.
+    one block pattern (the springs' and cells'), not as a sum of sparse matrices (which would
+    build several K(theta)-sized intermediates).
 
     Attributes:
         units: the K_p.
@@ -92,7 +90,7 @@ class UnitMatrices:
     def at(self, theta: np.ndarray) -> sp.bsr_matrix:
         """K(theta) = sum_p theta_p K_p (new values on the list's block pattern), summed a
         piece of :data:`SUM_PIECE` blocks at a time (whole, the products and the gathered
-        blocks would be two more K(theta)-sized transients, 0.3 GB on the 93,705-node organ)."""
+        blocks would be two more K(theta)-sized transients)."""
         values = np.zeros((self.n_blocks, 3, 3))
         for t, u in zip(np.asarray(theta, dtype=float), self.units, strict=True):
             for start in range(0, len(u.positions), SUM_PIECE):

@@ -46,8 +46,7 @@ class VerdictSettings:
     """The verdict's thresholds, in one place (docs/explanation/verdict.md)."""
 
     good: float = 10.0
-    """Worst relative discrepancy, %, at most which a fit is good (the README's organ figures
-    at real-time sizes are 5-15%)."""
+    """Worst relative discrepancy, %, at most which a fit is good."""
     fair: float = 25.0
     """Worst relative discrepancy, %, at most which a fit is fair (at least 4 times better
     than not moving); above it and above floor_margin times the floor, poor."""

@@ -17,8 +17,7 @@ Poisson's ratio ``nu_t`` (a stretch across the axis narrows the other in-plane d
          [ 0,         0,         0,        0,     0,     1/G_a]]
 
 and ``C = S^-1`` (:func:`stiffness_tensor` turns it to the solid's axes). S is positive definite
-exactly when the moduli are > 0, ``-1 < nu_t < 1`` and ``1 - nu_t - 2 nu_a^2 E_t / E_a > 0``
-(:func:`definiteness`).
+exactly when the moduli are > 0, ``-1 < nu_t < 1`` and ``1 - nu_t - 2 nu_a^2 E_t / E_a > 0``.
 
 **In the lattice** (families+volume, :mod:`fpm.model.stiffness`) the paper's per-axis stiffness
 scale (Fig. 5) is fitted with the families: a spring along unit vector e gets its assembled
@@ -55,14 +54,6 @@ largest), so the shear constants count as much as the stiffer normal ones."""
 BODY_PENALTY = 1e-3
 """A slight pull of k3 towards 0: an isotropic target is met exactly by a line of lattices
 (``k1 = k2 + 8 k3 / 3``), and this picks the continuum start's (``k3 = 0``) among them."""
-
-
-def definiteness(
-    e_axial: float, e_transverse: float, nu_transverse: float, nu_axial: float
-) -> float:
-    """``1 - nu_t - 2 nu_a^2 E_t / E_a``: with positive moduli and ``-1 < nu_t < 1``, the
-    compliance is positive definite exactly when this is > 0."""
-    return 1.0 - nu_transverse - 2.0 * nu_axial**2 * e_transverse / e_axial
 
 
 def local_compliance(

@@ -87,8 +87,7 @@ class ListLayout:
     The list's nodes come first, in visiting order (local 0..M-1), then every other node. The
     kernel then walks its arrays front to back, and a node's neighbours, in the layers beside
     its own, sit near it in memory instead of anywhere in the solid's numbering. The same
-    arithmetic in the same order: every result is the same to the bit (tested), a step is
-    1.5x faster at 10^5 nodes (``bench fpm``).
+    arithmetic in the same order: every result is the same to the bit (tested).
 
     Attributes:
         order: (M,) local indices of the list's nodes in visiting order (0..M-1), the dtype

@@ -34,7 +34,7 @@ import numpy as np
 
 from . import materials
 from .forces import Stiffness
-from .hexahedron import FAMILIES, connectivity_families
+from .hexahedron import connectivity_families
 from .materials import is_extended
 from .problem import Problem
 from .shares import cell_shares
@@ -359,27 +359,3 @@ def linear_parts(
     n = len(family_names(problem))
     eye = np.eye(n)
     return [model_stiffness(problem, eye[p]) for p in range(n)], lambda theta: theta
-
-
-__all__ = [
-    "FAMILIES",
-    "VOLUME",
-    "VOLUME_MODES",
-    "assembly_weights",
-    "axis_factors",
-    "cell_shares",
-    "continuum_start",
-    "family_names",
-    "field_terms",
-    "field_stiffness",
-    "fitted_theta",
-    "has_volume",
-    "is_extended",
-    "is_field",
-    "linear_parts",
-    "model_stiffness",
-    "spring_stiffness",
-    "stiffness_dict",
-    "theta_of",
-    "volume_stiffness",
-]

@@ -109,7 +109,7 @@ def engine_parameters(lattice: Lattice) -> dict[str, float] | None:
     its slowest and fastest modes), with what else an engine needs of them
     (:meth:`~fpm.dynamics.engine_damping.EngineDamping.as_export`). None where the modes
     cannot be had (the eigensolver failed: the export then carries null). Computed once per
-    export (about 0.2 s at 1,000 nodes, 1-2 s at 10,000)."""
+    export."""
     from scipy.sparse.linalg import ArpackError
 
     from ...dynamics.engine_damping import RestLattice, engine_damping

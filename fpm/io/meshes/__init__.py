@@ -26,7 +26,7 @@ cropped to the solid cells. :func:`spec_from_mesh` adds the material, fixed node
 cases given as short selector strings (:func:`parse_selector`, :func:`parse_force`) and
 ``fpmcal spec from-mesh`` is its command line.
 
-The package's modules, one idea each (public names as before, all imported from here):
+The package's modules, one idea each (public names all imported from here):
 :mod:`.reading`, :mod:`.voxelise`, :mod:`.geometry`, :mod:`.selectors`, :mod:`.conform`,
 :mod:`.from_mesh`, :mod:`.sizing` (the spacing for a node count).
 """
@@ -44,15 +44,11 @@ from .from_mesh import (  # noqa: F401
     spec_from_mesh,
 )
 from .geometry import (  # noqa: F401
-    _MIRROR,
-    _SPLIT,
     HEXAHEDRA,
     SURFACE_CELLS,
     TAG_NAMES,
     VOLUME_CELLS,
     MeshGeometry,
-    _hexahedral,
-    _reference_mesh,
     cell_tags,
     geometry_from_mesh,
 )
@@ -62,25 +58,9 @@ from .reading import (  # noqa: F401
     read_mesh,
     read_reference,
 )
-from .selectors import (  # noqa: F401
-    FORCE_HELP,
-    SELECTOR_HELP,
-    _selector,
-    _vector,
-    parse_force,
-    parse_selector,
-)
+from .selectors import FORCE_HELP, SELECTOR_HELP, parse_force, parse_selector  # noqa: F401
 from .sizing import lattice_nodes, spacing_for_nodes  # noqa: F401
 from .voxelise import (  # noqa: F401
-    CHUNK,
-    ORIENT_BOUND,
-    TOLERANCE,
-    _crop,
-    _fmt,
-    _index_ranges,
-    _orientation,
-    _pairs,
-    cell_centres,
     lattice,
     one_piece,
     open_edges,

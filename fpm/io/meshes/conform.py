@@ -96,10 +96,8 @@ def conform_lattice(
     instead of its staircase. Each surface node goes along its outward normal (the sum of its
     boundary faces' outward normals: straight out from a flat part of the staircase,
     diagonally out from a step's edge or corner) to where that line crosses the mesh's
-    surface, if it does within :data:`RAY_REACH` h, else to its nearest point of the surface.
-    (To the nearest point, the two nodes of a step's face land next to each other and fold
-    the face onto the surface: 8-10% of the organ's surface faces had two corners closer than
-    0.4 h, the shortest a quarter of h; along the normals none.) It goes all the way unless a
+    surface, if it does within :data:`RAY_REACH` h, else to its nearest point of the surface
+    (docs/notes/2026-11-29-organs-surface-nodes.md says why). It goes all the way unless a
     hexahedron of it would keep less than :data:`KEPT_JACOBIAN` of its voxel's smallest
     Jacobian determinant; those hexahedra's surface nodes go 0.8 of the way, then 0.8 of that,
     until none does (every hexahedron stays positive).

@@ -63,12 +63,10 @@ def spec_from_mesh(
         lattice: for a tetrahedral mesh, ``"conforming"`` (the default) or ``"voxels"``.
             The conforming lattice (:func:`conform_spec`) is the voxels with their surface
             nodes moved onto the mesh's surface, a hexahedral ``mesh`` geometry: the organ's
-            solid, not its staircase (as continua against the tetrahedra on the organ of
-            ``bench/tet_organ.py`` at h = 5 mm the voxels are 5-22% off, the conforming
-            lattice 1-2%; docs/explanation/organs-lattice.md). ``"voxels"``: the ``voxels``
-            occupancy grid (also what ``voxel_reference`` gets, which has no mesh to
+            solid, not its staircase (docs/explanation/organs-lattice.md). ``"voxels"``: the
+            ``voxels`` occupancy grid (also what ``voxel_reference`` gets, which has no mesh to
             conform to). Hexahedral meshes and closed surfaces take no choice (None).
-        conform: ``True`` is ``lattice="conforming"`` (the flag of before the default).
+        conform: ``True`` is ``lattice="conforming"``.
         stiffness: ``fpm.stiffness`` (a :data:`fpm.model.spec.settings.StiffnessMode`); None:
             ``"field"`` for an organ, a tetrahedral mesh whose reference is its tetrahedra,
             loaded in two force patterns or more (:func:`default_stiffness`), else the

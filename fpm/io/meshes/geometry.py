@@ -195,8 +195,7 @@ def octant_occupancy(
     ``cells`` (3,) per axis, where any of the 8 centres of their octants (the cells of h/2)
     lies in a tetrahedron of ``tets`` (T, 4) on ``points`` (N, 3), or that hold a
     tetrahedron's centroid (:func:`~fpm.io.meshes.voxelise.centroid_cells`: a wall thinner
-    than h/2 can pass between the octants' centres, as the hollow organ's flat caps did, which
-    left the wall open at both ends)."""
+    than h/2 can pass between the octants' centres)."""
     fine, _ = voxelise_tetrahedra(points, tets, spacing / 2, grid=(origin, 2 * cells))
     cx, cy, cz = (int(c) for c in cells)
     octants = fine.reshape(cx, 2, cy, 2, cz, 2).any(axis=(1, 3, 5))

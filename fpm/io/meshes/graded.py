@@ -177,10 +177,8 @@ def _between_centres(
     occ: np.ndarray, origin: np.ndarray, spacing: float, mesh_nodes: np.ndarray, tets: np.ndarray
 ) -> np.ndarray:
     """(2cx, 2cy, 2cz) bool: the cells of h/2 inside the solid coarse cells of ``occ`` that
-    hold a point of a tetrahedron (:func:`~fpm.io.meshes.voxelise.centroid_cells`). A wall
-    thinner than h/2 passes between the fine cells' centres (the hollow organ's flat caps, 5.6
-    mm at h/2 = 6.7 mm): by the centres alone the refinement dropped the cells the voxels held
-    there, and opened a hole in the wall 5 cm across."""
+    hold a point of a tetrahedron (:func:`~fpm.io.meshes.voxelise.centroid_cells`): a wall
+    thinner than h/2 can pass between the fine cells' centres and would lose its cells."""
     held = centroid_cells(mesh_nodes, tets, spacing / 2, origin, 2 * np.asarray(occ.shape))
     return held & np.repeat(np.repeat(np.repeat(occ, 2, 0), 2, 1), 2, 2)
 

@@ -53,11 +53,8 @@ def lattice(
 def support_planes(selectors: list[dict[str, Any]]) -> Planes:
     """Per axis, the coordinates of the faces of the ``box`` selectors among ``selectors`` (a
     spec's ``fixed``): where a held box cuts the solid, the lattice puts a plane of nodes on
-    its face (:func:`lattice`), so the lattice holds the solid where the spec does. Off by half
-    a cell, the lattice holds a layer the reference leaves free (or frees one it holds): on the
-    organ of ``bench/tet_organ.py`` at h = 6.5 mm, held below z = 0 with its node planes at
-    z = +-3.25 mm, the lattice's own hexahedra as a continuum (refined once) were 16-27% from
-    the tetrahedra, and 2.3-4.6% with a plane at z = 0 (docs/explanation/organs-lattice.md)."""
+    its face (:func:`lattice`), so the lattice holds the solid where the spec does (off by half
+    a cell it would hold a layer the reference leaves free: docs/explanation/organs-lattice.md)."""
     planes: list[list[float]] = [[], [], []]
     for selector in selectors:
         box = selector.get("box")
@@ -66,11 +63,6 @@ def support_planes(selectors: list[dict[str, Any]]) -> Planes:
                 for a in range(3):
                     planes[a].append(float(corner[a]))
     return planes if any(planes) else None
-
-
-def cell_centres(origin: np.ndarray, cells: np.ndarray, spacing: float) -> list[np.ndarray]:
-    """Per axis, the coordinates of the lattice's cell centres."""
-    return [origin[a] + spacing * (np.arange(cells[a]) + 0.5) for a in range(3)]
 
 
 def _index_ranges(

@@ -7,9 +7,8 @@ Validation here is what can be checked without building the solid; checks that n
 :func:`fpm.model.problem.load_problem`, which raises the same kind of error with the field's
 location.
 
-The schema is split by part of the spec (behaviour and public names as before, all
-imported from here): :mod:`.base`, :mod:`.materials`, :mod:`.geometry`, :mod:`.settings`,
-:mod:`.reference`, :mod:`.problem_spec`.
+The schema is split by part of the spec (public names all imported from here): :mod:`.base`,
+:mod:`.materials`, :mod:`.geometry`, :mod:`.settings`, :mod:`.reference`, :mod:`.problem_spec`.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@ the Lame constants (SI units)."""
 
 from __future__ import annotations
 
-from typing import Literal, get_args
+from typing import Literal, TypeVar, get_args
 
 from pydantic import (
     BaseModel,
@@ -36,6 +36,19 @@ class _Strict(BaseModel):
     """Base: unknown fields are errors (a typo must not be silently ignored); no NaN or inf."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+_M = TypeVar("_M", bound=BaseModel)
+
+
+def exactly_one(model: _M, fields: tuple[str, ...]) -> _M:
+    """``model`` when exactly one of its ``fields`` is given (not None); else ValueError."""
+    given = [n for n in fields if getattr(model, n) is not None]
+    if len(given) != 1:
+        raise ValueError(
+            f"give exactly one of {', '.join(fields)} (got {', '.join(given) or 'none'})"
+        )
+    return model
 
 
 MaterialModel = Literal["linear", "neo-hookean"]

@@ -11,7 +11,7 @@ from pydantic import (
     model_validator,
 )
 
-from .base import Connectivity, Face, Vector3, _Strict
+from .base import Connectivity, Face, Vector3, _Strict, exactly_one
 
 
 class BoxGeometry(_Strict):
@@ -150,13 +150,7 @@ class Selector(_Strict):
 
     @model_validator(mode="after")
     def _exactly_one(self) -> Selector:
-        given = [n for n in SELECTOR_FIELDS if getattr(self, n) is not None]
-        if len(given) != 1:
-            raise ValueError(
-                f"give exactly one of {', '.join(SELECTOR_FIELDS)} "
-                f"(got {', '.join(given) or 'none'})"
-            )
-        return self
+        return exactly_one(self, SELECTOR_FIELDS)
 
     @property
     def kind(self) -> str:
@@ -209,12 +203,7 @@ class Force(Selector):
 
     @model_validator(mode="after")
     def _exactly_one(self) -> Force:
-        given = [n for n in FORCE_FIELDS if getattr(self, n) is not None]
-        if len(given) != 1:
-            raise ValueError(
-                f"give exactly one of {', '.join(FORCE_FIELDS)} (got {', '.join(given) or 'none'})"
-            )
-        return self
+        return exactly_one(self, FORCE_FIELDS)
 
     @property
     def kind(self) -> str:

@@ -15,7 +15,7 @@ from pydantic import (
 )
 from pydantic_core import InitErrorDetails, PydanticCustomError
 
-from .base import MaterialModel, Vector3, _Strict
+from .base import MaterialModel, Vector3, _Strict, exactly_one
 
 
 class Material(_Strict):
@@ -23,8 +23,8 @@ class Material(_Strict):
 
     ``model``: ``"linear"`` (small-strain linear elasticity, the paper's, default) or
     ``"neo-hookean"`` (compressible neo-Hookean, large deformation: :mod:`fpm.fem.hyperelastic`),
-    both from the same E and nu. ``"linear"`` is left out of dumps, so the identity (content
-    hash) of a linear spec is what it was before the field existed.
+    both from the same E and nu. ``"linear"`` is left out of dumps, so a linear spec's
+    identity (content hash) does not depend on the field.
     """
 
     youngs_modulus: float = Field(gt=0, description="Young's modulus E, Pa")
@@ -97,13 +97,7 @@ class RegionSelector(_Strict):
 
     @model_validator(mode="after")
     def _exactly_one(self) -> RegionSelector:
-        given = [n for n in REGION_SELECTOR_FIELDS if getattr(self, n) is not None]
-        if len(given) != 1:
-            raise ValueError(
-                f"give exactly one of {', '.join(REGION_SELECTOR_FIELDS)} "
-                f"(got {', '.join(given) or 'none'})"
-            )
-        return self
+        return exactly_one(self, REGION_SELECTOR_FIELDS)
 
 
 class MaterialRegion(_Strict):
