@@ -46,7 +46,7 @@ import meshio
 import numpy as np
 
 from bench.tet_organ import KUHN, cube_to_ball
-from fpm.model.tetrahedra import DEGENERATE, EDGES, FACES, boundary_faces
+from fpm.model.tetrahedra import DEGENERATE, FACES, TetMesh, signed_volumes
 
 LONGEST = 0.2
 """Every organ's longest side, m."""
@@ -247,8 +247,7 @@ def frog_organ(tissue: str, step: int = 3) -> meshio.Mesh:
 def _positive(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """``tets`` with the inside-out ones renumbered."""
     tets = tets.copy()
-    c = nodes[tets]
-    inverted = np.linalg.det(np.transpose(c[:, 1:] - c[:, :1], (0, 2, 1))) < 0
+    inverted = signed_volumes(nodes[tets]) < 0
     tets[inverted] = tets[inverted][:, [0, 2, 1, 3]]
     return tets
 
@@ -409,15 +408,14 @@ def check(mesh: meshio.Mesh) -> MeshCheck:
 
     nodes = np.asarray(mesh.points, dtype=float)
     tets = mesh.get_cells_type("tetra")
-    c = nodes[tets]
-    volume = np.linalg.det(np.transpose(c[:, 1:] - c[:, :1], (0, 2, 1))) / 6
-    longest = np.linalg.norm(c[:, EDGES[:, 0]] - c[:, EDGES[:, 1]], axis=2).max(axis=1)
+    tet = TetMesh(nodes, tets)
+    volume, longest = tet.volumes, tet.longest_edges
     faces = np.sort(tets[:, FACES].reshape(-1, 3), axis=1)
     _, face_id = np.unique(faces, axis=0, return_inverse=True)
     owner = np.repeat(np.arange(len(tets)), 4)
     incidence = sp.coo_matrix((np.ones(len(owner)), (owner, face_id.ravel()))).tocsr()
     pieces, _ = sp.csgraph.connected_components(incidence @ incidence.T, directed=False)
-    triangles, _ = boundary_faces(tets)
+    triangles, _ = tet.boundary
     edges = np.sort(triangles[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
     unique, uses = np.unique(edges, axis=0, return_counts=True)
     graph = sp.coo_matrix((np.ones(len(unique)), unique.T), shape=(len(nodes),) * 2)
@@ -438,7 +436,7 @@ def check(mesh: meshio.Mesh) -> MeshCheck:
 def surface_normals(mesh: meshio.Mesh) -> tuple[np.ndarray, np.ndarray]:
     """(S,) the boundary nodes and (S, 3) their outward unit normals (area-weighted)."""
     nodes = np.asarray(mesh.points, dtype=float)
-    triangles, _ = boundary_faces(_positive(nodes, mesh.get_cells_type("tetra")))
+    triangles, _ = TetMesh(nodes, _positive(nodes, mesh.get_cells_type("tetra"))).boundary
     a, b, c = (nodes[triangles[:, i]] for i in range(3))
     area_normal = np.cross(b - a, c - a)
     normals = np.zeros_like(nodes)

@@ -90,7 +90,7 @@ def ellipsoid_tetrahedra(h: float, *, seed: int = 0) -> tuple[np.ndarray, np.nda
     50,000 tetrahedra."""
     from scipy.spatial import Delaunay
 
-    from fpm.model.tetrahedra import EDGES, tetrahedron_volumes
+    from fpm.model.tetrahedra import TetMesh
 
     a = np.asarray(SEMI_AXES)
     rng = np.random.default_rng(seed)
@@ -112,11 +112,9 @@ def ellipsoid_tetrahedra(h: float, *, seed: int = 0) -> tuple[np.ndarray, np.nda
     )
     points = np.concatenate([inner, unit * a])
     tets = Delaunay(points).simplices.astype(np.int64)
-    volume = tetrahedron_volumes(points, tets)
-    v = points[tets]
-    longest = np.linalg.norm(v[:, EDGES[:, 1]] - v[:, EDGES[:, 0]], axis=2).max(axis=1)
-    tets = tets[np.abs(volume) > 1e-3 * longest**3]
-    volume = tetrahedron_volumes(points, tets)
+    mesh = TetMesh(points, tets)
+    solid = np.abs(mesh.volumes) > 1e-3 * mesh.longest_edges**3
+    tets, volume = tets[solid], mesh.volumes[solid]
     tets[volume < 0] = tets[volume < 0][:, [0, 2, 1, 3]]
     used, inverse = np.unique(tets, return_inverse=True)
     return points[used], inverse.reshape(-1, 4)

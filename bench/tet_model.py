@@ -131,8 +131,7 @@ def measure(organ: str, spacing: float, levels: list[int]) -> None:
         solve_p_multigrid,
         stiffness_matrix,
     )
-    from fpm.fem.uniform_refinement import refine_tetrahedra
-    from fpm.model.tetrahedra import boundary_faces, locate
+    from fpm.model.tetrahedra import TetMesh
 
     spec = surface_spec(organ, spacing, refine=2)
     problem = fpm.load_problem(spec)
@@ -151,19 +150,19 @@ def measure(organ: str, spacing: float, levels: list[int]) -> None:
     def samples(x: np.ndarray, t: np.ndarray) -> Any:
         """The lattice's loads spread over the hats, sampled on the mesh (x, t)."""
         loaded = lattice[np.any(forces != 0, axis=(0, 2))]
-        faces, owner = boundary_faces(t)
-        where = locate(x, t, lattice)
+        tet = TetMesh(x, t)
+        where = tet.locate(lattice)
         return spread(
             lattice, surface, h_axes, forces,
-            tetrahedron_surface_samples(x, t, faces, owner, loaded, float(h_axes.max())),
-            lambda: tetrahedron_volume_samples(x, t, loaded, float(h_axes.max())),
+            tetrahedron_surface_samples(tet, loaded, float(h_axes.max())),
+            lambda: tetrahedron_volume_samples(tet, loaded, float(h_axes.max())),
             Samples(lattice, np.ones(len(lattice)), where.element, where.lam),
         )  # fmt: skip
 
     def refined(levels: int) -> tuple[np.ndarray, np.ndarray]:
         x, t = x0, t0
         for _ in range(levels):
-            x, t = refine_tetrahedra(x, t)[:2]
+            x, t = TetMesh(x, t).refine()[:2]
         return x, t
 
     start = time.perf_counter()
@@ -192,7 +191,9 @@ def measure(organ: str, spacing: float, levels: list[int]) -> None:
         """The three models on the mesh refined ``level`` times, printed."""
         x, t = refined(level)
         n = len(x)
-        truth = interpolate(mesh, u_ref, locate(mesh.nodes[: mesh.n_corners], mesh.corners, x))
+        truth = interpolate(
+            mesh, u_ref, TetMesh(mesh.nodes[: mesh.n_corners], mesh.corners).locate(x)
+        )
         keep = ~fixed_nodes(problem, quadratic_mesh(x, t))[:n]
         free = np.repeat(keep, 3)
         on_mesh = samples(x, t)

@@ -100,7 +100,7 @@ def organ_spec(
     has there, a staircase closer to the plane) and which meets the surface obliquely (a
     stronger singular line), by 12.4 / 12.3% after the first refinement: no better.
     """
-    from fpm.model.tetrahedra import locate
+    from fpm.model.tetrahedra import TetMesh
 
     nodes, tets = organ_mesh(cells)
     lo, hi = nodes.min(axis=0), nodes.max(axis=0)
@@ -108,7 +108,7 @@ def organ_spec(
     origin = (lo + hi) / 2 - counts * spacing / 2
     grid = np.stack(np.meshgrid(*map(np.arange, counts), indexing="ij"), axis=-1)
     centres = origin + spacing * (grid.reshape(-1, 3) + 0.5)
-    inside = locate(nodes, tets, centres).distance == 0
+    inside = TetMesh(nodes, tets).locate(centres).distance == 0
     top = [0.0, 0.0, float(hi[2])]
 
     def press(name: str, *points: list[float], vector: list[float]) -> dict:
@@ -210,14 +210,14 @@ def surface_spec(
     import meshio
 
     from fpm.io.meshes import spec_from_mesh
-    from fpm.model.tetrahedra import nearest_on_boundary
+    from fpm.model.tetrahedra import TetMesh
 
     made = ORGANS[organ]
     nodes, tets = made["mesh"]()
 
     def forces(aim: list, vector: list[float]) -> str:
         aims = np.atleast_2d(np.asarray(aim, dtype=float))
-        at = nearest_on_boundary(nodes, tets, aims)[1]
+        at = TetMesh(nodes, tets).nearest_on_boundary(aims)[1]
         return ";".join(
             "point:" + ",".join(f"{v:.6f}" for v in p) + ":" + ",".join(map(str, vector))
             for p in at

@@ -18,7 +18,7 @@ from scipy import ndimage
 from bench import anatomy
 from bench.anatomy import ORGANS, check, read_vti
 from fpm.io.meshes.selectors import parse_force, parse_selector
-from fpm.model.tetrahedra import boundary_faces, closest_on_triangles
+from fpm.model.tetrahedra import TetMesh, closest_on_triangles
 
 
 def vti(values: np.ndarray, spacing, origin, *, block: int | None = 64, header: str = "UInt32"):
@@ -157,7 +157,7 @@ def test_the_presses_are_the_command_lines_and_act_on_the_surface_of_the_organ(n
     lo, hi = np.asarray(parse_selector(fix)["box"])
     held = ((points >= lo) & (points <= hi)).all(axis=1)
     assert 0.03 < held.mean() < 0.4  # a side held, most of the organ free
-    triangles, _ = boundary_faces(mesh.get_cells_type("tetra"))
+    triangles, _ = TetMesh(mesh.points, mesh.get_cells_type("tetra")).boundary
     a, b, c = (points[triangles[:, i]] for i in range(3))
     normal = np.cross(b - a, c - a)
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)

@@ -16,7 +16,6 @@ from fpm.fem.materials import hexahedron_stiffness, tetrahedron_elasticity
 from fpm.fem.solution import solve_dirichlet
 from fpm.fitting.cost import StaticCost
 from fpm.fitting.validation import reference_displacements
-from fpm.model import tetrahedra
 from fpm.model.anisotropy import closed_form_start, lattice_constants
 from fpm.model.spec import ReferenceSettings
 from fpm.model.stiffness import (
@@ -28,7 +27,7 @@ from fpm.model.stiffness import (
     stiffness_dict,
     volume_stiffness,
 )
-from fpm.model.tetrahedra import tetrahedron_volumes
+from fpm.model.tetrahedra import TetMesh
 
 AS_GIVEN = {"refine": 0} if "refine" in ReferenceSettings.model_fields else {}
 """reference: the mesh as given (no refinement levels: these tests compare one solve)."""
@@ -172,7 +171,7 @@ def box_tetrahedra(n: tuple[int, int, int], size: tuple[float, float, float]):
         axis=1,
     )  # fmt: skip
     tets = corners[:, kuhn].reshape(-1, 4)
-    flip = tetrahedron_volumes(nodes, tets) < 0
+    flip = TetMesh(nodes, tets).volumes < 0
     tets[flip] = tets[flip][:, [0, 2, 1, 3]]
     return nodes, tets
 
@@ -190,7 +189,7 @@ def test_tetrahedra_reproduce_the_analytic_uniaxial_stretch(axis, load):
     c, _ = tetrahedron_elasticity(problem, mesh.nodes, mesh.corners)
     k = tet10.stiffness_matrix(mesh, c)
     x = mesh.nodes
-    faces, owner = tetrahedra.boundary_faces(mesh.corners)
+    faces, owner = TetMesh(mesh.nodes, mesh.corners).boundary
     on = np.abs(x[:, load] - x[:, load].max()) < 1e-12
     loaded = np.all(on[faces], axis=1)
     f = np.zeros_like(x)

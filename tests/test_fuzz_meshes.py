@@ -232,12 +232,12 @@ def force_text(
     if kind == "surface point":
         aim = top + rng.uniform(-0.3, 0.3, 3) * extent
         try:
-            from fpm.model.tetrahedra import nearest_on_boundary
+            from fpm.model.tetrahedra import TetMesh
 
             good = np.isfinite(points).all(axis=1)
             valid = tets[((tets >= 0) & (tets < len(points))).all(axis=1)]
             valid = valid[good[valid].all(axis=1)]
-            aim = nearest_on_boundary(points, valid, aim[None])[1][0]
+            aim = TetMesh(points, valid).nearest_on_boundary(aim[None])[1][0]
         except Exception:  # a corrupted mesh: the aim as it is
             pass
         return f"point:{vec(aim)}:{vector}"

@@ -445,7 +445,7 @@ def test_the_conforming_lattice_lies_on_the_mesh_surface_and_calibrates(tmp_path
     from fpm.fem.elasticity import min_jacobian_determinants
     from fpm.fem.samples import lattice_surface
     from fpm.io.meshes import KEPT_JACOBIAN
-    from fpm.model.tetrahedra import nearest_on_boundary
+    from fpm.model.tetrahedra import TetMesh
 
     nodes, tets = organ_mesh((4, 3, 4))
     mesh = meshio.Mesh(nodes, [("tetra", tets)])
@@ -463,7 +463,10 @@ def test_the_conforming_lattice_lies_on_the_mesh_surface_and_calibrates(tmp_path
     np.testing.assert_array_equal(before.solid.elements(), hexahedra)
     np.testing.assert_array_equal(before.fixed, after.fixed)
     surface = lattice_surface(hexahedra, after.n_nodes)
-    gap = [nearest_on_boundary(nodes, tets, p.nodes[surface])[2].mean() for p in (before, after)]
+    gap = [
+        TetMesh(nodes, tets).nearest_on_boundary(p.nodes[surface])[2].mean()
+        for p in (before, after)
+    ]
     assert gap[1] < 0.25 * gap[0], gap
     kept = min_jacobian_determinants(after.nodes[hexahedra])
     assert np.all(kept >= KEPT_JACOBIAN * min_jacobian_determinants(before.nodes[hexahedra]))

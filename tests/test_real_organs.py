@@ -99,7 +99,7 @@ def test_the_conforming_lattice_folds_no_voxel_step_onto_the_surface():
     from fpm.fem.elasticity import min_jacobian_determinants
     from fpm.fem.samples import boundary_hexahedron_faces, lattice_surface
     from fpm.io.meshes.conform import KEPT_JACOBIAN
-    from fpm.model.tetrahedra import nearest_on_boundary
+    from fpm.model.tetrahedra import TetMesh
 
     mesh = organ()
     h = 0.007
@@ -111,7 +111,7 @@ def test_the_conforming_lattice_folds_no_voxel_step_onto_the_surface():
     pairs = np.linalg.norm(x[corners][:, :, None] - x[corners][:, None], axis=3)
     assert pairs[pairs > 0].min() > 0.4 * h
     surface = lattice_surface(hexahedra, len(x))
-    _, _, off = nearest_on_boundary(mesh.points, mesh.cells_dict["tetra"], x[surface])
+    _, _, off = TetMesh(mesh.points, mesh.cells_dict["tetra"]).nearest_on_boundary(x[surface])
     assert off.max() < 0.3 * h  # held back by the Jacobian rule at most this (nearest: 0.62 h)
     before = min_jacobian_determinants(fpm.load_problem(voxels).solid.nodes[hexahedra])
     assert np.all(min_jacobian_determinants(x[hexahedra]) >= KEPT_JACOBIAN * before * (1 - 1e-9))
@@ -208,7 +208,7 @@ def test_a_surface_point_spreads_by_shape_functions_with_linear_precision():
     and reproduce the nearest surface point (partition of unity, linear precision); a point at
     a node gives that node alone; a point on the surface is its own nearest point."""
     from fpm.model.geometry import surface_point
-    from fpm.model.tetrahedra import nearest_on_boundary
+    from fpm.model.tetrahedra import TetMesh
 
     rng = np.random.default_rng(3)
     box = fpm.load_problem(
@@ -234,8 +234,8 @@ def test_a_surface_point_spreads_by_shape_functions_with_linear_precision():
     assert corner.weights.max() == 1.0
     problem = fpm.load_problem(spec_from_mesh(organ(), **GIVEN)[0])
     mesh = organ()
-    _, surface, _ = nearest_on_boundary(
-        mesh.points, mesh.cells[0].data, rng.uniform(-0.08, 0.08, (30, 3))
+    _, surface, _ = TetMesh(mesh.points, mesh.cells[0].data).nearest_on_boundary(
+        rng.uniform(-0.08, 0.08, (30, 3))
     )
     for p in surface:
         found = surface_point(problem.nodes, problem.solid.elements(), p)
@@ -248,10 +248,12 @@ def test_a_force_at_a_point_acts_there_and_a_far_point_is_refused(api):
     """The load case's nodal forces sum to the force and their moment is the point's (the
     spread centroid is the surface point); a point 2 h from the organ is refused with its
     distance, at load_cases.0.forces.0.point, by load_problem and over REST (422)."""
-    from fpm.model.tetrahedra import nearest_on_boundary
+    from fpm.model.tetrahedra import TetMesh
 
     mesh = organ()
-    at = nearest_on_boundary(mesh.points, mesh.cells[0].data, np.array([[0.02, 0.01, 0.04]]))[1][0]
+    at = TetMesh(mesh.points, mesh.cells[0].data).nearest_on_boundary(
+        np.array([[0.02, 0.01, 0.04]])
+    )[1][0]
     force = "point:" + ",".join(map(repr, at.tolist())) + ":0,0,-0.01"
     spec, _ = spec_from_mesh(mesh, **dict(GIVEN, forces=[force]))
     assert spec["load_cases"][0]["forces"] == [{"point": at.tolist(), "vector": [0, 0, -0.01]}]

@@ -31,10 +31,10 @@ from fpm.fem.samples import (
     triangle_rule,
 )
 from fpm.fem.solution import FemError, FemResult
-from fpm.fem.uniform_refinement import refine_hexahedra, refine_tetrahedra
+from fpm.fem.uniform_refinement import refine_hexahedra
 from fpm.fitting.validation import check_reference
 from fpm.model import tetrahedra
-from fpm.model.tetrahedra import tetrahedron_volumes
+from fpm.model.tetrahedra import TetMesh
 from store.hashing import fem_hash
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -62,7 +62,7 @@ def box_tetrahedra(cells: tuple[int, int, int], size: tuple[float, float, float]
         axis=1,
     )  # fmt: skip
     tets = corners[:, KUHN].reshape(-1, 4)
-    flip = tetrahedron_volumes(nodes, tets) < 0
+    flip = TetMesh(nodes, tets).volumes < 0
     tets[flip] = tets[flip][:, [0, 2, 1, 3]]
     return nodes, tets
 
@@ -82,11 +82,11 @@ def test_tetrahedra_split_into_8_conserve_volume_and_stay_positive(mesh):
         nodes, tets = organ_mesh((5, 4, 3))
     else:
         nodes, tets = box_tetrahedra((3, 2, 2), (0.3, 0.2, 0.2), jitter=0.3)
-    volume = tetrahedron_volumes(nodes, tets)
+    volume = TetMesh(nodes, tets).volumes
     x, t = nodes, tets
     for level in (1, 2):
-        x, t, _ = refine_tetrahedra(x, t)
-        children = tetrahedron_volumes(x, t)
+        x, t, _ = TetMesh(x, t).refine()
+        children = TetMesh(x, t).volumes
         assert len(t) == 8**level * len(tets)
         assert children.min() > 0
         # each parent's 8 children fill it exactly (and so the whole solid)
@@ -96,7 +96,7 @@ def test_tetrahedra_split_into_8_conserve_volume_and_stay_positive(mesh):
 
     # a new node is held when both ends of its edge are: the held region stays the same
     fixed = nodes[:, 2] < 0.3 * nodes[:, 2].max()
-    x1, t1, held = refine_tetrahedra(nodes, tets, fixed)
+    x1, t1, held = TetMesh(nodes, tets).refine(fixed)
     assert np.array_equal(held[: len(nodes)], fixed)
     ends = np.unique(np.sort(tets[:, [[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]]], axis=2)
                      .reshape(-1, 2), axis=0)  # fmt: skip
@@ -108,7 +108,7 @@ def test_tetrahedra_split_into_8_conserve_volume_and_stay_positive(mesh):
     def quality(xx, tt):
         c = xx[tt]
         edges = np.linalg.norm(c[:, [0, 1, 0, 0, 1, 2]] - c[:, [1, 2, 2, 3, 3, 3]], axis=2)
-        return tetrahedron_volumes(xx, tt) / edges.max(axis=1) ** 3
+        return TetMesh(xx, tt).volumes / edges.max(axis=1) ** 3
 
     assert quality(x, t).min() > 0.3 * quality(nodes, tets).min()
 
@@ -162,8 +162,8 @@ def test_the_spread_load_sums_to_the_lattice_force_and_its_moment(element):
     forces = np.stack([c.dense(problem.n_nodes) for c in problem.load_cases])
     if element == "tet10":
         nodes, tets = box_tetrahedra((4, 4, 4), (0.1, 0.1, 0.1))
-        mesh = tet10.quadratic_mesh(*refine_tetrahedra(nodes, tets)[:2])
-        where = tetrahedra.locate(mesh.nodes[: mesh.n_corners], mesh.corners, problem.nodes)
+        mesh = tet10.quadratic_mesh(*TetMesh(nodes, tets).refine()[:2])
+        where = TetMesh(mesh.nodes[: mesh.n_corners], mesh.corners).locate(problem.nodes)
         nodal = tetrahedron_loads(problem, forces)(mesh, where)
         positions = mesh.nodes
     else:
@@ -264,7 +264,7 @@ def test_spread_loads_on_a_curved_organ_keep_the_resultant():
     given = [c.as_given() for c in problem.load_cases]  # what the reference loads
     forces = np.stack([c.dense(problem.n_nodes) for c in given])
     mesh = tet10.quadratic_mesh(nodes, tets)
-    where = tetrahedra.locate(nodes, tets, problem.nodes)
+    where = TetMesh(nodes, tets).locate(problem.nodes)
     nodal = tetrahedron_loads(problem, forces)(mesh, where)
     for case in range(2):
         np.testing.assert_allclose(nodal[case].sum(axis=0), forces[case].sum(axis=0), atol=1e-14)
@@ -310,7 +310,7 @@ def test_refined_tetrahedra_converge_at_the_expected_rate_on_a_bar_with_a_known_
     st, share = triangle_rule(8)
     for _ in range(3):
         mesh = tet10.quadratic_mesh(x, t)
-        faces, owner = tetrahedra.boundary_faces(t)
+        faces, owner = TetMesh(x, t).boundary
         tri = x[faces]
         normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         area = np.linalg.norm(normal, axis=1) / 2
@@ -322,7 +322,7 @@ def test_refined_tetrahedra_converge_at_the_expected_rate_on_a_bar_with_a_known_
             -1, 3
         )
         element = np.repeat(owner[loaded], len(st))
-        lam = tetrahedra._barycentric(x[t[element]], points)
+        lam = tetrahedra.barycentric(x[t[element]], points)
         weights = (area[loaded][:, None] * share[None]).ravel()
         samples = Samples(points, weights, element, lam)
         load = traction(points, np.repeat(normal[loaded], len(st), axis=0)) * weights[:, None]
@@ -335,13 +335,13 @@ def test_refined_tetrahedra_converge_at_the_expected_rate_on_a_bar_with_a_known_
         u[free] = factorize(k[free][:, free], "direct", np.zeros((int(free.sum()), 6)))(
             rhs[:, None]
         )[:, 0]
-        where = tetrahedra.locate(x, t, lattice)
+        where = TetMesh(x, t).locate(lattice)
         u_lattice = tet10.interpolate(mesh, u.reshape(-1, 3), where)
         solutions.append(u_lattice[None])
         truth = exact(lattice)
         errors.append(relative_change(truth[None], u_lattice[None])[0])
         everywhere.append(relative_change(exact(mesh.nodes)[None], u.reshape(1, -1, 3))[0])
-        x, t, _ = refine_tetrahedra(x, t)
+        x, t, _ = TetMesh(x, t).refine()
 
     def rates(e):
         return np.log2(np.array(e[:-1]) / np.array(e[1:]))

@@ -90,7 +90,7 @@ def layered(reference: str, selector: dict, load: int):
         c, _ = tetrahedron_elasticity(problem, mesh.nodes, mesh.corners)
         k = tet10.stiffness_matrix(mesh, c)
         x = mesh.nodes
-        faces, owner = tetrahedra.boundary_faces(mesh.corners)
+        faces, owner = tetrahedra.TetMesh(mesh.nodes, mesh.corners).boundary
         on = np.abs(x[:, load] - x[:, load].max()) < 1e-12
         loaded = np.all(on[faces], axis=1)
         f = np.zeros_like(x)

@@ -21,9 +21,8 @@ from fpm.fem.hex27 import (
 from fpm.fem.hex27 import quadratic_mesh as hex27_mesh
 from fpm.fem.linear_solver import factorize, rigid_body_modes
 from fpm.fem.reference import solve_dirichlet
-from fpm.model import tetrahedra
 from fpm.model.hexahedron import jacobians
-from fpm.model.tetrahedra import check_tetrahedra, tetrahedron_volumes
+from fpm.model.tetrahedra import TetMesh, check_tetrahedra
 from store.hashing import fem_hash
 
 KUHN = [[0, 1, 2, 6], [0, 2, 3, 6], [0, 3, 7, 6], [0, 7, 4, 6], [0, 4, 5, 6], [0, 5, 1, 6]]
@@ -51,7 +50,7 @@ def cube_tetrahedra(
         axis=1,
     )  # fmt: skip
     tets = corners[:, KUHN].reshape(-1, 4)
-    inside_out = tetrahedron_volumes(nodes, tets) < 0
+    inside_out = TetMesh(nodes, tets).volumes < 0
     tets[inside_out] = tets[inside_out][:, [0, 2, 1, 3]]
     return nodes, tets
 
@@ -189,7 +188,7 @@ def test_bar_under_axial_load_and_own_weight_against_the_analytic_solution():
         nodes[:, 2] *= 4.0
         length = 4.0
         mesh = tet10.quadratic_mesh(nodes, tets)
-        faces, _ = tetrahedra.boundary_faces(mesh.corners)
+        faces, _ = TetMesh(mesh.nodes, mesh.corners).boundary
         top = faces[np.all(nodes[faces][:, :, 2] > length - 1e-9, axis=1)]
         # consistent uniform traction on 6-node triangles: corners 0, mid-edges A/3
         load = np.zeros((len(mesh.nodes), 3))
@@ -240,7 +239,7 @@ def test_quadratic_fields_interpolate_exactly_at_lattice_nodes_inside_and_outsid
     mesh = tet10.quadratic_mesh(nodes, tets)
     g = np.linspace(-0.2, 1.2, 8)
     lattice = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
-    where = tetrahedra.locate(nodes, tets, lattice)
+    where = TetMesh(nodes, tets).locate(lattice)
     nearest = lattice.clip(0.0, 1.0)
     assert np.allclose(where.distance, np.linalg.norm(lattice - nearest, axis=1), atol=1e-14)
 
@@ -257,7 +256,7 @@ def test_point_loads_are_consistent_and_reactions_balance_them_and_the_weight():
     mesh = tet10.quadratic_mesh(nodes, tets)
     points = np.array([[0.031, 0.052, 0.1], [0.07, 0.02, 0.045]])
     forces = np.array([[[0.0, 0.01, -0.02], [0.005, 0.0, 0.0]]])
-    where = tetrahedra.locate(nodes, tets, points)
+    where = TetMesh(nodes, tets).locate(points)
     f = tet10.point_loads(mesh, forces, where)[0]
     assert np.allclose(f.sum(axis=0), forces[0].sum(axis=0), atol=1e-15)
     moment = np.cross(points, forces[0]).sum(axis=0)
@@ -443,7 +442,7 @@ def test_organ_reference_at_the_lattice_nodes_matches_scikit_fem():
         component[c, scalar.edge_dofs[0]] = vector.edge_dofs[c]
     # lattice nodes outside the mesh read at their nearest mesh point (located by fpm,
     # checked against geometry in the tests above), nudged into its tetrahedron
-    where = tetrahedra.locate(nodes, tets, problem.nodes)
+    where = TetMesh(nodes, tets).locate(problem.nodes)
     lam = (1 - 1e-6) * where.lam + 1e-6 / 4
     points = np.einsum("pa,pac->pc", lam, nodes[tets[where.element]])
     inside = where.distance == 0

@@ -6,7 +6,8 @@ own tag, a refined element its parent's), with that region's C and density; a tr
 isotropic material (:mod:`fpm.model.anisotropy`) gives every element its rotated C. The
 hexahedra integrate an anisotropic C with the general mean-dilatation B-bar
 (:func:`fpm.fem.elasticity.mean_dilatation_stiffness`) under ``"selective"``, the 10-node
-tetrahedra exactly. Specs with neither never come here (:func:`has_materials`).
+tetrahedra exactly. Specs with neither (:func:`has_materials`) take the spec's one C and
+density.
 """
 
 from __future__ import annotations
@@ -48,14 +49,24 @@ def elasticity(
 def hexahedron_stiffness(
     problem: Problem, nodes: np.ndarray, hexahedra: np.ndarray
 ) -> sp.bsr_matrix:
-    """(3N, 3N) K, N/m, of ``hexahedra`` (H, 8) on ``nodes`` (N, 3) with every element's own C,
-    integrated as the spec's ``reference.integration`` says."""
+    """(3N, 3N) K, N/m, of ``hexahedra`` (H, 8) on ``nodes`` (N, 3) with every element's own C
+    (the spec's one C without :func:`has_materials`), integrated as the spec's
+    ``reference.integration`` says."""
+    spec = problem.spec
+    if not has_materials(spec):
+        c = constitutive_matrix(spec.material.youngs_modulus, spec.material.poisson_ratio)
+        return stiffness_matrix(nodes, hexahedra, c, spec.reference.integration)
     c, which, _ = elasticity(problem, nodes[hexahedra].mean(axis=1))
-    return stiffness_matrix(nodes, hexahedra, c, problem.spec.reference.integration, which)
+    return stiffness_matrix(nodes, hexahedra, c, spec.reference.integration, which)
 
 
-def hexahedron_densities(problem: Problem, nodes: np.ndarray, hexahedra: np.ndarray) -> np.ndarray:
-    """(H,) every hexahedron's density, kg/m^3 (for the body force)."""
+def hexahedron_densities(
+    problem: Problem, nodes: np.ndarray, hexahedra: np.ndarray
+) -> np.ndarray | float:
+    """(H,) every hexahedron's density, kg/m^3 (for the body force); the spec's one density
+    without :func:`has_materials`."""
+    if not has_materials(problem.spec):
+        return problem.spec.material.density
     _, which, density = elasticity(problem, nodes[hexahedra].mean(axis=1))
     return density[which]
 

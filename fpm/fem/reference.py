@@ -25,10 +25,10 @@ import numpy as np
 
 from ..model.problem import Problem, resolved_refine
 from ..model.support import unheld_reason
-from .assembly import body_forces, stiffness_matrix
-from .elasticity import constitutive_matrix, min_jacobian_determinants
+from .assembly import body_forces
+from .elasticity import min_jacobian_determinants
 from .linear_solver import choose_method
-from .materials import has_materials, hexahedron_densities, hexahedron_stiffness
+from .materials import hexahedron_densities, hexahedron_stiffness
 from .solution import FemError, FemResult, solve_dirichlet
 
 
@@ -170,11 +170,7 @@ def solve_fem(
     if refine not in (0, "check"):  # refined hexahedra, the forces spread (fpm.fem.refine)
         return refined_hex_reference(problem, hexahedra, asked, None, progress)
     if np.any(gravity):  # the solid's own weight, in every load case
-        density = (
-            hexahedron_densities(problem, nodes, hexahedra)
-            if has_materials(problem.spec)
-            else material.density
-        )
+        density = hexahedron_densities(problem, nodes, hexahedra)
         forces = forces + body_forces(nodes, hexahedra, density, gravity)[None]
     free = np.repeat(in_solid & ~problem.fixed, 3)
     method = choose_method(int(free.sum())) if method == "auto" else method
@@ -199,15 +195,7 @@ def solve_fem(
             [path.load_steps for path in paths],
             [path.newton_iterations for path in paths],
         )
-    if has_materials(problem.spec):  # regions, transversely isotropic (fpm.fem.materials)
-        k = hexahedron_stiffness(problem, nodes, hexahedra)
-    else:
-        k = stiffness_matrix(
-            nodes,
-            hexahedra,
-            constitutive_matrix(material.youngs_modulus, material.poisson_ratio),
-            problem.spec.reference.integration,
-        )
+    k = hexahedron_stiffness(problem, nodes, hexahedra)  # regions: fpm.fem.materials
     u, residuals = solve_dirichlet(k, forces.reshape(len(forces), -1), free, nodes, method)
     result = FemResult(nodes.copy(), u.reshape(forces.shape), residuals.tolist(), names, method)
     if refine == "check":  # the same reference, its error estimated by one refinement

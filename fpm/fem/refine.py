@@ -12,7 +12,8 @@ measure), in %.
   each corner, the inner octahedron cut along its shortest diagonal into 4), a hexahedron into
   8 by its own trilinear map; nodes at the middle of every edge (and of every face and
   hexahedron), shared by neighbours, the coarse mesh's nodes first, so the lattice's nodes keep
-  their numbers in a refined voxel mesh (:mod:`fpm.fem.uniform_refinement`). Volume is
+  their numbers in a refined voxel mesh (:meth:`fpm.model.tetrahedra.TetMesh.refine`,
+  :mod:`fpm.fem.uniform_refinement`). Volume is
   conserved exactly, and every child is positive (tests/test_refine.py).
 - **Loads.** A point load's displacement does not converge under refinement, so every level
   applies a lattice nodal force as a load on that node's share of the solid
@@ -59,13 +60,12 @@ import numpy as np
 
 from ..model.hexahedron import NATURAL
 from ..model.problem import Problem, resolved_refine
-from ..model.tetrahedra import EDGES, Location, boundary_faces
-from .assembly import body_forces, stiffness_matrix
-from .elasticity import constitutive_matrix
+from ..model.tetrahedra import Location, TetMesh
+from .assembly import body_forces
 from .levels import DEFAULT_NODE_BUDGET, Mesh, Progress, checked, converge, summarise
 from .linear_solver import choose_method
 from .loads import hexahedron_nodal_loads, spread, tetrahedron_nodal_loads
-from .materials import has_materials, hexahedron_densities, hexahedron_stiffness
+from .materials import hexahedron_densities, hexahedron_stiffness
 from .samples import (
     Samples,
     hexahedron_surface_samples,
@@ -77,7 +77,7 @@ from .samples import (
 )
 from .solution import FemError, FemResult, solve_dirichlet
 from .tet10 import Tet10Mesh, tet10_reference
-from .uniform_refinement import refine_hexahedra, refine_tetrahedra
+from .uniform_refinement import refine_hexahedra
 
 CHECK_NODES = 60_000
 """The default check of a hexahedral reference (``refine`` not given) runs when its refined mesh
@@ -101,18 +101,16 @@ def tetrahedron_loads(
     h = float(spacing.max())  # the samples reach the hats and lie h / 8 apart
 
     def loads(mesh: Tet10Mesh, where: Location) -> np.ndarray:
-        corners = mesh.nodes[: mesh.n_corners]
-        tets = mesh.corners
+        tet = TetMesh(mesh.nodes[: mesh.n_corners], mesh.corners)
         loaded = lattice[np.any(forces != 0, axis=(0, 2))]
-        faces, owner = boundary_faces(tets)
         at_nodes = Samples(lattice, np.ones(len(lattice)), where.element, where.lam)
         spreaded = spread(
             lattice,
             surface,
             spacing,
             forces,
-            tetrahedron_surface_samples(corners, tets, faces, owner, loaded, h),
-            lambda: tetrahedron_volume_samples(corners, tets, loaded, h),
+            tetrahedron_surface_samples(tet, loaded, h),
+            lambda: tetrahedron_volume_samples(tet, loaded, h),
             at_nodes,
         )
         return tetrahedron_nodal_loads(
@@ -120,13 +118,6 @@ def tetrahedron_loads(
         )
 
     return loads
-
-
-def _tet10_nodes(nodes: np.ndarray, tets: np.ndarray) -> int:
-    """Nodes of the 10-node mesh on ``tets``: corners plus distinct edges."""
-    n = len(nodes)
-    ends = np.sort(tets[:, EDGES].reshape(-1, 2), axis=1)
-    return n + len(np.unique(ends[:, 0] * n + ends[:, 1]))
 
 
 def refined_tet_reference(
@@ -153,11 +144,12 @@ def refined_tet_reference(
         def solve() -> FemResult:
             return replace(tet10_reference(problem, x, t, method, loads=loads), loads="spread")
 
+        mesh = TetMesh(x, t)  # a 10-node mesh's nodes: corners plus distinct edges
         return Mesh(
             refinements,
-            _tet10_nodes(x, t),
+            len(x) + len(mesh.edges[0]),
             solve,
-            lambda: level(refinements + 1, *refine_tetrahedra(x, t)[:2]),
+            lambda: level(refinements + 1, *mesh.refine()[:2]),
         )
 
     x0, t0 = np.asarray(nodes, dtype=float), np.asarray(tets, dtype=np.int64)
@@ -183,10 +175,24 @@ def _hex_level(
     method: str,
 ) -> Mesh:
     """A hexahedral reference ``refinements`` times refined: the lattice's nodes are its nodes
-    0 .. N - 1."""
+    0 .. N - 1. Its solve is the linear 8-node reference, the lattice's forces spread
+    (:func:`hexahedron_loads`), read at the lattice."""
 
     def solve() -> FemResult:
-        return _solve_hex(problem, nodes, hexahedra, fixed, forces, surface, method)
+        f = hexahedron_loads(problem, nodes, hexahedra, forces, surface)
+        gravity = np.asarray(problem.spec.fpm.gravity, dtype=float)
+        if np.any(gravity):
+            density = hexahedron_densities(problem, nodes, hexahedra)
+            f = f + body_forces(nodes, hexahedra, density, gravity)[None]
+        in_solid = np.zeros(len(nodes), dtype=bool)
+        in_solid[hexahedra] = True
+        free = np.repeat(in_solid & ~fixed, 3)
+        how = choose_method(int(free.sum())) if method == "auto" else method
+        k = hexahedron_stiffness(problem, nodes, hexahedra)  # regions: fpm.fem.materials
+        u, residuals = solve_dirichlet(k, f.reshape(len(f), -1), free, nodes, how)
+        u = u.reshape(len(f), -1, 3)[:, : problem.n_nodes]
+        names = [case.name for case in problem.all_cases]
+        return FemResult(problem.nodes.copy(), u, residuals.tolist(), names, how, loads="spread")
 
     def finer() -> Mesh:
         x, hx, held = refine_hexahedra(nodes, hexahedra, fixed)
@@ -229,48 +235,6 @@ def hexahedron_loads(
         Samples(lattice, np.ones(n), at_element, at_local),
     )
     return hexahedron_nodal_loads(hexahedra, len(nodes), spreaded.samples, spreaded.forces)
-
-
-def _solve_hex(
-    problem: Problem,
-    nodes: np.ndarray,
-    hexahedra: np.ndarray,
-    fixed: np.ndarray,
-    forces: np.ndarray,
-    surface: np.ndarray,
-    method: str,
-) -> FemResult:
-    """The linear 8-node reference on a (refined) hexahedral mesh whose first N nodes are the
-    lattice's, the lattice's forces spread (:func:`hexahedron_loads`), read at the lattice."""
-    n = problem.n_nodes
-    lattice = problem.nodes
-    f = hexahedron_loads(problem, nodes, hexahedra, forces, surface)
-    material = problem.spec.material
-    gravity = np.asarray(problem.spec.fpm.gravity, dtype=float)
-    if np.any(gravity):
-        density = (
-            hexahedron_densities(problem, nodes, hexahedra)
-            if has_materials(problem.spec)
-            else material.density
-        )
-        f = f + body_forces(nodes, hexahedra, density, gravity)[None]
-    in_solid = np.zeros(len(nodes), dtype=bool)
-    in_solid[hexahedra] = True
-    free = np.repeat(in_solid & ~fixed, 3)
-    how = choose_method(int(free.sum())) if method == "auto" else method
-    if has_materials(problem.spec):  # regions, transversely isotropic: fpm.fem.materials
-        k = hexahedron_stiffness(problem, nodes, hexahedra)
-    else:
-        k = stiffness_matrix(
-            nodes,
-            hexahedra,
-            constitutive_matrix(material.youngs_modulus, material.poisson_ratio),
-            problem.spec.reference.integration,
-        )
-    u, residuals = solve_dirichlet(k, f.reshape(len(f), -1), free, nodes, how)
-    u = u.reshape(len(f), -1, 3)[:, :n]
-    names = [case.name for case in problem.all_cases]
-    return FemResult(lattice.copy(), u, residuals.tolist(), names, how, loads="spread")
 
 
 def refined_hex_reference(

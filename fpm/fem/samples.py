@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..model.hexahedron import NATURAL
-from ..model.tetrahedra import EDGES
+from ..model.hexahedron import FACE_CORNERS, NATURAL
+from ..model.tetrahedra import EDGES, TetMesh, barycentric
 
 SAMPLES_PER_H = 8
 """Samples are at most h / this apart along every edge of a patch or a cell."""
@@ -67,27 +67,15 @@ class Samples:
         return len(self.points)
 
 
-def hexahedron_faces(hexahedra: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every face of ``hexahedra`` (H, 8): (6H, 4) corner nodes, (6H,) hexahedron, (6H,) local
-    face 0-5 (``axis * 2 + (sign > 0)``: r-, r+, s-, s+, t-, t+)."""
-    corners, owner, local = [], [], []
-    for axis in range(3):
-        for sign in (-1.0, 1.0):
-            corners.append(hexahedra[:, NATURAL[:, axis] == sign])
-            owner.append(np.arange(len(hexahedra)))
-            local.append(np.full(len(hexahedra), 2 * axis + (sign > 0)))
-    return np.concatenate(corners), np.concatenate(owner), np.concatenate(local)
-
-
 def boundary_hexahedron_faces(hexahedra: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The faces of :func:`hexahedron_faces` on the lattice's surface
+    """The faces of ``hexahedra`` (H, 8) on the lattice's surface
     (:func:`fpm.model.geometry.boundary_faces`: of one hexahedron only, graded interfaces
-    excepted)."""
+    excepted), face-major: (F, 4) corner nodes, (F,) hexahedron, (F,) local face 0-5
+    (:data:`fpm.model.hexahedron.FACE_CORNERS`)."""
     from ..model.geometry import boundary_faces
 
-    corners, owner, local = hexahedron_faces(hexahedra)
-    single = boundary_faces(hexahedra).T.ravel()
-    return corners[single], owner[single], local[single]
+    local, owner = np.nonzero(boundary_faces(hexahedra).T)
+    return hexahedra[owner[:, None], FACE_CORNERS[local]], owner, local
 
 
 def lattice_surface(hexahedra: np.ndarray, n_nodes: int) -> np.ndarray:
@@ -114,12 +102,15 @@ def subdivisions(longest: float, h: float) -> int:
     return int(min(MAX_SUBDIVISION, max(1, math.ceil(longest * SAMPLES_PER_H / h - 1e-9))))
 
 
-def _near(centres: np.ndarray, radius: np.ndarray, loaded: np.ndarray, reach: float) -> np.ndarray:
-    """(E,) bool: elements whose centre lies within ``reach`` + their radius of a loaded point."""
+def _near(coords: np.ndarray, loaded: np.ndarray, reach: float) -> np.ndarray:
+    """Indices of the elements (corners ``coords`` (E, k, 3), m) whose centre lies within
+    ``reach`` + their radius (centre to farthest corner) of a ``loaded`` point (P, 3), m."""
+    centres = coords.mean(axis=1)
+    radius = np.linalg.norm(coords - centres[:, None], axis=2).max(axis=1)
     if len(loaded) == 0 or len(centres) == 0:
-        return np.zeros(len(centres), dtype=bool)
+        return np.zeros(0, dtype=np.int64)
     distance, _ = cKDTree(loaded).query(centres)
-    return np.asarray(distance <= reach + radius)
+    return np.flatnonzero(distance <= reach + radius)
 
 
 def trilinear(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -147,10 +138,8 @@ def hexahedron_surface_samples(
     natural coordinates, each weighted by its area (exact on a parallelogram face)."""
     corners, owner, local = boundary_hexahedron_faces(hexahedra)
     coords = nodes[corners]  # (F, 4, 3)
-    centre = coords.mean(axis=1)
-    radius = np.linalg.norm(coords - centre[:, None], axis=2).max(axis=1)
-    keep = _near(centre, radius, loaded, SURFACE_REACH * h)
-    if not keep.any():
+    keep = _near(coords, loaded, SURFACE_REACH * h)
+    if not len(keep):
         return Samples.empty(3)
     owner, local, coords = owner[keep], local[keep], coords[keep]
     longest = float(np.linalg.norm(coords - np.roll(coords, 1, axis=1), axis=2).max())
@@ -190,9 +179,7 @@ def hexahedron_volume_samples(
     """Samples of the hexahedra within :data:`VOLUME_REACH` h of the ``loaded`` points:
     n^3 cell centres each, weighted by their volume (det J times the cell's natural volume)."""
     coords = nodes[hexahedra]
-    centre = coords.mean(axis=1)
-    radius = np.linalg.norm(coords - centre[:, None], axis=2).max(axis=1)
-    keep = np.flatnonzero(_near(centre, radius, loaded, VOLUME_REACH * h))
+    keep = _near(coords, loaded, VOLUME_REACH * h)
     if not len(keep):
         return Samples.empty(3)
     coords = coords[keep]
@@ -238,51 +225,19 @@ def tetrahedron_rule(levels: int) -> tuple[np.ndarray, np.ndarray]:
     tetrahedron after ``levels`` uniform 1-to-8 refinements, and their shares of its volume."""
     nodes = np.eye(4)  # barycentric coordinates as positions in R^4: refinement is affine
     tets = np.arange(4)[None]
-    for _ in range(levels):
-        nodes, tets = _split_barycentric(nodes, tets)
+    for _ in range(levels):  # no orientation or diagonal choice: equal children tile it
+        nodes, tets, _ = TetMesh(nodes, tets).refine(shortest=False)
     lam = np.einsum("pk,tkd->tpd", TETRAHEDRON_POINTS, nodes[tets]).reshape(-1, 4)
     return lam, np.full(len(lam), 1.0 / (4 * len(tets)))
 
 
-def _split_barycentric(nodes: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """1-to-8 split in barycentric space (no orientation or diagonal choice: the children only
-    have to tile the parent with equal volumes, which any of the three diagonals gives)."""
-    n = len(nodes)
-    ends = np.sort(tets[:, EDGES].reshape(-1, 2), axis=1)
-    keys, edge = np.unique(ends[:, 0] * n + ends[:, 1], return_inverse=True)
-    mid = (nodes[keys // n] + nodes[keys % n]) / 2
-    m = n + edge.reshape(-1, 6)
-    x = tets
-    e01, e12, e02, e03, e13, e23 = (m[:, k] for k in range(6))
-    children = [
-        (x[:, 0], e01, e02, e03),
-        (e01, x[:, 1], e12, e13),
-        (e02, e12, x[:, 2], e23),
-        (e03, e13, e23, x[:, 3]),
-        (e01, e23, e02, e03),
-        (e01, e23, e03, e13),
-        (e01, e23, e13, e12),
-        (e01, e23, e12, e02),
-    ]
-    out = np.stack([np.stack(c, axis=1) for c in children], axis=1).reshape(-1, 4)
-    return np.concatenate([nodes, mid]), out
-
-
-def tetrahedron_surface_samples(
-    nodes: np.ndarray,
-    tets: np.ndarray,
-    faces: np.ndarray,
-    owner: np.ndarray,
-    loaded: np.ndarray,
-    h: float,
-) -> Samples:
-    """Samples of the boundary triangles ``faces`` (F, 3) (of tetrahedra ``owner`` (F,)) within
-    :data:`SURFACE_REACH` h of the ``loaded`` points: the centroids of n^2 equal sub-triangles
-    each, weighted by their area; ``local`` is barycentric in the owning tetrahedron."""
-    tri = nodes[faces]  # (F, 3, 3)
-    centre = tri.mean(axis=1)
-    radius = np.linalg.norm(tri - centre[:, None], axis=2).max(axis=1)
-    keep = np.flatnonzero(_near(centre, radius, loaded, SURFACE_REACH * h))
+def tetrahedron_surface_samples(mesh: TetMesh, loaded: np.ndarray, h: float) -> Samples:
+    """Samples of the boundary triangles of ``mesh`` within :data:`SURFACE_REACH` h of the
+    ``loaded`` points (P, 3), m: the centroids of n^2 equal sub-triangles each, weighted by
+    their area; ``local`` is barycentric in the owning tetrahedron."""
+    faces, owner = mesh.boundary
+    tri = mesh.nodes[faces]  # (F, 3, 3)
+    keep = _near(tri, loaded, SURFACE_REACH * h)
     if not len(keep):
         return Samples.empty(4)
     tri, owner = tri[keep], owner[keep]
@@ -297,26 +252,23 @@ def tetrahedron_surface_samples(
         points,
         (area[:, None] * share[None]).ravel(),
         element,
-        barycentric(nodes[tets[element]], points),
+        barycentric(mesh.coords[element], points, clip=True),  # on it up to round-off
     )
 
 
-def tetrahedron_volume_samples(
-    nodes: np.ndarray, tets: np.ndarray, loaded: np.ndarray, h: float
-) -> Samples:
-    """Samples of the tetrahedra within :data:`VOLUME_REACH` h of the ``loaded`` points: the
-    centroids of their children after enough uniform refinements, weighted by their volume."""
-    coords = nodes[tets]
-    centre = coords.mean(axis=1)
-    radius = np.linalg.norm(coords - centre[:, None], axis=2).max(axis=1)
-    keep = np.flatnonzero(_near(centre, radius, loaded, VOLUME_REACH * h))
+def tetrahedron_volume_samples(mesh: TetMesh, loaded: np.ndarray, h: float) -> Samples:
+    """Samples of the tetrahedra of ``mesh`` within :data:`VOLUME_REACH` h of the ``loaded``
+    points (P, 3), m: the centroids of their children after enough uniform refinements,
+    weighted by their volume."""
+    coords = mesh.coords
+    keep = _near(coords, loaded, VOLUME_REACH * h)
     if not len(keep):
         return Samples.empty(4)
     coords = coords[keep]
     longest = float(np.linalg.norm(coords[:, EDGES[:, 0]] - coords[:, EDGES[:, 1]], axis=2).max())
     levels = min(MAX_VOLUME_LEVELS, max(0, math.ceil(math.log2(subdivisions(longest, h)) - 1e-9)))
     lam, share = tetrahedron_rule(levels)
-    volume = np.abs(np.linalg.det(np.transpose(coords[:, 1:] - coords[:, :1], (0, 2, 1)))) / 6
+    volume = np.abs(mesh.volumes[keep])
     points = np.einsum("sk,wkd->wsd", lam, coords).reshape(-1, 3)
     return Samples(
         points,
@@ -324,15 +276,6 @@ def tetrahedron_volume_samples(
         np.repeat(keep, len(lam)),
         np.tile(lam, (len(keep), 1)),
     )
-
-
-def barycentric(coords: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(K, 4) barycentric coordinates of ``points`` (K, 3) in tetrahedra ``coords`` (K, 4, 3),
-    clipped onto the tetrahedron (samples lie on it up to round-off)."""
-    edges = np.transpose(coords[:, 1:] - coords[:, :1], (0, 2, 1))
-    rest = np.linalg.solve(edges, (points - coords[:, 0])[:, :, None])[:, :, 0]
-    lam = np.clip(np.concatenate([1 - rest.sum(axis=1, keepdims=True), rest], axis=1), 0, 1)
-    return lam / lam.sum(axis=1, keepdims=True)
 
 
 def concatenate(parts: list[Samples], width: int) -> Samples:

@@ -16,8 +16,8 @@ answer at the lattice's nodes, which is what the fit compares.
 - **Assembly.** Element matrices are computed vectorised over chunks of elements and summed into
   3x3 node blocks (BSR), the unknowns node-major, so :func:`fpm.fem.solution.solve_dirichlet`
   solves it as it solves the hexahedra (sparse LU when small, AMG-preconditioned CG above).
-- **Reading at points** (:func:`~fpm.model.tetrahedra.locate`: with the mesh's checks, so that
-  the service finds where points lie without the solvers). Each point is found in a
+- **Reading at points** (:meth:`~fpm.model.tetrahedra.TetMesh.locate`: with the mesh's checks,
+  so that the service finds where points lie without the solvers). Each point is found in a
   tetrahedron by its barycentric coordinates (all >= -1e-9), candidates the tetrahedra whose
   centroids are nearest and then, where those miss, every tetrahedron whose centroid lies within
   the largest circumscribing distance (so none is missed). A point in no tetrahedron takes the
@@ -46,9 +46,10 @@ from ..model.problem import Problem
 from ..model.tetrahedra import (
     EDGES,
     Location,
+    TetMesh,
     TetMeshError,
-    locate,
-    tetrahedron_volumes,
+    edge_matrices,
+    signed_volumes,
     validate_tetrahedra,
 )
 from .assembly import keep_nodes, unique_inverse
@@ -103,24 +104,19 @@ class Tet10Mesh:
 def quadratic_mesh(nodes: np.ndarray, tets: np.ndarray) -> Tet10Mesh:
     """The :class:`Tet10Mesh` of ``tets`` (T, 4) on ``nodes`` (N, 3), m (checked by
     :func:`validate_tetrahedra`). Shared edges share their mid-edge node."""
-    nodes = np.asarray(nodes, dtype=float)
-    tets = np.asarray(tets, dtype=np.int64)
-    validate_tetrahedra(nodes, tets)
-    n = len(nodes)
-    ends = np.sort(tets[:, EDGES].reshape(-1, 2), axis=1)  # (6T, 2)
-    keys, edge_of = unique_inverse(ends[:, 0] * n + ends[:, 1])
-    mid = (nodes[keys // n] + nodes[keys % n]) / 2
-    elements = np.concatenate([tets, n + edge_of.reshape(-1, 6)], axis=1)
-    return Tet10Mesh(np.concatenate([nodes, mid]), elements, n)
+    mesh = TetMesh(nodes, tets)
+    validate_tetrahedra(mesh.nodes, mesh.tets)
+    n = len(mesh.nodes)
+    elements = np.concatenate([mesh.tets, n + mesh.edges[1]], axis=1)
+    return Tet10Mesh(np.concatenate([mesh.nodes, mesh.midpoints]), elements, n)
 
 
 def barycentric_gradients(coords: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """grad L_k (T, 4, 3), 1/m, and volumes (T,), m^3, of tetrahedra with corners ``coords``
     (T, 4, 3), m."""
-    edges = np.transpose(coords[:, 1:] - coords[:, :1], (0, 2, 1))  # (T, 3, 3): columns
-    inverse = np.linalg.inv(edges)  # rows: grad L_1, grad L_2, grad L_3
+    inverse = np.linalg.inv(edge_matrices(coords))  # rows: grad L_1, grad L_2, grad L_3
     grads = np.concatenate([-inverse.sum(axis=1, keepdims=True), inverse], axis=1)
-    return grads, np.linalg.det(edges) / 6.0
+    return grads, signed_volumes(coords)
 
 
 def shape_functions(lam: np.ndarray) -> np.ndarray:
@@ -201,7 +197,7 @@ def body_forces(mesh: Tet10Mesh, density: float | np.ndarray, gravity: np.ndarra
     V gives ``-V/20`` to its corners and ``V/5`` to its mid-edge nodes, times ``rho g``
     (``density`` kg/m^3, or (T,) one per tetrahedron; ``gravity`` (3,) m/s^2); they sum to the
     weight ``rho g V``."""
-    volume = tetrahedron_volumes(mesh.nodes, mesh.corners)
+    volume = signed_volumes(mesh.nodes[mesh.corners])
     if np.ndim(density):  # per tetrahedron
         volume = volume * np.asarray(density, dtype=float)
         density = 1.0
@@ -293,11 +289,11 @@ def tet10_reference(
     The load cases' nodal forces (then the validation cases') are applied at the lattice node's
     position in the mesh (:func:`point_loads`), with ``fpm.gravity`` the mesh's consistent
     weight; supports by :func:`fixed_nodes`. The displacements are read at every lattice node
-    (:func:`locate`, :func:`interpolate`); a lattice node the spec fixes reads 0 (it is held in
-    the fit's model too). ``loads`` (mesh, where the lattice nodes lie) -> (L, M, 3) nodal
-    forces replaces the point loads (:mod:`fpm.fem.refine` spreads them: :mod:`fpm.fem.loads`),
-    ``supports`` (mesh) -> (M,) held nodes replaces :func:`fixed_nodes` (a refined mesh holds
-    what its coarsest level held).
+    (:meth:`~fpm.model.tetrahedra.TetMesh.locate`, :func:`interpolate`); a lattice node the
+    spec fixes reads 0 (it is held in the fit's model too). ``loads`` (mesh, where the lattice
+    nodes lie) -> (L, M, 3) nodal forces replaces the point loads (:mod:`fpm.fem.refine`
+    spreads them: :mod:`fpm.fem.loads`), ``supports`` (mesh) -> (M,) held nodes replaces
+    :func:`fixed_nodes` (a refined mesh holds what its coarsest level held).
 
     Returns:
         a :class:`FemResult` on the lattice: displacements (L, N_lattice, 3), m; ``element``
@@ -320,7 +316,7 @@ def tet10_reference(
     except TetMeshError as e:
         raise FemError(f"reference.mesh: {e}") from None
     lattice = problem.nodes
-    where = locate(mesh.nodes[: mesh.n_corners], mesh.corners, lattice)
+    where = TetMesh(mesh.nodes[: mesh.n_corners], mesh.corners).locate(lattice)
     cases = problem.all_cases
     lattice_forces = np.stack([case.as_given().dense(len(lattice)) for case in cases])  # (L, N, 3)
     if loads is None:

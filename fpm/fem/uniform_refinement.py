@@ -1,12 +1,11 @@
-"""One uniform 1-to-8 refinement of a tetrahedral or a hexahedral mesh (the meshes of a refined
-reference, :mod:`fpm.fem.refine`).
+"""One uniform 1-to-8 refinement of a hexahedral mesh (the meshes of a refined reference,
+:mod:`fpm.fem.refine`; a tetrahedral mesh's is :meth:`fpm.model.tetrahedra.TetMesh.refine`).
 
-A tetrahedron is split into 8 by Bey's red refinement (a corner tetrahedron at each corner, the
-inner octahedron cut along its shortest diagonal into 4), a hexahedron into 8 by its own
-trilinear map. New nodes at the middle of every edge (and of every face and hexahedron) are
-shared by neighbours and come after the coarse mesh's, so the lattice's nodes keep their
-numbers in a refined voxel mesh; a new node is held when the coarse nodes spanning it are.
-Volume is conserved exactly, and every child is positive (tests/test_refine.py).
+A hexahedron is split into 8 by its own trilinear map. New nodes at the middle of every edge,
+face and hexahedron are shared by neighbours and come after the coarse mesh's, so the lattice's
+nodes keep their numbers in a refined voxel mesh; a new node is held when the coarse nodes
+spanning it are. Volume is conserved exactly, and every child is positive
+(tests/test_refine.py).
 
 Units: m.
 """
@@ -16,69 +15,10 @@ from __future__ import annotations
 import numpy as np
 
 from ..model.hexahedron import NATURAL
-from ..model.tetrahedra import EDGES
 
-__all__ = ["refine_hexahedra", "refine_tetrahedra"]
+__all__ = ["refine_hexahedra"]
 
 # ------------------------------------------------------------------ refinement
-
-_OCTAHEDRON = {
-    # diagonal (as mid-edge slots 0-5 of EDGES: 01, 12, 02, 03, 13, 23) -> its ring of 4
-    (0, 5): (2, 3, 4, 1),
-    (2, 4): (0, 3, 5, 1),
-    (3, 1): (0, 2, 5, 4),
-}
-
-
-def refine_tetrahedra(
-    nodes: np.ndarray, tets: np.ndarray, fixed: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One uniform 1-to-8 refinement of ``tets`` (T, 4) on ``nodes`` (N, 3), m.
-
-    Returns (N + E, 3) nodes (the old ones first, then one per distinct edge at its middle),
-    (8T, 4) tetrahedra, children of tetrahedron t at 8t .. 8t + 7, all of positive volume, and
-    (N + E,) bool held nodes: a new node is held when both ends of its edge are (``fixed``
-    (N,), none when None), so the refined mesh holds exactly the region the coarse one held.
-    """
-    nodes = np.asarray(nodes, dtype=float)
-    tets = np.asarray(tets, dtype=np.int64)
-    n = len(nodes)
-    ends = np.sort(tets[:, EDGES].reshape(-1, 2), axis=1)
-    keys, edge = np.unique(ends[:, 0] * n + ends[:, 1], return_inverse=True)
-    mid = (nodes[keys // n] + nodes[keys % n]) / 2
-    all_nodes = np.concatenate([nodes, mid])
-    held = np.zeros(n, dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool)
-    held = np.concatenate([held, held[keys // n] & held[keys % n]])
-    m = n + edge.reshape(-1, 6)  # (T, 6) mid-edge nodes, EDGES order
-    x = tets
-    corners = [
-        (x[:, 0], m[:, 0], m[:, 2], m[:, 3]),
-        (m[:, 0], x[:, 1], m[:, 1], m[:, 4]),
-        (m[:, 2], m[:, 1], x[:, 2], m[:, 5]),
-        (m[:, 3], m[:, 4], m[:, 5], x[:, 3]),
-    ]
-    # The inner octahedron along its shortest diagonal (the best shaped children).
-    lengths = np.stack(
-        [np.linalg.norm(all_nodes[m[:, a]] - all_nodes[m[:, b]], axis=1) for a, b in _OCTAHEDRON],
-        axis=1,
-    )
-    choice = np.argmin(lengths, axis=1)
-    inner = np.zeros((len(tets), 4, 4), dtype=np.int64)
-    for option, ((a, b), ring) in enumerate(_OCTAHEDRON.items()):
-        rows = choice == option
-        for k in range(4):
-            inner[rows, k] = np.stack(
-                [m[rows, a], m[rows, b], m[rows, ring[k]], m[rows, ring[(k + 1) % 4]]], axis=1
-            )
-    children = np.concatenate(
-        [np.stack([np.stack(c, axis=1) for c in corners], axis=1), inner], axis=1
-    ).reshape(-1, 4)
-    coords = all_nodes[children]
-    volume = np.linalg.det(np.transpose(coords[:, 1:] - coords[:, :1], (0, 2, 1)))
-    flip = volume < 0
-    children[flip] = children[flip][:, [0, 2, 1, 3]]
-    return all_nodes, children, held
-
 
 _LOCAL = np.array([(i, j, k) for k in (-1, 0, 1) for j in (-1, 0, 1) for i in (-1, 0, 1)])
 """(27, 3) natural coordinates of a hexahedron's nodes after a split: r fastest, then s, t."""

@@ -12,8 +12,9 @@ from itertools import product
 
 import numpy as np
 
-from .hexahedron import GAUSS_POINTS, NATURAL, jacobians, local_families, local_pairs
+from .hexahedron import FACE_CORNERS, GAUSS_POINTS, NATURAL, jacobians, local_families, local_pairs
 from .spec import BoxGeometry, MeshGeometry, NetworkGeometry, VoxelGeometry
+from .tetrahedra import unshared_faces
 
 # A spring joins lattice offsets (dx, dy, dz) whose number of non-zero components is at most
 # this, per connectivity: edges 1, face diagonals 2, body diagonals 3.
@@ -223,15 +224,8 @@ def boundary_faces(hexahedra: np.ndarray) -> np.ndarray:
     of ``hexahedra`` (H, 8) is on the lattice's surface: it belongs to that hexahedron only and
     is not one side of a graded interface (:func:`graded_interfaces`)."""
     hexahedra = np.asarray(hexahedra, dtype=np.int64)
-    faces = np.concatenate(
-        [
-            np.sort(hexahedra[:, NATURAL[:, axis] == side], axis=1)
-            for axis in range(3)
-            for side in (-1.0, 1.0)
-        ]
-    )  # (6H, 4), face-major
-    _, inverse, counts = np.unique(faces, axis=0, return_inverse=True, return_counts=True)
-    single = counts[inverse.ravel()] == 1
+    faces = hexahedra[:, FACE_CORNERS].transpose(1, 0, 2).reshape(-1, 4)  # (6H, 4), face-major
+    single = unshared_faces(faces)
     single[graded_interfaces(hexahedra, np.flatnonzero(single))] = False
     return single.reshape(6, len(hexahedra)).T
 
@@ -389,7 +383,7 @@ def surface_point(nodes: np.ndarray, hexahedra: np.ndarray, p: np.ndarray) -> Su
         at = weights @ x
         distance = float(np.linalg.norm(at - p))
         if best is None or distance < best.distance:
-            corners = np.flatnonzero(NATURAL[:, a] == s)
+            corners = FACE_CORNERS[face[f]]
             w = np.where(weights[corners] > 1e-12, weights[corners], 0.0)  # rounding's crumbs
             best = SurfacePoint(
                 hexahedra[cell[f], corners], w / w.sum(), at, distance, int(cell[f])

@@ -27,7 +27,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .geometry import boundary_faces
-from .hexahedron import GAUSS_POINTS, NATURAL, shape_function_gradients, shape_functions
+from .hexahedron import FACE_CORNERS, GAUSS_POINTS, shape_function_gradients, shape_functions
 
 _GAUSS_2D = np.array([[-1.0, -1.0], [1.0, -1.0], [-1.0, 1.0], [1.0, 1.0]]) / np.sqrt(3.0)
 """(4, 2) 2 x 2 Gauss points of a face, weights 1."""
@@ -40,7 +40,7 @@ def surface_mass(nodes: np.ndarray, hexahedra: np.ndarray) -> sp.csr_matrix:
     rows, cols, vals = [], [], []
     for face in range(6):
         axis, side = face // 2, 2.0 * (face % 2) - 1.0
-        corners = np.flatnonzero(NATURAL[:, axis] == side)  # (4,) local nodes of the face
+        corners = FACE_CORNERS[face]  # (4,) local nodes of the face
         cells = hexahedra[free[:, face]]
         if not len(cells):
             continue

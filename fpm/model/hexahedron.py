@@ -38,6 +38,11 @@ NATURAL = np.array(
     dtype=float,
 )
 """(8, 3) natural coordinates (r_i, s_i, t_i) of the local nodes (paper Eq. 3)."""
+FACE_CORNERS = np.array(
+    [np.flatnonzero(NATURAL[:, axis] == side) for axis in range(3) for side in (-1.0, 1.0)]
+)
+"""(6, 4) the local nodes (ascending) of each local face ``2 * axis + (side > 0)``: r-, r+, s-,
+s+, t-, t+."""
 
 EDGES = [
     (0, 1),

@@ -7,7 +7,7 @@ two overlap the later one takes the shared part (:func:`assign`; the problem's n
 What is in no region is the spec's own material, the *base* region.
 
 - **The lattice**: a cell takes the region of its centre (for a tag: the tag of the tetrahedron
-  holding its centre, :func:`locate_tetrahedra`); :func:`lattice_regions` builds the
+  holding its centre, :func:`locate_tags`); :func:`lattice_regions` builds the
   :class:`RegionMap` and refuses a region that takes no cell and a tag no tetrahedron carries.
   The fit gives each region present its own families and kappa (:mod:`fpm.model.stiffness`).
 - **The FEM**: a hexahedron takes the region of its centroid (the lattice's cells are the FEM's
@@ -23,16 +23,14 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .spec import BASE_REGION, MaterialRegion, ProblemSpec, RegionSelector, region_names
+from .tetrahedra import Location, TetMesh
 
 Loc = tuple[str | int, ...]
 
 NEAREST = 16
 """Tetrahedra (nearest centroids first) tried for each point before a wider search."""
-TOLERANCE = 1e-9
-"""Barycentric margin: a point this (relative) far outside a tetrahedron still counts as in it."""
 
 
 @dataclass(frozen=True)
@@ -119,47 +117,12 @@ def assign(
     return which, overlaps
 
 
-def locate_tetrahedra(
-    nodes: np.ndarray, tets: np.ndarray, points: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """The tetrahedron holding each point: (P,) its index and (P,) bool whether the point is
-    inside one (within :data:`TOLERANCE`); a point outside the mesh takes the tetrahedron of
-    the nearest centroid."""
-    coords = nodes[tets]  # (T, 4, 3)
-    centroid = coords.mean(axis=1)
-    tree = cKDTree(centroid)
-    k = min(NEAREST, len(tets))
-    _, near = tree.query(points, k)
-    near = np.asarray(near).reshape(len(points), k)
-    found = np.full(len(points), -1, dtype=np.int64)
-    for column in range(k):  # the nearest centroids first
-        rest = np.flatnonzero(found < 0)
-        if not len(rest):
-            break
-        candidate = near[rest, column]
-        inside = _inside(coords[candidate], points[rest])
-        found[rest[inside]] = candidate[inside]
-    rest = np.flatnonzero(found < 0)
-    if len(rest):  # every tetrahedron whose centroid is within the largest reach
-        reach = float(np.linalg.norm(coords - centroid[:, None], axis=2).max()) * (1 + 1e-9)
-        for p, items in zip(rest, tree.query_ball_point(points[rest], reach), strict=True):
-            items = np.asarray(sorted(items), dtype=np.int64)
-            if len(items):
-                inside = _inside(coords[items], np.repeat(points[p][None], len(items), axis=0))
-                if inside.any():
-                    found[p] = items[np.argmax(inside)]
-    located = found >= 0
-    if not located.all():
-        found[~located] = near[~located, 0]
-    return found, located
-
-
-def _inside(coords: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(K,) bool: ``points`` (K, 3) inside tetrahedra ``coords`` (K, 4, 3)."""
-    edges = np.transpose(coords[:, 1:] - coords[:, :1], (0, 2, 1))
-    rest = np.linalg.solve(edges, (points - coords[:, 0])[:, :, None])[:, :, 0]
-    lam = np.concatenate([1 - rest.sum(axis=1, keepdims=True), rest], axis=1)
-    return lam.min(axis=1) >= -TOLERANCE
+def locate_tags(nodes: np.ndarray, tets: np.ndarray, points: np.ndarray) -> Location:
+    """Where ``points`` (P, 3), m, lie in the tagged mesh ``tets`` (T, 4) on ``nodes`` (N, 3):
+    the first of the :data:`NEAREST` nearest centroids' tetrahedra holding each, else the
+    lowest-numbered tetrahedron holding it; a point outside the mesh takes the tetrahedron of
+    the nearest centroid (``inside`` False)."""
+    return TetMesh(nodes, tets).locate(points, NEAREST, ordered=True, project=False)
 
 
 def tetrahedral_mesh(spec: ProblemSpec, mesh: dict[str, Any] | None) -> dict[str, Any] | None:
@@ -244,11 +207,11 @@ def lattice_regions(
             np.asarray(tetra["tetrahedra"], dtype=np.int64),
             tet_tags,
         )
-        which, located = locate_tetrahedra(tagged[0], tagged[1], centres)
-        tags = tet_tags[which]
-        if not located.all():
+        where = locate_tags(tagged[0], tagged[1], centres)
+        tags = tet_tags[where.element]
+        if not where.inside.all():
             notes.append(
-                f"material.regions: {int((~located).sum())} lattice cell centres lie outside "
+                f"material.regions: {int((~where.inside).sum())} lattice cell centres lie outside "
                 "the tagged mesh and take the tag of the nearest tetrahedron"
             )
     which_region, overlaps = assign(regions, centres, tags)
@@ -300,8 +263,7 @@ def element_tags(regions: RegionMap | None, centroids: np.ndarray) -> np.ndarray
     if regions is None or regions.tagged is None:
         return None
     nodes, tets, tags = regions.tagged
-    which, _ = locate_tetrahedra(nodes, tets, centroids)
-    return tags[which]
+    return tags[locate_tags(nodes, tets, centroids).element]
 
 
 def element_materials(

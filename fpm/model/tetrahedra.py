@@ -1,6 +1,8 @@
-"""Tetrahedral meshes as the spec carries them (``reference.mesh``): checks and volumes, where
-points lie in them (:func:`locate`), nodes numbered twice (:func:`merge_coincident`) and pieces
-(:func:`face_pieces`; :func:`lattice_pieces`: those a lattice joins).
+"""Tetrahedral meshes as the spec carries them (``reference.mesh``): checks, and the one mesh type
+(:class:`TetMesh`: volumes, edges, boundary, where points lie in it, its 1-to-8 split) with the
+barycentric coordinates it rests on (:func:`barycentric`); nodes numbered twice
+(:func:`merge_coincident`) and pieces (:func:`face_pieces`; :func:`lattice_pieces`: those a
+lattice joins).
 
 NumPy and SciPy only, so that :mod:`fpm.model.checks` and the service can check a mesh without
 the FEM's solvers. The 10-node element built on these tetrahedra is :mod:`fpm.fem.tet10`.
@@ -9,6 +11,7 @@ the FEM's solvers. The 10-node element built on these tetrahedra is :mod:`fpm.fe
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -24,7 +27,7 @@ FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
 TOLERANCE = 1e-9
 """Barycentric margin: a point this (relative) far outside a tetrahedron still counts as in it."""
 PAIR_CHUNK = 1 << 20
-"""(point, candidate) pairs tested at once in :func:`locate`."""
+"""(point, candidate) pairs tested at once in :meth:`TetMesh.locate`."""
 
 
 class TetMeshError(ValueError):
@@ -34,13 +37,6 @@ class TetMeshError(ValueError):
         super().__init__(message)
         self.element = element
         self.field = field
-
-
-def tetrahedron_volumes(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """(T,) signed volumes, m^3, of ``tets`` (T, 4) on ``nodes`` (N, 3), m: positive when
-    corner 3 lies on the side of face (0, 1, 2) its right-hand normal points to."""
-    v = nodes[tets]
-    return np.linalg.det(np.transpose(v[:, 1:] - v[:, :1], (0, 2, 1))) / 6.0
 
 
 def check_tetrahedra(
@@ -83,9 +79,8 @@ def check_tetrahedra(
         return errors[:limit]
     tets = tets.astype(np.int64)
     with np.errstate(over="ignore", invalid="ignore"):
-        volume = tetrahedron_volumes(nodes, tets)
-        v = nodes[tets]
-        longest = np.linalg.norm(v[:, EDGES[:, 1]] - v[:, EDGES[:, 0]], axis=2).max(axis=1)
+        mesh = TetMesh(nodes, tets)
+        volume, longest = mesh.volumes, mesh.longest_edges
         huge = ~np.isfinite(volume) | ~np.isfinite(longest**3)
     errors += [
         ("tetrahedra", int(e), f"tetrahedron {int(e)}: its coordinates are too large (m)")
@@ -127,41 +122,264 @@ def validate_tetrahedra(nodes: np.ndarray, tets: np.ndarray) -> None:
         raise TetMeshError(message, index, field)
 
 
-# ------------------------------------------------------------------ points in the mesh
+# ------------------------------------------------------------------ the mesh and points in it
+
+
+def edge_matrices(coords: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) the edges from corner 0 to corners 1-3 as columns, m, of tetrahedra with
+    corners ``coords`` (K, 4, 3), m: the Jacobian of the map from barycentric coordinates."""
+    return np.transpose(coords[:, 1:] - coords[:, :1], (0, 2, 1))
+
+
+def signed_volumes(coords: np.ndarray) -> np.ndarray:
+    """(K,) signed volumes, m^3, of tetrahedra with corners ``coords`` (K, 4, 3), m: positive
+    when corner 3 lies on the side of face (0, 1, 2) its right-hand normal points to."""
+    return np.linalg.det(edge_matrices(coords)) / 6.0
+
+
+def barycentric(coords: np.ndarray, points: np.ndarray, clip: bool = False) -> np.ndarray:
+    """(K, 4) barycentric coordinates of ``points`` (K, 3) in tetrahedra ``coords`` (K, 4, 3);
+    ``clip``: clipped to [0, 1] and scaled to sum 1 (onto the tetrahedron, for points on it up
+    to round-off or within :data:`TOLERANCE`)."""
+    rest = np.linalg.solve(edge_matrices(coords), (points - coords[:, 0])[:, :, None])[:, :, 0]
+    lam = np.concatenate([1 - rest.sum(axis=1, keepdims=True), rest], axis=1)
+    if not clip:
+        return lam
+    lam = np.clip(lam, 0.0, 1.0)
+    return lam / lam.sum(axis=1, keepdims=True)
+
+
+def unshared_faces(faces: np.ndarray) -> np.ndarray:
+    """(F,) bool: the ``faces`` (F, k) (node indices of faces of any elements) that no other row
+    repeats in any order: the faces of exactly one element."""
+    _, inverse, counts = np.unique(
+        np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True
+    )
+    return counts[inverse.ravel()] == 1
 
 
 @dataclass
 class Location:
-    """Where points lie in a tetrahedral mesh (:func:`locate`).
+    """Where points lie in a tetrahedral mesh (:meth:`TetMesh.locate`).
 
     Attributes:
-        element: (P,) the tetrahedron holding each point (or holding its nearest mesh point).
+        element: (P,) the tetrahedron holding each point (or, outside, the one ``locate`` names).
         lam: (P, 4) barycentric coordinates there (each in [0, 1], summing to 1).
-        distance: (P,) distance from the point to the mesh, m (0 inside).
+        distance: (P,) distance from the point to the mesh, m (0 inside; NaN outside when
+            ``locate`` does not project).
+        inside: (P,) bool, whether the point lies in a tetrahedron (within :data:`TOLERANCE`).
     """
 
     element: np.ndarray
     lam: np.ndarray
     distance: np.ndarray
+    inside: np.ndarray
 
 
-def _barycentric(coords: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(K, 4) barycentric coordinates of ``points`` (K, 3) in tetrahedra ``coords`` (K, 4, 3)."""
-    edges = np.transpose(coords[:, 1:] - coords[:, :1], (0, 2, 1))
-    rest = np.linalg.solve(edges, (points - coords[:, 0])[:, :, None])[:, :, 0]
-    return np.concatenate([1 - rest.sum(axis=1, keepdims=True), rest], axis=1)
+@dataclass(frozen=True)
+class TetMesh:
+    """A tetrahedral mesh: ``nodes`` (N, 3), m (or (N, 4) barycentric coordinates, for
+    :meth:`refine` without ``shortest``), and ``tets`` (T, 4) node indices (int64). What is
+    derived from them (corners, volumes, edges, boundary) is computed once, on first use."""
+
+    nodes: np.ndarray
+    tets: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "nodes", np.asarray(self.nodes, dtype=float))
+        object.__setattr__(self, "tets", np.asarray(self.tets, dtype=np.int64))
+
+    @cached_property
+    def coords(self) -> np.ndarray:
+        """(T, 4, 3) the tetrahedra's corners, m."""
+        return self.nodes[self.tets]
+
+    @cached_property
+    def volumes(self) -> np.ndarray:
+        """(T,) signed volumes, m^3 (:func:`signed_volumes`)."""
+        return signed_volumes(self.coords)
+
+    @cached_property
+    def longest_edges(self) -> np.ndarray:
+        """(T,) each tetrahedron's longest edge, m."""
+        v = self.coords
+        return np.linalg.norm(v[:, EDGES[:, 1]] - v[:, EDGES[:, 0]], axis=2).max(axis=1)
+
+    @cached_property
+    def edges(self) -> tuple[np.ndarray, np.ndarray]:
+        """(E, 2) the distinct edges' end nodes (lower first, ascending) and (T, 6) each
+        tetrahedron's edges among them, in :data:`EDGES` order."""
+        n = len(self.nodes)
+        ends = np.sort(self.tets[:, EDGES].reshape(-1, 2), axis=1)
+        keys, edge = np.unique(ends[:, 0] * n + ends[:, 1], return_inverse=True)
+        return np.stack([keys // n, keys % n], axis=1), edge.reshape(-1, 6)
+
+    @cached_property
+    def midpoints(self) -> np.ndarray:
+        """(E, 3) the middle of each edge of :attr:`edges`, m."""
+        ends = self.edges[0]
+        return (self.nodes[ends[:, 0]] + self.nodes[ends[:, 1]]) / 2
+
+    @cached_property
+    def boundary(self) -> tuple[np.ndarray, np.ndarray]:
+        """(F, 3) boundary triangles (faces of exactly one tetrahedron, outward for positive
+        tetrahedra) and (F,) the tetrahedron each belongs to."""
+        faces = self.tets[:, FACES].reshape(-1, 3)
+        single = unshared_faces(faces)
+        return faces[single], np.repeat(np.arange(len(self.tets)), 4)[single]
+
+    @cached_property
+    def _centroids(self) -> tuple[cKDTree, float]:
+        """A tree of the tetrahedra's centroids and the largest corner-to-centroid distance, m."""
+        centroid = self.coords.mean(axis=1)
+        reach = float(np.linalg.norm(self.coords - centroid[:, None], axis=2).max())
+        return cKDTree(centroid), reach
+
+    def locate(
+        self, points: np.ndarray, nearest: int = 8, ordered: bool = False, project: bool = True
+    ) -> Location:
+        """Where each of ``points`` (P, 3), m, lies: in the first tetrahedron holding it of the
+        ``nearest`` nearest centroids (nearest first), else of every centroid within the
+        largest reach (in the tree's order; ``ordered``: by index, the lowest first). Exact,
+        vectorised over (point, candidate) pairs. A point in no tetrahedron takes the nearest
+        point of the boundary triangles (:meth:`nearest_on_boundary`); without ``project``,
+        the tetrahedron of the nearest centroid, ``lam`` clipped there, distance NaN."""
+        points = np.asarray(points, dtype=float).reshape(-1, 3)
+        coords = self.coords
+        n = len(points)
+        tree, reach = self._centroids
+        k = min(nearest, len(self.tets))
+        _, near = tree.query(points, k)
+        near = np.asarray(near).reshape(n, k)
+        pairs = np.repeat(np.arange(n), k), near.ravel()
+        found, element, lam = _first_inside(coords, points, *pairs, n)
+        rest = np.flatnonzero(~found)
+        if len(rest):  # every tetrahedron that could hold the point: centroid within the reach
+            lists = tree.query_ball_point(points[rest], reach * (1 + 1e-9), return_sorted=ordered)
+            point, item = _flat_pairs(lists)
+            more, which, lam_more = _first_inside(coords, points[rest], point, item, len(rest))
+            found[rest[more]] = True
+            element[rest[more]] = which[more]
+            lam[rest[more]] = lam_more[more]
+        distance = np.zeros(n)
+        outside = np.flatnonzero(~found)
+        if len(outside) and project:
+            e, q, d = self.nearest_on_boundary(points[outside])
+            element[outside] = e
+            lam[outside] = barycentric(coords[e], q)
+            distance[outside] = d
+        elif len(outside):
+            element[outside] = near[outside, 0]
+            lam[outside] = barycentric(coords[element[outside]], points[outside])
+            distance[outside] = np.nan
+        lam = np.clip(lam, 0.0, 1.0)  # within TOLERANCE of the tetrahedron: onto it
+        lam /= lam.sum(axis=1, keepdims=True)
+        return Location(element, lam, distance, found)
+
+    def nearest_on_boundary(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For ``points`` (P, 3), m (outside the mesh, or inside: the nearest point of its
+        surface either way): (P,) the tetrahedron owning the nearest boundary triangle, (P, 3)
+        the nearest point, (P,) its distance, m."""
+        faces, owner = self.boundary
+        tri = self.nodes[faces]  # (F, 3, 3)
+        centre = tri.mean(axis=1)
+        reach = np.linalg.norm(tri - centre[:, None], axis=2).max()
+        tree = cKDTree(centre)
+        k = min(8, len(faces))
+        _, near = tree.query(points, k)
+        near = np.asarray(near).reshape(len(points), k)
+        p = np.repeat(np.arange(len(points)), k)
+        q = closest_on_triangles(points[p], *(tri[near.ravel(), i] for i in range(3)))
+        estimate = np.linalg.norm(q - points[p], axis=1).reshape(-1, k).min(axis=1)
+        # Any triangle nearer than the estimate has its centre within estimate + reach.
+        radius = estimate + reach * (1 + 1e-9) + 1e-12
+        p, f = _flat_pairs(tree.query_ball_point(points, radius, return_sorted=False))
+        best_d = np.full(len(points), np.inf)
+        best_f = np.zeros(len(points), dtype=np.int64)
+        best_q = np.zeros((len(points), 3))
+        for start in range(0, len(p), PAIR_CHUNK):
+            pp, ff = p[start : start + PAIR_CHUNK], f[start : start + PAIR_CHUNK]
+            qq = closest_on_triangles(points[pp], tri[ff, 0], tri[ff, 1], tri[ff, 2])
+            dd = np.linalg.norm(qq - points[pp], axis=1)
+            order = np.lexsort((dd, pp))  # per point, the nearest first
+            pp, ff, qq, dd = pp[order], ff[order], qq[order], dd[order]
+            first = np.ones(len(pp), dtype=bool)
+            first[1:] = pp[1:] != pp[:-1]
+            pp, ff, qq, dd = pp[first], ff[first], qq[first], dd[first]
+            better = dd < best_d[pp]
+            pp, ff, qq, dd = pp[better], ff[better], qq[better], dd[better]
+            best_d[pp], best_f[pp], best_q[pp] = dd, ff, qq
+        return owner[best_f], best_q, best_d
+
+    def refine(
+        self, fixed: np.ndarray | None = None, shortest: bool = True
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One uniform 1-to-8 split (Bey's red refinement: a corner tetrahedron at each corner,
+        the inner octahedron cut along a diagonal into 4).
+
+        ``shortest``: along the octahedron's shortest diagonal (the best shaped children), each
+        child turned positive; else along (01, 23), children as they fall (what a split of
+        barycentric coordinates needs: the children only tile the parent, equal in volume).
+
+        Returns (N + E, 3) nodes (the old ones first, then one per distinct edge at its middle),
+        (8T, 4) tetrahedra, children of tetrahedron t at 8t .. 8t + 7, and (N + E,) bool held
+        nodes: a new node is held when both ends of its edge are (``fixed`` (N,), none when
+        None), so the refined mesh holds exactly the region the coarse one held.
+        """
+        n = len(self.nodes)
+        ends, edge = self.edges
+        nodes = np.concatenate([self.nodes, self.midpoints])
+        held = np.zeros(n, dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool)
+        held = np.concatenate([held, held[ends[:, 0]] & held[ends[:, 1]]])
+        m = n + edge  # (T, 6) mid-edge nodes, EDGES order
+        x = self.tets
+        corners = [
+            (x[:, 0], m[:, 0], m[:, 2], m[:, 3]),
+            (m[:, 0], x[:, 1], m[:, 1], m[:, 4]),
+            (m[:, 2], m[:, 1], x[:, 2], m[:, 5]),
+            (m[:, 3], m[:, 4], m[:, 5], x[:, 3]),
+        ]
+        choice = np.zeros(len(x), dtype=np.int64)
+        if shortest:
+            lengths = [
+                np.linalg.norm(nodes[m[:, a]] - nodes[m[:, b]], axis=1) for a, b in _OCTAHEDRON
+            ]
+            choice = np.argmin(np.stack(lengths, axis=1), axis=1)
+        inner = np.zeros((len(x), 4, 4), dtype=np.int64)
+        for option, ((a, b), ring) in enumerate(_OCTAHEDRON.items()):
+            rows = choice == option
+            for k in range(4):
+                inner[rows, k] = np.stack(
+                    [m[rows, a], m[rows, b], m[rows, ring[k]], m[rows, ring[(k + 1) % 4]]], axis=1
+                )
+        children = np.concatenate(
+            [np.stack([np.stack(c, axis=1) for c in corners], axis=1), inner], axis=1
+        ).reshape(-1, 4)
+        if shortest:
+            flip = np.linalg.det(edge_matrices(nodes[children])) < 0
+            children[flip] = children[flip][:, [0, 2, 1, 3]]
+        return nodes, children, held
+
+
+_OCTAHEDRON = {
+    # diagonal (as mid-edge slots 0-5 of EDGES: 01, 12, 02, 03, 13, 23) -> its ring of 4
+    (0, 5): (2, 3, 4, 1),
+    (2, 4): (0, 3, 5, 1),
+    (3, 1): (0, 2, 5, 4),
+}
 
 
 def _first_inside(
     coords: np.ndarray, points: np.ndarray, point: np.ndarray, element: np.ndarray, n: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Tests the pairs (point[k], element[k]); returns per point (n,) found, element, lam."""
+    """Tests the pairs (point[k], element[k]) in order; returns per point (n,) found, the first
+    element holding it, lam there."""
     found = np.zeros(n, dtype=bool)
     which = np.full(n, -1, dtype=np.int64)
     lam_out = np.zeros((n, 4))
     for start in range(0, len(point), PAIR_CHUNK):
         p, e = point[start : start + PAIR_CHUNK], element[start : start + PAIR_CHUNK]
-        lam = _barycentric(coords[e], points[p])
+        lam = barycentric(coords[e], points[p])
         inside = lam.min(axis=1) >= -TOLERANCE
         p, e, lam = p[inside], e[inside], lam[inside]
         new = ~found[p]
@@ -173,25 +391,11 @@ def _first_inside(
     return found, which, lam_out
 
 
-def _ball_pairs(
-    tree: cKDTree, points: np.ndarray, radius: np.ndarray | float
-) -> tuple[np.ndarray, np.ndarray]:
-    """(point, item) pairs: every item of ``tree`` within ``radius`` of each of ``points``."""
-    lists = tree.query_ball_point(points, radius, return_sorted=False)
+def _flat_pairs(lists: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(point, item) pairs of a tree's ball query ``lists`` (P,): each point's items in turn."""
     counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
     items = np.fromiter((i for x in lists for i in x), dtype=np.int64, count=int(counts.sum()))
-    return np.repeat(np.arange(len(points)), counts), items
-
-
-def boundary_faces(tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(F, 3) boundary triangles (faces of exactly one tetrahedron, outward for positive
-    tetrahedra) of ``tets`` (T, 4), and (F,) the tetrahedron each belongs to."""
-    faces = tets[:, FACES].reshape(-1, 3)
-    _, inverse, counts = np.unique(
-        np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True
-    )
-    single = counts[inverse.ravel()] == 1
-    return faces[single], np.repeat(np.arange(len(tets)), 4)[single]
+    return np.repeat(np.arange(len(lists)), counts), items
 
 
 def closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -224,78 +428,6 @@ def closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndar
     ]
     choices = [a, b, c, on_ab, on_ac, on_bc]
     return np.select([k[:, None] for k in conditions], choices, face)
-
-
-def locate(nodes: np.ndarray, tets: np.ndarray, points: np.ndarray) -> Location:
-    """Where each of ``points`` (P, 3), m, lies in the mesh ``tets`` (T, 4) on ``nodes`` (N, 3):
-    in the tetrahedra of the nearest centroids, else of every centroid within the largest
-    reach; a point in no tetrahedron takes the nearest point of the boundary triangles
-    (:func:`nearest_on_boundary`). Exact, vectorised over (point, candidate) pairs
-    (:mod:`fpm.fem.tet10` reads its reference there)."""
-    points = np.asarray(points, dtype=float).reshape(-1, 3)
-    coords = nodes[tets]  # (T, 4, 3)
-    n = len(points)
-    centroid = coords.mean(axis=1)
-    reach = float(np.linalg.norm(coords - centroid[:, None], axis=2).max())
-    tree = cKDTree(centroid)
-    k = min(8, len(tets))
-    _, near = tree.query(points, k)
-    near = np.asarray(near).reshape(n, k)
-    found, element, lam = _first_inside(coords, points, np.repeat(np.arange(n), k), near.ravel(), n)
-    rest = np.flatnonzero(~found)
-    if len(rest):  # every tetrahedron that could hold the point: centroid within the reach
-        point, item = _ball_pairs(tree, points[rest], reach * (1 + 1e-9))
-        more, which, lam_more = _first_inside(coords, points[rest], point, item, len(rest))
-        found[rest[more]] = True
-        element[rest[more]] = which[more]
-        lam[rest[more]] = lam_more[more]
-    distance = np.zeros(n)
-    outside = np.flatnonzero(~found)
-    if len(outside):
-        e, q, d = nearest_on_boundary(nodes, tets, points[outside])
-        element[outside] = e
-        lam[outside] = _barycentric(coords[e], q)
-        distance[outside] = d
-    lam = np.clip(lam, 0.0, 1.0)  # within TOLERANCE of the tetrahedron: onto it
-    lam /= lam.sum(axis=1, keepdims=True)
-    return Location(element, lam, distance)
-
-
-def nearest_on_boundary(
-    nodes: np.ndarray, tets: np.ndarray, points: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For ``points`` (P, 3), m (outside the mesh, or inside: the nearest point of its surface
-    either way): (P,) the tetrahedron owning the nearest boundary triangle, (P, 3) the nearest
-    point, (P,) its distance, m."""
-    faces, owner = boundary_faces(tets)
-    tri = nodes[faces]  # (F, 3, 3)
-    centre = tri.mean(axis=1)
-    reach = np.linalg.norm(tri - centre[:, None], axis=2).max()
-    tree = cKDTree(centre)
-    k = min(8, len(faces))
-    _, near = tree.query(points, k)
-    near = np.asarray(near).reshape(len(points), k)
-    p = np.repeat(np.arange(len(points)), k)
-    q = closest_on_triangles(points[p], *(tri[near.ravel(), i] for i in range(3)))
-    estimate = np.linalg.norm(q - points[p], axis=1).reshape(-1, k).min(axis=1)
-    # Any triangle nearer than the estimate has its centre within estimate + reach.
-    p, f = _ball_pairs(tree, points, estimate + reach * (1 + 1e-9) + 1e-12)
-    best_d = np.full(len(points), np.inf)
-    best_f = np.zeros(len(points), dtype=np.int64)
-    best_q = np.zeros((len(points), 3))
-    for start in range(0, len(p), PAIR_CHUNK):
-        pp, ff = p[start : start + PAIR_CHUNK], f[start : start + PAIR_CHUNK]
-        qq = closest_on_triangles(points[pp], tri[ff, 0], tri[ff, 1], tri[ff, 2])
-        dd = np.linalg.norm(qq - points[pp], axis=1)
-        order = np.lexsort((dd, pp))  # per point, the nearest first
-        pp, ff, qq, dd = pp[order], ff[order], qq[order], dd[order]
-        first = np.ones(len(pp), dtype=bool)
-        first[1:] = pp[1:] != pp[:-1]
-        pp, ff, qq, dd = pp[first], ff[first], qq[first], dd[first]
-        better = dd < best_d[pp]
-        pp, ff, qq, dd = pp[better], ff[better], qq[better], dd[better]
-        best_d[pp], best_f[pp], best_q[pp] = dd, ff, qq
-    return owner[best_f], best_q, best_d
 
 
 # ------------------------------------------------------------------ nodes numbered twice, pieces
@@ -362,7 +494,7 @@ class Pieces:
     Attributes:
         piece: (T,) the piece of each tetrahedron (:func:`face_pieces`), numbered from 0.
         cells: (P,) how many of the lattice's cell centres each piece holds (a centre outside
-            the mesh counts for the piece of its nearest boundary point, :func:`locate`).
+            the mesh counts for the piece of its nearest boundary point, :meth:`TetMesh.locate`).
     """
 
     piece: np.ndarray
@@ -410,5 +542,5 @@ def lattice_pieces(nodes: np.ndarray, tets: np.ndarray, centres: np.ndarray) -> 
     count = int(piece.max()) + 1
     if count == 1:
         return Pieces(piece, np.array([len(centres)]))
-    cells = np.bincount(piece[locate(nodes, tets, centres).element], minlength=count)
+    cells = np.bincount(piece[TetMesh(nodes, tets).locate(centres).element], minlength=count)
     return Pieces(piece, cells)

@@ -108,18 +108,19 @@ def conform_lattice(
     """
     from ...fem.elasticity import min_jacobian_determinants
     from ...fem.samples import lattice_spacing, lattice_surface
-    from ...model.tetrahedra import boundary_faces, nearest_on_boundary
+    from ...model.tetrahedra import TetMesh
 
     x0 = np.asarray(nodes, dtype=float)
     mesh_nodes = np.asarray(mesh_nodes, dtype=float)
     surface = np.flatnonzero(lattice_surface(hexahedra, len(x0)))
-    _, target, _ = nearest_on_boundary(mesh_nodes, np.asarray(tets), x0[surface])
+    tet = TetMesh(mesh_nodes, tets)
+    _, target, _ = tet.nearest_on_boundary(x0[surface])
     normal = outward_normals(hexahedra, len(x0))[surface]
     length = np.linalg.norm(normal, axis=1)
     pointed = length > 0  # opposite faces of a fin cancel: such a node takes its nearest point
     direction = np.zeros_like(normal)
     direction[pointed] = normal[pointed] / length[pointed, None]
-    triangles = mesh_nodes[boundary_faces(np.asarray(tets))[0]]
+    triangles = mesh_nodes[tet.boundary[0]]
     t = np.full(len(surface), np.inf)
     reach = RAY_REACH * float(np.min(lattice_spacing(x0, hexahedra)))
     t[pointed] = line_crossings(x0[surface][pointed], direction[pointed], triangles, reach)

@@ -260,7 +260,7 @@ def check_volume_cells(
     Raises:
         MeshError: the first degenerate cell, by its index in its cell block and the reason.
     """
-    from ...model.tetrahedra import DEGENERATE, EDGES, tetrahedron_volumes
+    from ...model.tetrahedra import DEGENERATE, TetMesh
 
     inverted: list[str] = []
     for (n, cells), name in zip(volumes, names, strict=True):
@@ -268,9 +268,9 @@ def check_volume_cells(
             continue
         out_of_range(cells, len(points), f"{name} cell", "in its block")
         tets = cells[:, _SPLIT[n]].reshape(-1, 4)
-        volume = tetrahedron_volumes(points, tets).reshape(len(cells), -1)
-        v = points[tets]
-        longest = np.linalg.norm(v[:, EDGES[:, 1]] - v[:, EDGES[:, 0]], axis=2).max(axis=1)
+        mesh = TetMesh(points, tets)
+        volume = mesh.volumes.reshape(len(cells), -1)
+        longest = mesh.longest_edges
         flat = (np.abs(volume) <= DEGENERATE * longest.reshape(len(cells), -1) ** 3).any(axis=1)
         if flat.any():
             c = int(np.flatnonzero(flat)[0])
@@ -343,13 +343,7 @@ def _reference_mesh(
         MeshError: two pieces hold lattice cells (they touch or overlap without sharing faces,
             or lie closer than the spacing): the lattice joins them, the FEM would not.
     """
-    from ...model.tetrahedra import (
-        DEGENERATE,
-        EDGES,
-        lattice_pieces,
-        merge_coincident,
-        tetrahedron_volumes,
-    )
+    from ...model.tetrahedra import DEGENERATE, TetMesh, lattice_pieces, merge_coincident
 
     used, inverse = np.unique(tets, return_inverse=True)
     nodes, tets, merged = merge_coincident(points[used], inverse.reshape(-1, 4))
@@ -359,12 +353,11 @@ def _reference_mesh(
             "another (numbered twice, e.g. where two blocks or regions meet): the tetrahedra "
             "on them are joined, as the lattice's cells are"
         )
-    volume = tetrahedron_volumes(nodes, tets)
-    v = nodes[tets]
-    longest = np.linalg.norm(v[:, EDGES[:, 1]] - v[:, EDGES[:, 0]], axis=2).max(axis=1)
-    solid = np.abs(volume) > DEGENERATE * longest**3
+    mesh = TetMesh(nodes, tets)
+    volume = mesh.volumes
+    solid = np.abs(volume) > DEGENERATE * mesh.longest_edges**3
     tets = tets[solid]
-    volume = tetrahedron_volumes(nodes, tets)
+    volume = volume[solid]
     tets[volume < 0] = tets[volume < 0][:, [0, 2, 1, 3]]
     found = lattice_pieces(nodes, tets, centres)
     if len(found.cells) > 1:

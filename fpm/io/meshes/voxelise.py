@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from ...model.tetrahedra import edge_matrices
 from ..errors import MeshError
 
 TOLERANCE = 1e-9
@@ -120,7 +121,7 @@ def voxelise_tetrahedra(
     else:
         origin, cells = np.asarray(grid[0], dtype=float), np.asarray(grid[1], dtype=np.int64)
     v = points[tets]  # (T, 4, 3)
-    edges = np.transpose(v[:, 1:] - v[:, :1], (0, 2, 1))  # (T, 3, 3): columns b-a, c-a, d-a
+    edges = edge_matrices(v)  # (T, 3, 3): columns b-a, c-a, d-a
     det = np.linalg.det(edges)
     size = np.abs(edges).max(axis=(1, 2))
     keep = np.abs(det) > 1e-12 * size**3  # flat tetrahedra hold no cell centre
