@@ -176,7 +176,7 @@ def calibrated_linear(problem: Any, reference: Any) -> tuple[Any, np.ndarray, li
     case, the nodal loads (N, 3) N of those cases). Also puts :func:`spring_blocks` of the
     lattice's cells in ``problem.cache["blocks"]`` (:func:`cell_blocks` reads them)."""
     import fpm
-    from fpm.fitting.validation import reference_displacements, validation_reference
+    from fpm.fitting.damping.validation import reference_displacements, validation_reference
 
     result = fpm.calibrate(problem, reference=reference)
     theta = np.array([*result.stiffness.values(), result.volume_stiffness])
