@@ -30,20 +30,23 @@ GOLDEN_TRIALS = 14
 """Trial d of the plain search: 2 to open the bracket, then golden-section steps on log d."""
 
 
-def _fitted(spec: dict[str, Any]) -> tuple[Any, Any]:
-    """(problem, calibration result) of an in-process two-stage calibration, FEM outside."""
+def _fitted(spec: dict[str, Any]) -> tuple[Any, Any, Any]:
+    """(problem, calibration result, FEM reference) of an in-process two-stage calibration."""
     import fpm
     from fpm.fitting.calibration import calibrate
 
     problem = fpm.load_problem(spec)
     reference = fpm.solve_fem(problem)
-    return problem, calibrate(problem, reference=reference)
+    return problem, calibrate(problem, reference=reference), reference
 
 
-def _setting(problem: Any, result: Any) -> tuple[Any, Any, int, np.ndarray, Any]:
+def _setting(
+    problem: Any, result: Any, reference: Any
+) -> tuple[Any, Any, int, np.ndarray, np.ndarray]:
     """The stage's inputs at the result: (solver, stiffness, depth, static (L, N, 3) m, the
-    reference's displacements (L, N, 3) m)."""
+    reference's displacements (L, N, 3) m, which the settle distances 'auto' read)."""
     from fpm.dynamics.equilibrium import StaticSolver
+    from fpm.fitting.damping.validation import reference_displacements
     from fpm.model.stiffness import fitted_theta, model_stiffness
 
     stiffness = model_stiffness(problem, fitted_theta(problem, result.to_dict()))
@@ -52,14 +55,14 @@ def _setting(problem: Any, result: Any) -> tuple[Any, Any, int, np.ndarray, Any]
     static = np.stack(
         [solver.solve(j, stiffness, depth).displacements for j in range(len(problem.load_cases))]
     )
-    return solver, stiffness, depth, static, None
+    return solver, stiffness, depth, static, reference_displacements(reference, problem)
 
 
-def stage_choice(problem: Any, result: Any) -> dict[str, Any]:
+def stage_choice(problem: Any, result: Any, fem: Any) -> dict[str, Any]:
     """The stage's own choice of d, timed from the prediction on."""
     from fpm.fitting.damping.search import fit_damping
 
-    solver, stiffness, depth, static, reference = _setting(problem, result)
+    solver, stiffness, depth, static, reference = _setting(problem, result, fem)
     t0 = time.perf_counter()
     fit, plan = fit_damping(
         problem, solver, stiffness, depth, static, result.dt, reference=reference
@@ -148,8 +151,8 @@ def golden_choice(problem: Any, result: Any, stage: dict[str, Any]) -> dict[str,
 
 def main() -> None:
     spec = json.loads(SPEC_A.read_text())
-    problem, result = _fitted(spec)
-    stage = stage_choice(problem, result)
+    problem, result, fem = _fitted(spec)
+    stage = stage_choice(problem, result, fem)
     golden = golden_choice(problem, result, stage)
     load = os.getloadavg()
     print(f"\nChoosing d on the cube (material A), load average {load[0]:.2f} {load[1]:.2f}")
