@@ -326,7 +326,7 @@ def export_figures(problem: Any, result: Any, reference: Any) -> dict[str, Any]:
     import json
 
     from bench import export_solve
-    from fpm.fitting.validation import reference_displacements, validation_reference
+    from fpm.fitting.damping.validation import reference_displacements, validation_reference
     from fpm.io.export import export
 
     model = json.loads(export(problem, result.to_dict(), "json"))
@@ -414,7 +414,7 @@ def diagnose(organ: str, spacing: float, refine: int) -> None:
     from bench.tet_organ import surface_spec
     from fpm.fem.levels import relative_change
     from fpm.fitting.cost import StaticCost
-    from fpm.fitting.validation import reference_displacements
+    from fpm.fitting.damping.validation import reference_displacements
     from fpm.model.stiffness import fitted_theta
 
     spec = surface_spec(organ, spacing, refine=refine)
@@ -555,7 +555,7 @@ def judged(problem: Any, result: Any, reference: Any) -> tuple[list[float], list
     import numpy as np
 
     from fpm.fitting.cost import StaticCost, discrepancies
-    from fpm.fitting.validation import reference_displacements, validate
+    from fpm.fitting.damping.validation import reference_displacements, validate
     from fpm.model.stiffness import fitted_theta
 
     theta = fitted_theta(problem, result)

@@ -9,7 +9,7 @@
   stage and finalize, and the same by the identity of their fit
   (:func:`store.hashing.stiffness_hash`), which a later calibration of that fit takes (one run
   again after its damping stage failed);
-- the damping stage's result (:class:`fpm.fitting.damping_stage.DampingStage` as JSON);
+- the damping stage's result (:class:`fpm.fitting.damping.stage.DampingStage` as JSON);
 - the damping stage's load-case tasks (:mod:`worker.spread`): what to run, who runs it (a
   claim its holder renews), and the run (JSON and raw float64 displacements);
 - the spans of a calibration's jobs (worker, start, end, CPU s; :mod:`store.timeline`);
@@ -239,7 +239,7 @@ def release_claim(redis: Redis, calibration_id: str, task: str) -> None:
 
 def name_later(redis: Redis, calibration_id: str, task: str, named: dict[str, Any]) -> None:
     """Name, once, what request task ``task`` learns once its runs have started
-    (:func:`fpm.fitting.lockstep.named_later`: its budget or its caps)."""
+    (:func:`fpm.fitting.damping.lockstep.named_later`: its budget or its caps)."""
     redis.hsetnx(keys.case_run(calibration_id, task), "named", json.dumps(named))
 
 

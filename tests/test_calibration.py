@@ -17,7 +17,7 @@ from fpm.fitting.annealing import AnnealingError, Checkpoint, Schedule, State, a
 from fpm.fitting.bounds import damping_bounds
 from fpm.fitting.calibration import ChainResult, calibrate, finalize, pick_paper_state, run_chain
 from fpm.fitting.cost import CostFunction, Evaluation, StaticCost, discrepancies
-from fpm.fitting.depth import resolve_depth
+from fpm.fitting.damping.depth import resolve_depth
 from fpm.fitting.stiffness_stage import constrained_cost
 from fpm.model.spec import lundy_mees_moves
 from fpm.model.stiffness import model_stiffness, theta_of

@@ -1,6 +1,6 @@
-"""Stage 2 of the calibration (:mod:`fpm.fitting.damping`): runs in pieces, the critical-damping
-estimates against an exact mode, the linear response against the small-load limit of the static
-equilibrium, early stopping, and the fastest d against a grid of d."""
+"""Stage 2 of the calibration (:mod:`fpm.fitting.damping.search`): runs in pieces, the
+critical-damping estimates against an exact mode, the linear response against the small-load limit
+of the static equilibrium, early stopping, and the fastest d against a grid of d."""
 
 from __future__ import annotations
 
@@ -18,20 +18,19 @@ from fpm.dynamics.settle import force_tolerance
 from fpm.dynamics.simulation import FpmModel
 from fpm.dynamics.stability import auto_time_step
 from fpm.dynamics.voigt import SETTLED
-from fpm.fitting import damping
-from fpm.fitting.damping import TRUST, _search, _unsure, critical_damping, fastest_damping
-from fpm.fitting.damping_stage import find_damping
-from fpm.fitting.lockstep import (
-    CHUNK,
-    PREDICT_AFTER,
-    SAMPLE,
-    CaseRun,
-    _piece,
-    _Runs,
-    predicted_steps,
+from fpm.fitting.damping import search as damping
+from fpm.fitting.damping.lockstep import CaseRun, _piece, _Runs, predicted_steps
+from fpm.fitting.damping.margin import smallest_settling
+from fpm.fitting.damping.search import _search, _unsure, critical_damping, fastest_damping
+from fpm.fitting.damping.search import fit_damping as find_damping
+from fpm.fitting.damping.settings import CHUNK, MARGIN_PROBES, PREDICT_AFTER, SAMPLE, TRUST
+from fpm.fitting.damping.unsettled import (
+    DampingError,
+    Hopeless,
+    hopeless,
+    long_decay,
+    what_would_work,
 )
-from fpm.fitting.margin import MARGIN_PROBES, smallest_settling
-from fpm.fitting.unsettled import DampingError, Hopeless, hopeless, long_decay, what_would_work
 from fpm.model.forces import Stiffness
 from fpm.model.stiffness import model_stiffness, spring_stiffness
 
@@ -194,7 +193,7 @@ class _Edge:
         self.ahead: list[float] = []
 
     def __call__(self, d: float, caps: list[int], *, estimate: bool = False) -> tuple[list, Any]:
-        from fpm.fitting.lockstep import Verdict
+        from fpm.fitting.damping.lockstep import Verdict
 
         self.probed.append(d)
         return [], Verdict("settles" if d >= self.edge else "failed")

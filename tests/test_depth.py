@@ -1,4 +1,4 @@
-"""Depth 'auto' (fpm.fitting.depth): the cost test and the model's own response test."""
+"""Depth 'auto' (fpm.fitting.damping.depth): the cost test and the model's own response test."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import fpm
 from fpm.dynamics.equilibrium import StaticSolver
 from fpm.fitting.bounds import fit_depth, full_depth
 from fpm.fitting.cost import StaticCost
-from fpm.fitting.depth import OwnResponses, resolve_depth
+from fpm.fitting.damping.depth import OwnResponses, resolve_depth
 from fpm.model.stiffness import continuum_start, model_stiffness
 
 TOLERANCE = 0.005

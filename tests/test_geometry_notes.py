@@ -1,4 +1,4 @@
-"""fpm.fitting.validation.geometry_notes: a validation case whose figure is mostly the
+"""fpm.fitting.damping.validation.geometry_notes: a validation case whose figure is mostly the
 springs' change of geometry (large loads against the linear FEM reference) says so, with the
 figure the same model has under small loads; a case in the linear range does not."""
 
@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 import fpm
-from fpm.fitting.validation import GEOMETRY_GAP, validate
+from fpm.fitting.damping.settings import GEOMETRY_GAP
+from fpm.fitting.damping.validation import validate
 from tests.test_export import soft_block_spec
 
 THETA = [30.0, 20.0, 4.0, 2e4]  # k per family, N/m, and kappa, Pa: a soft block's
@@ -69,7 +70,7 @@ def test_a_calibration_without_validation_cases_says_its_figures_flatter_it():
     """Every figure of a fit of several stiffness parameters with no validation cases is on
     its own loads: the result says so, unless the paper's model (one k) or method (which judge
     the fit on its own loads, as the paper does) was asked for."""
-    from fpm.fitting.validation import unseen_note
+    from fpm.fitting.damping.validation import unseen_note
 
     spec = copy.deepcopy(soft_block_spec())
     spec.pop("validation_cases", None)

@@ -144,10 +144,10 @@ def test_the_defect_corrected_fit_runs_once_per_calibration(monkeypatch):
     the damping stage, and a static solve at its answer then takes no Newton step (its last
     round's equilibria are the solver's warm starts). The stage given the first basis lands
     on the same parameters to the bit as one that builds it, and as calibrate."""
-    import fpm.fitting.damping_stage as damping_stage
+    import fpm.fitting.damping.polish as damping_stage
     from fpm.fitting.bounds import stiffness_bounds
     from fpm.fitting.calibration import calibrate
-    from fpm.fitting.damping_stage import fit_damping
+    from fpm.fitting.damping.stage import fit_stage as fit_damping
     from fpm.fitting.defect_correction import fit_reduced
     from fpm.fitting.stiffness_stage import run_chain
 
@@ -206,9 +206,9 @@ def test_stage_two_validates_beside_the_search():
     """The validation cases, solved on a thread beside the d search once the polish is done,
     are what finalize would have solved itself, to the bit."""
     from fpm.fitting.calibration import finalize
-    from fpm.fitting.damping_stage import fit_damping
+    from fpm.fitting.damping.stage import fit_stage as fit_damping
+    from fpm.fitting.damping.validation import validate
     from fpm.fitting.stiffness_stage import run_chain
-    from fpm.fitting.validation import validate
 
     problem, reference = small_fit()
     chain = run_chain(problem, reference, 0)

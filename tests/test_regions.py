@@ -606,7 +606,7 @@ def test_stage_two_takes_the_equally_good_chain_with_the_longest_time_step():
     """A stiff inclusion's kappa is barely seen by the loads and may drift upwards in one chain
     (measured on the box above: 5.5e5 in one chain, 3.8e6 in the other at the same cost within
     0.07%, halving dt): stage 2 polishes the chain that runs fastest among the equally good."""
-    from fpm.fitting.damping_stage import chain_to_polish
+    from fpm.fitting.damping.polish import chain_to_polish
     from fpm.fitting.stiffness_stage import ChainResult
 
     problem = fpm.load_problem(inclusion_specs(5)[1])

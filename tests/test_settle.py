@@ -31,7 +31,7 @@ from fpm.dynamics.simulation import fpm_model
 from fpm.dynamics.stability import stable_time_step
 from fpm.dynamics.step_caps import case_models
 from fpm.fitting.bounds import damping_bounds
-from fpm.fitting.lockstep import run_case
+from fpm.fitting.damping.lockstep import run_case
 from fpm.model.stiffness import continuum_start, model_stiffness
 
 

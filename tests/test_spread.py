@@ -25,9 +25,9 @@ from rq.serializers import JSONSerializer
 import fpm
 from fpm.dynamics.voigt import SETTLED
 from fpm.fitting.calibration import calibrate
-from fpm.fitting.damping import CONFIRM, CONFIRM_PRUNE
-from fpm.fitting.damping_stage import DampingPlan
-from fpm.fitting.lockstep import CHUNK, LATER, CaseRun, Request, Verdict, _Runs, lockstep_cpu
+from fpm.fitting.damping.lockstep import LATER, CaseRun, Request, Verdict, _Runs, lockstep_cpu
+from fpm.fitting.damping.search import DampingPlan
+from fpm.fitting.damping.settings import CHUNK, CONFIRM, CONFIRM_PRUNE
 from fpm.model.stiffness import model_stiffness
 from service.limits import dump_spec
 from store import graph, keys, records, scratch

@@ -154,7 +154,7 @@ def test_families_volume_builds_its_reduced_basis_once_beside_the_fem(
     job; it alone builds the first basis, which each chain and the damping job read back (none
     builds it again); the answer equals the in-process calibration's to the bit; the timeline
     has its span, the chains after it; finalize drops the stored basis."""
-    import fpm.fitting.damping_stage as damping_stage
+    import fpm.fitting.damping.polish as damping_stage
     import fpm.fitting.stiffness_stage as stiffness_stage
 
     small_spec["fpm"].update(stiffness="families+volume", dt="auto", max_steps="auto")

@@ -38,13 +38,13 @@ from fpm.fitting.calibration import (
     DampingStage,
     check_reference,
     finalize,
-    fit_damping,
+    fit_stage,
     run_chain,
 )
-from fpm.fitting.damping_stage import DampingPlan
+from fpm.fitting.damping.search import DampingPlan
+from fpm.fitting.damping.unsettled import DampingError, Hopeless
+from fpm.fitting.damping.validation import validate
 from fpm.fitting.reduced import ReducedBasis, first_basis
-from fpm.fitting.unsettled import DampingError, Hopeless
-from fpm.fitting.validation import validate
 from fpm.io.export import ExportError, export
 from store import keys, records, scratch
 from store.hashing import export_hash, stiffness_hash
@@ -278,7 +278,7 @@ class _ChainProgress(_Reporter):
 class _DampingProgress(_Reporter):
     """The damping stage's progress: {step, runs, d, total_steps, best_d, best_total_steps}.
 
-    ``step`` is "polish", "depth", "field" or "damping" (fpm.fitting.damping_stage.fit_damping's
+    ``step`` is "polish", "depth", "field" or "damping" (fpm.fitting.damping.stage.fit_stage's
     phases),
     written at once when it changes; ``runs`` counts the d values tried, ``d`` and
     ``total_steps`` are the last one's (total_steps None: some load case did not settle) and
@@ -376,7 +376,7 @@ def fit_damping_stage(calibration_id: str) -> dict[str, Any]:
     )
     try:
         basis = _stored_basis(redis, calibration_id)
-        stage = fit_damping(
+        stage = fit_stage(
             problem, reference, chains, progress=reporter, spread=spread, basis=basis,
             validator=validator,
         )  # fmt: skip

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 from rq import get_current_job
 
-from fpm.fitting.validation import replayed_run
+from fpm.fitting.damping.validation import replayed_run
 from fpm.io.plot import profile_line
 from store import records, scratch
 from store.status import CalibrationStatus

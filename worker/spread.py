@@ -2,10 +2,10 @@
 
 The d search's dearest runs are the predicted d's, every load case run to its end
 (docs/explanation/physics/damping-search.md, *Confirmation*): each case's run is independent of
-the others' (:func:`fpm.fitting.lockstep.run_case`). Then come the d that confirm it, where the
-reduced steps cannot rule them out, and the margin's probes, each a d's lockstep runs whose
-requests the search can name before it needs them (:meth:`fpm.fitting.lockstep._Runs.prefetch`).
-The damping job hands them out as tasks:
+the others' (:func:`fpm.fitting.damping.lockstep.run_case`). Then come the d that confirm it, where
+the reduced steps cannot rule them out, and the margin's probes, each a d's lockstep runs whose
+requests the search can name before it needs them
+(:meth:`fpm.fitting.damping.lockstep._Runs.prefetch`). The damping job hands them out as tasks:
 
 - each task (the plan, and one load case at d with its cap, or one d's request) is stored
   under its digest (:func:`task_digest`) and, when other workers are idle, enqueued as a
@@ -44,8 +44,7 @@ from rq.job import Job
 from rq.worker import BaseWorker
 
 from fpm.dynamics.simulation import FpmModel
-from fpm.fitting.damping_stage import DampingPlan
-from fpm.fitting.lockstep import (
+from fpm.fitting.damping.lockstep import (
     LATER,
     CaseRun,
     Outcome,
@@ -57,7 +56,8 @@ from fpm.fitting.lockstep import (
     run_case,
     run_request,
 )
-from fpm.fitting.validation import Validation, validate
+from fpm.fitting.damping.search import DampingPlan
+from fpm.fitting.damping.validation import Validation, validate
 from fpm.model.stiffness import model_stiffness
 from store import graph, keys, records, scratch
 from store.text import escape
@@ -227,7 +227,8 @@ def run_task(
 
 def task_clock() -> float:
     """A task run on one of the damping job's threads: that thread's CPU seconds and those
-    its lockstep runs spent on the pool's threads (:func:`fpm.fitting.lockstep.lockstep_cpu`)."""
+    its lockstep runs spent on the pool's threads
+    (:func:`fpm.fitting.damping.lockstep.lockstep_cpu`)."""
     return time.thread_time() + lockstep_cpu()
 
 
@@ -264,7 +265,7 @@ def local_threads(redis: Redis, me: str, cores: int, queued: int = 0) -> int:
 
 
 class CaseSpread:
-    """The damping job's :class:`fpm.fitting.lockstep.Spread`: its runs as tasks, handed to
+    """The damping job's :class:`fpm.fitting.damping.lockstep.Spread`: its runs as tasks, handed to
     free workers and run here when nobody took them (the module docstring).
 
     Args:
@@ -474,7 +475,7 @@ def enqueue(
 
 
 class ValidationTask:
-    """The damping job's :data:`fpm.fitting.damping_stage.Validator`: the validation cases'
+    """The damping job's :data:`fpm.fitting.damping.stage.Validator`: the validation cases'
     static solves as a task (like the d search's, the module docstring), handed to an idle
     worker when there is one (while this job finds the slowest modes the other workers are
     idle, and the solves' systems stay out of this job's memory: at 93,705 nodes about 0.9
@@ -484,7 +485,7 @@ class ValidationTask:
     Args:
         redis, calibration_id, worker, timeout: as :class:`CaseSpread`'s.
         local: ``local(theta, depth)`` solves them here
-            (:func:`fpm.fitting.validation.validate` of the job's problem and reference).
+            (:func:`fpm.fitting.damping.validation.validate` of the job's problem and reference).
 
     Attributes:
         cpu: the CPU seconds of a validation run here (counted in its own span).

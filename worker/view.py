@@ -11,7 +11,7 @@ like an export (:func:`store.graph.request_view`, ``GET /v1/parameter-sets/{id}/
   FPM's settled displacements at the set's parameters (:func:`fpm.model.stiffness.fitted_theta`):
   for a fitted case the run from rest the result's figures come from (:func:`fpm.simulate` at
   the set's d, depth and dt), for a validation case its static equilibrium, as the validation
-  figures are made (:func:`fpm.fitting.validation.validate`);
+  figures are made (:func:`fpm.fitting.damping.validation.validate`);
 - the fixed nodes, and per case the loaded nodes with their forces, and the figures the set
   already holds (relative discrepancy first).
 

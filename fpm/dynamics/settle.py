@@ -61,7 +61,7 @@ springs), with :data:`FORCE_TOLERANCE` where the spec names none.
 
 from __future__ import annotations
 
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as sla
@@ -86,6 +86,40 @@ NOMINAL, FLOOR = 0.01, 1e-4
 """settle_distance 'auto': at most NOMINAL (also its value where there is no reference to read:
 fpm.simulate, an exported model), at least FLOOR (a fit that matches its reference exactly
 would otherwise never settle)."""
+
+
+@dataclass(frozen=True, eq=False)
+class SettleCriterion:
+    """When a run of one load case is settled, checked every sweep by the kernel
+    (:func:`fpm.dynamics.voigt.run_steps`). Each field None: that criterion is not used; a
+    criterion with none settles never.
+
+    Attributes:
+        force_tolerance: the force criterion: settled once the largest unbalanced nodal force
+            is below this times the largest applied nodal force (dimensionless; 0 never
+            settles).
+        stiffness: the distance criterion (1): settled once the 2-norm of the unbalanced nodal
+            forces (N) is below this (N/m, the settle distance times the mode stiffness
+            lambda) times the 2-norm of the displacements (m).
+        target: the target criterion (2): the static equilibrium's displacements (N, 3), m,
+            towards which the run settles; with it the two criteria above are not read.
+        slowness: the target criterion's weight of the velocities, m/N (the settle distance
+            over lambda): each node's reach adds ``slowness * m_i |v_i|^2`` (m^2) to its
+            squared distance.
+        reach: the target criterion's threshold, m: settled once the sum of the nodal reaches
+            is below it.
+    """
+
+    force_tolerance: float | None = None
+    stiffness: float | None = None
+    target: np.ndarray | None = None
+    slowness: float | None = None
+    reach: float | None = None
+
+    def __post_init__(self) -> None:
+        given = [self.target is not None, self.slowness is not None, self.reach is not None]
+        if any(given) and not all(given):
+            raise ValueError("the target criterion needs its target, slowness and reach")
 
 
 def nominal_distance(spec: ProblemSpec) -> float:
@@ -164,19 +198,20 @@ def run_criterion(
     settle_stiffness: float | None,
     static: np.ndarray | None = None,
     distance: float | None = None,
-) -> dict[str, Any]:
-    """A run's settle arguments (:meth:`fpm.dynamics.simulation.FpmModel.start`):
+) -> dict[str, SettleCriterion]:
+    """A run's settle argument (``settle=`` of :meth:`fpm.dynamics.simulation.FpmModel.start`):
     the force criterion (``settle_stiffness`` None), the distance criterion (1) at
     ``settle_stiffness`` = the nominal distance times lambda (N/m, :func:`nominal_distance`),
     or, given ``static`` (N, 3) the run's static equilibrium displacements (m) and its settle
     ``distance``, the target criterion (2) with the same lambda."""
     if settle_stiffness is None:
-        return {"settle_tolerance": force_tolerance(spec), "settle_stiffness": 0.0}
+        return {"settle": SettleCriterion(force_tolerance=force_tolerance(spec))}
     if static is None or distance is None:
-        return {"settle_tolerance": 0.0, "settle_stiffness": float(settle_stiffness)}
+        return {"settle": SettleCriterion(stiffness=float(settle_stiffness))}
     return {
-        "settle_tolerance": 0.0,
-        "target": static,
-        "reach": distance * nodal_size(static),
-        "slowness": nominal_distance(spec) / float(settle_stiffness),
+        "settle": SettleCriterion(
+            target=static,
+            reach=distance * nodal_size(static),
+            slowness=nominal_distance(spec) / float(settle_stiffness),
+        )
     }

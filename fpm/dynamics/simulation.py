@@ -14,7 +14,7 @@ from ..model.problem import Problem
 from ..model.spec import FpmSettings
 from ..model.stiffness import axis_factors, has_volume, model_stiffness
 from ..model.volume import Cells
-from .settle import by_distance, force_tolerance, nominal_distance
+from .settle import SettleCriterion, by_distance, force_tolerance, nominal_distance
 from .stability import auto_time_step
 from .voigt import DIVERGED, INVERTED, RUNNING, SETTLED, run_steps
 
@@ -141,11 +141,8 @@ class FpmModel:
         depth: int | None,
         dt: float,
         max_steps: int,
-        settle_tolerance: float,
-        settle_stiffness: float = 0.0,
-        target: np.ndarray | None = None,
-        reach: float = 0.0,
-        slowness: float = 0.0,
+        settle: SettleCriterion | None = None,
+        settle_tolerance: float | None = None,
     ) -> SimulationResult:
         """Simulate ``load_case`` from rest; see :func:`simulate`.
 
@@ -154,8 +151,8 @@ class FpmModel:
         included), or the model's :class:`~fpm.model.forces.Stiffness` (springs and volume).
         """
         run = self.start(
-            load_case, k=k, d=d, depth=depth, dt=dt, settle_tolerance=settle_tolerance,
-            settle_stiffness=settle_stiffness, target=target, reach=reach, slowness=slowness,
+            load_case, k=k, d=d, depth=depth, dt=dt, settle=settle,
+            settle_tolerance=settle_tolerance,
         )  # fmt: skip
         run.advance(max_steps, buffers=(self._x, self._v))
         return run.result()
@@ -168,19 +165,18 @@ class FpmModel:
         d: float,
         depth: int | None,
         dt: float,
-        settle_tolerance: float,
-        settle_stiffness: float = 0.0,
-        target: np.ndarray | None = None,
-        reach: float = 0.0,
-        slowness: float = 0.0,
+        settle: SettleCriterion | None = None,
+        settle_tolerance: float | None = None,
     ) -> DynamicRun:
         """A run of ``load_case`` from rest that advances in pieces (:class:`DynamicRun`);
-        arguments as :meth:`run`. It settles once its largest unbalanced nodal force is below
-        ``settle_tolerance`` times the largest applied nodal force, or once the 2-norm of its
-        unbalanced nodal forces is below ``settle_stiffness`` (N/m) times the 2-norm of its
-        displacements (:mod:`fpm.dynamics.settle`); or, given ``target`` (N, 3) the static
-        equilibrium's displacements, m, once its reach from there (its distance plus what its
-        velocities carry, ``slowness`` m/N) is below ``reach`` m (the target criterion)."""
+        arguments as :meth:`run`. It settles on ``settle``
+        (:class:`~fpm.dynamics.settle.SettleCriterion`), or, given ``settle_tolerance`` in its
+        place, on the force criterion at that tolerance (0 never settles); exactly one of the
+        two."""
+        if (settle is None) == (settle_tolerance is None):
+            raise ValueError("give exactly one of settle and settle_tolerance")
+        if settle is None:
+            settle = SettleCriterion(force_tolerance=settle_tolerance)
         p = self.problem
         plist = self.perturbed_list(load_case, depth)
         external = p.load_cases[load_case].dense(p.n_nodes)
@@ -209,13 +205,8 @@ class FpmModel:
             k=float(k),
             d=float(d),
             dt=float(dt),
-            settle_force=settle_tolerance
-            * float(np.linalg.norm(external[plist.order], axis=1).max()),
-            settle_stiffness=float(settle_stiffness),
+            settle=settle,
             volume=volume,
-            target=target,
-            reach=float(reach),
-            slowness=float(slowness),
         )
 
 
@@ -255,12 +246,8 @@ class DynamicRun:
         k: float,
         d: float,
         dt: float,
-        settle_force: float,
-        settle_stiffness: float,
+        settle: SettleCriterion,
         volume: tuple[Cells, np.ndarray],
-        target: np.ndarray | None = None,
-        reach: float = 0.0,
-        slowness: float = 0.0,
     ):
         p = model.problem
         self.cells, self.kappa = volume
@@ -268,7 +255,13 @@ class DynamicRun:
         self.model, self.load_case, self.plist, self.layout = model, load_case, plist, layout
         self.external, self.factor = np.ascontiguousarray(external[layout.nodes]), factor
         self.k, self.d, self.dt = k, d, dt
-        self.settle_force, self.settle_stiffness, self.moved = settle_force, settle_stiffness, 0.0
+        # The criterion as the kernel's scalars: 0 (and a (0, 3) target) for a criterion unused.
+        settle_force = 0.0
+        if settle.force_tolerance is not None:
+            applied = float(np.linalg.norm(external[plist.order], axis=1).max())
+            settle_force = float(settle.force_tolerance) * applied
+        self.settle_stiffness = 0.0 if settle.stiffness is None else float(settle.stiffness)
+        self.settle_force, self.moved = settle_force, 0.0
         self._force_criterion = settle_force
         self.x: np.ndarray | None = None  # own buffers, made on the first piece
         self.v: np.ndarray | None = None
@@ -278,10 +271,11 @@ class DynamicRun:
         self._mass = np.ascontiguousarray(p.solid.masses[layout.nodes])
         self._force: np.ndarray | None = None  # volume forces (N, 3), made on the first piece
         self._target = np.zeros((0, 3))
-        self.slowness, self._reach = slowness, 0.0
-        if target is not None:  # the static equilibrium's positions, in the list's numbering
-            self._target = np.ascontiguousarray(self._rest + target[layout.nodes])
-            self.settle_force = self._reach = reach
+        self.slowness, self._reach = 0.0, 0.0
+        if settle.target is not None:  # the static equilibrium's positions, list's numbering
+            self._target = np.ascontiguousarray(self._rest + settle.target[layout.nodes])
+            self.slowness = float(settle.slowness)  # type: ignore[arg-type]
+            self.settle_force = self._reach = float(settle.reach)  # type: ignore[arg-type]
 
     @property
     def diverged(self) -> bool:
@@ -404,7 +398,7 @@ def simulate(
         s.model_dump() | {key: v for key, v in given.items() if v is not None}
     )
     step = auto_time_step(problem, stiffness) if settings.dt == "auto" else float(settings.dt)
-    cap, tolerance, settle = settings.max_steps, settings.settle_tolerance, 0.0
+    cap, tolerance = settings.max_steps, settings.settle_tolerance
     distance = tolerance is None and by_distance(problem.spec)
     models = None
     if cap == "auto" or distance:  # from the lattice's slowest modes (fpm.dynamics.modes)
@@ -413,9 +407,13 @@ def simulate(
         model = stiffness if isinstance(stiffness, Stiffness) else model_stiffness(problem, k)
         models = case_models(problem, model, depth, step, [load_case])
     if distance and models is not None:
-        tolerance, settle = 0.0, nominal_distance(problem.spec) * models[0].mode_stiffness
+        settle = SettleCriterion(
+            stiffness=nominal_distance(problem.spec) * models[0].mode_stiffness
+        )
     elif tolerance is None:  # the paper method, or a lattice with no modes at rest
-        tolerance = force_tolerance(problem.spec)
+        settle = SettleCriterion(force_tolerance=force_tolerance(problem.spec))
+    else:
+        settle = SettleCriterion(force_tolerance=tolerance)
     if cap == "auto":
         cap = auto_max_steps([models[0].steps(d, SCHEMA_MAX_STEPS)]) if models else FALLBACK_STEPS
     return fpm_model(problem).run(
@@ -425,6 +423,5 @@ def simulate(
         depth=depth,
         dt=step,
         max_steps=int(cap),
-        settle_tolerance=tolerance,
-        settle_stiffness=settle,
+        settle=settle,
     )

@@ -3,8 +3,8 @@ figures, simulated annealing, the damping search, the reduced linear model of fa
 the calibration methods (two-stage and the paper's), and the diagnoses a user reads when a fit
 cannot proceed.
 
-Modules: cost, annealing, damping, reduced, bounds (the search box), calibration (the
-orchestration: calibrate, finalize) with its stages stiffness_stage (the chains, the polish) and
-damping_stage (polish, depth, d), validation (the fit against its reference), result
+Modules: cost, annealing, reduced, bounds (the search box), calibration (the orchestration:
+calibrate, finalize) with its stages stiffness_stage (the chains, the polish) and the package
+damping (stage 2: polish, depth, d, and validation, the fit against its reference), result
 (CalibrationResult), diagnosis.
 """

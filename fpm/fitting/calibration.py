@@ -7,7 +7,7 @@ Two methods (``annealing.method``; docs/physics.md):
   equilibrium (:class:`fpm.fitting.cost.StaticCost`; the settled state does not depend on d); then a
   bounded local polish from the best state (:func:`fpm.fitting.stiffness_stage.polish`). Stage 2:
   d, the value that settles every load case in the fewest total steps at the spec's dt
-  (:mod:`fpm.fitting.damping`).
+  (:mod:`fpm.fitting.damping.search`).
 - ``paper``: simulated annealing over (stiffness, d) jointly, every candidate run dynamically
   to rest (:class:`fpm.fitting.cost.CostFunction`); among the states within 0.1% of the best
   cost the fastest-settling wins (:func:`pick_paper_state`).
@@ -18,7 +18,7 @@ and :func:`fpm.fitting.verdict.judge` the verdict on the fit (good, fair or poor
 
 Data flow (the service runs each step as a job): :func:`check_reference` (units) ->
 :func:`run_chain` (one seeded chain; families+volume chains share one first reduced basis,
-:func:`fpm.fitting.reduced.first_basis`, which needs no reference) -> :func:`fit_damping`
+:func:`fpm.fitting.reduced.first_basis`, which needs no reference) -> :func:`fit_stage`
 (two-stage: polish, depth, d) -> :func:`finalize` -> :class:`CalibrationResult`.
 :func:`calibrate` does all of it in-process, the same way.
 
@@ -28,9 +28,9 @@ beside it, and their entry points and results are importable from here (``__all_
 - :mod:`fpm.fitting.bounds`: the search box (stiffness, d, depth) and the note on kappa's floor;
 - :mod:`fpm.fitting.stiffness_stage`: stage 1, :func:`run_chain` (:class:`ChainResult`), the
   linear estimate, the polish;
-- :mod:`fpm.fitting.damping_stage`: stage 2, :func:`fit_damping` (:class:`DampingStage`), the
-  critical-damping guesses, :func:`resolve_depth`;
-- :mod:`fpm.fitting.validation`: the reference's parts, its units check
+- :mod:`fpm.fitting.damping.stage`: stage 2, :func:`fit_stage` (:class:`DampingStage`): the
+  polish, :func:`resolve_depth`, d (:func:`fpm.fitting.damping.search.fit_damping`);
+- :mod:`fpm.fitting.damping.validation`: the reference's parts, its units check
   (:func:`check_reference`), the last dynamic run's check, the validation cases;
 - below them: cost, annealing, reduced (families+volume's stage 1), damping (the d search).
 
@@ -57,13 +57,9 @@ from ..model.problem import Problem
 from ..model.stiffness import has_volume, stiffness_dict, volume_stiffness
 from .bounds import damping_bounds, fit_depth, full_depth, mode_notes, stiffness_bounds
 from .cost import CostFunction, StaticCost, dynamic_time_step
-from .damping_stage import DampingStage, fit_damping
-from .depth import resolve_depth
-from .field import field_parts
-from .reduced import first_basis
-from .result import CalibrationResult, ChainSummary
-from .stiffness_stage import ChainResult, Progress, constrained_cost, run_chain
-from .validation import (
+from .damping.depth import resolve_depth
+from .damping.stage import DampingStage, fit_stage
+from .damping.validation import (
     Validation,
     check_reference,
     final_run,
@@ -71,6 +67,10 @@ from .validation import (
     unseen_note,
     validate,
 )
+from .field import field_parts
+from .reduced import first_basis
+from .result import CalibrationResult, ChainSummary
+from .stiffness_stage import ChainResult, Progress, constrained_cost, run_chain
 from .verdict import judge
 
 __all__ = [
@@ -82,7 +82,7 @@ __all__ = [
     "check_reference",
     "run_chain",
     "ChainResult",
-    "fit_damping",
+    "fit_stage",
     "DampingStage",
     "Progress",
     # imported from here before they moved beside it
@@ -125,7 +125,7 @@ def finalize(
 ) -> CalibrationResult:
     """The calibration result: a last dynamic run at (stiffness, d, depth) and its figures.
 
-    Two-stage needs ``damping`` (from :func:`fit_damping`); the paper method picks its state
+    Two-stage needs ``damping`` (from :func:`fit_stage`); the paper method picks its state
     from the chains and resolves depth 'auto' on static equilibria.
     """
     if not chains:
@@ -308,7 +308,7 @@ def calibrate(
         keep_chains(results)
     damping = None
     if two_stage:
-        damping = fit_damping(problem, reference, results, progress=progress, basis=basis)
+        damping = fit_stage(problem, reference, results, progress=progress, basis=basis)
     if progress is not None:
         progress({"phase": "finalize"})
     return finalize(problem, reference, results, damping, warnings=warnings)

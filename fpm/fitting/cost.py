@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..dynamics.settle import force_tolerance
+from ..dynamics.settle import SettleCriterion, force_tolerance
 from ..dynamics.simulation import FpmModel
 from ..dynamics.step_caps import fixed_max_steps
 from ..model.forces import Stiffness
@@ -165,7 +165,7 @@ class CostFunction(_Reference):
             depth=self.depth if depth is None else depth,
             dt=self.dt,
             max_steps=fixed_max_steps(s.max_steps) if max_steps is None else max_steps,
-            settle_tolerance=force_tolerance(self.problem.spec),
+            settle=SettleCriterion(force_tolerance=force_tolerance(self.problem.spec)),
         )
 
     def __call__(self, theta: Theta, d: float, *, stop_unsettled: bool = False) -> Evaluation:

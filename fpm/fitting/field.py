@@ -306,7 +306,7 @@ def field_report(
     """The result's :class:`~fpm.fitting.result.FieldFit`: the field and the side-by-side
     figures of the four parameters and the field, the validation cases (unseen until now)
     measured for both at ``depth`` (None: every layer)."""
-    from .validation import validate
+    from .damping.validation import validate
 
     four = validate(
         problem, reference, model_stiffness(problem, stage.theta), depth, geometry=False

@@ -17,7 +17,7 @@ Costs are normalised by the reference cost (the cost of an FPM that does not mov
 outcome, :class:`ChainResult` (its best x and cost, and the states near it, :class:`NearBest`), is
 JSON-able: the service runs each chain as a job and stores it.
 
-After the chains (two-stage, :func:`fpm.fitting.damping_stage.fit_damping`), :func:`polish`
+After the chains (two-stage, :func:`fpm.fitting.damping.stage.fit_stage`), :func:`polish`
 refines the best state by a bounded local minimisation of the static cost in log theta
 (families+volume: :func:`fpm.fitting.defect_correction.fit_reduced` instead); a families fit
 is polished under ceilings, the single-k fit's per-case costs (:func:`constrained_cost`).
@@ -47,8 +47,8 @@ from ..model.stiffness import (
 from .annealing import AnnealingError, Checkpoint, Schedule, State, anneal
 from .bounds import damping_bounds, fit_depth, stiffness_bounds
 from .cost import CostFunction, Evaluation, StaticCost
+from .damping.validation import reference_displacements
 from .reduced import ReducedBasis, ReducedLinearModel, chain_start, first_basis
-from .validation import reference_displacements
 
 POLISH_SPAN = 0.1
 """The polish searches log(k) within +-this of the annealed state (inside the bounds)."""

@@ -36,9 +36,9 @@ from ..model.problem import Problem
 from ..model.spec import lame_constants
 from ..model.stiffness import VOLUME, family_names, has_volume
 from .bounds import stiffness_bounds
+from .damping.validation import reference_displacements, validation_reference
 from .diagnosis import SMALL_STRAIN
 from .result import BoundHit, CalibrationResult, Cause, Floor, Verdict
-from .validation import reference_displacements, validation_reference
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,6 @@
-"""The stability margin of the d search (:mod:`fpm.fitting.damping`): the smallest d that still
-settles every load case within MARGIN_CAP times its steps at the fastest d.
+"""The stability margin of the d search (:mod:`fpm.fitting.damping.search`): the smallest d
+that still settles every load case within ``margin_cap`` times its steps at the fastest d (the
+settings named here are those of :class:`fpm.fitting.damping.settings.DampingSettings`).
 
 The fastest d sits near the stability edge, and below it runs diverge or creep. The d already
 tried by the search answer first (their settled steps, or the predictions they were dropped on);
@@ -12,29 +13,26 @@ from __future__ import annotations
 
 import math
 
-from ..dynamics.reduced_step import StepModel
-from ..dynamics.voigt import SETTLED
-from .lockstep import MARGIN_CAP, Request, _Runs
-
-MARGIN_PROBES = 2
-"""With a prediction, the margin search asks for at most this many probes: the reduced step's
-edge (run at once beside the predicted d's runs where a worker is free), and half a walk's step
-(12%) below it only where the edge settles. d_min is then the smallest d found that settles,
-bracketed to 1.12x or by the tried d above the edge. The edge comes first because on the target
-criterion runs 12% below it do not settle within the caps on the organs measured, so a probe
-there tells nothing the edge's own failure does not; an open walk down would take more probes
-than the fastest d's own runs (docs/notes/2026-11-28-calibration-measured.md, *The margin's
-order*)."""
+from ...dynamics.reduced_step import StepModel
+from ...dynamics.voigt import SETTLED
+from .lockstep import Request, _Runs
+from .settings import DEFAULT, DampingSettings
 
 
-def predicted_edge(models: list[StepModel], d_best: float, lo: float, cap: int) -> float | None:
+def predicted_edge(
+    models: list[StepModel],
+    d_best: float,
+    lo: float,
+    cap: int,
+    settings: DampingSettings = DEFAULT,
+) -> float | None:
     """log d of the reduced steps' estimate of the margin: the smallest d (by bisection on log
-    d, to 1%) whose predicted steps stay within MARGIN_CAP times their own at ``d_best`` in
-    every load case; None if they do not settle at ``d_best``."""
+    d, to 1%) whose predicted steps stay within ``settings.margin_cap`` times their own at
+    ``d_best`` in every load case; None if they do not settle at ``d_best``."""
     fastest = [m.steps(d_best, cap) for m in models]
     if not all(math.isfinite(f) and f > 0 for f in fastest):
         return None
-    caps = [MARGIN_CAP * f for f in fastest]
+    caps = [settings.margin_cap * f for f in fastest]
 
     def within(y: float) -> bool:
         return all(m.steps(math.exp(y), int(c) + 1) <= c for m, c in zip(models, caps, strict=True))
@@ -60,19 +58,20 @@ def smallest_settling(
     max_steps: int,
     step: float,
     edge: float | None = None,
+    settings: DampingSettings = DEFAULT,
 ) -> float:
-    """log d of the smallest d whose runs all settle within MARGIN_CAP times their steps at the
-    fastest d. The d tried by the search answer first, from their settled steps or from the
-    predictions they were stopped on (``forecast``): from the smallest that settles, the
-    largest below it that does not brackets the edge. With ``edge`` (log d; the reduced
-    steps' estimate) the edge itself is probed next (run ahead where a worker is free), and
-    where it settles, ``step / 2`` below it. Without a bracket the walk goes down
-    by ``step`` while d settles; bisection narrows the bracket to ``step / 2`` (log); with an
-    ``edge`` at most MARGIN_PROBES probes in all (d_min is then the smallest d found that
-    settles). A probe stops once its decay predicts the answer (past PREDICT_AFTER steps):
-    d_min is an estimate where runs are long, exact where they settle sooner."""
+    """log d of the smallest d whose runs all settle within ``margin_cap`` times their steps at
+    the fastest d (``settings``). The d tried by the search answer first, from their settled
+    steps or from the predictions they were stopped on (``forecast``): from the smallest that
+    settles, the largest below it that does not brackets the edge. With ``edge`` (log d; the reduced
+    steps' estimate) the edge itself is probed next (run ahead where a worker is free), and where it
+    settles, ``step / 2`` below it. Without a bracket the walk goes down by ``step`` while d
+    settles; bisection narrows the bracket to ``step / 2`` (log); with an ``edge`` at most
+    ``margin_probes`` probes in all (d_min is then the smallest d found that settles). A probe stops
+    once its decay predicts the answer (past ``predict_after`` steps): d_min is an estimate where
+    runs are long, exact where they settle sooner."""
     fastest = steps[y_best] or []
-    caps = [min(max_steps, MARGIN_CAP * s) for s in fastest]
+    caps = [min(max_steps, settings.margin_cap * s) for s in fastest]
 
     def known(y: float) -> bool | None:
         """Whether the search's own runs at y settle within the caps (None: not known)."""
@@ -122,7 +121,7 @@ def smallest_settling(
                     y_fail = below
         else:
             y_fail = edge
-    limit = MARGIN_PROBES if edge is not None else math.inf
+    limit = settings.margin_probes if edge is not None else math.inf
     if y_fail is None:
         while y_ok > lo and probes[0] < limit:
             y = round(max(y_ok - step, lo), 12)

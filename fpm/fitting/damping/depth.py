@@ -33,13 +33,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..dynamics.simulation import fpm_model
-from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
-from ..model.forces import Stiffness
-from ..model.stiffness import model_stiffness
-from .bounds import full_depth
-from .cost import StaticCost
-from .stiffness_stage import Progress
+from ...dynamics.simulation import fpm_model
+from ...fem.linear_solver import NegativeCurvature, SingularStiffnessError
+from ...model.forces import Stiffness
+from ...model.stiffness import model_stiffness
+from ..bounds import full_depth
+from ..cost import StaticCost
+from ..stiffness_stage import Progress
 
 
 def resolve_depth(

@@ -8,7 +8,7 @@ it was solved for them (:func:`reference_displacements`, :func:`validation_refer
 - :func:`final_run`: the last dynamic run at (stiffness, d, depth) against the reference and the
   static equilibria at (stiffness, depth), giving the reported cost, discrepancies and settle
   steps (:class:`FinalRun`), and a warning when the dynamic and static costs disagree by more
-  than STATIC_AGREEMENT;
+  than its ``static_agreement`` (:class:`fpm.fitting.damping.settings.DampingSettings`);
 - :func:`validate`: the validation cases (never in the cost) at the fitted stiffness, by their
   static equilibria (:class:`Validation`: relative discrepancy and % of h per case), and a note
   where a case's figure is mostly not the lattice's (:func:`geometry_notes`);
@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from ..dynamics.equilibrium import Equilibrium, static_equilibrium
-from ..dynamics.settle import (
+from ...dynamics.equilibrium import Equilibrium, static_equilibrium
+from ...dynamics.settle import (
     PROMISE,
     estimated_distance,
     measured_distance,
@@ -32,24 +32,13 @@ from ..dynamics.settle import (
     nominal_distance,
     run_criterion,
 )
-from ..dynamics.simulation import SimulationResult, fpm_model, simulate
-from ..dynamics.step_caps import fixed_max_steps
-from ..fem.linear_solver import NegativeCurvature, SingularStiffnessError
-from ..model.problem import Problem
-from ..model.stiffness import fitted_theta, model_stiffness
-from .cost import StaticCost, Theta, discrepancies
-
-STATIC_AGREEMENT = 1e-3
-"""The last dynamic run must reproduce the static cost to this fraction, else a warning ..."""
-GEOMETRY_GAP = 1.0
-"""Points of relative discrepancy by which a validation case's figure must exceed the figure of
-the model linearised at rest (its small-load limit) for :func:`geometry_notes` to say so."""
-GEOMETRY_TOLERANCE = 1e-4
-"""The linearised solve's relative residual: the figures need a few digits, not the
-equilibrium's."""
-SETTLE_RESOLUTION = 1e-4
-"""... or to this fraction of the reference cost, for a fit so close (cost near 0) that the
-settle tolerance's own error dominates."""
+from ...dynamics.simulation import SimulationResult, fpm_model, simulate
+from ...dynamics.step_caps import fixed_max_steps
+from ...fem.linear_solver import NegativeCurvature, SingularStiffnessError
+from ...model.problem import Problem
+from ...model.stiffness import fitted_theta, model_stiffness
+from ..cost import StaticCost, Theta, discrepancies
+from .settings import DEFAULT, DampingSettings
 
 
 def reference_displacements(reference: Any, problem: Problem | None = None) -> np.ndarray:
@@ -73,7 +62,7 @@ def check_reference(problem: Problem, reference: Any) -> list[str]:
     """Units sanity of the FEM reference, load and validation cases
     (:func:`fpm.fitting.diagnosis.check_reference`): raises on a reference no small-strain
     solid gives, returns warnings."""
-    from .diagnosis import check_reference as check
+    from ..diagnosis import check_reference as check
 
     return check(problem, reference) + resolution_notes(problem, reference)
 
@@ -82,7 +71,7 @@ def resolution_notes(problem: Problem, reference: Any) -> list[str]:
     """Warnings on how far the reference is from converged (:mod:`fpm.fem.refine`): a load or
     validation case whose estimated error is above WARN_ERROR, and the reference's own notes
     (a refinement the node budget refused, an error not estimated)."""
-    from ..fem.levels import WARN_ERROR
+    from ...fem.levels import WARN_ERROR
 
     error = getattr(reference, "estimated_error", None)
     notes = [str(n) for n in getattr(reference, "notes", None) or []]
@@ -157,12 +146,14 @@ def final_run(
     settle: list[float] | None = None,
     statics: np.ndarray | None = None,
     distances: list[float] | None = None,
+    settings: DampingSettings = DEFAULT,
 ) -> FinalRun:
     """Check dynamic displacements (L, N, 3) at (theta, d, depth) against the reference and
     the static equilibria at (theta, depth).
 
     On the force criterion (``settle`` None) the dynamic and static costs must agree within
-    0.1% of the cost. On the distance criterion (``settle``: each case's settle stiffness,
+    ``settings.static_agreement`` (0.1%) of the cost, or ``settings.settle_resolution`` of the
+    reference cost. On the distance criterion (``settle``: each case's settle stiffness,
     N/m, with ``residuals`` (L,) N the 2-norms of the runs' last unbalanced forces) each
     settled state must be within :data:`fpm.dynamics.settle.PROMISE` times the spec's
     settle distance of its static equilibrium (``statics`` (L, N, 3) m; None: solved here),
@@ -202,11 +193,12 @@ def final_run(
     if not settled:
         notes.append("the last dynamic run did not settle every load case within max_steps")
     elif estimated is None and abs(cost - static_ev.cost) > max(
-        STATIC_AGREEMENT * static_ev.cost, SETTLE_RESOLUTION * static.reference_cost
+        settings.static_agreement * static_ev.cost,
+        settings.settle_resolution * static.reference_cost,
     ):
         notes.append(
             f"the settled dynamic cost {cost:.6g} m differs from the static cost "
-            f"{static_ev.cost:.6g} m by more than {STATIC_AGREEMENT:.1%}: the settle "
+            f"{static_ev.cost:.6g} m by more than {settings.static_agreement:.1%}: the settle "
             "tolerance stops runs short of equilibrium; a smaller fpm.settle_tolerance helps"
         )
     return FinalRun(
@@ -237,7 +229,13 @@ class Validation:
 
 
 def validate(
-    problem: Problem, reference: Any, theta: Theta, depth: int | None, *, geometry: bool = True
+    problem: Problem,
+    reference: Any,
+    theta: Theta,
+    depth: int | None,
+    *,
+    geometry: bool = True,
+    settings: DampingSettings = DEFAULT,
 ) -> Validation:
     """The validation cases (never in the cost) at the fitted stiffness ``theta`` and ``depth``
     (None: every layer), against their reference: their static equilibria, the state a settled
@@ -260,7 +258,7 @@ def validate(
         if not e.converged
     ]
     if geometry and not notes:
-        notes = geometry_notes(cost, truth, theta, solved, figures.relative)
+        notes = geometry_notes(cost, truth, theta, solved, figures.relative, settings)
     return Validation(figures.relative, figures.h_percent, notes, figures.compliance)
 
 
@@ -285,9 +283,10 @@ def geometry_notes(
     theta: Theta,
     solved: list[Equilibrium],
     relative: list[float],
+    settings: DampingSettings = DEFAULT,
 ) -> list[str]:
     """A note for each validation case of ``cost``'s problem (the validation cases as load
-    cases) whose ``relative`` figure, %, exceeds by more than :data:`GEOMETRY_GAP` points the
+    cases) whose ``relative`` figure, %, exceeds by more than ``settings.geometry_gap`` points the
     figure of the same model linearised at rest
     (:meth:`fpm.dynamics.equilibrium.StaticSolver.linear_response`, its limit under small
     loads, CG started from the equilibrium ``solved`` of each case: cheaper the closer the two
@@ -306,7 +305,7 @@ def geometry_notes(
                 cost.depth,
                 cost.solver.loads(j),
                 guess=e.displacements,
-                rtol=GEOMETRY_TOLERANCE,
+                rtol=settings.geometry_tolerance,
             )
             for j, e in enumerate(solved)
         ]
@@ -319,7 +318,7 @@ def geometry_notes(
         "(they rotate and stretch; the FEM reference is linear, small strain), which a finer "
         "lattice does not remove"
         for case, big, little in zip(checked.load_cases, relative, small, strict=True)
-        if big - little > GEOMETRY_GAP
+        if big - little > settings.geometry_gap
     ]
 
 

@@ -1,4 +1,6 @@
-"""Stage 2 of the calibration: the nodal damping d that settles fastest (docs/physics.md).
+"""Choosing d: the nodal damping that settles fastest at the fitted stiffness (docs/physics.md).
+
+:func:`fit_damping` chooses it (the prediction, then :func:`fastest_damping`'s search).
 
 A settled FPM state does not depend on d; d only decides how fast, and whether, a run settles
 at the spec's dt. So once the stiffness is fitted, d is chosen for the real-time loop: the value
@@ -9,15 +11,15 @@ Where the search starts. Normally from the prediction of :mod:`fpm.dynamics.mode
 lattice's slowest modes at the fitted stiffness, the FPM step reduced to them, and the d with
 the fewest predicted steps (how close it comes: docs/explanation/physics/damping-prediction.md).
 The search (:func:`fastest_damping`) then confirms it with a run on either side,
-CONFIRM apart, each stopped as soon as its decay predicts it slower than the prediction's own
-runs (a few hundred steps; a side is not run where the reduced steps rule it out:
-:func:`_unsure`), walks on only if one of them is faster (each step 1.6x longer,
-until the fewest total steps are bracketed) and refines by a few golden-section steps between
-the best d and its neighbours where they are still far apart. The margin (the smallest d that
-still settles every load case within MARGIN_CAP times its fastest steps: the stability margin,
-the fastest d sits near that edge and below it runs diverge or creep) starts from the reduced
-step's own estimate of that edge: a probe at the edge, and 12% below it only if the edge
-settles.
+``confirm`` apart (the settings named here are those of
+:class:`fpm.fitting.damping.settings.DampingSettings`), each stopped as soon as its decay predicts
+it slower than the prediction's own runs (a few hundred steps; a side is not run where the reduced
+steps rule it out: :func:`_unsure`), walks on only if one of them is faster (each step 1.6x longer,
+until the fewest total steps are bracketed) and refines by a few golden-section steps between the
+best d and its neighbours where they are still far apart. The margin (the smallest d that still
+settles every load case within ``margin_cap`` times its fastest steps: the stability margin, the
+fastest d sits near that edge and below it runs diverge or creep) starts from the reduced step's own
+estimate of that edge: a probe at the edge, and 12% below it only if the edge settles.
 
 Without a prediction (a lattice at rest that is a mechanism, e.g. 'axis' springs), from two
 critical-damping estimates (:func:`critical_damping`): critical damping of a mode with nodal
@@ -28,72 +30,53 @@ inertia, u1 = K^-1 M u0 (one step of inverse iteration). The search starts from 
 their geometric mean and walks and refines as above; the margin comes from the d already tried
 (their steps, or the predictions they were dropped on) and then by walking down and bisecting.
 
-Runs (:mod:`fpm.fitting.lockstep`) advance in pieces of CHUNK steps
+Runs (:mod:`fpm.fitting.damping.lockstep`) advance in pieces of ``chunk`` steps
 (:class:`fpm.dynamics.simulation.DynamicRun`), all load cases
 together, and a d is dropped as soon as its load cases have taken as many steps between them as
 the best d's total: it can no longer win, so a poor d costs at most the best total, not a
-full run of every case. Earlier still, once every running case has taken PREDICT_AFTER steps, the
-decay of its residual (the largest unbalanced force, sampled every SAMPLE steps; its envelope
-over the last two pieces) predicts the steps it still needs, and a d whose predicted total
-exceeds PRUNE times the best total is dropped then; likewise a margin probe whose predicted
-steps exceed PRUNE times its cap. A prediction only ever drops a d: every figure the search
-returns comes from runs that settled. The runs of the fastest d are kept: they are the
-calibration's final dynamic check.
-"""
+full run of every case. Earlier still, once every running case has taken ``predict_after`` steps,
+the decay of its residual (the largest unbalanced force, sampled every ``sample`` steps; its
+envelope over the last two pieces) predicts the steps it still needs, and a d whose predicted total
+exceeds ``prune`` times the best total is dropped then; likewise a margin probe whose predicted
+steps exceed ``prune`` times its cap. A prediction only ever drops a d: every figure the search
+returns comes from runs that settled. The runs of the fastest d are kept: they are the calibration's
+final dynamic check."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
-from ..dynamics.modes import Prediction, total_steps
-from ..dynamics.reduced_step import StepModel
-from ..dynamics.simulation import DynamicRun
-from ..dynamics.stability import time_step
-from ..dynamics.step_caps import FALLBACK_STEPS, SCHEMA_MAX_STEPS
-from ..dynamics.voigt import SETTLED
-from ..model.forces import Stiffness
-from ..model.problem import Problem
+from ...dynamics.eigen import Modes
+from ...dynamics.equilibrium import StaticSolver
+from ...dynamics.modes import Prediction, predict_damping, total_steps
+from ...dynamics.reduced_step import StepModel
+from ...dynamics.settle import by_distance, case_distances, nominal_distance
+from ...dynamics.simulation import DynamicRun
+from ...dynamics.stability import time_step
+from ...dynamics.step_caps import FALLBACK_STEPS, SCHEMA_MAX_STEPS, auto_max_steps
+from ...dynamics.voigt import SETTLED
+from ...fem.linear_solver import NegativeCurvature, SingularStiffnessError
+from ...model.forces import Stiffness
+from ...model.problem import Problem
+from ..bounds import damping_bounds
+from ..diagnosis import SMALL_STRAIN
 from .lockstep import (
-    PRUNE,
     CaseRun,
     Request,
     Spread,
     _Runs,
 )
 from .margin import predicted_edge, smallest_settling
+from .settings import DEFAULT, DampingSettings
 from .unsettled import DampingError, Hopeless, ShortCap, hopeless, long_decay, what_would_work
 
-BRACKET_STEP = 1.25
-"""Smallest first step of the bracket, as a factor on d (used when the two guesses are closer
-than this)."""
-WALK_GROWTH = 1.6
-"""Each further bracket step is this much longer (on log d) than the last."""
-RESOLUTION = 1.02
-"""The refinement stops once the best d's neighbours are within this factor squared of it."""
 GOLDEN = (3 - math.sqrt(5)) / 2
 """Golden-section fraction: where in the wider gap the next d goes."""
-REFINE_STEPS = 4
-"""At most this many refining runs after the bracket."""
-FLAT = 0.02
-"""The refinement stops once both neighbours of the best d settle within this fraction of its
-total steps (the steps-versus-d curve is flat there)."""
-CONFIRM = 1.04
-"""The runs that confirm a predicted d sit this factor below and above it."""
-TRUST = 2.0
-"""A confirming run is skipped where the reduced steps predict it slower than the predicted d
-by more than this many times their own relative error there (:func:`_unsure`)."""
-CONFIRM_PRUNE = 1.0
-"""A confirming run is dropped once its predicted total exceeds the predicted d's total (it
-would at best tie; the predicted d is kept)."""
-RETRIES = 2
-"""With fpm.max_steps 'auto', a search in which nothing settles within the predicted cap is
-repeated this many times more with MAX_STEPS_GROWTH times the cap (up to the schema's 10^6)."""
-MAX_STEPS_GROWTH = 4
 
 
 @dataclass
@@ -104,7 +87,7 @@ class DampingFit:
         d: nodal damping, N s/m.
         steps: (L,) time steps each load case takes to settle at d.
         displacements: (L, N, 3) the settled displacements at d, m.
-        d_min: smallest d found that settles every load case within MARGIN_CAP times its
+        d_min: smallest d found that settles every load case within ``margin_cap`` times its
             steps at d, N s/m (to a factor of about 1.12; the lower bound if that settles).
         guess: where the search started, N s/m: the predicted d, or the geometric mean of the
             two critical-damping estimates.
@@ -135,6 +118,25 @@ class DampingFit:
     @property
     def total_steps(self) -> int:
         return int(sum(self.steps))
+
+
+@dataclass(frozen=True)
+class DampingPlan:
+    """What one dynamic run of the d search needs besides d and its cap (JSON-able): the
+    stiffness theta (N/m; kappa Pa) the model is built from (:func:`model_stiffness`), the
+    depth, the time step dt (s), whether a stiffness field replaced theta's model (its
+    runs are not handed to other processes), each load case's settle stiffness (N/m, the
+    distance criterion of :mod:`fpm.dynamics.settle`; None: the force criterion), and each
+    load case's settle distance where the runs settle on the target criterion (None: they do
+    not; the static equilibria they settle towards travel beside the plan:
+    :func:`fit_damping`'s ``static``)."""
+
+    theta: list[float]
+    depth: int
+    dt: float
+    field: bool = False
+    settle: list[float] | None = None
+    distance: list[float] | None = None
 
 
 def critical_damping(
@@ -179,6 +181,7 @@ def fastest_damping(
     targets: np.ndarray | None = None,
     distances: Sequence[float] | None = None,
     why: Sequence[str] | None = None,
+    settings: DampingSettings = DEFAULT,
 ) -> DampingFit:
     """The d in ``bounds`` that settles every load case in the fewest total steps.
 
@@ -200,7 +203,8 @@ def fastest_damping(
         max_steps: each run's cap on steps (None: the spec's; its 'auto' without a prediction
             is :data:`fpm.dynamics.modes.FALLBACK_STEPS`, repeated as ``auto`` says).
         auto: the cap came from fpm.max_steps 'auto': if nothing settles within it, the search
-            is repeated with MAX_STEPS_GROWTH times the cap (RETRIES times at most).
+            is repeated with ``settings.max_steps_growth`` times the cap
+            (``settings.retries`` times at most).
         spread: runs the predicted d's load cases, each on its own, and the d tried next
             over other processes (:class:`Spread`; None: here); the answer is the same
             whatever runs them.
@@ -210,12 +214,13 @@ def fastest_damping(
             ``distances`` (L,) their settle distances: with ``settle``, the runs settle on the
             target criterion (``spread`` has them too).
         why: per load case, what may keep it from settling (its strain), said when it cannot
-            settle within the budget (:data:`fpm.fitting.unsettled.HOPELESS`).
+            settle within the budget (:func:`fpm.fitting.damping.unsettled.hopeless`).
+        settings: the stage's settings (:class:`fpm.fitting.damping.settings.DampingSettings`).
 
     Raises:
         DampingError: no d in the bounds settles every load case within max_steps; or, as
             soon as the predicted d's runs say so, a load case cannot settle within the step
-            budget (:data:`fpm.fitting.unsettled.HOPELESS`), naming it.
+            budget (:func:`fpm.fitting.damping.unsettled.hopeless`), naming it.
     """
     if max_steps is None:
         value = problem.spec.fpm.max_steps
@@ -224,10 +229,10 @@ def fastest_damping(
     step = time_step(problem, stiffness) if dt is None else dt
     limit = SCHEMA_MAX_STEPS if auto else max_steps  # the most steps a run may ever be given
     earlier: list[tuple[int, float, bool]] | None = None  # the predicted d's cases at its cap
-    for attempt in range(RETRIES + 1):
-        last = not auto or attempt == RETRIES or max_steps >= SCHEMA_MAX_STEPS
+    for attempt in range(settings.retries + 1):
+        last = not auto or attempt == settings.retries or max_steps >= SCHEMA_MAX_STEPS
         runs = _Runs(problem, stiffness, depth, step, spread, settle=settle, targets=targets,
-                      distances=distances)  # fmt: skip
+                      distances=distances, settings=settings)  # fmt: skip
         runs.max_steps = max_steps
         try:
             return _search(
@@ -252,7 +257,8 @@ def fastest_damping(
             need, earlier = 0.0, None
         finally:
             runs.close()
-        max_steps = int(min(SCHEMA_MAX_STEPS, max(MAX_STEPS_GROWTH * max_steps, 1.5 * need)))
+        grown = max(settings.max_steps_growth * max_steps, 1.5 * need)
+        max_steps = int(min(SCHEMA_MAX_STEPS, grown))
     raise AssertionError("unreachable")
 
 
@@ -270,17 +276,17 @@ def _search(
     earlier: list[tuple[int, float, bool]] | None = None,
 ) -> DampingFit:
     """The search (:func:`fastest_damping`); ``explain``: a failure says what would work (one
-    probe run of up to PROBE_STEPS times max_steps), else it only says that nothing settled;
+    probe run of up to ``probe_steps`` times max_steps), else it only says that nothing settled;
     ``grow``: the cap may grow (fpm.max_steps 'auto'), so if the predicted d's runs reach it
     unsettled, :class:`ShortCap` says how many steps they need (their decay's prediction)
     at once, rather than searching on under a cap that is too small; ``limit``: (the step
     budget, whether it is 'auto''s, per load case what may keep it from settling): a case
     that the predicted d's runs show cannot settle within it ends the search
-    (:func:`fpm.fitting.unsettled.hopeless`), as does one whose cap grew to what its decay
+    (:func:`fpm.fitting.damping.unsettled.hopeless`), as does one whose cap grew to what its decay
     asked for at the last cap (``earlier``: (steps, predicted steps, still moving) per case
     there) and that reached it unsettled again."""
     lo, hi = round(math.log(bounds[0]), 12), round(math.log(bounds[1]), 12)
-    max_steps = runs.max_steps
+    max_steps, settings = runs.max_steps, runs.settings
     steps: dict[float, list[int] | None] = {}  # log d -> steps per case (None: not settled)
     slower: dict[float, int] = {}  # log d -> steps taken when stopped (at least the best total)
     # log d -> predicted steps per case, for a d stopped on its prediction
@@ -301,7 +307,10 @@ def _search(
         return round(min(max(y, lo), hi), 12)
 
     def total(
-        y: float, prune: float = PRUNE, to_cap: bool = False, beside: Sequence[Request] = ()
+        y: float,
+        prune: float = settings.prune,
+        to_cap: bool = False,
+        beside: Sequence[Request] = (),
     ) -> float:
         """Total steps at d = exp(y) (for a d stopped at the best total, the steps it had
         taken: a lower bound); inf if some case did not settle within max_steps.
@@ -327,7 +336,7 @@ def _search(
                     needs[y] = [
                         (
                             r.steps,
-                            long_decay(r) if not r.finished else float(r.steps),
+                            long_decay(r, settings) if not r.finished else float(r.steps),
                             not r.finished,
                         )
                         for r in results
@@ -357,15 +366,17 @@ def _search(
         # Confirm: the predicted d, then a run on either side, each stopped as soon as it is
         # predicted no faster than its budget; walk on only where one of them is faster.
         y0 = min(max(math.log(prediction.d), lo), hi)
-        step = math.log(CONFIRM)
+        step = math.log(settings.confirm)
         left, mid, right = max(y0 - step, lo), y0, min(y0 + step, hi)
         caps = (max_steps,) * runs.cases
         sides = [y for y in dict.fromkeys(key(y) for y in (left, right)) if y != key(mid)]
         # Where other workers are free the margin's edge probe runs beside the predicted d's,
         # its caps named from their steps should it stay the fastest
-        # (:func:`fpm.fitting.margin.smallest_settling`).
+        # (:func:`fpm.fitting.damping.margin.smallest_settling`).
         beside: list[Request] = []
-        edge = None if models is None else predicted_edge(models, math.exp(key(mid)), lo, max_steps)
+        edge = None
+        if models is not None:
+            edge = predicted_edge(models, math.exp(key(mid)), lo, max_steps, settings)
         if edge is not None and round(edge, 12) < key(mid):
             beside.append(Request(math.exp(round(edge, 12)), caps, None, estimate=True,
                                   caps_later=True))  # fmt: skip
@@ -373,44 +384,47 @@ def _search(
         # slender bar it can over-predict the steps several times).
         f_mid = total(mid, to_cap=True, beside=beside)
         if limit is not None and key(mid) in needs:
-            hopeless(runs.problem, math.exp(key(mid)), needs[key(mid)], *limit, earlier)
+            hopeless(runs.problem, math.exp(key(mid)), needs[key(mid)], *limit, earlier, settings)
         if grow and key(mid) in short:
             raise ShortCap(short[key(mid)], needs.get(key(mid)))
         # A side runs only where the reduced steps cannot rule it out (:func:`_unsure`); both
         # at once where other workers are free: right's budget is mid's total unless left
         # turns out faster (then right runs anew, with left's).
         if models is not None:
-            sides = [y for y in sides if _unsure(models, steps.get(key(mid)), y, key(mid))]
+            measured = steps.get(key(mid))
+            sides = [y for y in sides if _unsure(models, measured, y, key(mid), settings)]
         budget = _total(steps[best[0]]) if best else None
         runs.prefetch(
             [
-                Request(math.exp(y), caps, budget, prune=CONFIRM_PRUNE)
+                Request(math.exp(y), caps, budget, prune=settings.confirm_prune)
                 for y in sides if y not in steps and y not in slower
             ]
         )  # fmt: skip
 
         def confirmed(y: float) -> float:
             """Total steps at a side (inf: ruled out by the reduced steps, not run)."""
-            return total(y, CONFIRM_PRUNE) if key(y) in sides or key(y) == key(mid) else math.inf
+            if key(y) in sides or key(y) == key(mid):
+                return total(y, settings.confirm_prune)
+            return math.inf
 
         f_left, f_right = confirmed(left), confirmed(right)
     else:
         # Bracket: start from the two guesses and their geometric mean.
         g_low, g_high = sorted(min(max(math.log(g), lo), hi) for g in guesses)
         y0 = (g_low + g_high) / 2
-        step = max((g_high - g_low) / 2, math.log(BRACKET_STEP))
+        step = max((g_high - g_low) / 2, math.log(settings.bracket_step))
         left, mid, right = max(y0 - step, lo), y0, min(y0 + step, hi)
         f_mid, f_left, f_right = total(mid), total(left), total(right)
     # Walk towards fewer steps, each step 1.6x longer than the last, until the fewest are
     # bracketed.
     walk = step
     while f_left < f_mid and left > lo:
-        walk *= WALK_GROWTH
+        walk *= settings.walk_growth
         right, f_right, mid, f_mid = mid, f_mid, left, f_left
         left = max(mid - walk, lo)
         f_left = total(left)
     while f_right < f_mid and right < hi:
-        walk *= WALK_GROWTH
+        walk *= settings.walk_growth
         left, f_left, mid, f_mid = mid, f_mid, right, f_right
         right = min(mid + walk, hi)
         f_right = total(right)
@@ -424,24 +438,32 @@ def _search(
                 + (": " + what_would_work(runs, math.exp(y0), max_steps) if explain else "")
             )
     # Refine: golden-section steps between the best d and its tried neighbours.
-    for _ in range(REFINE_STEPS):
-        if _flat(steps, best[0]):
+    for _ in range(settings.refine_steps):
+        if _flat(steps, best[0], settings):
             break
-        y = _next_point([*steps, *slower], best[0])
+        y = _next_point([*steps, *slower], best[0], settings)
         if y is None:
             break
         total(y)
     y_best, displacements, residuals = best
     edge = None
     if models is not None:
-        edge = predicted_edge(models, math.exp(y_best), lo, max_steps)
+        edge = predicted_edge(models, math.exp(y_best), lo, max_steps, settings)
     return DampingFit(
         d=math.exp(y_best),
         steps=list(steps[y_best] or []),
         displacements=displacements,
         d_min=math.exp(
             smallest_settling(
-                runs, steps, forecast, y_best, lo, max_steps, math.log(BRACKET_STEP), edge
+                runs,
+                steps,
+                forecast,
+                y_best,
+                lo,
+                max_steps,
+                math.log(settings.bracket_step),
+                edge,
+                settings,
             )
         ),
         guess=math.exp(y0),
@@ -458,14 +480,20 @@ def _search(
     )
 
 
-def _unsure(models: list[StepModel], measured: list[int] | None, y: float, y_mid: float) -> bool:
+def _unsure(
+    models: list[StepModel],
+    measured: list[int] | None,
+    y: float,
+    y_mid: float,
+    settings: DampingSettings = DEFAULT,
+) -> bool:
     """Whether the confirming run at log d ``y`` is needed beside the predicted d (log
     ``y_mid``), whose runs settled in ``measured`` steps per case (None: they did not): yes
-    unless the reduced steps predict ``y`` slower than ``y_mid`` by more than TRUST times
-    their own relative error at ``y_mid``. The reduced steps' error is mostly an offset
-    shared by nearby d (docs/notes/2026-11-28-calibration-measured.md, *Confirming runs
-    skipped*): a side the model puts clearly beyond its own error cannot be faster, and a run
-    there would only say so."""
+    unless the reduced steps predict ``y`` slower than ``y_mid`` by more than ``settings.trust``
+    times their own relative error at ``y_mid``. The reduced steps' error is mostly an offset shared
+    by nearby d (docs/notes/2026-11-28-calibration-measured.md, *Confirming runs skipped*): a side
+    the model puts clearly beyond its own error cannot be faster, and a run there would only say
+    so."""
     if not measured:
         return True
     predicted = total_steps(models, math.exp(y_mid), SCHEMA_MAX_STEPS)
@@ -473,29 +501,30 @@ def _unsure(models: list[StepModel], measured: list[int] | None, y: float, y_mid
         return True
     error = abs(sum(measured) - predicted) / sum(measured)
     excess = (total_steps(models, math.exp(y), SCHEMA_MAX_STEPS) - predicted) / predicted
-    return not excess > TRUST * error
+    return not excess > settings.trust * error
 
 
 def _total(steps: list[int] | None) -> int:
     return sum(steps) if steps is not None else 1 << 62
 
 
-def _flat(steps: dict[float, list[int] | None], y_best: float) -> bool:
-    """The best d's two tried neighbours both settled within FLAT of its total steps: a d between
+def _flat(steps: dict[float, list[int] | None], y_best: float, settings: DampingSettings) -> bool:
+    """The best d's two tried neighbours both settled within ``settings.flat`` of its total
+    steps: a d between
     them could gain at most that, not worth a run."""
     tried = sorted(steps)
     i = tried.index(y_best)
     neighbours = [steps[y] for y in tried[max(i - 1, 0) : i] + tried[i + 1 : i + 2]]
     best = _total(steps[y_best])
     return len(neighbours) == 2 and all(
-        n is not None and _total(n) <= (1 + FLAT) * best for n in neighbours
+        n is not None and _total(n) <= (1 + settings.flat) * best for n in neighbours
     )
 
 
-def _next_point(tried: list[float], y_best: float) -> float | None:
+def _next_point(tried: list[float], y_best: float, settings: DampingSettings) -> float | None:
     """Where to look next (log d): a golden-section step into the wider of the gaps between the
     best d and its tried neighbours (every other tried d is slower, stopped at the best total,
-    or does not settle), or None once both gaps are below RESOLUTION."""
+    or does not settle), or None once both gaps are below ``settings.resolution``."""
     tried = sorted(tried)
     i = tried.index(y_best)
     neighbours = tried[max(i - 1, 0) : i] + tried[i + 1 : i + 2]
@@ -503,6 +532,128 @@ def _next_point(tried: list[float], y_best: float) -> float | None:
     if not gaps:
         return None
     wide = max(gaps, key=abs)
-    if abs(wide) < 2 * math.log(RESOLUTION):
+    if abs(wide) < 2 * math.log(settings.resolution):
         return None
     return y_best + GOLDEN * wide
+
+
+def damping_guesses(
+    problem: Problem,
+    solver: StaticSolver,
+    stiffness: Stiffness,
+    depth: int,
+    static: np.ndarray,
+) -> tuple[float, float]:
+    """Two critical-damping estimates, N s/m (:func:`critical_damping`): from the static shapes
+    ``static`` (L, N, 3), and from the shapes their inertia deflects the linear lattice into
+    (one inverse iteration); the first twice when the lattice at rest is not held (an 'axis'
+    lattice is a mechanism there)."""
+    upper = critical_damping(problem, static)
+    masses = problem.solid.masses[None, :, None]
+    try:
+        inertia = np.stack(
+            [
+                solver.linear_response(j, stiffness, depth, masses[0] * static[j])
+                for j in range(len(problem.load_cases))
+            ]
+        )
+        return critical_damping(problem, inertia, masses * static), upper
+    except (SingularStiffnessError, NegativeCurvature):
+        return upper, upper
+
+
+def fit_damping(
+    problem: Problem,
+    solver: StaticSolver,
+    stiffness: Stiffness,
+    depth: int,
+    static: np.ndarray,
+    dt: float,
+    progress: Any = None,
+    plan: DampingPlan | None = None,
+    spread: Callable[[DampingPlan, np.ndarray | None], Spread | None] | None = None,
+    reference: np.ndarray | None = None,
+    modes: dict[bytes, Modes] | None = None,
+    settings: DampingSettings = DEFAULT,
+) -> tuple[DampingFit, DampingPlan]:
+    """The fastest-settling d at (``stiffness``, ``depth``, ``dt`` s), from ``static`` (L, N,
+    3) the static equilibria, m, ``reference`` (L, N, 3) the reference's displacements at the
+    lattice nodes, m (the settle distances 'auto' read: :func:`fpm.dynamics.settle.case_distances`;
+    None: the nominal distance), and ``plan`` (None: made of ``stiffness``' parameters) with
+    each case's settle stiffness: the distance criterion's (:mod:`fpm.dynamics.settle`) read
+    from the modes of the prediction, or None for the force criterion (the spec names a
+    settle_tolerance, or there are no modes). The search of
+    :func:`fpm.fitting.damping.search.fastest_damping`
+    started at the d the lattice's slowest modes predict
+    (:func:`fpm.dynamics.modes.predict_damping`), with fpm.max_steps 'auto' taken from the
+    steps predicted there (:func:`fpm.dynamics.modes.auto_max_steps`). Where the lattice at
+    rest has no modes to predict from (a mechanism, e.g. 'axis' springs) or no d settles in
+    the reduced steps, from the two critical-damping estimates of :func:`damping_guesses`,
+    'auto' then being FALLBACK_STEPS. ``spread``: given the plan and the static equilibria its
+    runs settle towards (the target criterion; None: not), runs the search's runs over
+    other processes (:func:`fastest_damping`); ``modes``: the slowest
+    modes already found (:class:`fpm.dynamics.modes_ahead.ModesAhead`). Returns the fit and the
+    plan its runs followed."""
+    bounds = damping_bounds(problem)
+    asked = problem.spec.fpm.max_steps
+    why = strain_notes(problem, static, reference)
+    if plan is None:
+        plan = DampingPlan([float(t) for t in stiffness.parameters()], int(depth), dt)
+    distance = None
+    if by_distance(problem.spec):  # the target criterion: the runs settle towards static
+        distance = case_distances(problem.spec, static, reference)
+    try:
+        prediction, models = predict_damping(
+            problem, solver, stiffness, depth, dt, bounds, static, distances=distance,
+            modes=modes,
+        )  # fmt: skip
+    except (ValueError, SingularStiffnessError, NegativeCurvature, np.linalg.LinAlgError):
+        guesses = damping_guesses(problem, solver, stiffness, depth, static)
+        cap = FALLBACK_STEPS if asked == "auto" else int(asked)
+        fit = fastest_damping(
+            problem, stiffness, depth, bounds, guesses, dt=dt, progress=progress, max_steps=cap,
+            auto=asked == "auto", spread=None if spread is None else spread(plan, None), why=why,
+            settings=settings,
+        )  # fmt: skip
+        return fit, plan
+    targets = None
+    if distance is not None:
+        each = [nominal_distance(problem.spec) * m.mode_stiffness for m in models]
+        plan = replace(plan, settle=each, distance=distance)
+        targets = static
+    cap = auto_max_steps(prediction.steps) if asked == "auto" else int(asked)
+    fit = fastest_damping(
+        problem, stiffness, depth, bounds, (prediction.d, prediction.d), dt=dt,
+        progress=progress, prediction=prediction, models=models, max_steps=cap,
+        auto=asked == "auto", spread=None if spread is None else spread(plan, targets),
+        settle=plan.settle, targets=targets, distances=plan.distance, why=why,
+        settings=settings,
+    )  # fmt: skip
+    return fit, plan
+
+
+def strain_notes(problem: Problem, static: np.ndarray, reference: np.ndarray | None) -> list[str]:
+    """Per load case, how far its loads take the solid, for a case that cannot settle: the
+    largest spring strain |l / L - 1| of its static equilibrium ``static`` (L, N, 3) m and the
+    largest displacement of the reference ``reference`` (L, N, 3) m (None: not said) as a
+    share of the solid's smallest bounding-box extent."""
+    springs, rest = problem.solid.springs, problem.rest_lengths
+    extents = np.ptp(problem.nodes, axis=0)
+    extent = float(extents[extents > 0].min())
+    notes = []
+    for j, u in enumerate(static):
+        x = problem.nodes + u
+        strain = float(
+            np.abs(np.linalg.norm(x[springs[:, 1]] - x[springs[:, 0]], axis=1) / rest - 1).max()
+        )
+        note = f"its static equilibrium strains a spring by {100 * strain:.0f}%"
+        if reference is not None:
+            moved = float(np.linalg.norm(reference[j], axis=1).max()) / extent
+            note += (
+                f", and the FEM moves a node by {100 * moved:.0f}% of the solid's smallest "
+                f"extent ({extent:.3g} m)"
+            )
+            if moved > SMALL_STRAIN:
+                note += ", far outside the small strain its linear reference assumes"
+        notes.append(note)
+    return notes

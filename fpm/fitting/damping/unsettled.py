@@ -1,8 +1,9 @@
-"""When the d search's runs cannot settle (:mod:`fpm.fitting.damping`): the errors it raises,
-the step budget a load case is judged against, and what would work instead.
+"""When the d search's runs cannot settle (:mod:`fpm.fitting.damping.search`): the errors it
+raises, the step budget a load case is judged against, and what would work instead (the
+settings named here are those of :class:`fpm.fitting.damping.settings.DampingSettings`).
 
 A run at the predicted d that reaches its cap unsettled is read by the decay of its residual
-over the whole run (:func:`long_decay`); a case whose decay predicts more than HOPELESS times
+over the whole run (:func:`long_decay`); a case whose decay predicts more than ``hopeless`` times
 the step budget, or whose settling recedes as its cap grows, ends the search at once
 (:func:`hopeless`, :class:`Hopeless`). Where no d settles at all, :func:`what_would_work` says
 the dt and step cap that would.
@@ -12,33 +13,21 @@ from __future__ import annotations
 
 import math
 
-from ..dynamics.simulation import DynamicRun
-from ..dynamics.stability import auto_time_step
-from ..dynamics.step_caps import SCHEMA_MAX_STEPS
-from ..dynamics.voigt import SETTLED
-from ..model.problem import Problem
-from .lockstep import CHUNK, CaseRun, _Runs
-
-HOPELESS = 10.0
-"""The search stops at once (:class:`DampingError` naming the load case) when a case's run at
-the predicted d reaches its cap unsettled and the decay of its residual, which is how fast its
-distance from equilibrium shrinks towards its settle distance
-(:func:`long_decay`), predicts more than this many times the step
-budget: fpm.max_steps, or under 'auto' the schema's 10^6 its cap may grow to. Its cap would
-otherwise grow and the whole range of d be scanned at the budget's steps per case, only to reach
-the same verdict. The slack covers the decay's error early in a long run (it can over-predict a
-slender bar's steps several times)."""
-HOPELESS_AFTER = 10_000
-"""... and only once that run has taken at least this many steps (or the whole budget, if
-smaller); a run whose distance has not shrunk at all, only after a tenth of the budget: a
-lattice can ring for tens of thousands of steps before its decay shows (the transversely
-isotropic block of docs/howto/regions-and-anisotropy.md settles, but only after that long)."""
+from ...dynamics.simulation import DynamicRun
+from ...dynamics.stability import auto_time_step
+from ...dynamics.step_caps import SCHEMA_MAX_STEPS
+from ...dynamics.voigt import SETTLED
+from ...model.problem import Problem
+from .lockstep import CaseRun, _Runs
+from .settings import DEFAULT, DampingSettings
 
 
-def _read_after(need: float, limit: int) -> float:
+def _read_after(need: float, limit: int, settings: DampingSettings) -> float:
     """The steps a run at its cap must have taken before its decay (``need``, the steps it
-    predicts; inf: not shrinking) may stop the search, against the budget ``limit``."""
-    return min(HOPELESS_AFTER, limit) if math.isfinite(need) else limit / 10
+    predicts; inf: not shrinking) may stop the search, against the budget ``limit``: at least
+    ``settings.hopeless_after`` (or the budget, if smaller); a tenth of the budget for a run
+    that has not shrunk at all."""
+    return min(settings.hopeless_after, limit) if math.isfinite(need) else limit / 10
 
 
 def hopeless(
@@ -49,19 +38,21 @@ def hopeless(
     auto: bool,
     why: list[str],
     earlier: list[tuple[int, float, bool]] | None = None,
+    settings: DampingSettings = DEFAULT,
 ) -> None:
     """Raise :class:`DampingError` naming the load cases whose run at ``d`` (N s/m, the
-    predicted d) stopped at its cap with a decay that predicts more than HOPELESS times the
-    step budget ``limit``: (steps taken, steps predicted, still moving) per case in
-    ``needs``, ``why`` what may keep each from settling (none: nothing said). Also the cases
-    that reached their cap unsettled again after it grew to what their decay predicted at the
-    cap before (``earlier``, the same per case there): a run whose settling recedes as it goes
-    (a creep, not the exponential decay the prediction assumes) cannot be given a cap that
-    holds it."""
+    predicted d) stopped at its cap with a decay that predicts more than ``settings.hopeless`` times
+    the step budget ``limit``: (steps taken, steps predicted, still moving) per case in ``needs``,
+    ``why`` what may keep each from settling (none: nothing said). Also the cases that reached their
+    cap unsettled again after it grew to what their decay predicted at the cap before (``earlier``,
+    the same per case there): a run whose settling recedes as it goes (a creep, not the exponential
+    decay the prediction assumes) cannot be given a cap that holds it."""
     slow = [
         j
         for j, (taken, need, moving) in enumerate(needs)
-        if moving and taken >= _read_after(need, limit) and not need <= HOPELESS * limit
+        if moving
+        and taken >= _read_after(need, limit, settings)
+        and not need <= settings.hopeless * limit
     ]
     receding = []
     if earlier is not None:
@@ -116,19 +107,19 @@ def hopeless(
     raise Hopeless("; ".join(parts) + ": " + advice)
 
 
-def long_decay(run: DynamicRun | CaseRun) -> float:
+def long_decay(run: DynamicRun | CaseRun, settings: DampingSettings = DEFAULT) -> float:
     """The steps ``run`` (stopped at its cap) would take to settle, predicted from the decay of
     its residual over the whole run: the envelope (largest sample) over its last quarter
     against that over the quarter before, extrapolated exponentially down to its settle
-    force (as :func:`fpm.fitting.lockstep.predicted_steps` does over the last two pieces of
-    CHUNK steps, which a slow mode's swing, thousands of steps long, can fill with a rising
-    envelope); inf when the envelope has not fallen; its steps when it never settles (settle
-    force 0) or is too short to read (under 2 CHUNK steps a quarter, the first swing)."""
+    force (as :func:`fpm.fitting.damping.lockstep.predicted_steps` does over the last two pieces of
+    ``settings.chunk`` steps, which a slow mode's swing, thousands of steps long, can fill with
+    a rising envelope); inf when the envelope has not fallen; its steps when it never settles
+    (settle force 0) or is too short to read (under 2 chunks a quarter, the first swing)."""
     at = run.steps
     span = at // 4
     last = [r for n, r in run.history if at - span < n <= at]
     before = [r for n, r in run.history if at - 2 * span < n <= at - span]
-    if run.settle_force <= 0 or span < 2 * CHUNK or not last or not before:
+    if run.settle_force <= 0 or span < 2 * settings.chunk or not last or not before:
         return float(at)
     e1, e2 = max(before), max(last)
     if not (0 < e2 < e1):
@@ -136,26 +127,21 @@ def long_decay(run: DynamicRun | CaseRun) -> float:
     return at + max(math.log(e2 / run.settle_force), 0.0) / (math.log(e1 / e2) / span)
 
 
-PROBE_STEPS = 20
-"""When nothing settles, the probe run may take this many times max_steps (capped at the
-schema's 1,000,000) to measure the steps a run needs."""
-
-
 def what_would_work(runs: _Runs, d: float, max_steps: int) -> str:
     """Numbers for a run that cannot settle: the dt 'auto' would take (half the stability
     estimate, at most 1 ms) and the steps a run at d needs there, measured by one probe of up to
-    PROBE_STEPS x max_steps steps per load case (capped at 10^6; none where that is the search's
-    own dt and cap, whose runs already said it)."""
+    ``probe_steps`` x max_steps steps per load case (``runs.settings``) (capped at 10^6; none where
+    that is the search's own dt and cap, whose runs already said it)."""
     p = runs.problem
     dt = min(runs.dt, auto_time_step(p, runs.stiffness))
-    cap = min(1_000_000, PROBE_STEPS * max_steps)
+    cap = min(1_000_000, runs.settings.probe_steps * max_steps)
     if dt >= runs.dt and cap <= max_steps:  # the search's own runs were that probe
         return (
             f"even at fpm.dt = {dt:.3g} s (half the lattice's stability estimate) no d settles "
             f"within {max_steps} steps: lower the loads, or check that the fixed nodes hold the "
             "solid; widening annealing.bounds.d may help"
         )
-    probe = _Runs(p, runs.stiffness, runs.depth, dt)
+    probe = _Runs(p, runs.stiffness, runs.depth, dt, settings=runs.settings)
     try:
         results, _ = probe(d, [cap] * probe.cases)
     finally:

@@ -1,11 +1,12 @@
-"""The d search's runs (:mod:`fpm.fitting.damping`): every load case at one d advanced in
+"""The d search's runs (:mod:`fpm.fitting.damping.search`): every load case at one d advanced in
 lockstep pieces on threads, the verdicts taken at each milestone, and the runs as other
 processes hand them back.
 
-A d's runs advance in pieces of CHUNK steps (:class:`fpm.dynamics.simulation.DynamicRun`),
+A d's runs advance in pieces of ``chunk`` steps (:class:`fpm.dynamics.simulation.DynamicRun`;
+the settings named here are those of :class:`fpm.fitting.damping.settings.DampingSettings`),
 all load cases together (:class:`_Runs`). At each milestone every case has passed, a
 :class:`Verdict` (:func:`verdict_at`) decides whether the d is lost (its steps add up to the
-budget, or its cases' decays predict more than PRUNE times it: :func:`predicted_steps`),
+budget, or its cases' decays predict more than ``prune`` times it: :func:`predicted_steps`),
 settled, or runs on. Decisions are taken only from each case's own state at the milestone, so
 a search repeats exactly however the threads interleave, and a case run on its own to its end
 by another process (:func:`run_case`, :class:`CaseRun`) replays to the same verdict
@@ -26,52 +27,34 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from ..dynamics.settle import run_criterion
-from ..dynamics.simulation import DynamicRun, FpmModel
-from ..dynamics.step_caps import fixed_max_steps
-from ..dynamics.voigt import DIVERGED, INVERTED, RUNNING, SETTLED
-from ..model.forces import Stiffness
-from ..model.problem import Problem
+from ...dynamics.settle import run_criterion
+from ...dynamics.simulation import DynamicRun, FpmModel
+from ...dynamics.step_caps import fixed_max_steps
+from ...dynamics.voigt import DIVERGED, INVERTED, RUNNING, SETTLED
+from ...model.forces import Stiffness
+from ...model.problem import Problem
+from .settings import DEFAULT, DampingSettings
 
-CHUNK = 200
-"""Time steps each load case advances between checks of a d's running total."""
-SAMPLE = 25
-"""Steps between the residual samples a run's decay is read from."""
-PREDICT_AFTER = 3 * CHUNK
-"""A run's remaining steps are predicted only once it has taken this many (past the transient)."""
-PRUNE = 1.1
-"""A d is dropped once its predicted total exceeds this times the best total (a margin probe:
-once a case's predicted steps exceed this times its cap); the slack absorbs prediction error."""
 LATER = -1
 """A :class:`Request`'s budget that is named once the runs have started: a d run beside the
 predicted d's whose total is its budget (:meth:`_Runs.separate`). The search no longer asks
 for one (its confirming d run only after the predicted d's runs:
-:func:`fpm.fitting.damping._unsure`); a worker still runs such a request as any other."""
-LOOK = 0.2
-"""Seconds between a lockstep's looks for what is named later."""
-MARGIN_CAP = 2
-"""A d 'still settles' for the margin if every load case settles within this many times its
-steps at the fastest d (below the margin a run diverges or creeps; capping keeps the margin
-search as cheap as the rest)."""
-HOLD = PREDICT_AFTER + 2 * CHUNK
-"""Until what it needs is named, a lockstep's cases run at most this many steps and then wait:
-past PREDICT_AFTER, where the verdicts of the d run beside the predicted d's usually come
-(their cores go to the predicted d's cases meanwhile)."""
+:func:`fpm.fitting.damping.search._unsure`); a worker still runs such a request as any other."""
 
 
-def _piece(run: DynamicRun, steps: int) -> int:
-    """Advance ``run`` by ``steps``, in samples of SAMPLE steps (its residual history); returns
-    the steps taken."""
-    start = run.steps
-    while run.steps - start < steps and not run.advance(min(SAMPLE, steps - run.steps + start)):
+def _piece(run: DynamicRun, steps: int, settings: DampingSettings = DEFAULT) -> int:
+    """Advance ``run`` by ``steps``, in samples of ``settings.sample`` steps (its residual
+    history); returns the steps taken."""
+    start, sample = run.steps, settings.sample
+    while run.steps - start < steps and not run.advance(min(sample, steps - run.steps + start)):
         pass
     return run.steps - start
 
 
-def _timed_piece(run: DynamicRun, steps: int) -> tuple[int, float]:
+def _timed_piece(run: DynamicRun, steps: int, settings: DampingSettings) -> tuple[int, float]:
     """:func:`_piece` on a pool thread: (the steps taken, the CPU seconds that thread spent)."""
     cpu = time.thread_time()
-    return _piece(run, steps), time.thread_time() - cpu
+    return _piece(run, steps, settings), time.thread_time() - cpu
 
 
 _LOCKSTEP_CPU = threading.local()
@@ -101,7 +84,7 @@ class CaseRun:
     Attributes:
         steps: time steps taken; state: voigt.RUNNING (reached its cap), SETTLED or DIVERGED
             (or INVERTED); settle_force: the residual it settles below, N.
-        history: (steps, residual N) after every SAMPLE steps.
+        history: (steps, residual N) after every ``sample`` steps.
         displacements: (N, 3) where it settled, m ((0, 3) unless settled).
     """
 
@@ -150,7 +133,7 @@ class Request:
     caps: tuple[int, ...]
     budget: int | None
     estimate: bool = False
-    prune: float = PRUNE
+    prune: float = DEFAULT.prune
     to_cap: bool = False
     caps_later: bool = False
 
@@ -170,19 +153,21 @@ def run_case(
     settle_stiffness: float | None = None,
     static: np.ndarray | None = None,
     distance: float | None = None,
+    *,
+    settings: DampingSettings = DEFAULT,
 ) -> CaseRun:
     """Load case ``load_case`` at (``stiffness``, ``d`` N s/m, ``depth``, ``dt`` s) from rest
-    to its end: settled, diverged or ``cap`` steps; advanced in the same pieces of CHUNK steps
-    as the lockstep runs of :class:`_Runs`, so the very same floating-point sequence whatever
-    process runs it. ``settle_stiffness``: the distance criterion's, N/m
-    (:mod:`fpm.dynamics.settle`); None: the force criterion; with ``static`` (N, 3) m, the
-    case's static equilibrium, and its settle ``distance``, the target criterion."""
+    to its end: settled, diverged or ``cap`` steps; advanced in the same pieces of
+    ``settings.chunk`` steps as the lockstep runs of :class:`_Runs`, so the very same floating-point
+    sequence whatever process runs it. ``settle_stiffness``: the distance criterion's, N/m
+    (:mod:`fpm.dynamics.settle`); None: the force criterion; with ``static`` (N, 3) m, the case's
+    static equilibrium, and its settle ``distance``, the target criterion."""
     run = model.start(
         load_case, k=stiffness, d=d, depth=depth, dt=dt,
         **run_criterion(model.problem.spec, settle_stiffness, static, distance),
     )  # fmt: skip
     while not run.finished and run.steps < cap:
-        _piece(run, min(CHUNK, cap - run.steps))
+        _piece(run, min(settings.chunk, cap - run.steps), settings)
     return CaseRun.of(run)
 
 
@@ -223,18 +208,24 @@ def settled_total(runs: list[CaseRun], caps: list[int]) -> int | None:
     return None
 
 
-def named_later(request: Request, runs: list[CaseRun], caps: list[int]) -> dict[str, Any]:
+def named_later(
+    request: Request,
+    runs: list[CaseRun],
+    caps: list[int],
+    settings: DampingSettings = DEFAULT,
+) -> dict[str, Any]:
     """What ``request``, run beside a d's cases (``runs``, each to ``caps``), learns once
     they have ended, as the search would make it with that d the best so far: a confirming
-    d's budget, their :func:`settled_total`; a margin probe's caps, MARGIN_CAP times each
-    case's steps within the request's own (None when they did not all settle: then the
-    search makes no such probe)."""
+    d's budget, their :func:`settled_total`; a margin probe's caps, ``settings.margin_cap`` times
+    each case's steps within the request's own (None when they did not all settle: then the search
+    makes no such probe)."""
     total = settled_total(runs, caps)
     if not request.caps_later:
         return {"budget": total}
     if total is None:
         return {"caps": None}
-    return {"caps": [min(c, MARGIN_CAP * r.steps) for r, c in zip(runs, request.caps, strict=True)]}
+    cap = settings.margin_cap
+    return {"caps": [min(c, cap * r.steps) for r, c in zip(runs, request.caps, strict=True)]}
 
 
 def _capped(run: DynamicRun, cap: int) -> DynamicRun | CaseRun:
@@ -280,15 +271,19 @@ class Spread(Protocol):
         ...
 
 
-def replay_verdict(runs: list[CaseRun], caps: list[int]) -> Verdict:
+def replay_verdict(
+    runs: list[CaseRun], caps: list[int], settings: DampingSettings = DEFAULT
+) -> Verdict:
     """The verdict the lockstep runs of :class:`_Runs` reach for a d run to its cap with no
     budget (the predicted d's runs), from its cases run each to its end: the milestones every
-    CHUNK steps in turn, as the lockstep checks them, until one decides ``failed`` (a case
-    diverged or reached its cap unsettled by it) or every case ended before it (``done``)."""
-    verdict, milestone = Verdict("running"), CHUNK
+    ``settings.chunk`` steps in turn, as the lockstep checks them, until one decides ``failed`` (a
+    case diverged or reached its cap unsettled by it) or every case ended before it (``done``)."""
+    verdict, milestone = Verdict("running"), settings.chunk
     while verdict.outcome == "running" and not all(r.steps < milestone for r in runs):
-        verdict = verdict_at(runs, caps, milestone, None, estimate=False, to_cap=True)
-        milestone += CHUNK
+        verdict = verdict_at(
+            runs, caps, milestone, None, estimate=False, to_cap=True, settings=settings
+        )
+        milestone += settings.chunk
     return Verdict("done") if verdict.outcome == "running" else verdict
 
 
@@ -301,7 +296,8 @@ class _Runs:
     threads, nothing ahead). ``settle``: each load case's settle stiffness, N/m (the distance
     criterion, :mod:`fpm.dynamics.settle`); None: the force criterion. ``targets``: (L, N, 3)
     each load case's static equilibrium displacements, m, and ``distances`` (L,) their settle
-    distances: with ``settle``, the runs settle on the target criterion."""
+    distances: with ``settle``, the runs settle on the target criterion. ``settings``: how
+    the runs advance and are judged (:class:`fpm.fitting.damping.settings.DampingSettings`)."""
 
     def __init__(
         self,
@@ -314,8 +310,10 @@ class _Runs:
         settle: Sequence[float] | None = None,
         targets: np.ndarray | None = None,
         distances: Sequence[float] | None = None,
+        settings: DampingSettings = DEFAULT,
     ):
         self.problem = problem
+        self.settings = settings
         self.settle = None if settle is None else [float(s) for s in settle]
         self.targets = targets if distances is not None else None
         self.distances = None if distances is None else [float(s) for s in distances]
@@ -336,7 +334,7 @@ class _Runs:
         """Load case ``load_case`` at d run on its own to its end in this process."""
         return run_case(
             self.model, self.stiffness, self.depth, self.dt, load_case, d, cap,
-            self.case_settle(load_case), *self.case_target(load_case),
+            self.case_settle(load_case), *self.case_target(load_case), settings=self.settings,
         )  # fmt: skip
 
     def case_settle(self, load_case: int) -> float | None:
@@ -365,7 +363,7 @@ class _Runs:
         else:
             runs, outcomes = self.spread.separate(d, caps, self.local, list(beside), self.locked)
             for request, outcome in zip(beside, outcomes, strict=True):
-                named = named_later(request, runs, caps)
+                named = named_later(request, runs, caps, self.settings)
                 if "budget" in named:
                     self._keep([replace(request, budget=named["budget"])], [outcome])
                 elif named["caps"] is not None:
@@ -373,7 +371,7 @@ class _Runs:
                     self._keep([taken], [outcome])
         self.count += self.cases
         self.work += sum(r.steps for r in runs)
-        return runs, replay_verdict(runs, caps)
+        return runs, replay_verdict(runs, caps, self.settings)
 
     def prefetch(self, requests: list[Request]) -> None:
         """Run ``requests`` at once by ``spread`` (none without it), to be taken by the calls
@@ -405,16 +403,17 @@ class _Runs:
         budget: int | None = None,
         *,
         estimate: bool = False,
-        prune: float = PRUNE,
+        prune: float = DEFAULT.prune,
         to_cap: bool = False,
     ) -> tuple[Sequence[DynamicRun | CaseRun], Verdict]:
         """Every load case at d, case j for at most ``caps[j]`` steps, until every case has
         settled, one has diverged or reached its cap unsettled, or a :class:`Verdict` of
-        :func:`verdict_at` ends it: at each milestone (every CHUNK steps) that every case has
-        passed, the d is ``lost`` once the steps taken up to there add up to ``budget`` (None:
-        no such limit), or once the predictions there exceed ``prune`` times the budget (PRUNE
-        times a cap; with ``to_cap`` a case runs on to its cap whatever its decay predicts);
-        with ``estimate`` it ``settles`` once every case is predicted within its cap.
+        :func:`verdict_at` ends it: at each milestone (every ``settings.chunk`` steps) that every
+        case has passed, the d is ``lost`` once the steps taken up to there add up to
+        ``budget`` (None: no such limit), or once the predictions there exceed ``prune`` times
+        the budget (``settings.prune`` times a cap; with ``to_cap`` a case runs on to its cap
+        whatever its decay predicts); with ``estimate`` it ``settles`` once every case is predicted
+        within its cap.
 
         Decisions are taken only from each case's own state at the milestone, so they do not
         depend on how the threads happened to interleave: a search repeats exactly. A request
@@ -434,16 +433,18 @@ class _Runs:
         self, request: Request, resolve: Resolve | None = None
     ) -> tuple[list[DynamicRun | CaseRun], Verdict, int]:
         """:meth:`__call__`'s runs of ``request``, and the steps they took. A budget LATER
-        or caps named later (by ``resolve``, looked at every LOOK seconds): until then the
-        cases run on undecided, up to HOLD steps, then the milestones they have passed are
-        decided in turn as they would have been with the budget or caps known (a case past
-        its cap as it stood there), so the verdict is the same."""
+        or caps named later (by ``resolve``, looked at every ``settings.look`` seconds): until
+        then the cases run on undecided, up to ``settings.hold`` steps, then the milestones they
+        have passed are decided in turn as they would have been with the budget or caps known (a
+        case past its cap as it stood there), so the verdict is the same."""
         d, caps, budget = request.d, list(request.caps), request.budget
         pending = budget == LATER or request.caps_later
         if pending and resolve is None:
             raise ValueError("what is named later needs where to learn it")
         looked = -math.inf
         estimate, prune, to_cap = request.estimate, request.prune, request.to_cap
+        settings = self.settings
+        chunk, look = settings.chunk, settings.look
         runs = [
             self.model.start(
                 j,
@@ -462,10 +463,10 @@ class _Runs:
         # a busy machine holds the others there, so a d that loses costs the same work however
         # the threads are scheduled.
         running: dict[Future[tuple[int, float]], DynamicRun] = {}
-        milestone = CHUNK
+        milestone = chunk
         verdict = Verdict("running")
         while True:
-            if pending and time.monotonic() - looked >= LOOK:
+            if pending and time.monotonic() - looked >= look:
                 assert resolve is not None
                 looked = time.monotonic()
                 named = resolve()
@@ -487,20 +488,22 @@ class _Runs:
                 if not all(e or r.steps >= milestone for e, r in zip(stopped, seen, strict=True)):
                     break  # a case has not reached it yet
                 verdict = verdict_at(
-                    seen, caps, milestone, budget, estimate=estimate, prune=prune, to_cap=to_cap
-                )
-                milestone += CHUNK
+                    seen, caps, milestone, budget, estimate=estimate, prune=prune, to_cap=to_cap,
+                    settings=settings,
+                )  # fmt: skip
+                milestone += chunk
             waiting = [
                 (r, c) for r, c, e in zip(runs, caps, stopped, strict=True)
                 if not e and r not in running.values()
-                and r.steps < (HOLD if pending else milestone + CHUNK)
+                and r.steps < (settings.hold if pending else milestone + chunk)
             ]  # fmt: skip
             while waiting and verdict.outcome == "running" and len(running) < self.threads:
                 r, c = min(waiting, key=lambda rc: rc[0].steps)
                 waiting.remove((r, c))
-                running[self.pool.submit(_timed_piece, r, min(CHUNK, c - r.steps))] = r
+                piece = self.pool.submit(_timed_piece, r, min(chunk, c - r.steps), settings)
+                running[piece] = r
             if not running and pending:  # every case has ended or waits: wait for the names
-                time.sleep(LOOK)
+                time.sleep(look)
                 continue
             if not running:
                 if verdict.outcome == "running":
@@ -530,26 +533,30 @@ class Verdict:
     predicted: tuple[float, ...] = ()
 
 
-def predicted_steps(run: DynamicRun | CaseRun, at: int | None = None) -> float:
+def predicted_steps(
+    run: DynamicRun | CaseRun, at: int | None = None, settings: DampingSettings = DEFAULT
+) -> float:
     """The steps ``run`` will have taken when it settles, predicted from the decay of its
     residual up to step ``at`` (None: its steps so far): the envelope (largest sample) over the
-    last CHUNK steps against that over the CHUNK steps before, extrapolated exponentially down
-    to the settle force. Its steps if it finished by then; ``at`` before PREDICT_AFTER, or
+    last ``settings.chunk`` steps against that over the chunk before, extrapolated
+    exponentially down to the settle force. Its steps if it finished by then; ``at`` before
+    ``settings.predict_after``, or
     when the run never settles (settle force 0), no prediction: ``at`` itself; inf when the
     envelope does not decay."""
     at = run.steps if at is None else at
     if run.finished and run.steps <= at:
         return float(run.steps) if not run.diverged else math.inf
-    if at < PREDICT_AFTER or run.settle_force <= 0:
+    chunk = settings.chunk
+    if at < settings.predict_after or run.settle_force <= 0:
         return float(at)
-    last = [r for n, r in run.history if at - CHUNK < n <= at]
-    before = [r for n, r in run.history if at - 2 * CHUNK < n <= at - CHUNK]
+    last = [r for n, r in run.history if at - chunk < n <= at]
+    before = [r for n, r in run.history if at - 2 * chunk < n <= at - chunk]
     if not last or not before:
         return float(at)
     e1, e2 = max(before), max(last)
     if not (0 < e2 < e1):
         return math.inf
-    rate = math.log(e1 / e2) / CHUNK
+    rate = math.log(e1 / e2) / chunk
     return at + max(math.log(e2 / run.settle_force), 0.0) / rate
 
 
@@ -560,12 +567,14 @@ def verdict_at(
     budget: int | None,
     *,
     estimate: bool,
-    prune: float = PRUNE,
+    prune: float = DEFAULT.prune,
     to_cap: bool = False,
+    settings: DampingSettings = DEFAULT,
 ) -> Verdict:
     """The d's verdict at milestone ``at`` (every case ended or past it): ``failed`` if a case
     diverged or reached its cap unsettled by ``at``; ``lost`` if the steps taken up to ``at``
-    add up to ``budget``, or (past PREDICT_AFTER) a case is predicted past PRUNE times its cap
+    add up to ``budget``, or (past ``settings.predict_after``) a case is predicted past
+    ``settings.prune`` times its cap
     or the predicted total past ``prune`` times ``budget``; ``settles`` (with ``estimate``) if
     every case settled within its cap or is predicted within it; else ``running``."""
     if any(
@@ -576,11 +585,11 @@ def verdict_at(
     taken = sum(min(r.steps, at) for r in runs)
     if budget is not None and taken >= budget:
         return Verdict("lost", float(taken))
-    if at < PREDICT_AFTER:
+    if at < settings.predict_after:
         return Verdict("running")
-    predicted = tuple(predicted_steps(r, at) for r in runs)
+    predicted = tuple(predicted_steps(r, at, settings) for r in runs)
     total = float(sum(predicted))
-    if not to_cap and any(p > PRUNE * c for p, c in zip(predicted, caps, strict=True)):
+    if not to_cap and any(p > settings.prune * c for p, c in zip(predicted, caps, strict=True)):
         return Verdict("lost", total, predicted)
     if budget is not None and total > prune * budget:
         return Verdict("lost", total, predicted)

@@ -1,0 +1,248 @@
+"""Stage 2 of the two-stage calibration, after the chains: its driver, :func:`fit_stage` (the
+service's damping job).
+
+In turn: the chain to polish (:func:`fpm.fitting.damping.polish.chain_to_polish`), the polish
+(:func:`fpm.fitting.damping.polish.polish_stiffness`: the chains' best theta, N/m, kappa Pa,
+polished on static equilibria), depth 'auto' resolved
+(:func:`fpm.fitting.damping.depth.resolve_depth`; the paper method's finalize uses it too), the
+validation cases started beside the stage (:func:`fpm.fitting.damping.validation.validate`),
+with ``fpm.stiffness: "field"`` the per-cell field at that depth
+(:func:`fpm.fitting.field.fit_field`), then d (:func:`fpm.fitting.damping.search.fit_damping`,
+N s/m, at the dt of theta or of the field) and the final check of its runs
+(:func:`fpm.fitting.damping.validation.final_run`). Its result, :class:`DampingStage`, is
+JSON-able: the runs of the fastest d are the calibration's last dynamic run.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from ...dynamics.modes_ahead import ModesAhead
+from ...dynamics.stability import time_step
+from ...model.problem import Problem
+from ...model.stiffness import is_field, model_stiffness
+from ..bounds import fit_depth, full_depth
+from ..cost import StaticCost
+from ..field import fit_field
+from ..reduced import ReducedBasis
+from ..stiffness_stage import ChainResult, Progress
+from .depth import resolve_depth
+from .lockstep import Spread
+from .polish import chain_to_polish, polish_stiffness
+from .search import DampingPlan, fit_damping
+from .settings import DEFAULT, DampingSettings
+from .validation import FinalRun, Validation, final_run, reference_displacements, validate
+
+
+@dataclass
+class DampingStage:
+    """Two-stage calibration after the chains: polished stiffness, depth and d (JSON-able).
+
+    Attributes:
+        theta: polished stiffness parameters, N/m.
+        static_cost: their normalised static cost at full depth.
+        polish_evaluations: static cost evaluations of the polish.
+        depth: resolved penetration depth; full_depth the deepest reachable.
+        d: fastest-settling nodal damping, N s/m; d_min the smallest that settles;
+            d_guess the critical-damping estimate the search started from.
+        dt: the time step d was fitted at, s (the spec's, or 'auto' resolved at theta).
+        damping_runs: dynamic runs of the d search.
+        damping_tried: [d, total steps or None] for every d tried.
+        final: the check at (theta, d, depth): the d search's runs at d, which are the last
+            dynamic run, against the static equilibria.
+        seconds: wall time of this stage.
+        d_predicted: the fastest d predicted from the modes before any run, N s/m (None:
+            no prediction; the search started from the critical-damping estimates).
+        max_steps: the cap on each run's steps: the spec's, or 'auto' resolved.
+        field: ``fpm.stiffness: "field"``: the field fit
+            (:meth:`fpm.fitting.field.FieldStage.to_dict`), fitted at depth on the polished
+            theta before d; d, dt and ``final`` are then those of the model it returns.
+        validation: the validation cases at (theta, the depth finalize validates at: None
+            for full depth), :class:`fpm.fitting.damping.validation.Validation` as a dict with that
+            "depth"; solved beside the stage, on a thread or by another worker (None: left to
+            finalize).
+        settle: each load case's settle stiffness, N/m, its runs settled on (the distance
+            criterion, :mod:`fpm.dynamics.settle`); None: the force criterion.
+    """
+
+    theta: list[float]
+    static_cost: float
+    polish_evaluations: int
+    depth: int
+    full_depth: int
+    d: float
+    d_min: float
+    d_guess: float
+    dt: float
+    damping_runs: int
+    damping_tried: list[tuple[float, int | None]]
+    final: FinalRun
+    seconds: float
+    d_predicted: float | None = None
+    max_steps: int | None = None
+    field: dict[str, Any] | None = None
+    validation: dict[str, Any] | None = None
+    settle: list[float] | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> DampingStage:
+        return cls(**{**data, "final": FinalRun(**data["final"])})
+
+
+Validator = Callable[[list[float], "int | None"], "Future[Validation]"]
+"""Starts the validation cases' static solves (:func:`fpm.fitting.damping.validation.validate`)
+at (theta, the depth finalize validates at) somewhere else than this thread, e.g. on another
+worker (:class:`worker.spread.ValidationTask`); their answer does not depend on where."""
+
+
+def fit_stage(
+    problem: Problem,
+    reference: Any,
+    chains: list[ChainResult],
+    *,
+    progress: Progress | None = None,
+    spread: Callable[[DampingPlan, np.ndarray | None], Spread | None] | None = None,
+    basis: ReducedBasis | None = None,
+    validator: Validator | None = None,
+    settings: DampingSettings = DEFAULT,
+) -> DampingStage:
+    """Two-stage, after the chains: polish the best stiffness (at the depth the chains fitted
+    at), resolve the depth, find d.
+
+    families+volume (and field): the polish is the defect-corrected reduced fit
+    (:func:`fpm.fitting.damping.polish.polish_stiffness`) from the best chain's state on
+    ``basis``, the calibration's first basis (built there when None: the same bits).
+
+    ``spread``: given the :class:`~fpm.fitting.damping.search.DampingPlan` (what a run needs
+    besides d and its caps) and the static equilibria (L, N, 3) m its runs settle towards
+    (None: none), the :class:`~fpm.fitting.damping.lockstep.Spread` that runs the predicted d's
+    load cases and the d tried next over other processes (None: here); the worker hands them
+    to free workers (:mod:`worker.spread`). The answer does not depend on it. ``validator``:
+    where the validation cases are solved (None: on a thread beside the stage).
+    ``settings``: the stage's (:class:`fpm.fitting.damping.settings.DampingSettings`).
+    """
+    side = ThreadPoolExecutor(1, thread_name_prefix="validation")
+    try:
+
+        def beside(theta: list[float], depth: int | None) -> Future[Validation]:
+            return side.submit(validate, problem, reference, theta, depth, settings=settings)
+
+        validating = beside if validator is None else validator
+        stage = _fit_stage(
+            problem, reference, chains, progress, spread, validating, basis, settings
+        )
+    except BaseException:  # a failed or canceled stage does not wait for its validation
+        side.shutdown(wait=False, cancel_futures=True)
+        raise
+    side.shutdown()
+    return stage
+
+
+def _fit_stage(
+    problem: Problem,
+    reference: Any,
+    chains: list[ChainResult],
+    progress: Progress | None,
+    spread: Callable[[DampingPlan, np.ndarray | None], Spread | None] | None,
+    validator: Validator,
+    basis: ReducedBasis | None,
+    settings: DampingSettings,
+) -> DampingStage:
+    """:func:`fit_stage`'s work; ``validator`` starts the validation cases' static solves
+    while the stage goes on (they need the final stiffness and depth, not d), once the depth is
+    chosen and the depth probes' systems are dropped, beside the slowest modes' prediction:
+    started beside the depth probes, the validation's systems and theirs would sit in memory
+    together, at the calibration's peak. A field's model is validated by finalize."""
+    t0 = time.perf_counter()
+    disp = reference_displacements(reference, problem)
+    best = chain_to_polish(problem, chains, settings)
+    validating: dict[int | None, Future[Validation]] = {}
+    checks = bool(problem.validation_cases) and not is_field(problem)
+    cost = StaticCost(problem, disp, fit_depth(problem))
+    # the slowest modes, found beside the polish from its second round (their hierarchy is
+    # the polish's); the prediction takes those whose hierarchy the polish kept
+    ahead = ModesAhead(cost.solver, fit_depth(problem))
+    theta, solves = polish_stiffness(problem, cost, best.x, progress, basis, ahead)
+    static_cost = cost(theta).cost / cost.reference_cost
+    evaluations = cost.evaluations + solves
+    depth = fit_depth(problem)
+    deepest = full_depth(problem)
+    if problem.spec.fpm.depth == "auto":
+        if progress is not None:
+            progress({"phase": "depth"})
+        depth, deepest, _ = resolve_depth(
+            cost, theta, problem.spec.fpm.auto_depth_tolerance, progress
+        )
+    elif depth is None:
+        depth = deepest
+    cost.solver.keep_only(depth)  # the depth probes' systems are not asked again
+    checked = None if depth >= deepest else depth  # as finalize validates
+    if checks and checked not in validating:
+        validating[checked] = validator(list(theta), checked)
+    stiffness = model_stiffness(problem, theta)
+    field = None
+    if is_field(problem):  # the per-cell field on theta (the four parameters if it is refused)
+        field = fit_field(problem, disp, cost.solver, theta, depth, progress=progress)
+        stiffness = field.stiffness(problem)
+    static = np.stack(
+        [
+            cost.displacements(stiffness, j, depth).displacements
+            for j in range(len(problem.load_cases))
+        ]
+    )
+    if progress is not None:
+        progress({"phase": "damping"})
+    dt = time_step(problem, stiffness)
+    plan = DampingPlan([float(t) for t in theta], int(depth), dt, field is not None)
+    fit, plan = fit_damping(
+        problem,
+        cost.solver,
+        stiffness,
+        depth,
+        static,
+        dt,
+        None if progress is None else (lambda i: progress({"phase": "damping", **i})),
+        plan,
+        spread,
+        disp,
+        ahead.modes(depth),
+        settings,
+    )
+    final = final_run(
+        cost, stiffness, depth, fit.displacements, fit.steps, settled=True,
+        residuals=fit.residuals, settle=plan.settle, statics=static, distances=plan.distance,
+        settings=settings,
+    )  # fmt: skip
+    validation = None
+    if checks:
+        found = validating[checked].result()
+        validation = {**asdict(found), "depth": checked}
+    return DampingStage(
+        theta=[float(t) for t in theta],
+        static_cost=float(static_cost),
+        polish_evaluations=evaluations,
+        depth=int(depth),
+        full_depth=int(deepest),
+        d=fit.d,
+        d_min=fit.d_min,
+        d_guess=fit.guess,
+        dt=dt,
+        damping_runs=fit.runs,
+        damping_tried=fit.tried,
+        final=final,
+        seconds=time.perf_counter() - t0,
+        d_predicted=fit.predicted,
+        max_steps=fit.max_steps,
+        field=None if field is None else field.to_dict(),
+        validation=validation,
+        settle=plan.settle,
+    )
