@@ -134,34 +134,34 @@ def organ_child(h: float, stiffness: str, out: Path, progress_file: Path | None)
         "h": h,
         "stiffness_mode": stiffness,
         "nodes": problem.n_nodes,
-        "dt": result.dt,
+        "dt": result.settle.dt,
         "dt_raw": dt_raw,
-        "volume_stiffness": result.volume_stiffness,
-        "validation": result.validation_relative_discrepancy,
-        "validation_h": result.validation_discrepancy_h,
+        "volume_stiffness": result.parameters.volume_stiffness,
+        "validation": result.fit.validation_relative_discrepancy,
+        "validation_h": result.fit.validation_discrepancy_h,
         "setup": t0 - t_start,
         "load": t_load,
         "fem": t_fem,
         "wall": wall,
-        "seconds": result.seconds,
-        "depth": result.depth,
-        "full_depth": result.full_depth,
-        "k": result.k,
-        "stiffness": result.stiffness,
-        "d": result.d,
-        "d_min": result.d_min,
-        "relative": result.relative_discrepancy,
-        "steps": result.settle_steps,
-        "settled": result.settled,
-        "cost": result.cost,
-        "static_cost": result.static_cost,
+        "seconds": result.run.seconds,
+        "depth": result.parameters.depth,
+        "full_depth": result.parameters.full_depth,
+        "k": result.parameters.k,
+        "stiffness": result.parameters.stiffness,
+        "d": result.parameters.d,
+        "d_min": result.settle.d_min,
+        "relative": result.fit.relative_discrepancy,
+        "steps": result.settle.steps,
+        "settled": result.settle.settled,
+        "cost": result.fit.cost,
+        "static_cost": result.fit.static_cost,
         "warnings": result.warnings,
-        "evaluations": result.evaluations,
-        "damping_runs": result.damping_runs,
+        "evaluations": result.run.evaluations,
+        "damping_runs": result.run.damping_runs,
         "cases": [c.name for c in problem.spec.load_cases],
         "field": None  # fpm.stiffness 'field': the side-by-side figures (not the factors)
-        if result.field is None
-        else result.field.model_dump(exclude={"spring_factor", "kappa_factor"}),
+        if result.parameters.field is None
+        else result.parameters.field.model_dump(exclude={"spring_factor", "kappa_factor"}),
         "self_maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
     out.write_text(json.dumps(data))
@@ -290,20 +290,21 @@ def material_a() -> dict[str, Any]:
     )
     for name in ("paper", "two-stage"):
         r = results[name]
-        d_min = f"{r.d_min:.4f}" if r.d_min is not None else "-"
+        d_min = f"{r.settle.d_min:.4f}" if r.settle.d_min is not None else "-"
         print(
             f"   {name:<11}{walls[name]:>8.2f}{walls['paper'] / walls[name]:>10.1f}x"
-            f"{r.k:>10.3f}{(r.k / p.k - 1) * 100:>10.2f}%{r.mean_relative_discrepancy:>11.3f}"
-            f"{r.d:>9.4f}{sum(r.settle_steps):>7d}{d_min:>8}{r.evaluations:>7d}  "
-            + " / ".join(f"{x:.2f}" for x in r.relative_discrepancy)
+            f"{r.parameters.k:>10.3f}{(r.parameters.k / p.parameters.k - 1) * 100:>10.2f}%"
+            f"{r.fit.mean_relative_discrepancy:>11.3f}"
+            f"{r.parameters.d:>9.4f}{sum(r.settle.steps):>7d}{d_min:>8}{r.run.evaluations:>7d}  "
+            + " / ".join(f"{x:.2f}" for x in r.fit.relative_discrepancy)
         )
     ratio = walls["paper"] / walls["two-stage"]
-    k_off = abs(t.k / p.k - 1)
-    disc = t.mean_relative_discrepancy - p.mean_relative_discrepancy
+    k_off = abs(t.parameters.k / p.parameters.k - 1)
+    disc = t.fit.mean_relative_discrepancy - p.fit.mean_relative_discrepancy
     print(
-        f"   two-stage seconds: stage 1 {t.seconds['stiffness']:.2f}, stage 2 "
-        f"{t.seconds['damping']:.2f}, finalize {t.seconds['finalize']:.2f}; settled: paper "
-        f"{p.settled}, two-stage {t.settled}"
+        f"   two-stage seconds: stage 1 {t.run.seconds['stiffness']:.2f}, stage 2 "
+        f"{t.run.seconds['damping']:.2f}, finalize {t.run.seconds['finalize']:.2f}; settled: paper "
+        f"{p.settle.settled}, two-stage {t.settle.settled}"
     )
     return {
         "results": results,
@@ -320,13 +321,14 @@ def material_a() -> dict[str, Any]:
             (
                 "1b material A k",
                 k_off <= K_AGREEMENT,
-                f"two-stage k {t.k:.3f} vs paper {p.k:.3f} N/m: {k_off:.2%} off (goal <= 0.5%)",
+                f"two-stage k {t.parameters.k:.3f} vs paper {p.parameters.k:.3f} N/m: "
+                f"{k_off:.2%} off (goal <= 0.5%)",
             ),
             (
                 "1c material A discrepancy",
                 disc <= NOISE_POINTS,
-                f"mean relative {t.mean_relative_discrepancy:.3f}% vs paper "
-                f"{p.mean_relative_discrepancy:.3f}% ({disc:+.3f} points; goal <= +0.05)",
+                f"mean relative {t.fit.mean_relative_discrepancy:.3f}% vs paper "
+                f"{p.fit.mean_relative_discrepancy:.3f}% ({disc:+.3f} points; goal <= +0.05)",
             ),
         ],
     }
@@ -339,8 +341,8 @@ def damping_grid(a: dict[str, Any]) -> list[tuple[str, bool, str]]:
 
     r = a["results"]["two-stage"]
     problem = fpm.load_problem(a["spec"])
-    theta = [r.k]  # single k (the spec's default stiffness mode)
-    cost = CostFunction(problem, a["reference"].displacements, r.depth)
+    theta = [r.parameters.k]  # single k (the spec's default stiffness mode)
+    cost = CostFunction(problem, a["reference"].displacements, r.parameters.depth)
     lo, hi = damping_bounds(problem)
     grid = np.geomspace(lo, hi, GRID_POINTS)
     t0 = time.perf_counter()
@@ -350,9 +352,10 @@ def damping_grid(a: dict[str, Any]) -> list[tuple[str, bool, str]]:
         totals.append(sum(x.steps for x in runs) if all(x.settled for x in runs) else None)
     seconds = time.perf_counter() - t0
     settled = [(t, d) for t, d in zip(totals, grid, strict=True) if t is not None]
-    ours = sum(r.settle_steps)
+    ours = sum(r.settle.steps)
     print(
-        f"\n2. d on material A at the two-stage k = {r.k:.3f} N/m, depth {r.depth}, dt "
+        f"\n2. d on material A at the two-stage k = {r.parameters.k:.3f} N/m, "
+        f"depth {r.parameters.depth}, dt "
         f"{problem.spec.fpm.dt:g} s, max_steps {problem.spec.fpm.max_steps}: {GRID_POINTS}-point "
         f"log grid over [{lo:.4g}, {hi:.4g}] N s/m ({seconds:.1f} s; {load()})"
     )
@@ -362,7 +365,7 @@ def damping_grid(a: dict[str, Any]) -> list[tuple[str, bool, str]]:
     best_total, best_d = min(settled)
     ratio = ours / best_total
     print(f"   {'':<12}{'d N s/m':>10}{'total steps':>13}")
-    print(f"   {'two-stage':<12}{r.d:>10.4f}{ours:>13d}   d_min {r.d_min:.4f}")
+    print(f"   {'two-stage':<12}{r.parameters.d:>10.4f}{ours:>13d}   d_min {r.settle.d_min:.4f}")
     print(f"   {'grid best':<12}{best_d:>10.4f}{best_total:>13d}")
     print(
         "   grid: "
@@ -373,7 +376,7 @@ def damping_grid(a: dict[str, Any]) -> list[tuple[str, bool, str]]:
         (
             "2 d fastest",
             ratio <= GRID_RATIO_GOAL,
-            f"{ours} steps at d {r.d:.4f} vs grid best {best_total} at {best_d:.4f}: "
+            f"{ours} steps at d {r.parameters.d:.4f} vs grid best {best_total} at {best_d:.4f}: "
             f"{ratio:.3f} (goal <= {GRID_RATIO_GOAL})",
         )
     ]
@@ -557,13 +560,15 @@ def families(a: dict[str, Any]) -> list[tuple[str, bool, str]]:
         ("single", cube_single, a["walls"]["two-stage"]),
         ("families", cube_fam, a["walls"]["families"]),
     ):
-        ks = ", ".join(f"{k}={v:.3f}" for k, v in r.stiffness.items())
+        ks = ", ".join(f"{k}={v:.3f}" for k, v in r.parameters.stiffness.items())
         print(
             f"   {mode:<10}{wall:>8.1f}"
-            + "".join(f"{x:>10.3f}" for x in r.relative_discrepancy)
-            + f"  {ks if mode == 'families' else round(r.k, 3)}"
+            + "".join(f"{x:>10.3f}" for x in r.fit.relative_discrepancy)
+            + f"  {ks if mode == 'families' else round(r.parameters.k, 3)}"
         )
-    pairs = zip(cube_fam.relative_discrepancy, cube_single.relative_discrepancy, strict=True)
+    pairs = zip(
+        cube_fam.fit.relative_discrepancy, cube_single.fit.relative_discrepancy, strict=True
+    )
     cube_worse = [f - s for f, s in pairs]
     print("   families - single per case: " + ", ".join(f"{w:+.3f}" for w in cube_worse))
     return [

@@ -59,15 +59,17 @@ def grid_best(
 
     stiffness = model_stiffness(problem, fitted_theta(problem, result.to_dict()))
     model = FpmModel(problem)
-    depth = None if result.depth >= result.full_depth else result.depth
-    caps = [3 * s for s in result.settle_steps]
-    settle = result.settle_stiffness  # the criterion the calibration's runs settled on
+    depth = (
+        None if result.parameters.depth >= result.parameters.full_depth else result.parameters.depth
+    )
+    caps = [3 * s for s in result.settle.steps]
+    settle = result.settle.stiffness  # the criterion the calibration's runs settled on
     points: list[tuple[float, int | None]] = []
     for d in np.geomspace(*damping_bounds(problem), GRID_POINTS):
         runs = []
         for j, cap in enumerate(caps):
             run = model.run(
-                j, k=stiffness, d=float(d), depth=depth, dt=result.dt, max_steps=cap,
+                j, k=stiffness, d=float(d), depth=depth, dt=result.settle.dt, max_steps=cap,
                 **run_criterion(problem.spec, None if settle is None else settle[j]),
             )  # fmt: skip
             runs.append(run)
@@ -110,19 +112,21 @@ def d_against_grid() -> list[tuple[str, bool, str]]:
     for name, spec in cases.items():
         problem, result, wall = calibrated(spec)
         d_grid, best, _ = grid_best(problem, result)
-        ours = sum(result.settle_steps)
+        ours = sum(result.settle.steps)
         ratio = ours / best if best else math.inf
-        predicted = f"{result.d_predicted:.4g}" if result.d_predicted else "-"
+        predicted = f"{result.settle.d_predicted:.4g}" if result.settle.d_predicted else "-"
         print(
-            f"   {name:<18}{predicted:>9}{result.d:>9.4g}{ours:>7d}{d_grid:>9.4g}"
-            f"{best or 0:>7d}{ratio:>7.3f}{GRID_RATIO_GOAL:>6}{result.seconds['damping']:>10.2f}"
-            f"{result.damping_runs:>6d}{wall:>8.2f}{result.max_steps or 0:>10d}"
+            f"   {name:<18}{predicted:>9}{result.parameters.d:>9.4g}{ours:>7d}{d_grid:>9.4g}"
+            f"{best or 0:>7d}{ratio:>7.3f}{GRID_RATIO_GOAL:>6}"
+            f"{result.run.seconds['damping']:>10.2f}"
+            f"{result.run.damping_runs:>6d}{wall:>8.2f}{result.settle.max_steps or 0:>10d}"
         )
         goals.append(
             (
                 f"1 d on the {name} within {GRID_RATIO_GOAL}x of the grid's best",
                 ratio <= GRID_RATIO_GOAL,
-                f"{ours} steps at d {result.d:.4g} vs {best} at {d_grid:.4g}: {ratio:.3f}",
+                f"{ours} steps at d {result.parameters.d:.4g} vs {best} at {d_grid:.4g}: "
+                f"{ratio:.3f}",
             )  # fmt: skip
         )
         if name.startswith("cube"):
@@ -131,7 +135,7 @@ def d_against_grid() -> list[tuple[str, bool, str]]:
                     f"1 material A calibration <= {CUBE_TIME_GOAL:.0f} s",
                     wall <= CUBE_TIME_GOAL,
                     f"{wall:.2f} s ({wall / CUBE_TIME_GOAL:.2f}x; damping "
-                    f"{result.seconds['damping']:.2f} s)",
+                    f"{result.run.seconds['damping']:.2f} s)",
                 )  # fmt: skip
             )
     return goals

@@ -50,7 +50,7 @@ def ratio(value: float, goal: float) -> str:
 
 def side_by_side(name: str, r: Any, wall: float) -> None:
     """The four parameters and the field: fit, validation, left-out; the weights tried."""
-    f = r.field
+    f = r.parameters.field
     four, field = f.four_parameter, f.field
     model = "the field" if f.returned else "the four parameters"
     print(
@@ -77,7 +77,7 @@ def cube() -> list[tuple[str, bool, str]]:
     for material, scale in (("linear", 0.01), ("neo-hookean", 1.0)):
         r, wall = timed_fit(cube_spec(0.45, "field", "selective", material, scale))
         side_by_side(f"{material} reference, forces x {scale:g}", r, wall)
-        field = r.field.field
+        field = r.parameters.field.field
         fit, check = max(field.relative_discrepancy), max(field.validation_relative_discrepancy)
         tag = f"cube ({material}, forces x {scale:g})"
         out.append((
@@ -89,7 +89,8 @@ def cube() -> list[tuple[str, bool, str]]:
             f"{tag}: field validation <= {CUBE_VALIDATION_GOAL}% each",
             check <= CUBE_VALIDATION_GOAL,
             f"{fmt(field.validation_relative_discrepancy)} ({ratio(check, CUBE_VALIDATION_GOAL)}; "
-            f"four parameters {fmt(r.field.four_parameter.validation_relative_discrepancy)})",
+            f"four parameters "
+            f"{fmt(r.parameters.field.four_parameter.validation_relative_discrepancy)})",
         ))  # fmt: skip
     return out
 
@@ -146,20 +147,23 @@ def cube_converged() -> list[tuple[str, bool, str]]:
         {**pattern, "vector": [0.01 * v for v in pattern["vector"]]}
     ]})  # fmt: skip
     r, wall = timed_fit(spec)
-    print(f"  this reference's estimated error, %: {fmt(r.reference_error or [])}")
+    print(f"  this reference's estimated error, %: {fmt(r.reference.error or [])}")
     side_by_side("refine 2, three pulls and a push in at a top edge fitted", r, wall)
-    field = r.field.field
+    field = r.parameters.field.field
     fit, check = max(field.relative_discrepancy), max(field.validation_relative_discrepancy)
     tag = "cube (converged reference, two force patterns)"
-    returned = "returned" if r.field.returned else "NOT returned (the four parameters are)"
+    returned = (
+        "returned" if r.parameters.field.returned else "NOT returned (the four parameters are)"
+    )
     return [
         (f"{tag}: the returned field's fit <= {CUBE_FIT_GOAL}% each",
-         r.field.returned and fit <= CUBE_FIT_GOAL,
+         r.parameters.field.returned and fit <= CUBE_FIT_GOAL,
          f"{fmt(field.relative_discrepancy)} ({ratio(fit, CUBE_FIT_GOAL)}; {returned})"),
         (f"{tag}: the returned field's validation <= {CUBE_VALIDATION_GOAL}% each",
-         r.field.returned and check <= CUBE_VALIDATION_GOAL,
+         r.parameters.field.returned and check <= CUBE_VALIDATION_GOAL,
          f"{fmt(field.validation_relative_discrepancy)} ({ratio(check, CUBE_VALIDATION_GOAL)}; "
-         f"four parameters {fmt(r.field.four_parameter.validation_relative_discrepancy)}; "
+         f"four parameters "
+         f"{fmt(r.parameters.field.four_parameter.validation_relative_discrepancy)}; "
          f"{returned})"),
     ]  # fmt: skip
 
@@ -202,7 +206,7 @@ def cube_training_sets() -> list[tuple[str, bool, str]]:
                 {**force, "vector": [0.01 * v for v in force["vector"]]}
             ]})  # fmt: skip
         r = fpm.calibrate(fpm.load_problem(spec))
-        f = r.field
+        f = r.parameters.field
         fit, check = f.field.relative_discrepancy, f.field.validation_relative_discrepancy
         ok = f.returned and max(fit) <= CUBE_FIT_GOAL and max(check) <= CUBE_VALIDATION_GOAL
         returned += f.returned
@@ -225,8 +229,8 @@ def organ_5mm() -> list[tuple[str, bool, str]]:
     spec, _ = organ_settings(0.005, "field")
     r, wall = timed_fit(spec)
     side_by_side("organ 5 mm", r, wall)
-    v = r.validation_relative_discrepancy
-    field = r.field.field.validation_relative_discrepancy
+    v = r.fit.validation_relative_discrepancy
+    field = r.parameters.field.field.validation_relative_discrepancy
     return [
         (
             f"organ 5 mm: validation of the returned model <= {ORGAN_VALIDATION_GOAL}% each",

@@ -166,12 +166,12 @@ def run_fit(spacing: float, lattice: str) -> dict[str, Any]:
         "tetrahedra": len(spec["reference"]["mesh"]["tetrahedra"]),
         "levels": reference.levels,
         "notes": reference.notes,
-        "reference_error": result.reference_error,
-        "validation_reference_error": result.validation_reference_error,
-        "fitted": result.relative_discrepancy,
-        "validation": result.validation_relative_discrepancy,
-        "stiffness": result.stiffness,
-        "kappa": result.volume_stiffness,
+        "reference_error": result.reference.error,
+        "validation_reference_error": result.reference.validation_error,
+        "fitted": result.fit.relative_discrepancy,
+        "validation": result.fit.validation_relative_discrepancy,
+        "stiffness": result.parameters.stiffness,
+        "kappa": result.parameters.volume_stiffness,
         "fem_s": t_fem,
         "fit_s": t_fit,
         "load": load,
@@ -183,7 +183,7 @@ def run_fit(spacing: float, lattice: str) -> dict[str, Any]:
         points = fpm.load_problem(organ_spec(FIT_CELLS, spacing, refine=0))
         given = fpm.calibrate(points, reference=fpm.solve_fem(points))
         row["points"] = {
-            "itself": [given.relative_discrepancy, given.validation_relative_discrepancy],
+            "itself": [given.fit.relative_discrepancy, given.fit.validation_relative_discrepancy],
             "refined": list(judged(points, given, reference)),
         }
     return row
@@ -294,12 +294,12 @@ def run_organ(organ: str, spacing: float, lattice: str = "conforming") -> dict[s
         "tetrahedra": len(spec["reference"]["mesh"]["tetrahedra"]),
         "cases": [c.name for c in problem.all_cases],
         "levels": reference.levels,
-        "reference_error": result.reference_error,
-        "validation_reference_error": result.validation_reference_error,
-        "fitted": result.relative_discrepancy,
-        "validation": result.validation_relative_discrepancy,
-        "stiffness": result.stiffness,
-        "kappa": result.volume_stiffness,
+        "reference_error": result.reference.error,
+        "validation_reference_error": result.reference.validation_error,
+        "fitted": result.fit.relative_discrepancy,
+        "validation": result.fit.validation_relative_discrepancy,
+        "stiffness": result.parameters.stiffness,
+        "kappa": result.parameters.volume_stiffness,
         "fem_s": t_fem,
         "fit_s": t_fit,
         "load": load,
@@ -345,7 +345,7 @@ def export_figures(problem: Any, result: Any, reference: Any) -> dict[str, Any]:
 
     at_depth = None if depth is None else int(depth)
     figures, every = solved(at_depth), solved(None)
-    reported = result.relative_discrepancy + result.validation_relative_discrepancy
+    reported = result.fit.relative_discrepancy + result.fit.validation_relative_discrepancy
     fitted = len(problem.load_cases)
     return {
         "export_fitted": figures[:fitted],
@@ -427,13 +427,13 @@ def diagnose(organ: str, spacing: float, refine: int) -> None:
         result = fpm.calibrate(fitted, reference=reference)
         print(
             f"{organ} {1e3 * spacing:g} mm, {fitted.n_nodes} nodes, {mode}: fitted "
-            f"{fmt(result.relative_discrepancy)}, validation "
-            f"{fmt(result.validation_relative_discrepancy)} %",
+            f"{fmt(result.fit.relative_discrepancy)}, validation "
+            f"{fmt(result.fit.validation_relative_discrepancy)} %",
             flush=True,
         )
         if mode == "field":
             break
-        theta = fitted_theta(fitted, result)
+        theta = fitted_theta(fitted, result.parameters)
         near_field_imposed(fitted, theta, reference, spacing)
         static = StaticCost(fitted, truth, None)
         for j, case in enumerate(fitted.load_cases):
@@ -558,7 +558,7 @@ def judged(problem: Any, result: Any, reference: Any) -> tuple[list[float], list
     from fpm.fitting.damping.validation import reference_displacements, validate
     from fpm.model.stiffness import fitted_theta
 
-    theta = fitted_theta(problem, result)
+    theta = fitted_theta(problem, result.parameters)
     truth = reference_displacements(reference, problem)
     static = StaticCost(problem, truth, None)
     solved = np.stack([static.displacements(theta, j).displacements for j in range(len(truth))])

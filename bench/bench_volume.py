@@ -109,12 +109,15 @@ def cube() -> list[tuple[str, bool, str]]:
     out: list[tuple[str, bool, str]] = []
     for nu, model, integration, material, scale in rows:
         r, wall = timed_fit(cube_spec(nu, model, integration, material, scale))
-        kappa = "-" if r.volume_stiffness is None else f"{r.volume_stiffness:.3g}"
+        kappa = (
+            "-" if r.parameters.volume_stiffness is None else f"{r.parameters.volume_stiffness:.3g}"
+        )
         print(
             f"{nu:>5} {model:>16} {material + ' ' + integration:>22} {scale:>6g} "
-            f"{fmt(r.relative_discrepancy):>22} "
-            f"{r.mean_relative_discrepancy:>6.2f} {fmt(r.validation_relative_discrepancy):>14} "
-            f"{kappa:>10} {1e3 * (r.dt or 0):>7.3f} {wall:>7.2f}"
+            f"{fmt(r.fit.relative_discrepancy):>22} "
+            f"{r.fit.mean_relative_discrepancy:>6.2f} "
+            f"{fmt(r.fit.validation_relative_discrepancy):>14} "
+            f"{kappa:>10} {1e3 * (r.settle.dt or 0):>7.3f} {wall:>7.2f}"
         )
         results.record(
             "volume",
@@ -124,22 +127,22 @@ def cube() -> list[tuple[str, bool, str]]:
             reference_integration=integration,
             reference_material=material,
             force_scale=scale,
-            stiffness=r.stiffness,
-            volume_stiffness=r.volume_stiffness,
-            relative_discrepancy=r.relative_discrepancy,
-            mean_relative_discrepancy=r.mean_relative_discrepancy,
-            validation_relative_discrepancy=r.validation_relative_discrepancy,
-            dt=r.dt,
-            settle_steps=r.settle_steps,
+            stiffness=r.parameters.stiffness,
+            volume_stiffness=r.parameters.volume_stiffness,
+            relative_discrepancy=r.fit.relative_discrepancy,
+            mean_relative_discrepancy=r.fit.mean_relative_discrepancy,
+            validation_relative_discrepancy=r.fit.validation_relative_discrepancy,
+            dt=r.settle.dt,
+            settle_steps=r.settle.steps,
             wall_s=wall,
         )
         if model != "families+volume" or (material, scale) != ("linear", 1.0):
             continue
         if (nu, integration) in ((0.45, "full"), (0.49, "selective")):
             goal = CUBE_GOALS[nu]
-            ok = r.mean_relative_discrepancy <= goal
+            ok = r.fit.mean_relative_discrepancy <= goal
             out.append((f"cube nu {nu} ({integration}): mean relative <= {goal}%", ok,
-                        f"{r.mean_relative_discrepancy:.2f}%"))  # fmt: skip
+                        f"{r.fit.mean_relative_discrepancy:.2f}%"))  # fmt: skip
         if (nu, integration) == (0.45, "selective"):
             ok = wall <= CUBE_TIME_GOAL
             out.append((f"cube nu 0.45 wall time <= {CUBE_TIME_GOAL} s", ok,
@@ -156,14 +159,14 @@ def organ_10mm() -> list[tuple[str, bool, str]]:
     for model in ("single", "families", "families+volume"):
         spec = ellipsoid_spec(0.01, validation=True, fpm={"stiffness": model, "max_steps": 20_000})
         r, wall = timed_fit(spec)
-        print(f"{model:>16} {fmt(r.relative_discrepancy):>20} "
-              f"{fmt(r.validation_relative_discrepancy):>24} {wall:>7.2f}")  # fmt: skip
+        print(f"{model:>16} {fmt(r.fit.relative_discrepancy):>20} "
+              f"{fmt(r.fit.validation_relative_discrepancy):>24} {wall:>7.2f}")  # fmt: skip
         if model == "families+volume":
-            fit_ok = max(r.relative_discrepancy) <= ORGAN_FIT_GOAL
-            v = r.validation_relative_discrepancy
+            fit_ok = max(r.fit.relative_discrepancy) <= ORGAN_FIT_GOAL
+            v = r.fit.validation_relative_discrepancy
             v_ok = max(v) <= ORGAN_VALIDATION_GOAL and np.mean(v) <= ORGAN_VALIDATION_MEAN_GOAL
             out.append((f"organ 10 mm: each fit case <= {ORGAN_FIT_GOAL}%", fit_ok,
-                        fmt(r.relative_discrepancy)))  # fmt: skip
+                        fmt(r.fit.relative_discrepancy)))  # fmt: skip
             out.append((
                 f"organ 10 mm: validation each <= {ORGAN_VALIDATION_GOAL}%, mean <= "
                 f"{ORGAN_VALIDATION_MEAN_GOAL}%", v_ok, f"{fmt(v)} (mean {np.mean(v):.1f})",

@@ -157,7 +157,7 @@ def main() -> None:
             + f" | {max(values[fitted:]):.1f}"
         )
 
-    calibrated = [*result.relative_discrepancy, *result.validation_relative_discrepancy]
+    calibrated = [*result.fit.relative_discrepancy, *result.fit.validation_relative_discrepancy]
     print(
         f"{organ} at {1e3 * spacing:g} mm, {problem.n_nodes} nodes, calibrated: {text(calibrated)}"
     )

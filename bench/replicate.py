@@ -69,21 +69,21 @@ def main(argv: list[str] | None = None) -> None:
                 f"table1-{method}",
                 material=m,
                 method=method,
-                k=r.k,
-                d=r.d,
-                d_min=r.d_min,
-                depth=r.depth,
-                full_depth=r.full_depth,
+                k=r.parameters.k,
+                d=r.parameters.d,
+                d_min=r.settle.d_min,
+                depth=r.parameters.depth,
+                full_depth=r.parameters.full_depth,
                 force_per_node=[
                     float(np.linalg.norm(c.forces, axis=1).max()) for c in problem.load_cases
                 ],
-                relative_discrepancy=r.relative_discrepancy,
-                loaded_discrepancy=r.loaded_discrepancy,
-                discrepancy_h=r.discrepancy_h,
-                mean_relative_discrepancy=r.mean_relative_discrepancy,
-                settle_steps=r.settle_steps,
-                settled=r.settled,
-                dt=r.dt,
+                relative_discrepancy=r.fit.relative_discrepancy,
+                loaded_discrepancy=r.fit.loaded_discrepancy,
+                discrepancy_h=r.fit.discrepancy_h,
+                mean_relative_discrepancy=r.fit.mean_relative_discrepancy,
+                settle_steps=r.settle.steps,
+                settled=r.settle.settled,
+                dt=r.settle.dt,
                 h=problem.h,
                 wall_s=wall,
                 paper=PAPER[m],
@@ -92,15 +92,16 @@ def main(argv: list[str] | None = None) -> None:
         f"--method {m}" for m in methods))  # fmt: skip
     if len(methods) < 2:
         for (m, method), (_, r, wall) in results.items():
-            per_force = ", ".join(f"{x:.3f}" for x in r.relative_discrepancy)
-            print(f"{m}, {method}: k = {r.k:.4g} N/m (paper {PAPER[m]['k']:g}), d = {r.d:.4g} "
+            per_force = ", ".join(f"{x:.3f}" for x in r.fit.relative_discrepancy)
+            print(f"{m}, {method}: k = {r.parameters.k:.4g} N/m (paper {PAPER[m]['k']:g}), "
+                  f"d = {r.parameters.d:.4g} "
                   f"N s/m, relative % per force {per_force}, {wall:.1f} s")  # fmt: skip
         return
     cols = [(m, method) for m in ("A", "B") for method in ("paper", "two-stage")]
     print("\n" + _row("", ["A, paper", "A, 2-stage", "B, paper", "B, 2-stage"]) + f"{'paper':>16}")
     for key, unit in (("k", "N/m"), ("d", "N s/m"), ("depth", "layers")):
         paper = f"{PAPER['A'][key]:g} / {PAPER['B'][key]:g}"
-        values = [f"{getattr(results[c][1], key):.4g}" for c in cols]
+        values = [f"{getattr(results[c][1].parameters, key):.4g}" for c in cols]
         print(_row(f"{key} ({unit})", values) + f"{paper:>16}")
     problem = results["A", "paper"][0]
     for i in range(len(problem.load_cases)):
@@ -109,27 +110,32 @@ def main(argv: list[str] | None = None) -> None:
             ("loaded_discrepancy", "loaded nodes %"),
             ("discrepancy_h", "% of h"),
         ):
-            values = [f"{getattr(results[c][1], attr)[i]:.3f}" for c in cols]
+            values = [f"{getattr(results[c][1].fit, attr)[i]:.3f}" for c in cols]
             paper = "1.4" if (i == 0 and attr == "discrepancy_h") else "-"
             print(_row(f"force {i + 1}: {label}", values) + f"{paper:>16}")
-    means = [f"{results[c][1].mean_relative_discrepancy:.3f}" for c in cols]
+    means = [f"{results[c][1].fit.mean_relative_discrepancy:.3f}" for c in cols]
     print(_row("relative %, mean of forces", means) + f"{'(not given)':>16}")
-    print(_row("settle steps, total", [str(sum(results[c][1].settle_steps)) for c in cols]))
-    print(_row("all load cases settled", [str(results[c][1].settled) for c in cols]))
+    print(_row("settle steps, total", [str(sum(results[c][1].settle.steps)) for c in cols]))
+    print(_row("all load cases settled", [str(results[c][1].settle.settled) for c in cols]))
     print(_row("wall time (s)", [f"{results[c][2]:.1f}" for c in cols]))
     ra, rb = results["A", "paper"][1], results["B", "paper"][1]
-    ratio = rb.k / ra.k
+    ratio = rb.parameters.k / ra.parameters.k
     print(f"\nk_B / k_A = {ratio:.4f} with the paper's method (E_B / E_A = 10; "
           f"{abs(ratio / 10 - 1) * 100:.2f}% off; paper: "
           f"{PAPER['B']['k'] / PAPER['A']['k']:.4f})")  # fmt: skip
     print(f"h = {problem.h * 1e3:.4f} mm; the paper quotes only % of h: {PAPER_DISCREPANCY}")
     two_a = results["A", "two-stage"][1]
     goals = {
-        "paper method, smallest force <= 1.0% of h": max(ra.discrepancy_h[0], rb.discrepancy_h[0])
+        "paper method, smallest force <= 1.0% of h": max(
+            ra.fit.discrepancy_h[0], rb.fit.discrepancy_h[0]
+        )
         <= 1.0,
         "k_B / k_A = 10 within 1%": abs(ratio / 10 - 1) <= 0.01,
-        "two-stage k within 0.5% of the paper method's (A)": abs(two_a.k / ra.k - 1) <= 0.005,
-        "every load case settled": all(results[c][1].settled for c in cols),
+        "two-stage k within 0.5% of the paper method's (A)": abs(
+            two_a.parameters.k / ra.parameters.k - 1
+        )
+        <= 0.005,
+        "every load case settled": all(results[c][1].settle.settled for c in cols),
     }
     for goal, met in goals.items():
         print(f"  [{'met' if met else 'NOT MET'}] {goal}")

@@ -184,7 +184,7 @@ def calibrated_linear(
     from fpm.fitting.damping.validation import reference_displacements, validation_reference
 
     result = fpm.calibrate(problem, reference=reference)
-    theta = np.array([*result.stiffness.values(), result.volume_stiffness])
+    theta = np.array([*result.parameters.stiffness.values(), result.parameters.volume_stiffness])
     truth = [
         *reference_displacements(reference, problem),
         *validation_reference(reference, problem),
@@ -218,7 +218,7 @@ def rows(problem: Any, reference: Any, refitted: bool = True) -> list[tuple[str,
     out = [
         (
             "calibrated (nonlinear, as reported)",
-            [*result.relative_discrepancy, *result.validation_relative_discrepancy],
+            [*result.fit.relative_discrepancy, *result.fit.validation_relative_discrepancy],
         ),
         (
             "springs, the four parameters (linear)",
@@ -236,11 +236,12 @@ def rows(problem: Any, reference: Any, refitted: bool = True) -> list[tuple[str,
         out.append(
             (f"surface {name} refitted", judged_all(cell_blocks(units, again, element, surface)))
         )
-    errors = [*(result.reference_error or []), *(result.validation_reference_error or [])]
+    errors = [*(result.reference.error or []), *(result.reference.validation_error or [])]
+    field = result.parameters.field
     print(
         f"{problem.n_nodes} nodes, {len(hexahedra)} cells, {int(surface.sum())} with a corner "
         f"on the surface; reference error {' / '.join(f'{e:.1f}' for e in errors)} %; "
-        f"per-cell field returned: {bool(result.field and result.field.returned)}"
+        f"per-cell field returned: {bool(field and field.returned)}"
     )
     return out
 

@@ -14,9 +14,12 @@ import os
 import sys
 from functools import partial
 from pathlib import Path
-from typing import Any, get_args
+from typing import TYPE_CHECKING, Any, get_args
 
 from pydantic import ValidationError
+
+if TYPE_CHECKING:
+    from fpm.fitting.result import CalibrationResult
 
 MAX_FIELD_ERRORS = 20
 """Field errors printed for a bad spec (the rest are counted)."""
@@ -269,7 +272,7 @@ def cmd_calibrate(args: argparse.Namespace) -> None:
         problem, chains=chains, progress=progress, reference=reference, stored_chains=done,
         keep_chains=keep,
     )  # fmt: skip
-    _warn([w for w in getattr(result, "warnings", None) or [] if w not in warned])
+    _warn([w for w in result.warnings if w not in warned])
     if args.json:  # the table still for the person watching: on stderr
         print(result_table(problem, result), file=sys.stderr)
         print(json.dumps(result.to_dict()))
@@ -438,17 +441,18 @@ def _read_json(path: str, what: str) -> Any:
     return data
 
 
-def result_table(problem: Any, result: Any) -> str:
+def result_table(problem: Any, result: CalibrationResult) -> str:
     """The calibration result as a readable table: the verdict first, the parameters, then per
     case the relative discrepancy beside % of h and the load compliance ratio."""
     from client.table import verdict_lines
 
-    stiffness = getattr(result, "stiffness", None)
-    verdict = getattr(result, "verdict", None)
+    fitted, fit, settle = result.parameters, result.fit, result.settle
+    stiffness = fitted.stiffness
+    verdict = fit.verdict
     lines = verdict_lines(None if verdict is None else verdict.model_dump())
     lines += [""] if lines else []
-    lines.append(f"model  {getattr(result, 'stiffness_mode', 'single'):>12}")
-    regions = getattr(result, "regions", None)
+    lines.append(f"model  {fitted.stiffness_mode:>12}")
+    regions = fitted.regions
     if isinstance(stiffness, dict) and ("axial_scale" in stiffness or regions):
         # material regions, transversely isotropic: the base's families here, the rest below
         lines += [
@@ -464,57 +468,53 @@ def result_table(problem: Any, result: Any) -> str:
     elif isinstance(stiffness, dict) and len(set(stiffness.values())) > 1:
         lines += [f"k {name:<5}{value:12.5g} N/m" for name, value in stiffness.items()]
     else:
-        lines += [f"k      {result.k:12.5g} N/m"]
-    kappa = getattr(result, "volume_stiffness", None)
+        lines += [f"k      {fitted.k:12.5g} N/m"]
+    kappa = fitted.volume_stiffness
     if kappa is not None:
         whose = "of the base's cells" if regions else "of every cell"
         lines.append(f"kappa  {kappa:12.5g} Pa (volume stiffness {whose})")
-    lines.append(f"d      {result.d:12.5g} N s/m")
-    dt = getattr(result, "dt", None)
+    lines.append(f"d      {fitted.d:12.5g} N s/m")
+    dt = settle.dt
     if dt is not None:
         lines.append(f"dt     {dt:12.5g} s (d and the settle steps belong to it)")
-    d_min = getattr(result, "d_min", None)
+    d_min = settle.d_min
     if d_min is not None:
         lines.append(f"d_min  {d_min:12.5g} N s/m (smallest d that settles)")
-    lines += [f"depth  {result.depth:12d} layers", f"cost   {result.cost:12.5g} m (Eq. 2)", ""]
-    relative = getattr(result, "relative_discrepancy", None)
-    h_percent = getattr(result, "discrepancy_h", None)
-    if h_percent is None:
-        h_percent = result.discrepancy
-    n = len(problem.load_cases)
-    relative = list(relative) if relative is not None else [float("nan")] * n
-    ratios = list(getattr(result, "compliance_ratio", None) or [None] * n)
+    lines += [f"depth  {fitted.depth:12d} layers", f"cost   {fit.cost:12.5g} m (Eq. 2)", ""]
+    relative = list(fit.relative_discrepancy)
+    h_percent = fit.discrepancy_h
+    ratios = list(fit.compliance_ratio or [None] * len(problem.load_cases))
     lines.append(
         f"{'load case':<16}{'relative discrepancy %':>24}{'% of h':>10}{'settle steps':>14}"
         f"{'compliance':>12}"
     )
     for case, rel, disc, steps, ratio in zip(
-        problem.load_cases, relative, h_percent, result.settle_steps, ratios, strict=True
+        problem.load_cases, relative, h_percent, settle.steps, ratios, strict=True
     ):
         lines.append(f"{case.name:<16}{rel:>24.3f}{disc:>10.3f}{steps:>14d}{_ratio(ratio):>12}")
     lines.append(f"{'mean':<16}{_mean(relative):>24.3f}{_mean(h_percent):>10.3f}")
-    validation = list(getattr(result, "validation_relative_discrepancy", None) or [])
+    validation = list(fit.validation_relative_discrepancy)
     if validation:
         lines += [
             "",
             f"{'validation case':<16}{'relative discrepancy %':>24}{'% of h':>10}{'':>14}"
             f"{'compliance':>12}",
         ]
-        names = getattr(result, "validation_cases", None) or [""] * len(validation)
-        unseen = list(getattr(result, "validation_compliance_ratio", None) or [None] * len(names))
+        names = fit.validation_cases or [""] * len(validation)
+        unseen = list(fit.validation_compliance_ratio or [None] * len(names))
         for name, rel, disc, ratio in zip(
-            names, validation, result.validation_discrepancy_h, unseen, strict=True
+            names, validation, fit.validation_discrepancy_h, unseen, strict=True
         ):
             lines.append(f"{name:<16}{rel:>24.3f}{disc:>10.3f}{'':>14}{_ratio(ratio):>12}")
         lines.append(
-            f"{'mean':<16}{_mean(validation):>24.3f}{_mean(result.validation_discrepancy_h):>10.3f}"
+            f"{'mean':<16}{_mean(validation):>24.3f}{_mean(fit.validation_discrepancy_h):>10.3f}"
             "  (never fitted: the honest figure)"
         )
-    lines += _field_lines(getattr(result, "field", None))
-    error = getattr(result, "reference_error", None)
+    lines += _field_lines(fitted.field)
+    error = result.reference.error
     if error is not None:
-        every = list(error) + list(getattr(result, "validation_reference_error", None) or [])
-        refined = getattr(result, "reference_refinements", 0) or 0
+        every = list(error) + list(result.reference.validation_error or [])
+        refined = result.reference.refinements or 0
         lines += [
             "",
             "reference's estimated error %: "
@@ -522,11 +522,10 @@ def result_table(problem: Any, result: Any) -> str:
             + (f" (change from its last refinement, {refined} in all" if refined else " (check")
             + ("; ABOVE 5%: not resolved)" if max(every) > 5 else ")"),
         ]
-    seconds = result.seconds
-    total = sum(seconds.values()) if isinstance(seconds, dict) else seconds
+    total = sum(result.run.seconds.values())
     lines.append("")
     lines.append(
-        f"settled: {'yes' if result.settled else 'NO'}; {result.evaluations} cost evaluations "
+        f"settled: {'yes' if settle.settled else 'NO'}; {result.run.evaluations} cost evaluations "
         f"in {total:.1f} s"
     )
     return "\n".join(lines)

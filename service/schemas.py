@@ -8,7 +8,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, computed_field, model_validator
 from pydantic.json_schema import SkipJsonSchema
 
-from fpm.fitting.result import CalibrationResult as FittedResult
+from fpm.fitting.result import StoredResult
 from store.records import ParameterSetRecord
 from store.status import CalibrationStatus, FemStatus, Phase
 
@@ -121,7 +121,7 @@ class Progress(BaseModel):
     )
 
 
-class CalibrationResult(FittedResult):
+class CalibrationResult(StoredResult):  # type: ignore[misc, valid-type]
     """The fitted parameters and how well they fit.
 
     :class:`fpm.fitting.result.CalibrationResult` (the stored result is its ``to_dict``), with

@@ -186,41 +186,47 @@ def test_two_stage_calibration_recovers_k_and_the_fastest_settling_d(small):
     seen = []
     result = calibrate(problem, reference=ref, progress=seen.append)
     assert result.method == "two-stage"
-    assert result.k == pytest.approx(K_TRUE, rel=1e-3)
-    assert result.stiffness == {"axis": result.k, "face": result.k}
-    assert result.settled and result.depth <= 10
+    assert result.parameters.k == pytest.approx(K_TRUE, rel=1e-3)
+    assert result.parameters.stiffness == {"axis": result.parameters.k, "face": result.parameters.k}
+    assert result.settle.settled and result.parameters.depth <= 10
     # the reference is the FPM's own, so the cost is near 0 and the settled states' own
     # distance from equilibrium (the target criterion's, within settle_distance, measured)
     # dominates the last dynamic run's
-    assert result.settle_distance == [FLOOR, FLOOR]
-    assert max(result.settle_distance_measured) <= FLOOR
-    assert abs(result.cost - result.static_cost) <= FLOOR * np.linalg.norm(ref, axis=2).sum()
-    assert max(result.relative_discrepancy) < 1.0
+    assert result.settle.distance == [FLOOR, FLOOR]
+    assert max(result.settle.distance_measured) <= FLOOR
+    assert (
+        abs(result.fit.cost - result.fit.static_cost) <= FLOOR * np.linalg.norm(ref, axis=2).sum()
+    )
+    assert max(result.fit.relative_discrepancy) < 1.0
     assert {s.get("phase") for s in seen} >= {"annealing", "polish", "damping", "finalize"}
     lo, hi = damping_bounds(problem)
-    assert lo <= result.d_min <= result.d <= hi
-    model, stiffness = FpmModel(problem), model_stiffness(problem, [result.k])
+    assert lo <= result.settle.d_min <= result.parameters.d <= hi
+    model, stiffness = FpmModel(problem), model_stiffness(problem, [result.parameters.k])
     solver = StaticSolver(problem)
-    statics = [solver.solve(j, stiffness, result.depth).displacements for j in range(2)]
+    statics = [solver.solve(j, stiffness, result.parameters.depth).displacements for j in range(2)]
     settle = [
-        run_criterion(problem.spec, result.settle_stiffness[j], statics[j], FLOOR) for j in range(2)
+        run_criterion(problem.spec, result.settle.stiffness[j], statics[j], FLOOR) for j in range(2)
     ]
 
     def total(d):
         runs = [
-            model.run(j, k=stiffness, d=d, depth=result.depth, dt=result.dt, max_steps=2000,
-                      **settle[j])
+            model.run(j, k=stiffness, d=d, depth=result.parameters.depth, dt=result.settle.dt,
+                      max_steps=2000, **settle[j])
             for j in range(2)
         ]  # fmt: skip
         return sum(r.steps for r in runs) if all(r.settled for r in runs) else math.inf
 
     grid = min(total(d) for d in np.geomspace(lo, hi, 30))
-    assert sum(result.settle_steps) <= 1.05 * grid
+    assert sum(result.settle.steps) <= 1.05 * grid
     # below d_min (by more than the bisection's resolution) nothing settles
-    assert total(result.d_min / 1.3) == math.inf or result.d_min == pytest.approx(lo)
+    assert total(result.settle.d_min / 1.3) == math.inf or result.settle.d_min == pytest.approx(lo)
     # same seed, same answer, whether chains run on threads or one after the other
     again = calibrate(problem, reference=ref, threads=1)
-    assert (again.k, again.d, again.settle_steps) == (result.k, result.d, result.settle_steps)
+    assert (again.parameters.k, again.parameters.d, again.settle.steps) == (
+        result.parameters.k,
+        result.parameters.d,
+        result.settle.steps,
+    )
 
 
 @pytest.mark.slow
@@ -231,11 +237,13 @@ def test_material_a_two_stage_matches_the_paper_method_and_its_statics():
     1/20 of its static discrepancy; measured 0.3%)."""
     problem = fpm.load_problem("examples/paper-material-a.json")
     result = calibrate(problem)
-    assert result.k == pytest.approx(38.78, rel=0.005)
-    assert all(19 < r < 21.5 for r in result.relative_discrepancy)
-    assert result.settled and not [w for w in result.warnings if "static" in w]
-    assert abs(result.cost - result.static_cost) <= SHARE * result.static_cost
-    assert result.full_depth == 8 and result.depth == 10  # the spec asks for 10 layers
+    assert result.parameters.k == pytest.approx(38.78, rel=0.005)
+    assert all(19 < r < 21.5 for r in result.fit.relative_discrepancy)
+    assert result.settle.settled and not [w for w in result.warnings if "static" in w]
+    assert abs(result.fit.cost - result.fit.static_cost) <= SHARE * result.fit.static_cost
+    assert (
+        result.parameters.full_depth == 8 and result.parameters.depth == 10
+    )  # the spec asks for 10 layers
 
 
 def test_families_recover_known_family_stiffnesses():
@@ -249,9 +257,9 @@ def test_families_recover_known_family_stiffnesses():
          for j in range(2)]
     )  # fmt: skip
     result = calibrate(problem, reference=ref)
-    assert list(result.stiffness) == ["axis", "face"]
-    assert result.stiffness["axis"] == pytest.approx(truth[0], rel=0.01)
-    assert result.stiffness["face"] == pytest.approx(truth[1], rel=0.01)
+    assert list(result.parameters.stiffness) == ["axis", "face"]
+    assert result.parameters.stiffness["axis"] == pytest.approx(truth[0], rel=0.01)
+    assert result.parameters.stiffness["face"] == pytest.approx(truth[1], rel=0.01)
 
 
 def test_paper_method_prefers_the_fastest_settling_state_within_a_tenth_of_a_percent(small):
@@ -267,9 +275,9 @@ def test_paper_method_prefers_the_fastest_settling_state_within_a_tenth_of_a_per
     chain.cost = best.cost
     assert pick_paper_state([chain]) == ([fast.x[0]], fast.x[1])
     result = finalize(problem, ref, [chain])
-    assert (result.k, result.d) == (fast.x[0], fast.x[1])
+    assert (result.parameters.k, result.parameters.d) == (fast.x[0], fast.x[1])
     assert ChainResult.from_dict(chain.to_dict()) == chain  # how a worker stores it
-    assert result.method == "paper" and result.d_min is None
+    assert result.method == "paper" and result.settle.d_min is None
 
 
 def soft_box_spec(**fpm_settings) -> dict:
@@ -292,19 +300,24 @@ def test_auto_depth_never_costs_more_than_one_percent_relative_on_a_soft_solid()
     ref = fpm.solve_fem(problem).displacements
     assert np.abs(ref).max() < 0.01 * problem.h  # the trap: everything below 1% of h
     result = calibrate(problem, reference=ref)
-    theta = theta_of(problem, result.k, result.stiffness, result.volume_stiffness)
+    theta = theta_of(
+        problem,
+        result.parameters.k,
+        result.parameters.stiffness,
+        result.parameters.volume_stiffness,
+    )
     static = StaticCost(problem, ref, None)
     full = static(theta, None).case_costs
-    at = static(theta, result.depth).case_costs
+    at = static(theta, result.parameters.depth).case_costs
     assert all(c <= f * 1.01 for c, f in zip(at, full, strict=True))
-    assert result.depth > 0
-    if result.depth > 0:  # the smallest such depth: one layer less is worse than 1%
-        less = static(theta, result.depth - 1).case_costs
+    assert result.parameters.depth > 0
+    if result.parameters.depth > 0:  # the smallest such depth: one layer less is worse than 1%
+        less = static(theta, result.parameters.depth - 1).case_costs
         assert any(c > f * 1.01 for c, f in zip(less, full, strict=True))
     # a looser tolerance trades realism for speed: never deeper
     loose = fpm.load_problem(soft_box_spec(auto_depth_tolerance=0.2))
     depth, deepest, _ = resolve_depth(StaticCost(loose, ref, None), theta, 0.2)
-    assert depth <= result.depth and deepest == result.full_depth
+    assert depth <= result.parameters.depth and deepest == result.parameters.full_depth
 
 
 def test_a_ceiling_costs_ten_times_its_excess():
@@ -333,10 +346,10 @@ def test_families_beat_one_k_in_every_load_case_of_a_soft_box():
     single = calibrate(fpm.load_problem(spec), reference=ref)
     spec["fpm"]["stiffness"] = "families"
     families = calibrate(fpm.load_problem(spec), reference=ref)
-    assert families.static_cost < single.static_cost
-    pairs = zip(families.relative_discrepancy, single.relative_discrepancy, strict=True)
+    assert families.fit.static_cost < single.fit.static_cost
+    pairs = zip(families.fit.relative_discrepancy, single.fit.relative_discrepancy, strict=True)
     assert all(f <= s + 0.05 for f, s in pairs)
-    assert families.relative_discrepancy[2] <= single.relative_discrepancy[2] / 2
+    assert families.fit.relative_discrepancy[2] <= single.fit.relative_discrepancy[2] / 2
 
 
 def test_cli_calibrate_prints_a_table_and_draws_the_plot(tmp_path):

@@ -31,12 +31,12 @@ def test_sdk_calibration_equals_fpm_calibrate(sdk, run_workers, small_spec):
     done = sdk.wait(submitted["id"], progress=False)
     assert done["status"] == "succeeded"
     expected = calibrate(fpm.load_problem(small_spec))
-    assert done["result"]["k"] == pytest.approx(expected.k, rel=1e-12)
-    assert done["result"]["stiffness"] == pytest.approx(expected.stiffness, rel=1e-12)
-    assert done["result"]["d"] == pytest.approx(expected.d, rel=1e-12)
-    assert done["result"]["depth"] == expected.depth
+    assert done["result"]["k"] == pytest.approx(expected.parameters.k, rel=1e-12)
+    assert done["result"]["stiffness"] == pytest.approx(expected.parameters.stiffness, rel=1e-12)
+    assert done["result"]["d"] == pytest.approx(expected.parameters.d, rel=1e-12)
+    assert done["result"]["depth"] == expected.parameters.depth
     assert done["result"]["relative_discrepancy"] == pytest.approx(
-        expected.relative_discrepancy, rel=1e-12
+        expected.fit.relative_discrepancy, rel=1e-12
     )
 
     found = sdk.parameter_sets(youngs_modulus=1e4, density=1040)

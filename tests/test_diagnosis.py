@@ -209,7 +209,12 @@ def test_the_profile_runs_along_the_fullest_line_through_the_loaded_node(organ):
 
 def test_the_legend_gives_the_relative_discrepancy_beside_the_percent_of_h(organ):
     reference = solve_fem(organ).displacements
-    result = SimpleNamespace(k=17.0, d=0.09, depth=None, history=[1.0, 0.4, 0.5])
+    result = SimpleNamespace(
+        parameters=SimpleNamespace(k=17.0, d=0.09, depth=None),
+        fit=SimpleNamespace(),
+        settle=SimpleNamespace(),
+        run=SimpleNamespace(history=[1.0, 0.4, 0.5]),
+    )
     fig = calibration_figure(organ, reference, result)
     legend = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
     for j in range(len(organ.load_cases)):
@@ -219,8 +224,8 @@ def test_the_legend_gives_the_relative_discrepancy_beside_the_percent_of_h(organ
         h_percent = 100 * np.linalg.norm(p - q, axis=1).mean() / organ.h
         assert f"FPM: {relative:.2f}% relative, {h_percent:.2f}% of h" in legend
     # A result that carries the figures is quoted as it is.
-    result.relative_discrepancy = [1.25, 2.5, 3.75]
-    result.discrepancy_h = [0.5, 0.25, 0.125]
+    result.fit.relative_discrepancy = [1.25, 2.5, 3.75]
+    result.fit.discrepancy_h = [0.5, 0.25, 0.125]
     fig = calibration_figure(organ, reference, result)
     legend = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
     assert "FPM: 2.50% relative, 0.25% of h" in legend

@@ -666,7 +666,7 @@ def test_the_fit_figures_agree_with_an_independent_solve_of_the_export():
         fem = reference.displacements[j]
         relative = 100 * np.linalg.norm(theirs - fem, axis=1).sum()
         relative /= np.linalg.norm(fem, axis=1).sum()
-        assert relative == pytest.approx(result.relative_discrepancy[j], abs=2.0)
+        assert relative == pytest.approx(result.fit.relative_discrepancy[j], abs=2.0)
 
 
 def test_the_validation_figures_agree_with_an_independent_solve_of_the_export():
@@ -685,16 +685,19 @@ def test_the_validation_figures_agree_with_an_independent_solve_of_the_export():
     reference = fpm.solve_fem(problem)
     result = fpm.calibrate(problem, reference=reference)
     model = json.loads(export(problem, result.to_dict(), "json"))
-    assert result.depth == result.full_depth and model["parameters"]["depth"] is None
+    assert (
+        result.parameters.depth == result.parameters.full_depth
+        and model["parameters"]["depth"] is None
+    )
     fitted = len(problem.load_cases)
     for case in problem.validation_cases:
         model["load_cases"].append(
             {"nodes": case.nodes.tolist(), "forces": case.forces.tolist()}
         )  # the user's own load, applied to the exported lattice
-    reported = result.relative_discrepancy + result.validation_relative_discrepancy
+    reported = result.fit.relative_discrepancy + result.fit.validation_relative_discrepancy
     ratios = model["fit"]["compliance_ratio"] + model["fit"]["validation_compliance_ratio"]
-    assert ratios == result.compliance_ratio + result.validation_compliance_ratio
-    assert model["fit"]["verdict"] == result.verdict.model_dump()
+    assert ratios == result.fit.compliance_ratio + result.fit.validation_compliance_ratio
+    assert model["fit"]["verdict"] == result.fit.verdict.model_dump()
     for j, (expected, ratio) in enumerate(zip(reported, ratios, strict=True)):
         theirs = independent_linear_solve(model, j)
         fem = np.asarray(reference.displacements[j])

@@ -439,16 +439,16 @@ def test_calibrate_fits_a_field_on_regions_and_the_export_carries_it():
     problem = fpm.load_problem(spec)
     phases: set[str] = set()
     result = fpm.calibrate(problem, threads=1, progress=lambda info: phases.add(info["phase"]))
-    assert result.stiffness_mode == "field"
+    assert result.parameters.stiffness_mode == "field"
     # the service reports every phase of the damping stage (a 'field' step it did not know
     # answered 422 to a client polling a field calibration)
     steps = set(get_args(get_args(DampingProgress.model_fields["step"].annotation)[0]))
     assert "field" in phases and phases - {"fem", "annealing", "finalize"} <= steps
-    assert [r["name"] for r in result.regions] == ["base", "stiff"]
-    field = result.field
+    assert [r["name"] for r in result.parameters.regions] == ["base", "stiff"]
+    field = result.parameters.field
     cells = problem.regions.cells
     assert field.edges == len(P.cell_adjacency(problem.solid.elements(), cells)) == 54 - 9
-    record = result.model_dump()
+    record = result.to_dict()
     record["field"]["returned"] = True  # the export of a returned field, whatever the CV said
     stiffness = fitted_theta(problem, record)
     assert not isinstance(stiffness, list)

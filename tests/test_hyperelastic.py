@@ -405,6 +405,6 @@ def test_calibration_runs_against_the_neo_hookean_reference():
     problem = fpm.load_problem(small_box(force=0.02))
     reference = solve_fem(problem)
     result = fpm.calibrate(problem, reference=reference, threads=1)
-    assert result.k > 0 and len(result.relative_discrepancy) == 2
+    assert result.parameters.k > 0 and len(result.fit.relative_discrepancy) == 2
     linear = fpm.calibrate(fpm.load_problem(small_box("linear", 0.02)), threads=1)
-    assert result.k != linear.k  # a different reference, a different fit
+    assert result.parameters.k != linear.parameters.k  # a different reference, a different fit

@@ -483,7 +483,9 @@ def test_the_conforming_lattice_lies_on_the_mesh_surface_and_calibrates(tmp_path
     spec["reference"]["refine"] = 0  # the mesh as given: quick
     problem = fpm.load_problem(spec)
     result = fpm.calibrate(problem, reference=fpm.solve_fem(problem))
-    assert result.volume_stiffness is not None and max(result.relative_discrepancy) < 30
+    assert (
+        result.parameters.volume_stiffness is not None and max(result.fit.relative_discrepancy) < 30
+    )
 
 
 def test_a_spacing_or_scale_in_the_wrong_unit_is_refused_before_memory_runs_out(

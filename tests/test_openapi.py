@@ -145,7 +145,7 @@ def test_no_property_collides_with_generated_code(api):
 def test_the_answers_result_is_fpms_result_with_the_rest_name_of_d():
     """One result model: the REST answer is fpm's CalibrationResult plus ``damping`` (``d``'s
     name for generated clients), so a field added to fpm's is answered too."""
-    from fpm.fitting.result import CalibrationResult
+    from fpm.fitting.result import StoredResult as CalibrationResult
     from service import schemas
 
     assert issubclass(schemas.CalibrationResult, CalibrationResult)

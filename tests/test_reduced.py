@@ -161,11 +161,11 @@ def test_the_defect_corrected_fit_runs_once_per_calibration(monkeypatch):
     monkeypatch.setattr(damping_stage, "fit_reduced", counted_fit)
     result = calibrate(problem, reference=reference, chains=2, threads=1)
     assert len(starts) == 1
-    assert starts[0] == min(result.chains, key=lambda c: c.cost).x
+    assert starts[0] == min(result.run.chains, key=lambda c: c.cost).x
     chains = [run_chain(problem, reference, c) for c in range(2)]
     stage = fit_damping(problem, reference, chains)
     given = fit_damping(problem, reference, chains, basis=first_basis(problem))
-    assert stage.theta == given.theta == fitted_theta(problem, result)
+    assert stage.theta == given.theta == fitted_theta(problem, result.parameters)
     cost = StaticCost(problem, reference.displacements[:2], None)
     theta, _, _ = fit_reduced(cost, first_basis(problem), starts[0], stiffness_bounds(problem))
     assert theta == stage.theta
@@ -219,4 +219,4 @@ def test_stage_two_validates_beside_the_search():
     assert stage.validation["depth"] == checked
     assert stage.validation["relative"] == alone.relative
     result = finalize(problem, reference, [chain], stage)
-    assert result.validation_relative_discrepancy == alone.relative
+    assert result.fit.validation_relative_discrepancy == alone.relative

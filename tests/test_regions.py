@@ -272,26 +272,35 @@ def test_calibrate_reports_each_region_and_the_export_carries_every_spring_and_c
     spec["fpm"]["dt"] = "auto"  # half the stability estimate, which the stiff core shortens
     problem = fpm.load_problem(spec)
     result = fpm.calibrate(problem, threads=1)
-    assert [r["name"] for r in result.regions] == ["base", "core"]
-    assert [r["cells"] for r in result.regions] == problem.regions.counts
-    assert result.regions[1]["youngs_modulus"] == 5 * E
-    assert result.regions[0]["volume_stiffness"] == result.volume_stiffness
-    assert result.stiffness["axis[core]"] == result.regions[1]["stiffness"]["axis"]
-    assert result.stiffness["kappa[core]"] == result.regions[1]["volume_stiffness"]
-    assert result.settled and max(result.relative_discrepancy) < 25
+    assert [r["name"] for r in result.parameters.regions] == ["base", "core"]
+    assert [r["cells"] for r in result.parameters.regions] == problem.regions.counts
+    assert result.parameters.regions[1]["youngs_modulus"] == 5 * E
+    assert result.parameters.regions[0]["volume_stiffness"] == result.parameters.volume_stiffness
+    assert (
+        result.parameters.stiffness["axis[core]"]
+        == result.parameters.regions[1]["stiffness"]["axis"]
+    )
+    assert (
+        result.parameters.stiffness["kappa[core]"]
+        == result.parameters.regions[1]["volume_stiffness"]
+    )
+    assert result.settle.settled and max(result.fit.relative_discrepancy) < 25
     record = result.to_dict()
     theta = fitted_theta(problem, record)
     assert theta == pytest.approx(
-        [*result.regions[0]["stiffness"].values(), result.volume_stiffness]
-        + [*result.regions[1]["stiffness"].values(), result.regions[1]["volume_stiffness"]]
+        [*result.parameters.regions[0]["stiffness"].values(), result.parameters.volume_stiffness]
+        + [
+            *result.parameters.regions[1]["stiffness"].values(),
+            result.parameters.regions[1]["volume_stiffness"],
+        ]
     )
     lattice = build_lattice(problem, Parameters.from_record(problem, record))
     stiffness = model_stiffness(problem, theta)
     np.testing.assert_array_equal(lattice.stiffness, stiffness.springs)
-    kappas = [result.volume_stiffness, result.regions[1]["volume_stiffness"]]
+    kappas = [result.parameters.volume_stiffness, result.parameters.regions[1]["volume_stiffness"]]
     np.testing.assert_array_equal(lattice.volume, np.asarray(kappas)[problem.regions.cells])
-    assert stiffness_dict(problem, theta) == result.stiffness
-    assert volume_stiffness(problem, theta) == result.volume_stiffness
+    assert stiffness_dict(problem, theta) == result.parameters.stiffness
+    assert volume_stiffness(problem, theta) == result.parameters.volume_stiffness
 
 
 def test_a_homogeneous_spec_dumps_as_before():

@@ -281,25 +281,27 @@ def test_a_default_calibration_no_longer_fails_for_want_of_steps():
     problem = slender_bar()
     assert problem.spec.fpm.max_steps == "auto"
     result = fpm.calibrate(problem)
-    assert result.settled  # on the force criterion at 1e-5 it took over 20,000 steps, the
+    assert result.settle.settled  # on the force criterion at 1e-5 it took over 20,000 steps, the
     # old default cap, and failed there; on the distance criterion about 15,000
-    assert result.settle_distance is not None
+    assert result.settle.distance is not None
     for measured, promised in zip(
-        result.settle_distance_measured, result.settle_distance, strict=True
+        result.settle.distance_measured, result.settle.distance, strict=True
     ):
         assert measured < promised
-    assert result.max_steps is not None and result.max_steps >= max(result.settle_steps)
-    assert result.d_predicted is not None
-    assert result.d == pytest.approx(result.d_predicted, rel=0.1)
+    assert result.settle.max_steps is not None and result.settle.max_steps >= max(
+        result.settle.steps
+    )
+    assert result.settle.d_predicted is not None
+    assert result.parameters.d == pytest.approx(result.settle.d_predicted, rel=0.1)
     # the json export writes the cap the fit had, a number
     from fpm.io.export import Parameters, build_lattice, resolved_max_steps, to_json
 
     record = result.to_dict()
     lattice = build_lattice(problem, Parameters.from_record(problem, record))
     assert to_json(lattice, None, record["max_steps"])["parameters"]["max_steps"] == (
-        result.max_steps
+        result.settle.max_steps
     )
-    assert resolved_max_steps(lattice) >= max(result.settle_steps)
+    assert resolved_max_steps(lattice) >= max(result.settle.steps)
 
 
 def test_the_paper_model_keeps_its_explicit_cap():
@@ -311,15 +313,17 @@ def test_the_paper_model_keeps_its_explicit_cap():
     problem = fpm.load_problem("examples/paper-material-a.json")
     assert problem.spec.fpm.max_steps == 2000
     result = fpm.calibrate(problem)
-    assert result.max_steps == 2000
-    assert sum(result.settle_steps) == 370 and result.d == pytest.approx(0.2313, rel=0.01)
-    assert result.cost <= 1.05 * result.static_cost
-    assert result.settle_distance is not None
+    assert result.settle.max_steps == 2000
+    assert sum(result.settle.steps) == 370 and result.parameters.d == pytest.approx(
+        0.2313, rel=0.01
+    )
+    assert result.fit.cost <= 1.05 * result.fit.static_cost
+    assert result.settle.distance is not None
     for measured, promised in zip(
-        result.settle_distance_measured, result.settle_distance, strict=True
+        result.settle.distance_measured, result.settle.distance, strict=True
     ):
         assert measured < promised
-    assert result.d_predicted == pytest.approx(result.d, rel=0.05)
+    assert result.settle.d_predicted == pytest.approx(result.parameters.d, rel=0.05)
 
 
 def test_modes_dataclass_frequencies():

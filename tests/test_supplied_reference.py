@@ -82,7 +82,7 @@ def test_a_field_125_times_the_fems_gives_stiffness_080_times():
     fitted = calibrate(fpm.load_problem(small()), threads=1)
     supplied = calibrate(fpm.load_problem(small(displacements=(1.25 * u).tolist())), threads=1)
     assert fitted.reference == "fem-linear-selective" and supplied.reference == "supplied"
-    assert supplied.k / fitted.k == pytest.approx(0.80, abs=0.02)
+    assert supplied.parameters.k / fitted.parameters.k == pytest.approx(0.80, abs=0.02)
 
 
 @pytest.mark.redis

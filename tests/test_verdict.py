@@ -82,12 +82,12 @@ def own_reference():
 def test_a_fit_that_reproduces_its_reference_feels_its_stiffness_and_is_good(own_reference):
     problem, ref = own_reference
     result = calibrate(problem, reference=ref)
-    assert result.k == pytest.approx(K_TRUE, rel=1e-3)
-    assert result.compliance_ratio == pytest.approx([1.0, 1.0], abs=2e-3)
-    assert result.verdict is not None
-    assert result.verdict.grade == "good" and result.verdict.causes == []
-    assert result.verdict.basis == "fitted"  # no validation cases, and it says so
-    assert "no validation cases" in result.verdict.summary
+    assert result.parameters.k == pytest.approx(K_TRUE, rel=1e-3)
+    assert result.fit.compliance_ratio == pytest.approx([1.0, 1.0], abs=2e-3)
+    assert result.fit.verdict is not None
+    assert result.fit.verdict.grade == "good" and result.fit.verdict.causes == []
+    assert result.fit.verdict.basis == "fitted"  # no validation cases, and it says so
+    assert "no validation cases" in result.fit.verdict.summary
 
 
 def test_the_compliance_ratio_does_not_change_when_the_forces_double_in_a_linear_regime():
@@ -95,11 +95,11 @@ def test_the_compliance_ratio_does_not_change_when_the_forces_double_in_a_linear
     under twice those forces; at the example's own forces already less so."""
     small = scaled(SMALL_BOX, 0.01)
     one, two = (calibrate(fpm.load_problem(s)) for s in (small, scaled(small, 2.0)))
-    assert two.compliance_ratio == pytest.approx(one.compliance_ratio, rel=2e-3)
-    assert two.k == pytest.approx(one.k, rel=2e-3)
+    assert two.fit.compliance_ratio == pytest.approx(one.fit.compliance_ratio, rel=2e-3)
+    assert two.parameters.k == pytest.approx(one.parameters.k, rel=2e-3)
     # the springs are not linear: at the example's forces, the same k feels stiffer
     big = calibrate(fpm.load_problem(SMALL_BOX))
-    assert big.compliance_ratio[1] < one.compliance_ratio[1] - 0.01
+    assert big.fit.compliance_ratio[1] < one.fit.compliance_ratio[1] - 0.01
 
 
 def test_the_paper_cube_with_the_default_model_is_good_or_fair_on_unseen_loads():
@@ -107,20 +107,22 @@ def test_the_paper_cube_with_the_default_model_is_good_or_fair_on_unseen_loads()
     floor, judged on the unseen cases, no parameter at a bound."""
     problem = fpm.load_problem(cube_spec(0.45, "families+volume"))
     result = calibrate(problem)
-    v = result.verdict
+    v = result.fit.verdict
     assert v is not None and v.grade in ("good", "fair")
-    assert v.basis == "unseen" and v.worst == max(result.validation_relative_discrepancy)
+    assert v.basis == "unseen" and v.worst == max(result.fit.validation_relative_discrepancy)
     assert v.worst_case in ("sideways", "corner")
     assert v.floor.figure == CUBE_FLOORS[("families+volume", "unseen")]
     assert v.bounds == []
-    assert len(result.validation_compliance_ratio) == 2
-    assert all(0.5 < c < 2 for c in result.compliance_ratio + result.validation_compliance_ratio)
+    assert len(result.fit.validation_compliance_ratio) == 2
+    assert all(
+        0.5 < c < 2 for c in result.fit.compliance_ratio + result.fit.validation_compliance_ratio
+    )
 
 
 def test_a_narrowed_bound_holding_k_makes_a_poor_fit_naming_the_bound():
     spec = small_box(annealing={"bounds": {"k": [3.0, 6.0]}, "c_max": 10})
     result = calibrate(fpm.load_problem(spec))
-    v = result.verdict
+    v = result.fit.verdict
     assert v is not None and v.grade == "poor"
     [hit] = v.bounds
     assert (hit.parameter, hit.side, hit.bound, hit.setting) == (
@@ -132,7 +134,7 @@ def test_a_narrowed_bound_holding_k_makes_a_poor_fit_naming_the_bound():
     bound = [c for c in v.causes if c.cause == "bound"]
     assert len(bound) == 1 and "annealing.bounds.k" in bound[0].action
     # held too soft: a probe feels it so
-    assert min(result.compliance_ratio) > SETTINGS.compliance[1]
+    assert min(result.fit.compliance_ratio) > SETTINGS.compliance[1]
     assert any(c.cause == "compliance" for c in v.causes)
     assert "k (upper)" in v.summary
 
@@ -140,14 +142,14 @@ def test_a_narrowed_bound_holding_k_makes_a_poor_fit_naming_the_bound():
 def test_one_k_on_a_nearly_incompressible_cube_is_poor_with_its_causes():
     spec = small_box(material={"poisson_ratio": 0.4999})
     result = calibrate(fpm.load_problem(spec))
-    v = result.verdict
+    v = result.fit.verdict
     assert v is not None and v.grade == "poor"
     causes = {c.cause: c for c in v.causes}
     assert "nu near 0.5" in causes and "families+volume" in causes["nu near 0.5"].action
     assert "model family" in causes
     assert "bound" not in causes and v.bounds == []
     # the same box at nu 0.45 is not near incompressible
-    other = calibrate(fpm.load_problem(SMALL_BOX)).verdict
+    other = calibrate(fpm.load_problem(SMALL_BOX)).fit.verdict
     assert other is not None and "nu near 0.5" not in {c.cause for c in other.causes}
 
 
@@ -162,14 +164,14 @@ def test_large_deformation_and_a_coarse_lattice_are_named():
     ]
     problem = fpm.load_problem(spec)
     result = calibrate(problem)
-    v = result.verdict
+    v = result.fit.verdict
     assert v is not None and v.grade != "good"
     causes = {c.cause: c for c in v.causes}
     assert "large deformation" in causes and "'0.1 N'" in causes["large deformation"].detail
     assert "lattice too coarse" in causes and "2.0 cells" in causes["lattice too coarse"].detail
     # judged again at the example's own size: neither
     small = calibrate(fpm.load_problem(SMALL_BOX))
-    again = judge(fpm.load_problem(SMALL_BOX), small, [small.k], small_reference())
+    again = judge(fpm.load_problem(SMALL_BOX), small, [small.parameters.k], small_reference())
     assert {"large deformation", "lattice too coarse"}.isdisjoint(c.cause for c in again.causes)
 
 
@@ -199,8 +201,8 @@ def test_the_documented_cube_floors_are_the_benchmark_json_s():
 def test_a_reference_that_does_not_resolve_its_load_is_named_as_a_cause():
     """The small box's point loads on a coarse mesh: the reference's own estimate says 44%."""
     result = calibrate(fpm.load_problem(SMALL_BOX))
-    assert result.reference_error is not None and max(result.reference_error) > 5
-    v = result.verdict
+    assert result.reference.error is not None and max(result.reference.error) > 5
+    v = result.fit.verdict
     assert v is not None and v.grade == "poor"
     [reference] = [c for c in v.causes if c.cause == "reference"]
     assert "reference.refine 'auto'" in reference.action and "'0.05 N'" in reference.detail

@@ -301,16 +301,25 @@ def test_the_default_model_is_soft_tissue_on_the_paper_cube(
     assert problem.spec.fpm.stiffness == "families+volume"
     reference = fpm.solve_fem(problem)
     result = fpm.calibrate(problem, reference=reference)
-    assert result.mean_relative_discrepancy <= goal
-    assert result.volume_stiffness is not None and result.dt is not None and result.dt <= 1e-3
-    assert result.validation_cases == ["sideways", "corner"]
-    assert len(result.validation_relative_discrepancy) == 2
-    assert max(result.validation_relative_discrepancy) < 20.0
-    theta = theta_of(problem, result.k, result.stiffness, result.volume_stiffness)
+    assert result.fit.mean_relative_discrepancy <= goal
+    assert (
+        result.parameters.volume_stiffness is not None
+        and result.settle.dt is not None
+        and result.settle.dt <= 1e-3
+    )
+    assert result.fit.validation_cases == ["sideways", "corner"]
+    assert len(result.fit.validation_relative_discrepancy) == 2
+    assert max(result.fit.validation_relative_discrepancy) < 20.0
+    theta = theta_of(
+        problem,
+        result.parameters.k,
+        result.parameters.stiffness,
+        result.parameters.volume_stiffness,
+    )
     checked = problem.validation_problem()
     truth = reference.displacements[len(problem.load_cases) :]
     for j in range(2):
         u = static_equilibrium(checked, k=theta, load_case=j)
         error = np.linalg.norm(u.displacements - truth[j], axis=1).sum()
         relative = 100 * error / np.linalg.norm(truth[j], axis=1).sum()
-        assert relative == pytest.approx(result.validation_relative_discrepancy[j], abs=0.05)
+        assert relative == pytest.approx(result.fit.validation_relative_discrepancy[j], abs=0.05)

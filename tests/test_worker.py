@@ -65,7 +65,7 @@ def test_result_equals_in_process_calibration(redis, run_workers, small_spec):
         "h",
     ):
         assert done.result[name] == pytest.approx(getattr(expected, name), rel=1e-12), name
-    assert done.result["stiffness"] == pytest.approx(expected.stiffness, rel=1e-12)
+    assert done.result["stiffness"] == pytest.approx(expected.parameters.stiffness, rel=1e-12)
     assert set(done.result["seconds"]) == {"stiffness", "damping", "finalize"}
     # Stored for good (no TTL): the FEM reference, the parameter set, the record.
     for key in (
@@ -132,7 +132,7 @@ def test_job_graph_of_each_method(redis, run_workers, small_spec, method):
     assert done.result["method"] == method
     expected_result = calibrate(fpm.load_problem(small_spec))
     assert (done.result["k"], done.result["d"]) == pytest.approx(
-        (expected_result.k, expected_result.d), rel=1e-12
+        (expected_result.parameters.k, expected_result.parameters.d), rel=1e-12
     )
     chain_results = [json.loads(redis.get(keys.chain_result(record.id, c))) for c in range(2)]
     n = 1 if method == "two-stage" else 2  # stiffness parameters, plus d for paper
@@ -350,13 +350,15 @@ def test_chain_of_a_dead_worker_is_retried_and_resumes(
     # The resumed chain makes the same moves (same draws, same evaluation count), but its
     # static solves start warm from a different history after the restart, so costs agree to
     # the solver's tolerance (about 1e-7 of the force), not bit for bit: k and d to 1e-6.
-    assert (done.result["k"], done.result["d"]) == pytest.approx((expected.k, expected.d), rel=1e-6)
+    assert (done.result["k"], done.result["d"]) == pytest.approx(
+        (expected.parameters.k, expected.parameters.d), rel=1e-6
+    )
     # Resumed, not restarted: only the evaluations after the checkpoint were made again. (The
     # chain's count is exact; the polish's may differ by one, its stopping test seeing costs
     # that agree only to the solver's tolerance.)
     (chain,) = done.result["chains"]
     total = chain["evaluations"]
-    assert total == expected.chains[0].evaluations
+    assert total == expected.run.chains[0].evaluations
     assert evaluations == [total - checkpoint["evaluations"]] and evaluations[0] < total
     # Exactly one parameter set, and no checkpoint left behind.
     assert redis.zcard(keys.parameter_sets()) == 1

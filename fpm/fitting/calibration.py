@@ -60,6 +60,7 @@ from .cost import CostFunction, StaticCost, dynamic_time_step
 from .damping.depth import resolve_depth
 from .damping.stage import DampingStage, fit_stage
 from .damping.validation import (
+    FinalRun,
     Validation,
     check_reference,
     final_run,
@@ -69,7 +70,15 @@ from .damping.validation import (
 )
 from .field import field_parts
 from .reduced import first_basis
-from .result import CalibrationResult, ChainSummary
+from .result import (
+    CalibrationResult,
+    ChainSummary,
+    FitFigures,
+    ModelParameters,
+    ReferenceFacts,
+    RunFacts,
+    SettleFigures,
+)
 from .stiffness_stage import ChainResult, Progress, constrained_cost, run_chain
 from .verdict import judge
 
@@ -157,70 +166,21 @@ def finalize(
             [r.steps for r in runs],
             all(r.settled for r in runs),
         )
-    winner = min(chains, key=lambda c: c.cost)
-    stiffness = stiffness_dict(problem, theta)
-    dt = damping.dt if damping is not None else dynamic_time_step(problem)
+    settle = _settle_figures(problem, final, damping)
     # Full depth reaches every node from any load (a validation load elsewhere needs it).
     checked = None if depth >= deepest else depth
     field, model, field_notes = field_parts(problem, reference, damping, theta, checked)
-    saved = None if damping is None else damping.validation
-    if saved is not None and saved["depth"] == checked:  # solved beside the damping stage
-        validation = Validation(
-            saved["relative"], saved["h_percent"], saved["notes"], saved.get("compliance", [])
-        )
-    else:
-        validation = validate(problem, reference, model, checked)
     m = problem.solid.masses
-    from ..fem.reference import reference_label
-
-    n_cases = len(problem.load_cases)
-    fem_error = getattr(reference, "estimated_error", None)
-    result = CalibrationResult(
-        reference=reference_label(problem.spec),
-        reference_error=None if fem_error is None else fem_error[:n_cases],
-        validation_reference_error=None if fem_error is None else fem_error[n_cases:],
-        reference_refinements=getattr(reference, "refinements", None),
-        method=method,
+    parameters = ModelParameters(
         stiffness_mode=problem.spec.fpm.stiffness,
         loads=problem.loads,
         k=float(theta[0]),
-        stiffness=stiffness,
+        stiffness=stiffness_dict(problem, theta),
         volume_stiffness=volume_stiffness(problem, theta),
         regions=materials.report(problem, theta),
-        dt=dt,
-        validation_cases=[c.name for c in problem.validation_cases],
-        validation_relative_discrepancy=validation.relative,
-        validation_discrepancy_h=validation.h_percent,
-        compliance_ratio=final.compliance,
-        validation_compliance_ratio=validation.compliance,
         d=float(d),
-        d_min=None if damping is None else damping.d_min,
-        d_predicted=None if damping is None else damping.d_predicted,
-        max_steps=fixed_max_steps(problem.spec.fpm.max_steps)
-        if damping is None or damping.max_steps is None
-        else damping.max_steps,
         depth=int(depth),
         full_depth=int(deepest),
-        cost=final.cost,
-        static_cost=final.static_cost,
-        relative_discrepancy=final.relative,
-        loaded_discrepancy=final.loaded,
-        discrepancy_h=final.h_percent,
-        settle_steps=final.settle_steps,
-        settled=final.settled,
-        settle_stiffness=None if damping is None else damping.settle,
-        settle_distance=final.settle_distance,
-        settle_distance_estimated=final.settle_estimated,
-        settle_distance_measured=final.settle_measured,
-        evaluations=sum(c.evaluations for c in chains)
-        + (damping.polish_evaluations if damping else 0),
-        damping_runs=damping.damping_runs if damping else 0,
-        seconds={
-            "stiffness": max(c.seconds for c in chains),
-            "damping": damping.seconds if damping else 0.0,
-            "finalize": time.perf_counter() - t0,
-        },
-        history=winner.history,
         h=problem.h,
         node_mass={
             "min": float(m.min()),
@@ -228,6 +188,34 @@ def finalize(
             "mean": float(m.mean()),
             "total": float(m.sum()),
         },
+        field=field,
+    )
+    saved = None if damping is None else damping.validation
+    if saved is not None and saved["depth"] == checked:  # solved beside the damping stage
+        validation = Validation(
+            saved["relative"], saved["h_percent"], saved["notes"], saved.get("compliance", [])
+        )
+    else:
+        validation = validate(problem, reference, model, checked)
+    fit = FitFigures(
+        cost=final.cost,
+        static_cost=final.static_cost,
+        relative_discrepancy=final.relative,
+        loaded_discrepancy=final.loaded,
+        discrepancy_h=final.h_percent,
+        validation_cases=[c.name for c in problem.validation_cases],
+        validation_relative_discrepancy=validation.relative,
+        validation_discrepancy_h=validation.h_percent,
+        compliance_ratio=final.compliance,
+        validation_compliance_ratio=validation.compliance,
+    )
+    result = CalibrationResult(
+        method=method,
+        parameters=parameters,
+        fit=fit,
+        settle=settle,
+        reference=_reference_facts(problem, reference),
+        run=_run_facts(chains, damping, time.perf_counter() - t0),
         warnings=list(warnings or [])
         + problem.warnings
         + final.notes
@@ -235,14 +223,72 @@ def finalize(
         + unseen_note(problem)
         + mode_notes(problem)
         + field_notes,
+    )
+    result.fit.verdict = judge(problem, result, theta, reference)
+    return result
+
+
+def _settle_figures(
+    problem: Problem, final: FinalRun, damping: DampingStage | None
+) -> SettleFigures:
+    """How the last dynamic run settled (``final``), with the damping stage's time step, step
+    cap, d bounds and settle criterion (None: the paper method, whose time step and step cap
+    are the spec's)."""
+    return SettleFigures(
+        dt=damping.dt if damping is not None else dynamic_time_step(problem),
+        max_steps=fixed_max_steps(problem.spec.fpm.max_steps)
+        if damping is None or damping.max_steps is None
+        else damping.max_steps,
+        steps=final.settle_steps,
+        settled=final.settled,
+        d_min=None if damping is None else damping.d_min,
+        d_predicted=None if damping is None else damping.d_predicted,
+        stiffness=None if damping is None else damping.settle,
+        distance=final.settle_distance,
+        distance_estimated=final.settle_estimated,
+        distance_measured=final.settle_measured,
+    )
+
+
+def _reference_facts(problem: Problem, reference: Any) -> ReferenceFacts:
+    """What the fit was measured against: the spec's reference label and, for a FEM
+    reference (:class:`fpm.fem.solution.FemResult`), its estimated error per load case and
+    per validation case, % ((L + V,) split at L), and its refinements."""
+    from ..fem.reference import reference_label
+
+    n_cases = len(problem.load_cases)
+    fem_error = getattr(reference, "estimated_error", None)
+    return ReferenceFacts(
+        label=reference_label(problem.spec),
+        error=None if fem_error is None else fem_error[:n_cases],
+        validation_error=None if fem_error is None else fem_error[n_cases:],
+        refinements=getattr(reference, "refinements", None),
+    )
+
+
+def _run_facts(
+    chains: list[ChainResult], damping: DampingStage | None, finalize_seconds: float
+) -> RunFacts:
+    """What the calibration took: evaluations and runs over the chains and the damping stage
+    (None: the paper method), the wall time per stage, s (the chains' slowest for stage 1;
+    ``finalize_seconds`` for finalize), the winning chain's cost history and each chain's
+    outcome."""
+    winner = min(chains, key=lambda c: c.cost)
+    return RunFacts(
+        evaluations=sum(c.evaluations for c in chains)
+        + (damping.polish_evaluations if damping else 0),
+        damping_runs=damping.damping_runs if damping else 0,
+        seconds={
+            "stiffness": max(c.seconds for c in chains),
+            "damping": damping.seconds if damping else 0.0,
+            "finalize": finalize_seconds,
+        },
+        history=winner.history,
         chains=[
             ChainSummary(chain=c.chain, x=c.x, cost=c.cost, evaluations=c.evaluations)
             for c in chains
         ],
-        field=field,
     )
-    result.verdict = judge(problem, result, theta, reference)
-    return result
 
 
 def calibrate(

@@ -1,16 +1,19 @@
 """What a calibration hands back: the fitted parameter set and how well it fits.
 
-The one definition of the result: :func:`fpm.calibrate` returns it, the worker stores its
-:meth:`CalibrationResult.to_dict` as JSON, and the REST answer (``service.schemas``) derives
-from it, adding only the REST names. It needs pydantic and nothing numerical, so the service
-can import it without loading the kernels.
+The one definition of the result: :func:`fpm.calibrate` returns a :class:`CalibrationResult`,
+its fields in groups (``parameters``, ``fit``, ``settle``, ``reference``, ``run``); the worker
+stores its :meth:`CalibrationResult.to_dict` as JSON, flat (one key per field, in the order of
+:data:`STORED_FORM`, which names each key's group and field), and the REST answer
+(``service.schemas``) derives from :data:`StoredResult`, the model of that flat form built
+from the groups' fields, adding only the REST names. It needs pydantic and nothing numerical,
+so the service can import it without loading the kernels.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, create_model
 
 
 class ChainSummary(BaseModel):
@@ -146,10 +149,10 @@ class Verdict(BaseModel):
     summary: str = Field(description="the verdict in one line, for a table or a page")
 
 
-class CalibrationResult(BaseModel):
-    """The fitted parameters and how well they fit (units in each field's description)."""
+class ModelParameters(BaseModel):
+    """The fitted model: what an engine needs to run it (stiffness, damping, depth, the
+    lattice's h and node masses, the per-cell field)."""
 
-    method: str = Field(description="'two-stage' or 'paper'")
     stiffness_mode: str = Field(
         "single",
         description="the model fitted (fpm.stiffness): 'families+volume' (spring families "
@@ -161,29 +164,6 @@ class CalibrationResult(BaseModel):
         description="how the lattice took a nodal force (fpm.loads, 'auto' resolved): 'node' "
         "(all of it at its node) or 'hat' (shared over the nodes around it as the refined "
         "reference spreads it); an engine applies forces the same way (the export's load_shares)",
-    )
-    reference: str = Field(
-        "fem",
-        description="what the fit was measured against: 'fem-linear-selective', "
-        "'fem-linear-full', 'fem-linear-tet10' (10-node tetrahedra on reference.mesh), "
-        "'fem-neo-hookean-selective', 'fem-neo-hookean-full' or 'supplied' (the spec's "
-        "reference.displacements); "
-        "'fem' in results stored before the field existed",
-    )
-    reference_error: list[float] | None = Field(
-        None,
-        description="per load case, the reference's estimated error, %: the relative change "
-        "at the lattice nodes from its last refinement to the one before (reference.refine; "
-        "for hexahedra as given, from one refinement with the forces spread); above 5% a "
-        "warning says the reference does not resolve that load; null when not estimated",
-    )
-    validation_reference_error: list[float] | None = Field(
-        None, description="the same per validation case, %; null when not estimated"
-    )
-    reference_refinements: int | None = Field(
-        None,
-        description="uniform refinements of the reference's mesh the fit was measured against "
-        "(0: the mesh or hexahedra as given); null for a supplied reference",
     )
     k: float = Field(description="stiffness of the axis family (the one k for 'single'), N/m")
     stiffness: dict[str, float] = Field(
@@ -205,27 +185,23 @@ class CalibrationResult(BaseModel):
         "stiffness ({family: k}, N/m) and volume_stiffness (kappa, Pa); absent without regions",
         exclude_if=lambda v: v is None,
     )
-    dt: float | None = Field(
-        None, description="the time step d was fitted at and settle_steps count, s"
-    )
     d: float = Field(description="nodal damping, N s/m: the fastest-settling at the spec's dt")
-    d_min: float | None = Field(
-        description="smallest d that still settles every load case (two-stage), N s/m"
-    )
-    d_predicted: float | None = Field(
-        None,
-        description="the fastest-settling d predicted from the lattice's slowest modes before "
-        "any run (two-stage; the search starts there and confirms it), N s/m; null: no "
-        "prediction (the search started from critical-damping estimates, or the paper method)",
-    )
-    max_steps: int | None = Field(
-        None,
-        description="the cap on each run's steps: the spec's fpm.max_steps, or its 'auto' "
-        "resolved (three times the predicted steps of the slowest load case); null in results "
-        "stored before the field existed",
-    )
     depth: int = Field(description="penetration depth, layers")
     full_depth: int = Field(description="the deepest perturbed list, layers")
+    h: float = Field(description="shortest spring rest length, m")
+    node_mass: dict[str, float] = Field(description="lumped node masses: min, max, mean, total, kg")
+    field: FieldFit | None = Field(
+        None,
+        description="fpm.stiffness 'field': the per-cell field and the side-by-side figures; "
+        "absent for the other modes",
+        exclude_if=lambda v: v is None,
+    )
+
+
+class FitFigures(BaseModel):
+    """How well the model fits: the costs, the discrepancies per load case and per validation
+    case, the load compliance ratios and the verdict."""
+
     cost: float = Field(description="Eq. (2) of the last dynamic run at (stiffness, d, depth), m")
     static_cost: float = Field(description="Eq. (2) of the static equilibria, m")
     relative_discrepancy: list[float] = Field(
@@ -266,9 +242,46 @@ class CalibrationResult(BaseModel):
         "the model family reaches, the parameters at a bound and the likely causes; null in "
         "results stored before it",
     )
-    settle_steps: list[int] = Field(description="time steps to settle, per load case")
+
+    @property
+    def mean_relative_discrepancy(self) -> float:
+        """Mean over the load cases, %."""
+        return sum(self.relative_discrepancy) / len(self.relative_discrepancy)
+
+    @property
+    def mean_validation_discrepancy(self) -> float | None:
+        """Mean over the validation cases, % (None without validation cases)."""
+        v = self.validation_relative_discrepancy
+        return sum(v) / len(v) if v else None
+
+
+class SettleFigures(BaseModel):
+    """How the model's runs settle: the time step and step cap, the steps per load case, the
+    damping search's bounds and prediction, the settle criterion and the distances reached
+    (stored as ``dt``, ``max_steps``, ``settle_steps``, ``settled``, ``d_min``, ``d_predicted``,
+    ``settle_stiffness`` and ``settle_distance*``)."""
+
+    dt: float | None = Field(
+        None, description="the time step d was fitted at and settle_steps count, s"
+    )
+    max_steps: int | None = Field(
+        None,
+        description="the cap on each run's steps: the spec's fpm.max_steps, or its 'auto' "
+        "resolved (three times the predicted steps of the slowest load case); null in results "
+        "stored before the field existed",
+    )
+    steps: list[int] = Field(description="time steps to settle, per load case")
     settled: bool = Field(description="every load case settled within max_steps")
-    settle_stiffness: list[float] | None = Field(
+    d_min: float | None = Field(
+        description="smallest d that still settles every load case (two-stage), N s/m"
+    )
+    d_predicted: float | None = Field(
+        None,
+        description="the fastest-settling d predicted from the lattice's slowest modes before "
+        "any run (two-stage; the search starts there and confirms it), N s/m; null: no "
+        "prediction (the search started from critical-damping estimates, or the paper method)",
+    )
+    stiffness: list[float] | None = Field(
         None,
         description="per load case, the settle criterion of a run that has no equilibrium to "
         "read (an engine running the JSON export), N/m: settled once the 2-norm of its "
@@ -277,26 +290,61 @@ class CalibrationResult(BaseModel):
         "mode: a bound on the distance); null on the force criterion (fpm.settle_tolerance "
         "named, the paper method)",
     )
-    settle_distance: list[float] | None = Field(
+    distance: list[float] | None = Field(
         None,
         description="per load case, the distance from its static equilibrium the fit's runs "
         "settled within, relative to its displacement (sums of nodal distances, as Eq. 2): "
         "fpm.settle_distance, or for 'auto' 1/20 of the case's static discrepancy, between "
         "1e-4 and 0.01; null on the force criterion",
     )
-    settle_distance_estimated: list[float] | None = Field(
+    distance_estimated: list[float] | None = Field(
         None,
         description="per load case, the settled state's distance from its static equilibrium "
         "as its run read it where it stopped (with what its velocities still carry along the "
         "softest mode), relative to the equilibrium's displacement; null on the force "
         "criterion",
     )
-    settle_distance_measured: list[float] | None = Field(
+    distance_measured: list[float] | None = Field(
         None,
         description="per load case, the settled state's distance from its static equilibrium, "
         "measured against that equilibrium solved: the sum of the nodal differences over the "
         "sum of the equilibrium's nodal displacements; null on the force criterion",
     )
+
+
+class ReferenceFacts(BaseModel):
+    """What the fit was measured against (stored as ``reference``, ``reference_error``,
+    ``validation_reference_error`` and ``reference_refinements``)."""
+
+    label: str = Field(
+        "fem",
+        description="what the fit was measured against: 'fem-linear-selective', "
+        "'fem-linear-full', 'fem-linear-tet10' (10-node tetrahedra on reference.mesh), "
+        "'fem-neo-hookean-selective', 'fem-neo-hookean-full' or 'supplied' (the spec's "
+        "reference.displacements); "
+        "'fem' in results stored before the field existed",
+    )
+    error: list[float] | None = Field(
+        None,
+        description="per load case, the reference's estimated error, %: the relative change "
+        "at the lattice nodes from its last refinement to the one before (reference.refine; "
+        "for hexahedra as given, from one refinement with the forces spread); above 5% a "
+        "warning says the reference does not resolve that load; null when not estimated",
+    )
+    validation_error: list[float] | None = Field(
+        None, description="the same per validation case, %; null when not estimated"
+    )
+    refinements: int | None = Field(
+        None,
+        description="uniform refinements of the reference's mesh the fit was measured against "
+        "(0: the mesh or hexahedra as given); null for a supplied reference",
+    )
+
+
+class RunFacts(BaseModel):
+    """What the calibration took: its evaluations and runs, its time per stage, the chains
+    and, calibrated by the service, its jobs and their critical path."""
+
     evaluations: int = Field(description="cost evaluations over all chains (and the polish)")
     damping_runs: int = Field(description="dynamic runs of the d search")
     seconds: dict[str, float] = Field(
@@ -304,11 +352,6 @@ class CalibrationResult(BaseModel):
         "slowest), damping, finalize"
     )
     history: list[float] = Field([], description="normalised cost per move, winning chain")
-    h: float = Field(description="shortest spring rest length, m")
-    node_mass: dict[str, float] = Field(description="lumped node masses: min, max, mean, total, kg")
-    warnings: list[str] = Field(
-        [], description="what the user should know (outside small strain, static/dynamic mismatch)"
-    )
     chains: list[ChainSummary] = []
     jobs: list[JobSpan] | None = Field(
         None,
@@ -329,24 +372,105 @@ class CalibrationResult(BaseModel):
         "left out)",
         exclude_if=lambda v: v is None,
     )
-    field: FieldFit | None = Field(
-        None,
-        description="fpm.stiffness 'field': the per-cell field and the side-by-side figures; "
-        "absent for the other modes",
-        exclude_if=lambda v: v is None,
+
+
+class CalibrationResult(BaseModel):
+    """The fitted parameters and how well they fit, in groups (units in each field's
+    description); :meth:`to_dict` is its stored form, flat (:data:`StoredResult`)."""
+
+    method: str = Field(description="'two-stage' or 'paper'")
+    parameters: ModelParameters = Field(description="the fitted model")
+    fit: FitFigures = Field(description="how well it fits")
+    settle: SettleFigures = Field(description="how its runs settle")
+    reference: ReferenceFacts = Field(description="what it was measured against")
+    run: RunFacts = Field(description="what the calibration took")
+    warnings: list[str] = Field(
+        [], description="what the user should know (outside small strain, static/dynamic mismatch)"
     )
 
-    @property
-    def mean_relative_discrepancy(self) -> float:
-        """Mean over the load cases, %."""
-        return sum(self.relative_discrepancy) / len(self.relative_discrepancy)
-
-    @property
-    def mean_validation_discrepancy(self) -> float | None:
-        """Mean over the validation cases, % (None without validation cases)."""
-        v = self.validation_relative_discrepancy
-        return sum(v) / len(v) if v else None
-
     def to_dict(self) -> dict[str, Any]:
-        """The stored form (JSON-able)."""
-        return self.model_dump()
+        """The stored form (JSON-able): flat, the keys of :data:`STORED_FORM` in its order,
+        those a group leaves out (``regions``, ``field``, ``jobs`` ... when None) left out."""
+        grouped = self.model_dump()
+        stored = {}
+        for key, (group, name) in STORED_FORM.items():
+            part = grouped if group is None else grouped[group]
+            if name in part:
+                stored[key] = part[name]
+        return stored
+
+
+STORED_FORM: dict[str, tuple[str | None, str]] = {
+    "method": (None, "method"),
+    "stiffness_mode": ("parameters", "stiffness_mode"),
+    "loads": ("parameters", "loads"),
+    "reference": ("reference", "label"),
+    "reference_error": ("reference", "error"),
+    "validation_reference_error": ("reference", "validation_error"),
+    "reference_refinements": ("reference", "refinements"),
+    "k": ("parameters", "k"),
+    "stiffness": ("parameters", "stiffness"),
+    "volume_stiffness": ("parameters", "volume_stiffness"),
+    "regions": ("parameters", "regions"),
+    "dt": ("settle", "dt"),
+    "d": ("parameters", "d"),
+    "d_min": ("settle", "d_min"),
+    "d_predicted": ("settle", "d_predicted"),
+    "max_steps": ("settle", "max_steps"),
+    "depth": ("parameters", "depth"),
+    "full_depth": ("parameters", "full_depth"),
+    "cost": ("fit", "cost"),
+    "static_cost": ("fit", "static_cost"),
+    "relative_discrepancy": ("fit", "relative_discrepancy"),
+    "loaded_discrepancy": ("fit", "loaded_discrepancy"),
+    "discrepancy_h": ("fit", "discrepancy_h"),
+    "validation_cases": ("fit", "validation_cases"),
+    "validation_relative_discrepancy": ("fit", "validation_relative_discrepancy"),
+    "validation_discrepancy_h": ("fit", "validation_discrepancy_h"),
+    "compliance_ratio": ("fit", "compliance_ratio"),
+    "validation_compliance_ratio": ("fit", "validation_compliance_ratio"),
+    "verdict": ("fit", "verdict"),
+    "settle_steps": ("settle", "steps"),
+    "settled": ("settle", "settled"),
+    "settle_stiffness": ("settle", "stiffness"),
+    "settle_distance": ("settle", "distance"),
+    "settle_distance_estimated": ("settle", "distance_estimated"),
+    "settle_distance_measured": ("settle", "distance_measured"),
+    "evaluations": ("run", "evaluations"),
+    "damping_runs": ("run", "damping_runs"),
+    "seconds": ("run", "seconds"),
+    "history": ("run", "history"),
+    "h": ("parameters", "h"),
+    "node_mass": ("parameters", "node_mass"),
+    "warnings": (None, "warnings"),
+    "chains": ("run", "chains"),
+    "jobs": ("run", "jobs"),
+    "critical_path": ("run", "critical_path"),
+    "critical_path_seconds": ("run", "critical_path_seconds"),
+    "field": ("parameters", "field"),
+}
+"""The stored form's keys, in the order stored and answered: each the (group of
+:class:`CalibrationResult`, field) it holds; None: a field of the result itself."""
+
+
+def _stored_result() -> type[BaseModel]:
+    """The model of the stored form: a field per key of :data:`STORED_FORM`, in its order,
+    with its group field's type, default and description."""
+    fields: dict[str, Any] = {}
+    for key, (group, name) in STORED_FORM.items():
+        owner: Any = (
+            CalibrationResult.model_fields[group].annotation if group else CalibrationResult
+        )
+        info = owner.model_fields[name]
+        fields[key] = (info.annotation, info)
+    return create_model(
+        "StoredResult",
+        __doc__="A calibration result as stored and answered: the fields of "
+        "CalibrationResult's groups, flat (its to_dict)",
+        **fields,
+    )
+
+
+StoredResult = _stored_result()
+"""The stored form of a :class:`CalibrationResult` (its :meth:`~CalibrationResult.to_dict`),
+flat: the model the REST answer (``service.schemas.CalibrationResult``) derives from."""

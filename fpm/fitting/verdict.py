@@ -179,16 +179,17 @@ def judge(problem: Problem, result: CalibrationResult, theta: Any, reference: An
     """The verdict on ``result``, fitted at ``theta`` on ``problem`` against ``reference`` (a
     FemResult or its displacements, m, load cases then validation cases)."""
     s = SETTINGS
-    unseen = bool(result.validation_relative_discrepancy)
+    fit = result.fit
+    unseen = bool(fit.validation_relative_discrepancy)
     basis = "unseen" if unseen else "fitted"
-    figures = result.validation_relative_discrepancy if unseen else result.relative_discrepancy
-    names = result.validation_cases if unseen else [c.name for c in problem.load_cases]
+    figures = fit.validation_relative_discrepancy if unseen else fit.relative_discrepancy
+    names = fit.validation_cases if unseen else [c.name for c in problem.load_cases]
     worst_at = int(np.argmax(figures))
     worst = float(figures[worst_at])
     reach = floor(problem, basis)
     hits = bound_hits(problem, theta)
-    names_all = [c.name for c in problem.load_cases] + list(result.validation_cases)
-    ratios = list(result.compliance_ratio) + list(result.validation_compliance_ratio)
+    names_all = [c.name for c in problem.load_cases] + list(fit.validation_cases)
+    ratios = list(fit.compliance_ratio) + list(fit.validation_compliance_ratio)
     low, high = s.compliance
     off = [
         (n, c)
@@ -201,7 +202,7 @@ def judge(problem: Problem, result: CalibrationResult, theta: Any, reference: An
         grade = "fair"
     else:
         grade = "poor"
-    if grade == "good" and (hits or off or not result.settled):
+    if grade == "good" and (hits or off or not result.settle.settled):
         grade = "fair"
     causes = [] if grade == "good" else _causes(problem, result, reference, hits, off, grade)
     on = "unseen loads" if unseen else "the fitted loads (no validation cases: they flatter it)"
@@ -250,7 +251,7 @@ def _causes(
         ]
         unseen = validation_reference(reference, problem)
         if unseen is not None:
-            cases += list(zip(result.validation_cases, unseen, strict=True))
+            cases += list(zip(result.fit.validation_cases, unseen, strict=True))
         large = [(n, float(np.linalg.norm(u, axis=1).max()) / extent) for n, u in cases]
         large = [(n, r) for n, r in large if r > SMALL_STRAIN]
         if large:
@@ -265,9 +266,9 @@ def _causes(
                     "material.model 'neo-hookean' for a reference made for large deformation",
                 )
             )
-    errors = list(result.reference_error or []) + list(result.validation_reference_error or [])
+    errors = list(result.reference.error or []) + list(result.reference.validation_error or [])
     if errors and max(errors) > WARN_ERROR:
-        names = [c.name for c in problem.load_cases] + list(result.validation_cases)
+        names = [c.name for c in problem.load_cases] + list(result.fit.validation_cases)
         at = int(np.argmax(errors))
         causes.append(
             Cause(
@@ -329,7 +330,7 @@ def _causes(
                 action=_bound_action(hit),
             )
         )
-    if not result.settled:
+    if not result.settle.settled:
         causes.append(
             Cause(
                 cause="unsettled",

@@ -78,8 +78,9 @@ def calibration_figure(problem: Problem, reference: np.ndarray, result: Any) -> 
 
     Args:
         reference: (L, N, 3) FEM displacements, m.
-        result: a :class:`fpm.fitting.result.CalibrationResult` (k or stiffness, d, depth,
-            history; relative_discrepancy and the % of h used when present, else computed).
+        result: a :class:`fpm.fitting.result.CalibrationResult` (its parameters' k or
+            stiffness, d and depth, its settle dt and its run's history; its fit's
+            relative_discrepancy and discrepancy_h, % of h, used when present, else computed).
     """
     import matplotlib
 
@@ -87,9 +88,10 @@ def calibration_figure(problem: Problem, reference: np.ndarray, result: Any) -> 
     import matplotlib.pyplot as plt
 
     reference = np.asarray(reference, dtype=float)
-    theta = fitted_theta(problem, result)
-    relative = _field(result, "relative_discrepancy")
-    h_percent = _field(result, "discrepancy_h", "discrepancy")
+    fitted = result.parameters
+    theta = fitted_theta(problem, fitted)
+    relative = _field(result.fit, "relative_discrepancy")
+    h_percent = _field(result.fit, "discrepancy_h")
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     ax = axes[0]
     axes_used = set()
@@ -97,8 +99,8 @@ def calibration_figure(problem: Problem, reference: np.ndarray, result: Any) -> 
         line, along, _ = profile_line(problem, j)
         axes_used.add(along)
         run = simulate(
-            problem, k=theta, d=result.d, depth=result.depth, load_case=j,
-            dt=getattr(result, "dt", None),
+            problem, k=theta, d=fitted.d, depth=fitted.depth, load_case=j,
+            dt=getattr(result.settle, "dt", None),
         )  # fmt: skip
         p, q = run.displacements, reference[j]
         rel = relative[j] if relative is not None else relative_discrepancy(p, q)
@@ -114,11 +116,11 @@ def calibration_figure(problem: Problem, reference: np.ndarray, result: Any) -> 
     else:
         ax.set_xlabel("position along each load case's line through its loaded node, mm")
     ax.set_ylabel("displacement magnitude, mm")
-    ax.set_title(f"{_stiffness_label(result)}\nd = {result.d:.4g} N s/m, depth {result.depth}")
+    ax.set_title(f"{_stiffness_label(fitted)}\nd = {fitted.d:.4g} N s/m, depth {fitted.depth}")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     ax = axes[1]
-    history = np.asarray(_field(result, "history") or [np.nan], dtype=float)
+    history = np.asarray(_field(result.run, "history") or [np.nan], dtype=float)
     moves = np.arange(1, len(history) + 1)
     ax.semilogy(moves, history, label="current state")
     ax.semilogy(moves, np.fmin.accumulate(history), label="best so far")
@@ -146,14 +148,15 @@ def plot_calibration(problem: Problem, reference: np.ndarray, result: Any, out: 
     plt.close(fig)
 
 
-def _stiffness_label(result: Any) -> str:
-    stiffness = getattr(result, "stiffness", None)
-    kappa = getattr(result, "volume_stiffness", None)
+def _stiffness_label(fitted: Any) -> str:
+    """k (or k per family) and kappa of a result's parameters, for the figure's title."""
+    stiffness = getattr(fitted, "stiffness", None)
+    kappa = getattr(fitted, "volume_stiffness", None)
     volume = "" if kappa is None else f", kappa = {kappa:.4g} Pa"
     if isinstance(stiffness, dict) and len(set(stiffness.values())) > 1:
         springs = ", ".join(f"{v:.4g} ({name})" for name, v in stiffness.items())
         return f"k = {springs} N/m{volume}"
-    return f"k = {result.k:.4g} N/m{volume}"
+    return f"k = {fitted.k:.4g} N/m{volume}"
 
 
 def _field(result: Any, *names: str) -> Any:

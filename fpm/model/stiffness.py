@@ -283,10 +283,11 @@ def theta_of(
 
 def fitted_theta(problem: Problem, record: Any) -> list[float] | Stiffness:
     """The parameters :func:`fpm.simulate` and :func:`model_stiffness` take (theta), from a fit's
-    record: a calibration result or a parameter set, as a dict or an object with attributes
-    (``k``, N/m; ``stiffness``, {family: k}, N/m; ``volume_stiffness``, Pa; ``field``, a
-    field fit's per-cell factors). The one place a stored fit becomes solver input (the plot,
-    the exports and the worker's views all call it).
+    record: a stored calibration result or a parameter set as a dict, or an object with these
+    attributes (a result's ``parameters``, a parameter set record): ``k``, N/m; ``stiffness``,
+    {family: k}, N/m; ``volume_stiffness``, Pa; ``field``, a field fit's per-cell factors. The
+    one place a stored fit becomes solver input (the plot, the exports and the worker's views
+    all call it).
 
     ``single``: ``[k]`` (``k`` or the one value every family holds); the other modes:
     :func:`theta_of`; a record whose ``field`` was returned (``fpm.stiffness: "field"``): the
