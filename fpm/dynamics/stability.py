@@ -46,8 +46,8 @@ damping taken implicitly)::
 
    (without cells, the formula of step 3). For an interior node of a cubic lattice at the
    continuum start (k1 = k2 = mu h, kappa = lambda - mu) at nu = 0.45 this shortens dt_max by
-   1.9x; the same measurements as in step 4 hold for it (tests/test_volume.py,
-   tests/test_diagnosis.py).
+   1.9x; the same measurements as in step 4 hold for it (tests/core/test_volume.py,
+   tests/core/test_diagnosis.py).
 
 """
 

@@ -6,7 +6,7 @@ inner octahedron cut along its shortest diagonal into 4), a hexahedron into 8 by
 trilinear map. New nodes at the middle of every edge (and of every face and hexahedron) are
 shared by neighbours and come after the coarse mesh's, so the lattice's nodes keep their
 numbers in a refined voxel mesh; a new node is held when the coarse nodes spanning it are.
-Volume is conserved exactly, and every child is positive (tests/test_refine.py).
+Volume is conserved exactly, and every child is positive (tests/core/test_refine.py).
 
 Units: m.
 """
