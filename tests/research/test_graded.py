@@ -1,11 +1,11 @@
-"""bench.graded: the lattice coarsened to 2h inside keeps what a 2h lattice can represent."""
+"""research.graded: the lattice coarsened to 2h inside keeps what a 2h lattice can represent."""
 
 import numpy as np
 import pytest
 
 import fpm
-from bench.graded import coarse_constraint, grid_indices, surface_depth
 from fpm.fem.samples import lattice_surface
+from research.graded import coarse_constraint, grid_indices, surface_depth
 from tests.helpers_fpm import box_spec
 
 

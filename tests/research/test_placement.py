@@ -1,10 +1,10 @@
-"""bench.placement: the lattice moved by a fraction of a cell, and the product's lattice back."""
+"""research.placement: the lattice moved by a fraction of a cell, and the product's lattice back."""
 
 import numpy as np
 import pytest
 
-from bench.placement import shifted_lattice
 from bench.tet_organ import organ_mesh
+from research.placement import shifted_lattice
 
 
 def test_the_shifted_lattice_moves_by_the_fraction_asked_and_the_product_s_comes_back():

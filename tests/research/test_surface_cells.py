@@ -1,4 +1,4 @@
-"""The measuring tools of ``bench/surface_cells.py`` (what the lattice's own nodes can hold, and
+"""The measuring tools of ``research/surface_cells.py`` (what the lattice's own nodes can hold, and
 where its springs lose), checked against mathematics before their figures are
 believed: the incompatible-modes hexahedron passes the patch test on a distorted cell and
 bends exactly where the trilinear one locks; the per-cell spring blocks are the product's
@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 import fpm
-from bench.surface_cells import cell_blocks, qm6_stiffness, solve, spring_blocks
 from fpm.dynamics.equilibrium import static_equilibrium
 from fpm.fem.elasticity import (
     GAUSS_POINTS,
@@ -19,6 +18,7 @@ from fpm.fem.elasticity import (
     physical_gradients,
 )
 from fpm.model.stiffness import continuum_start
+from research.surface_cells import cell_blocks, qm6_stiffness, solve, spring_blocks
 
 E, NU = 5e3, 0.45
 C = constitutive_matrix(E, NU)

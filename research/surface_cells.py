@@ -1,6 +1,6 @@
 """Where the conforming lattice's springs lose: its own cells as finite elements.
 
-``python -m bench.surface_cells ORGAN H [--no-refit]`` (an organ of
+``python -m research.surface_cells ORGAN H [--no-refit]`` (an organ of
 :data:`bench.tet_organ.ORGANS`, h in m; about 4-5 minutes at 2,000 nodes, most of it the
 reference and the calibration): the organ as ``spec from-mesh`` makes it with the
 defaults, its refine-auto reference and its calibration (:func:`bench.bench_refine.run_organ`'s

@@ -1,10 +1,10 @@
 """What a lattice graded from the surface inwards could give: a bound, measured.
 
-``python -m bench.graded ORGAN H [BANDS]`` (an organ of :data:`bench.tet_organ.ORGANS`, h in
+``python -m research.graded ORGAN H [BANDS]`` (an organ of :data:`bench.tet_organ.ORGANS`, h in
 m, BANDS a comma list of node layers, default ``1,2``; about 4 minutes at 2,600 nodes, most of
 it the reference and the calibration): the organ as ``spec from-mesh`` makes it with the
 defaults at spacing h, its refine-auto reference and its calibration (as
-:mod:`bench.surface_cells`), then the same lattice solved linearly (the springs' tangent at
+:mod:`research.surface_cells`), then the same lattice solved linearly (the springs' tangent at
 rest, the calibration's four parameters, then those refitted) with its interior coarsened to
 2h: the nodes within BAND layers of the surface (graph distance through cells) and the nodes of
 the 2h grid stay, every other node follows the trilinear field of the 2h cell it lies in
@@ -29,13 +29,13 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spl
 
-from bench import surface_cells
+from research import surface_cells
 
 
 def grid_indices(nodes: np.ndarray, hexahedra: np.ndarray, h: float) -> np.ndarray:
     """(N, 3) int each node's index on the voxel grid of spacing ``h`` (m) its lattice came
     from: the interior nodes (unmoved by the conforming) by position, the surface nodes by
-    their place in a cell (corner bits of :data:`bench.surface_cells.CORNER_BITS`) next to
+    their place in a cell (corner bits of :data:`research.surface_cells.CORNER_BITS`) next to
     a node whose index is known."""
     from fpm.fem.samples import lattice_surface
 

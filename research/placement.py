@@ -1,6 +1,6 @@
 """How much the lattice's placement moves an organ's figures.
 
-``python -m bench.placement ORGAN H DX DY`` (an organ of :data:`bench.tet_organ.ORGANS`, h in
+``python -m research.placement ORGAN H DX DY`` (an organ of :data:`bench.tet_organ.ORGANS`, h in
 m, DX and DY fractions of h): the row of ``python -m bench.bench_refine organ-case ORGAN H``
 (the organ as ``spec from-mesh`` makes it with the defaults, its refine-auto reference, the
 calibration, the export solved on its own), with the voxel lattice's origin moved by

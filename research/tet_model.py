@@ -1,6 +1,6 @@
 """Models on the organ's own tetrahedra, measured beside the lattice.
 
-``python -m bench.tet_model ORGAN H [LEVEL ...]`` (ORGAN a key of
+``python -m research.tet_model ORGAN H [LEVEL ...]`` (ORGAN a key of
 :data:`bench.tet_organ.ORGANS`, H the lattice spacing in m whose loads are used, LEVEL the
 uniform 1-to-8 refinements of the organ's mesh to build each model on; default 1 2) prints, per
 level, the relative discrepancy (paper Eq. 2's norm, %, per load case: the fitted cases, then
@@ -252,7 +252,7 @@ def measure(organ: str, spacing: float, levels: list[int]) -> None:
 def main(argv: list[str] | None = None) -> None:
     args = sys.argv[1:] if argv is None else argv
     if len(args) < 2:
-        raise SystemExit("usage: python -m bench.tet_model ORGAN H [LEVEL ...]")
+        raise SystemExit("usage: python -m research.tet_model ORGAN H [LEVEL ...]")
     measure(args[0], float(args[1]), [int(a) for a in args[2:]] or [1, 2])
 
 
