@@ -23,8 +23,8 @@ test: docs
 	$(PY) -m pytest -q
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check fpm fpmcal store worker service stack client tests bench manual
-	$(VENV)/bin/ruff format --check fpm fpmcal store worker service stack client tests bench manual
+	$(VENV)/bin/ruff check fpm fpmcal store worker service stack client tests bench research manual
+	$(VENV)/bin/ruff format --check fpm fpmcal store worker service stack client tests bench research manual
 	$(VENV)/bin/mypy fpm fpmcal store worker service stack client
 
 bench: $(STAMP)

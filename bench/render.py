@@ -9,7 +9,7 @@
   headline figures are ``headline``).
 
 ``python -m bench.render --check`` writes nothing and exits 1, naming the files, when a
-committed page differs from what the committed JSON renders (tests/test_bench_render.py does
+committed page differs from what the committed JSON renders (tests/house/test_bench_render.py does
 the same). So a figure changes only by re-running its benchmark (``make bench``,
 ``make replicate``, or one part of one, see each page) and re-rendering: none is typed by hand.
 """

@@ -10,7 +10,7 @@ A part of a bench that was not run leaves the records of its earlier run in plac
 keyed by ``part``, and :func:`save` replaces only the parts recorded in this run.
 
 ``python -m bench.render`` renders the manual's benchmark pages and the README's headline
-figures from the committed files; ``tests/test_bench_render.py`` fails when a committed page
+figures from the committed files; ``tests/house/test_bench_render.py`` fails when a committed page
 differs from what the committed JSON renders.
 """
 

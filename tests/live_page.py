@@ -1,5 +1,5 @@
 """The web view's live model (service/static/web/fpm-step.js, live-worker.js) in headless Chromium,
-for tests/test_live_step.py and bench/bench_live.py.
+for tests/web/test_live_step.py and bench/bench_live.py.
 
 :func:`serve` is a small HTTP server of our own on a free port (a thread of this process): ``/``
 a blank page, ``/web/...`` the web view's static files, ``/data/...`` the files of a directory
@@ -98,7 +98,7 @@ def open_live_page(browser: Any, base: str) -> None:
 
 def exported(spec: dict[str, Any]) -> dict[str, Any]:
     """The parsed JSON export of ``spec`` at the continuum start, d half the critical scale
-    (tests/test_runtime.py's ``exported``)."""
+    (tests/core/test_runtime.py's ``exported``)."""
     import numpy as np
 
     from fpm import load_problem

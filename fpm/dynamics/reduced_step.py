@@ -53,7 +53,7 @@ which the slowest modes hold: there the reduced step sees what the run reads. Th
 (:func:`fpm.dynamics.modes.fastest_predicted`) minimises the predicted steps summed over the
 load cases.
 
-tests/test_spectrum.py checks the parts on lattices small enough for dense eigensolves and on a
+tests/core/test_spectrum.py checks the parts on lattices small enough for dense eigensolves and on a
 1-D chain whose modes are known in closed form.
 """
 

@@ -32,7 +32,7 @@ not. The weights are therefore tilted linearly across the samples (``w_q (1 + g 
 which leaves their sum unchanged) so that their centroid moves onto the line through ``x``
 along ``f``, as far as their extent allows (not off a flat surface's plane) and no weight
 turns negative: on a flat surface the spread load then has the lattice force's resultant and
-moment exactly (tests/test_refine.py).
+moment exactly (tests/core/test_refine.py).
 
 Units: m, N, m^2, m^3.
 """

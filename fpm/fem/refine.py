@@ -14,7 +14,7 @@ measure), in %.
   hexahedron), shared by neighbours, the coarse mesh's nodes first, so the lattice's nodes keep
   their numbers in a refined voxel mesh (:meth:`fpm.model.tetrahedra.TetMesh.refine`,
   :mod:`fpm.fem.uniform_refinement`). Volume is
-  conserved exactly, and every child is positive (tests/test_refine.py).
+  conserved exactly, and every child is positive (tests/core/test_refine.py).
 - **Loads.** A point load's displacement does not converge under refinement, so every level
   applies a lattice nodal force as a load on that node's share of the solid
   (:mod:`fpm.fem.loads`: a traction on the surface within its hat, the lattice's trilinear

@@ -5,7 +5,7 @@ A hexahedron is split into 8 by its own trilinear map. New nodes at the middle o
 face and hexahedron are shared by neighbours and come after the coarse mesh's, so the lattice's
 nodes keep their numbers in a refined voxel mesh; a new node is held when the coarse nodes
 spanning it are. Volume is conserved exactly, and every child is positive
-(tests/test_refine.py).
+(tests/core/test_refine.py).
 
 Units: m.
 """

@@ -8,7 +8,7 @@ whatever the number of parameters (:func:`case_gradient`). Per spring lambda . d
 (|r_s| - L_s) n_s . (lambda_j - lambda_i), per cell lambda . dg/dkappa_c = (V_c - V0_c) /
 V0_c sum_n g_n . lambda_n (:meth:`fpm.dynamics.spring_system.SpringSystem.sensitivity`), then
 through the cells' shares to the factors (:class:`fpm.fitting.field_parameters.FieldMap`).
-tests/test_field.py checks it against central differences.
+tests/core/test_field.py checks it against central differences.
 
 The normalised cost of the fitted load cases j over all nodes i (p the FPM's equilibrium, q
 the reference) plus the weighted smoothness penalty P(x),

@@ -19,7 +19,7 @@ parameters and the penalty: :mod:`fpm.fitting.field_parameters`).
 
 **The gradient, by the adjoint** (:mod:`fpm.fitting.adjoint`): one linear solve per load case
 with the exact tangent, whatever the number of parameters, then through the cells' shares to
-the factors. tests/test_field.py checks it against central differences.
+the factors. tests/core/test_field.py checks it against central differences.
 
 **The smoothness weight, by cross-validation.** Leave one force pattern out at a time
 (:func:`load_patterns`: load cases that are scaled copies of one another are one pattern, as

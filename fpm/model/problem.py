@@ -109,7 +109,7 @@ class ProblemCache:
         reduced_units: (depth in layers or None, free nodes' bytes) ->
             ``fpm.fitting.unit_matrices.UnitMatrices``, one perturbed list's K_p at rest
             (:func:`fpm.fitting.unit_matrices.unit_matrices`); set back to None by the damping
-            stage once its reduced fit is done (:mod:`fpm.fitting.damping_stage`).
+            stage once its reduced fit is done (:mod:`fpm.fitting.damping.polish`).
     """
 
     cells: Cells | None = None

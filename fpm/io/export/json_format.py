@@ -9,7 +9,7 @@ load case the nodal forces and the perturbed list's layers (the paper's lookup t
 (:func:`engine_parameters`; d and dt beside it are the calibration kernel's), and ``fit``: the
 figures per load and validation case (relative discrepancy, load compliance ratio) and the
 verdict on the fit (good, fair or poor, and why): from it alone another program rebuilds the
-model's static equilibrium (tests/test_export.py does, with its own linear solve).
+model's static equilibrium (tests/core/test_export.py does, with its own linear solve).
 """
 
 from __future__ import annotations

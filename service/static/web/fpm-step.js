@@ -21,7 +21,7 @@
 // hexahedron order, each sum from zero, then F = applied + (springs + volume); the products,
 // differences and quotients are Runtime's. Only the small matrix products of the volume term (a_k
 // and dV/dx from a_k: BLAS in NumPy, butterflies here) round differently, so the positions agree
-// with Runtime's to a few 1e-15 of the displacement after 1,000 steps (tests/test_live_step.py
+// with Runtime's to a few 1e-15 of the displacement after 1,000 steps (tests/web/test_live_step.py
 // checks 1e-9 with forces that change every step).
 //
 // Which d and dt (as Runtime.from_export): the export's parameters.engine, the fastest-settling
