@@ -51,7 +51,7 @@ def _setting(
 
     stiffness = model_stiffness(problem, fitted_theta(problem, result.to_dict()))
     solver = StaticSolver(problem)
-    depth = int(result.depth)
+    depth = int(result.parameters.depth)
     static = np.stack(
         [solver.solve(j, stiffness, depth).displacements for j in range(len(problem.load_cases))]
     )
@@ -65,7 +65,7 @@ def stage_choice(problem: Any, result: Any, fem: Any) -> dict[str, Any]:
     solver, stiffness, depth, static, reference = _setting(problem, result, fem)
     t0 = time.perf_counter()
     fit, plan = fit_damping(
-        problem, solver, stiffness, depth, static, result.dt, reference=reference
+        problem, solver, stiffness, depth, static, result.settle.dt, reference=reference
     )
     wall = time.perf_counter() - t0
     return {
@@ -111,7 +111,7 @@ def golden_choice(problem: Any, result: Any, stage: dict[str, Any]) -> dict[str,
             for j in range(cases):
                 run = model.run(
                     j, k=stage["_stiffness"], d=math.exp(y), depth=stage["_depth"],
-                    dt=result.dt, max_steps=cap, **settle[j],
+                    dt=result.settle.dt, max_steps=cap, **settle[j],
                 )  # fmt: skip
                 counts["runs"] += 1
                 counts["steps"] += run.steps

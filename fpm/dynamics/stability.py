@@ -28,8 +28,8 @@ damping taken implicitly)::
    The extra term, -dt^3 L v+, is not symmetric: it feeds energy into modes whose neighbours
    move against each other, so without damping the step is weakly unstable at every dt, and
    with damping its limit sits below the all-at-once one; the factor 2 of step 3 roughly pays
-   for the order (tests/core/test_volume.py, tests/core/test_diagnosis.py). dt_max is an estimate, not a
-   guarantee: take dt at most about dt_max, and enough damping.
+   for the order (tests/core/test_volume.py, tests/core/test_diagnosis.py). dt_max is an
+   estimate, not a guarantee: take dt at most about dt_max, and enough damping.
 5. The volume term. Near rest a cell c adds (kappa_c / V0_c) g g^T to K (g = dV_c/dx, 24
    values, at rest): the 3x3 block (i, n) is (kappa_c / V0_c) g_i g_n^T, of norm
    (kappa_c / V0_c) |g_i| |g_n|. Gershgorin's row sum of node i therefore grows by
