@@ -1,4 +1,4 @@
-"""A voxelised soft "organ": the ellipsoid the round-2 issues measure on (bench and tests).
+"""A voxelised soft "organ": the ellipsoid the organ benchmarks and tests measure on.
 
 Semi-axes 7, 4.5, 3.5 cm (centre at the origin), soft tissue (E = 5 kPa, nu = 0.45, 1040 kg/m^3),
 voxelised at spacing h (a cell is solid when its centre lies inside), the bottom centimetre

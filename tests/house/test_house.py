@@ -36,7 +36,7 @@ ORDINALS = (
 MARKERS = re.compile(
     "|".join(
         [
-            r"\bround\s+[0-9]+",  # "round 5", "(round 4's seventh stop ...)"
+            r"\bround[\s-]+[0-9]+",  # "round 5", "round-2", "(round 4's seventh stop ...)"
             rf"\b(?:{ORDINALS})\s+(?:session|sitting|stop)s?\b",  # "thirteenth session"
             r"\b(?:session|sitting|stop)\s+[0-9]+\b",  # "session 2", "stop 57"
             r"\bsittings?\b",
