@@ -160,7 +160,10 @@ def show_calibration(c: dict[str, Any]) -> str:
         f"moves       {p['iterations']} of {p['total_iterations']}",
     ]
     if p.get("best_cost") is not None:
-        lines.append(f"best cost   {p['best_cost']:.5g} (T = {p['temperature']:.3g})")
+        t = p.get("temperature")
+        lines.append(
+            f"best cost   {p['best_cost']:.5g}" + (f" (T = {t:.3g})" if t is not None else "")
+        )
     damping = p.get("damping")
     if damping and c["status"] != "succeeded":
         best = damping.get("best_d")

@@ -338,7 +338,7 @@ def test_worker_killed_in_the_damping_stage_is_retried(
         assert done["progress"]["phase"] == "done"
         expected = calibrate(fpm.load_problem(spec))  # uninterrupted, in-process
         for name in ("k", "d", "d_min", "depth", "relative_discrepancy", "settle_steps"):
-            assert done["result"][name] == pytest.approx(getattr(expected, name), rel=1e-12)
+            assert done["result"][name] == pytest.approx(expected.to_dict()[name], rel=1e-12)
         assert api.get("/v1/parameter-sets").json()["total"] == 1
         assert not redis.exists(keys.damping_result(calibration_id))
         assert_no_work_left(redis)
@@ -379,7 +379,7 @@ def test_worker_killed_in_the_reduced_basis_job_is_retried(redis, worker_process
     assert done.status == CalibrationStatus.SUCCEEDED, done.error
     expected = calibrate(fpm.load_problem(spec))
     for name in ("stiffness", "volume_stiffness", "d", "d_min", "depth", "settle_steps"):
-        assert done.result[name] == getattr(expected, name), name
+        assert done.result[name] == expected.to_dict()[name], name
     assert [s["name"] for s in done.result["jobs"]].count("reduced basis") == 1
     assert not redis.exists(keys.reduced_basis(record.id))
     assert_no_work_left(redis)
@@ -422,7 +422,7 @@ def test_workers_and_redis_killed_mid_run_give_the_undisturbed_answers(durable_r
                 expected = calibrate(fpm.load_problem(spec))  # undisturbed, in-process
                 for name in ("k", "d", "depth", "relative_discrepancy", "settle_steps"):
                     assert answer["result"][name] == pytest.approx(
-                        getattr(expected, name), rel=1e-12
+                        expected.to_dict()[name], rel=1e-12
                     ), name
             assert api.get("/v1/parameter-sets").json()["total"] == 2
             assert_no_work_left(redis)

@@ -64,7 +64,7 @@ def test_result_equals_in_process_calibration(redis, run_workers, small_spec):
         "damping_runs",
         "h",
     ):
-        assert done.result[name] == pytest.approx(getattr(expected, name), rel=1e-12), name
+        assert done.result[name] == pytest.approx(expected.to_dict()[name], rel=1e-12), name
     assert done.result["stiffness"] == pytest.approx(expected.parameters.stiffness, rel=1e-12)
     assert set(done.result["seconds"]) == {"stiffness", "damping", "finalize"}
     # Stored for good (no TTL): the FEM reference, the parameter set, the record.
@@ -192,7 +192,7 @@ def test_families_volume_builds_its_reduced_basis_once_beside_the_fem(
     expected = calibrate(fpm.load_problem(small_spec))
     for name in ("stiffness", "volume_stiffness", "d", "d_min", "depth", "cost", "static_cost",
                  "relative_discrepancy", "settle_steps", "evaluations"):  # fmt: skip
-        assert done.result[name] == getattr(expected, name), name
+        assert done.result[name] == expected.to_dict()[name], name
     assert not redis.exists(keys.reduced_basis(record.id))
     spans = {s["name"]: s for s in done.result["jobs"]}
     assert spans["reduced basis"]["after"] == []
