@@ -306,9 +306,11 @@ def test_the_worker_answers_a_push_and_a_drag(page, data):
     target = rest[955] + [0.005, 0.0, 0.0]
     send(page, {"type": "drag", "node": 955, "target": target.tolist()})
     page.wait_for(f"{LAST}.positions[{3 * 955}] > {float(rest[955, 0]) + 1e-3!r}")
-    # Let go: it settles back to rest and the worker stops stepping.
+    # Let go: it settles back to rest and the worker stops stepping (a frame after the release:
+    # the drag itself may have settled, its last frame still marked so).
+    before = page.js("live.frames.length")
     send(page, {"type": "release"})
-    page.wait_for(f"{LAST}.settled", timeout=60)
+    page.wait_for(f"live.frames.length > {before} && {LAST}.settled", timeout=60)
     settled = last_frame(page)
     assert np.abs(np.reshape(settled["positions"], (-1, 3)) - rest).max() < 1e-4
     count = settled["n"]
