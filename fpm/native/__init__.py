@@ -11,7 +11,8 @@ works; the default, or the environment variable ``FPM_RUNTIME_BACKEND``). Enviro
   flags and precision, so it compiles once per machine.
 
 The library is compiled with ``-O3 -march=native -ffp-contract=off`` (no fused multiply-add:
-the float64 step is then the NumPy recipe's arithmetic), ``-fopenmp`` when the compiler has it.
+the float64 step is then the NumPy recipe's arithmetic, summed in another order),
+``-fno-math-errno`` (so that square roots vectorise) and ``-fopenmp`` when the compiler has it.
 """
 
 from __future__ import annotations
@@ -34,7 +35,9 @@ if TYPE_CHECKING:
 HERE = Path(__file__).resolve().parent
 SOURCE, HEADER = HERE / "fpm_step.c", HERE / "fpm_step.h"
 BACKENDS = ("auto", "native", "numba", "numpy")
-FLAGS = ["-std=c99", "-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared"]
+FLAGS = [
+    "-std=c99", "-O3", "-march=native", "-ffp-contract=off", "-fno-math-errno", "-fPIC", "-shared"
+]
 """Compiler flags; ``-fopenmp`` is tried first, then without it (one thread)."""
 PRECISIONS = {"float64": np.float64, "float32": np.float32}
 

@@ -1,12 +1,14 @@
 /* fpm_step.c: see fpm_step.h. C99; OpenMP when compiled with it, one thread without.
 
-   Layout in memory, for the machine: the springs are kept twice, once per end, as per-node
-   rows (neighbour, rest length, stiffness: structure of arrays, read in order), so each node
-   sums its own spring forces with no scatter and the nodes share out between threads without
-   locks; each spring's force is computed at both ends, from r = x_other - x_node (exactly minus
-   the other end's), so the sum at a node is the NumPy recipe's term for term, in the same
-   (spring index) order. The volume term is a pass over the hexahedra (corner forces into a
-   buffer) followed by a per-node sum over the node's corners, in corner-slot order. */
+   Layout in memory, for the machine: positions are copied to structure-of-arrays (all x, then
+   y, z) at the start of a step. The springs are reordered into blocks of up to LANES springs
+   whose ends i are consecutive nodes and whose j - i is the same (a lattice's springs along one
+   direction in one row), and the hexahedra into blocks side by side along x: a block's lanes
+   load their nodes with contiguous vector loads and add their forces with contiguous vector
+   stores, no gather and no scatter; the springs and hexahedra in no block take gathers. The
+   forces are summed into PARTS partial sums, each over a fixed share of the blocks (a thread
+   per share), added node by node in a fixed order: the threads change no bit of the step.
+   Against the NumPy recipe (fpm.runtime) the sums differ in order only: within rounding. */
 #include "fpm_step.h"
 
 #include <math.h>
@@ -25,7 +27,17 @@
 #define SQRT sqrt
 #endif
 
+#if defined(__GNUC__)
+#define INLINE static inline __attribute__((always_inline))
+#define UNROLL _Pragma("GCC unroll 24")
+#else
+#define UNROLL
+#define INLINE static inline
+#endif
+
 #define MESSAGE_BYTES 320
+#define LANES 8 /* springs and hexahedra side by side in a block */
+#define PARTS 2 /* partial sums of the forces: fixed, so that threads change no bit */
 #define POWER_ITERATIONS 40
 
 struct fpm_model {
@@ -36,12 +48,16 @@ struct fpm_model {
     double mass_min;  /* the lightest free node, kg */
     fpm_real *rest, *mass, *a, *denom, *mg; /* a = dt / m, denom = 1 + a d, mg = m g (3 N) */
     unsigned char *fixed;
-    uint32_t *row, *nbr; /* the springs by node: row[n]..row[n + 1] in nbr, rest, stiff */
-    fpm_real *rest_length, *stiffness;
-    uint32_t *hex;           /* 8 H corners */
-    fpm_real *kappa, *volume0; /* H */
-    uint32_t *corner_row, *corner_slot; /* the corners by node: slots 8 h + c of fc */
-    fpm_real *fc;            /* 3 * 8 H corner forces of the last hexahedron pass */
+    uint32_t *si, *sj;                /* S spring ends, blocks first */
+    uint32_t nsblocks, nhblocks;      /* blocks of 2..LANES springs, hexahedra */
+    uint32_t *sblock, *hblock; /* block b: items sblock[b]..sblock[b + 1]; then the single ones */
+    fpm_real *rest_length, *stiffness; /* S */
+    uint32_t *hex;                    /* 8 H corners, hexahedron by hexahedron */
+    uint32_t *corner;                 /* the same, corner by corner: corner[a H + c] */
+    fpm_real *kappa, *volume0;        /* H */
+    fpm_real *X;       /* 3 NP, NP = N + LANES: positions, all x then y, z (padded with 0) */
+    fpm_real *acc;     /* PARTS x 3 NP: the passes' partial sums of the internal forces */
+    fpm_real *scratch; /* PARTS x 24 LANES */
     uint32_t *case_offset, *case_node;
     double *case_force;
     uint32_t *share_node, *share_offset, *share_index;
@@ -53,113 +69,310 @@ struct fpm_model {
 
 /* ---------------------------------------------------------------- the volume of a hexahedron */
 
-/* a_k = 1/8 sum_n C_kn x_n, the coefficients of r, s, t, rs, rt, st of the trilinear map, for
-   the corners in NATURAL order: (---), (+--), (++-), (-+-), (--+), (+-+), (+++), (-++). */
-static inline void coefficients(const fpm_real p[8][3], fpm_real a[6][3]) {
-    for (int d = 0; d < 3; d++) {
-        const fpm_real s01 = p[1][d] - p[0][d], s32 = p[2][d] - p[3][d];
-        const fpm_real s45 = p[5][d] - p[4][d], s76 = p[6][d] - p[7][d];
-        const fpm_real q01 = p[0][d] + p[1][d], q23 = p[2][d] + p[3][d];
-        const fpm_real q45 = p[4][d] + p[5][d], q67 = p[6][d] + p[7][d];
-        a[0][d] = ((s01 + s32) + (s45 + s76)) / 8;
-        a[1][d] = ((q23 - q01) + (q67 - q45)) / 8;
-        a[2][d] = ((q45 + q67) - (q01 + q23)) / 8;
-        a[3][d] = ((s32 - s01) + (s76 - s45)) / 8;
-        a[4][d] = ((s45 + s76) - (s01 + s32)) / 8;
-        a[5][d] = ((q01 - q23) + (q67 - q45)) / 8;
-    }
-}
-
-/* g_n = 1/8 sum_k C_kn ga_k: the gradient with respect to the corners of a function of a. */
-static inline void corner_gradient(const fpm_real ga[6][3], fpm_real g[8][3]) {
-    for (int d = 0; d < 3; d++) {
-        const fpm_real A = ga[0][d], B = ga[1][d], C = ga[2][d];
-        const fpm_real D = ga[3][d], E = ga[4][d], F = ga[5][d];
-        const fpm_real ab = A + B, a_b = A - B, de = D + E, d_e = D - E;
-        const fpm_real fc = F - C, f_c = F + C;
-        g[0][d] = (de - ab + fc) / 8;
-        g[1][d] = (a_b - de + fc) / 8;
-        g[2][d] = (ab + d_e - f_c) / 8;
-        g[3][d] = (-a_b - d_e - f_c) / 8;
-        g[4][d] = (d_e - ab - fc) / 8;
-        g[5][d] = (a_b - d_e + C - F) / 8;
-        g[6][d] = (ab + de + f_c) / 8;
-        g[7][d] = (-a_b - de + f_c) / 8;
-    }
-}
-
-static inline void cross(const fpm_real *a, const fpm_real *b, fpm_real *out) {
-    out[0] = a[1] * b[2] - a[2] * b[1];
-    out[1] = a[2] * b[0] - a[0] * b[2];
-    out[2] = a[0] * b[1] - a[1] * b[0];
-}
-
-/* V = sum w [a_p, a_q, a_r] over these (p, q, r), w = 8, 8/3, 8/3, 8/3. */
-static const int TRIPLE[4][3] = {{0, 1, 2}, {0, 3, 4}, {3, 1, 5}, {4, 5, 2}};
-
-/* The volume of the trilinear hexahedron with corners p (8 x 3) and its gradient g (8 x 3). */
-static inline fpm_real hex_volume(fpm_real p[8][3], fpm_real g[8][3]) {
-    fpm_real a[6][3], ga[6][3] = {{0}}, qr[3], rp[3], pq[3], volume = 0;
-    coefficients((const fpm_real(*)[3])p, a);
-    for (int t = 0; t < 4; t++) {
-        const int P = TRIPLE[t][0], Q = TRIPLE[t][1], R = TRIPLE[t][2];
-        const fpm_real w = t == 0 ? (fpm_real)8.0 : (fpm_real)(8.0 / 3.0);
-        cross(a[Q], a[R], qr);
-        cross(a[R], a[P], rp);
-        cross(a[P], a[Q], pq);
-        volume += w * (a[P][0] * qr[0] + a[P][1] * qr[1] + a[P][2] * qr[2]);
-        for (int d = 0; d < 3; d++) {
-            ga[P][d] += w * qr[d];
-            ga[Q][d] += w * rp[d];
-            ga[R][d] += w * pq[d];
-        }
-    }
-    corner_gradient((const fpm_real(*)[3])ga, g);
+/* The volume of the trilinear hexahedron with corners (x_n, y_n, z_n), n in NATURAL order
+   (---), (+--), (++-), (-+-), (--+), (+-+), (+++), (-++), and its gradient with respect to the
+   corners into g[(3 n + d) stride] (fpm.runtime.hexahedron_volumes). From the coefficients
+   a_k = 1/8 sum_n C_kn x_n of r, s, t, rs, rt, st of the trilinear map,
+   V = 8 [a0, a1, a2] + 8/3 ([a0, a3, a4] + [a3, a1, a5] + [a4, a5, a2]), the triple products
+   [p, q, r] = p . (q x r). Straight-line code, so that a loop over hexahedra runs in SIMD lanes. */
+INLINE fpm_real hex_gradient(fpm_real x0, fpm_real x1, fpm_real x2, fpm_real x3, fpm_real x4,
+                            fpm_real x5, fpm_real x6, fpm_real x7, fpm_real y0, fpm_real y1,
+                            fpm_real y2, fpm_real y3, fpm_real y4, fpm_real y5, fpm_real y6,
+                            fpm_real y7, fpm_real z0, fpm_real z1, fpm_real z2, fpm_real z3,
+                            fpm_real z4, fpm_real z5, fpm_real z6, fpm_real z7, fpm_real *restrict
+                            g, long stride) {
+    const fpm_real s01x = x1 - x0, s32x = x2 - x3;
+    const fpm_real s45x = x5 - x4, s76x = x6 - x7;
+    const fpm_real q01x = x0 + x1, q23x = x2 + x3;
+    const fpm_real q45x = x4 + x5, q67x = x6 + x7;
+    const fpm_real a0x = ((s01x + s32x) + (s45x + s76x)) / 8;
+    const fpm_real a1x = ((q23x - q01x) + (q67x - q45x)) / 8;
+    const fpm_real a2x = ((q45x + q67x) - (q01x + q23x)) / 8;
+    const fpm_real a3x = ((s32x - s01x) + (s76x - s45x)) / 8;
+    const fpm_real a4x = ((s45x + s76x) - (s01x + s32x)) / 8;
+    const fpm_real a5x = ((q01x - q23x) + (q67x - q45x)) / 8;
+    const fpm_real s01y = y1 - y0, s32y = y2 - y3;
+    const fpm_real s45y = y5 - y4, s76y = y6 - y7;
+    const fpm_real q01y = y0 + y1, q23y = y2 + y3;
+    const fpm_real q45y = y4 + y5, q67y = y6 + y7;
+    const fpm_real a0y = ((s01y + s32y) + (s45y + s76y)) / 8;
+    const fpm_real a1y = ((q23y - q01y) + (q67y - q45y)) / 8;
+    const fpm_real a2y = ((q45y + q67y) - (q01y + q23y)) / 8;
+    const fpm_real a3y = ((s32y - s01y) + (s76y - s45y)) / 8;
+    const fpm_real a4y = ((s45y + s76y) - (s01y + s32y)) / 8;
+    const fpm_real a5y = ((q01y - q23y) + (q67y - q45y)) / 8;
+    const fpm_real s01z = z1 - z0, s32z = z2 - z3;
+    const fpm_real s45z = z5 - z4, s76z = z6 - z7;
+    const fpm_real q01z = z0 + z1, q23z = z2 + z3;
+    const fpm_real q45z = z4 + z5, q67z = z6 + z7;
+    const fpm_real a0z = ((s01z + s32z) + (s45z + s76z)) / 8;
+    const fpm_real a1z = ((q23z - q01z) + (q67z - q45z)) / 8;
+    const fpm_real a2z = ((q45z + q67z) - (q01z + q23z)) / 8;
+    const fpm_real a3z = ((s32z - s01z) + (s76z - s45z)) / 8;
+    const fpm_real a4z = ((s45z + s76z) - (s01z + s32z)) / 8;
+    const fpm_real a5z = ((q01z - q23z) + (q67z - q45z)) / 8;
+    const fpm_real w0 = 8, w = (fpm_real)(8.0 / 3.0);
+    fpm_real volume = 0;
+    /* [a0, a1, a2] */
+    const fpm_real qr0x = a1y * a2z - a1z * a2y;
+    const fpm_real qr0y = a1z * a2x - a1x * a2z;
+    const fpm_real qr0z = a1x * a2y - a1y * a2x;
+    const fpm_real rp0x = a2y * a0z - a2z * a0y;
+    const fpm_real rp0y = a2z * a0x - a2x * a0z;
+    const fpm_real rp0z = a2x * a0y - a2y * a0x;
+    const fpm_real pq0x = a0y * a1z - a0z * a1y;
+    const fpm_real pq0y = a0z * a1x - a0x * a1z;
+    const fpm_real pq0z = a0x * a1y - a0y * a1x;
+    volume += w0 * (a0x * qr0x + a0y * qr0y + a0z * qr0z);
+    const fpm_real g0x0 = w0 * qr0x;
+    const fpm_real g0y0 = w0 * qr0y;
+    const fpm_real g0z0 = w0 * qr0z;
+    const fpm_real g1x0 = w0 * rp0x;
+    const fpm_real g1y0 = w0 * rp0y;
+    const fpm_real g1z0 = w0 * rp0z;
+    const fpm_real g2x0 = w0 * pq0x;
+    const fpm_real g2y0 = w0 * pq0y;
+    const fpm_real g2z0 = w0 * pq0z;
+    /* [a0, a3, a4] */
+    const fpm_real qr1x = a3y * a4z - a3z * a4y;
+    const fpm_real qr1y = a3z * a4x - a3x * a4z;
+    const fpm_real qr1z = a3x * a4y - a3y * a4x;
+    const fpm_real rp1x = a4y * a0z - a4z * a0y;
+    const fpm_real rp1y = a4z * a0x - a4x * a0z;
+    const fpm_real rp1z = a4x * a0y - a4y * a0x;
+    const fpm_real pq1x = a0y * a3z - a0z * a3y;
+    const fpm_real pq1y = a0z * a3x - a0x * a3z;
+    const fpm_real pq1z = a0x * a3y - a0y * a3x;
+    volume += w * (a0x * qr1x + a0y * qr1y + a0z * qr1z);
+    const fpm_real g0x1 = g0x0 + w * qr1x;
+    const fpm_real g0y1 = g0y0 + w * qr1y;
+    const fpm_real g0z1 = g0z0 + w * qr1z;
+    const fpm_real g3x1 = w * rp1x;
+    const fpm_real g3y1 = w * rp1y;
+    const fpm_real g3z1 = w * rp1z;
+    const fpm_real g4x1 = w * pq1x;
+    const fpm_real g4y1 = w * pq1y;
+    const fpm_real g4z1 = w * pq1z;
+    /* [a3, a1, a5] */
+    const fpm_real qr2x = a1y * a5z - a1z * a5y;
+    const fpm_real qr2y = a1z * a5x - a1x * a5z;
+    const fpm_real qr2z = a1x * a5y - a1y * a5x;
+    const fpm_real rp2x = a5y * a3z - a5z * a3y;
+    const fpm_real rp2y = a5z * a3x - a5x * a3z;
+    const fpm_real rp2z = a5x * a3y - a5y * a3x;
+    const fpm_real pq2x = a3y * a1z - a3z * a1y;
+    const fpm_real pq2y = a3z * a1x - a3x * a1z;
+    const fpm_real pq2z = a3x * a1y - a3y * a1x;
+    volume += w * (a3x * qr2x + a3y * qr2y + a3z * qr2z);
+    const fpm_real g3x2 = g3x1 + w * qr2x;
+    const fpm_real g3y2 = g3y1 + w * qr2y;
+    const fpm_real g3z2 = g3z1 + w * qr2z;
+    const fpm_real g1x2 = g1x0 + w * rp2x;
+    const fpm_real g1y2 = g1y0 + w * rp2y;
+    const fpm_real g1z2 = g1z0 + w * rp2z;
+    const fpm_real g5x2 = w * pq2x;
+    const fpm_real g5y2 = w * pq2y;
+    const fpm_real g5z2 = w * pq2z;
+    /* [a4, a5, a2] */
+    const fpm_real qr3x = a5y * a2z - a5z * a2y;
+    const fpm_real qr3y = a5z * a2x - a5x * a2z;
+    const fpm_real qr3z = a5x * a2y - a5y * a2x;
+    const fpm_real rp3x = a2y * a4z - a2z * a4y;
+    const fpm_real rp3y = a2z * a4x - a2x * a4z;
+    const fpm_real rp3z = a2x * a4y - a2y * a4x;
+    const fpm_real pq3x = a4y * a5z - a4z * a5y;
+    const fpm_real pq3y = a4z * a5x - a4x * a5z;
+    const fpm_real pq3z = a4x * a5y - a4y * a5x;
+    volume += w * (a4x * qr3x + a4y * qr3y + a4z * qr3z);
+    const fpm_real g4x3 = g4x1 + w * qr3x;
+    const fpm_real g4y3 = g4y1 + w * qr3y;
+    const fpm_real g4z3 = g4z1 + w * qr3z;
+    const fpm_real g5x3 = g5x2 + w * rp3x;
+    const fpm_real g5y3 = g5y2 + w * rp3y;
+    const fpm_real g5z3 = g5z2 + w * rp3z;
+    const fpm_real g2x3 = g2x0 + w * pq3x;
+    const fpm_real g2y3 = g2y0 + w * pq3y;
+    const fpm_real g2z3 = g2z0 + w * pq3z;
+    /* g_n = 1/8 sum_k C_kn dV/da_k */
+    const fpm_real abx = g0x1 + g1x2, a_bx = g0x1 - g1x2;
+    const fpm_real dex = g3x2 + g4x3, d_ex = g3x2 - g4x3;
+    const fpm_real fcx = g5x3 - g2x3, f_cx = g5x3 + g2x3;
+    g[0 * stride] = (dex - abx + fcx) / 8;
+    g[3 * stride] = (a_bx - dex + fcx) / 8;
+    g[6 * stride] = (abx + d_ex - f_cx) / 8;
+    g[9 * stride] = (-a_bx - d_ex - f_cx) / 8;
+    g[12 * stride] = (d_ex - abx - fcx) / 8;
+    g[15 * stride] = (a_bx - d_ex + g2x3 - g5x3) / 8;
+    g[18 * stride] = (abx + dex + f_cx) / 8;
+    g[21 * stride] = (-a_bx - dex + f_cx) / 8;
+    const fpm_real aby = g0y1 + g1y2, a_by = g0y1 - g1y2;
+    const fpm_real dey = g3y2 + g4y3, d_ey = g3y2 - g4y3;
+    const fpm_real fcy = g5y3 - g2y3, f_cy = g5y3 + g2y3;
+    g[1 * stride] = (dey - aby + fcy) / 8;
+    g[4 * stride] = (a_by - dey + fcy) / 8;
+    g[7 * stride] = (aby + d_ey - f_cy) / 8;
+    g[10 * stride] = (-a_by - d_ey - f_cy) / 8;
+    g[13 * stride] = (d_ey - aby - fcy) / 8;
+    g[16 * stride] = (a_by - d_ey + g2y3 - g5y3) / 8;
+    g[19 * stride] = (aby + dey + f_cy) / 8;
+    g[22 * stride] = (-a_by - dey + f_cy) / 8;
+    const fpm_real abz = g0z1 + g1z2, a_bz = g0z1 - g1z2;
+    const fpm_real dez = g3z2 + g4z3, d_ez = g3z2 - g4z3;
+    const fpm_real fcz = g5z3 - g2z3, f_cz = g5z3 + g2z3;
+    g[2 * stride] = (dez - abz + fcz) / 8;
+    g[5 * stride] = (a_bz - dez + fcz) / 8;
+    g[8 * stride] = (abz + d_ez - f_cz) / 8;
+    g[11 * stride] = (-a_bz - d_ez - f_cz) / 8;
+    g[14 * stride] = (d_ez - abz - fcz) / 8;
+    g[17 * stride] = (a_bz - d_ez + g2z3 - g5z3) / 8;
+    g[20 * stride] = (abz + dez + f_cz) / 8;
+    g[23 * stride] = (-a_bz - dez + f_cz) / 8;
     return volume;
 }
 
-/* Corner forces of hexahedron c at positions x into model->fc. */
-static inline void hex_forces(fpm_model *m, const fpm_real *x, long c) {
-    fpm_real p[8][3], g[8][3];
-    const uint32_t *corner = m->hex + 8 * c;
-    for (int n = 0; n < 8; n++)
-        for (int d = 0; d < 3; d++) p[n][d] = x[3 * (size_t)corner[n] + d];
-    const fpm_real volume = hex_volume(p, g);
-    const fpm_real pressure = m->kappa[c] * (volume - m->volume0[c]) / m->volume0[c];
-    fpm_real *out = m->fc + 24 * c;
-    for (int n = 0; n < 8; n++)
-        for (int d = 0; d < 3; d++) out[3 * n + d] = -pressure * g[n][d];
+#define CORNERS(v) v[0], v[1], v[2], v[3], v[4], v[5], v[6], v[7]
+#define XYZ(n) const fpm_real x##n = X[AT(n)], y##n = Y[AT(n)], z##n = Z[AT(n)]
+#define LOAD_CORNERS XYZ(0); XYZ(1); XYZ(2); XYZ(3); XYZ(4); XYZ(5); XYZ(6); XYZ(7)
+#define SCALARS(v) v##0, v##1, v##2, v##3, v##4, v##5, v##6, v##7
+
+/* The pressure term's factor for hexahedron c of this volume: its corner forces are this times
+   the volume's gradient. */
+INLINE fpm_real minus_pressure(const fpm_model *m, long c, fpm_real volume) {
+    return -(m->kappa[c] * (volume - m->volume0[c]) / m->volume0[c]);
 }
 
-/* The internal force at node i (springs, then the corner forces of the last hexahedron pass). */
-static inline void node_force(const fpm_model *m, const fpm_real *x, long i, fpm_real f[3]) {
-    const fpm_real xi = x[3 * i], yi = x[3 * i + 1], zi = x[3 * i + 2];
-    fpm_real sx = 0, sy = 0, sz = 0;
-#pragma omp simd reduction(+ : sx, sy, sz)
-    for (uint32_t e = m->row[i]; e < m->row[i + 1]; e++) {
-        const size_t j = 3 * (size_t)m->nbr[e];
-        const fpm_real rx = x[j] - xi, ry = x[j + 1] - yi, rz = x[j + 2] - zi;
-        const fpm_real length = SQRT(rx * rx + ry * ry + rz * rz);
-        const fpm_real c = m->stiffness[e] * (length - m->rest_length[e]) / length;
-        sx += c * rx;
-        sy += c * ry;
-        sz += c * rz;
-    }
-    if (m->h) {
-        fpm_real cx = 0, cy = 0, cz = 0;
-        for (uint32_t e = m->corner_row[i]; e < m->corner_row[i + 1]; e++) {
-            const fpm_real *fc = m->fc + 3 * (size_t)m->corner_slot[e];
-            cx += fc[0];
-            cy += fc[1];
-            cz += fc[2];
+/* Part p's share of the hexahedra: blocks b0..b1 (their lanes side by side along x, corners
+   lane 0's plus l: vector loads and stores; lanes past a block's end add nothing) and the
+   single hexahedra c0..c1 (gathers), their corner forces added to acc (3 NP: x, y, z). */
+static void hex_part(fpm_model *m, long b0, long b1, long c0, long c1, fpm_real *restrict acc,
+                     fpm_real *restrict g) {
+    const long H = m->h, NP = m->n + LANES;
+    const fpm_real *restrict X = m->X, *restrict Y = X + NP, *restrict Z = X + 2 * NP;
+    const uint32_t *restrict corner = m->corner;
+    for (long b = b0; b < b1; b++) {
+        const long first = m->hblock[b], count = m->hblock[b + 1] - first;
+        const long q0 = corner[first], q1 = corner[H + first], q2 = corner[2 * H + first];
+        const long q3 = corner[3 * H + first], q4 = corner[4 * H + first];
+        const long q5 = corner[5 * H + first], q6 = corner[6 * H + first];
+        const long q7 = corner[7 * H + first];
+        const long q[8] = {q0, q1, q2, q3, q4, q5, q6, q7};
+#define AT(n) (q##n + l)
+#pragma omp simd
+        for (long l = 0; l < LANES; l++) {
+            LOAD_CORNERS;
+            const fpm_real volume = hex_gradient(SCALARS(x), SCALARS(y), SCALARS(z), g + l, LANES);
+            const fpm_real pressure = minus_pressure(m, first + l, volume);
+            const fpm_real factor = l < count ? pressure : 0;
+            UNROLL for (int k = 0; k < 24; k++) g[k * LANES + l] *= factor;
         }
-        sx += cx;
-        sy += cy;
-        sz += cz;
+#undef AT
+        for (int k = 0; k < 24; k++) {
+            fpm_real *restrict out = acc + (k % 3) * NP + q[k / 3];
+#pragma omp simd
+            for (long l = 0; l < LANES; l++) out[l] += g[k * LANES + l];
+        }
     }
-    f[0] = sx;
-    f[1] = sy;
-    f[2] = sz;
+    for (long first = c0; first < c1; first += LANES) {
+        const long count = c1 - first < LANES ? c1 - first : LANES;
+#define AT(n) ((size_t)corner[(n) * H + first + l])
+#pragma omp simd
+        for (long l = 0; l < count; l++) {
+            LOAD_CORNERS;
+            const fpm_real volume = hex_gradient(SCALARS(x), SCALARS(y), SCALARS(z), g + l, LANES);
+            const fpm_real factor = minus_pressure(m, first + l, volume);
+            UNROLL for (int k = 0; k < 24; k++) g[k * LANES + l] *= factor;
+        }
+#undef AT
+        for (long l = 0; l < count; l++)
+            for (int k = 0; k < 24; k++)
+                acc[(k % 3) * NP + corner[(k / 3) * H + first + l]] += g[k * LANES + l];
+    }
+}
+
+/* c (k (L - L0) / L, L = |r|) of spring e at r = x_j - x_i: its force on end i is c r. */
+INLINE fpm_real spring_factor(const fpm_model *m, long e, fpm_real rx, fpm_real ry, fpm_real rz) {
+    const fpm_real length = SQRT(rx * rx + ry * ry + rz * rz);
+    return m->stiffness[e] * (length - m->rest_length[e]) / length;
+}
+
+/* Part p's share of the springs: blocks b0..b1 (ends i consecutive, j - i the same: vector
+   loads and stores) and the single springs e0..e1 (gathers), their forces added to acc (+ on
+   end i, - on end j). f: 3 LANES scratch. */
+static void spring_part(fpm_model *m, long b0, long b1, long e0, long e1, fpm_real *restrict acc,
+                        fpm_real *restrict f) {
+    const long NP = m->n + LANES;
+    const fpm_real *restrict X = m->X, *restrict Y = X + NP, *restrict Z = X + 2 * NP;
+    const uint32_t *restrict si = m->si, *restrict sj = m->sj;
+    for (long b = b0; b < b1; b++) {
+        const long first = m->sblock[b], count = m->sblock[b + 1] - first;
+        const long i = si[first], j = sj[first];
+#pragma omp simd
+        for (long l = 0; l < LANES; l++) {
+            const fpm_real rx = X[j + l] - X[i + l], ry = Y[j + l] - Y[i + l];
+            const fpm_real rz = Z[j + l] - Z[i + l];
+            const fpm_real factor = spring_factor(m, first + l, rx, ry, rz);
+            const fpm_real c = l < count ? factor : 0;
+            f[l] = c * rx, f[LANES + l] = c * ry, f[2 * LANES + l] = c * rz;
+        }
+        for (int d = 0; d < 3; d++) {
+            fpm_real *restrict at_i = acc + d * NP + i, *restrict at_j = acc + d * NP + j;
+#pragma omp simd
+            for (long l = 0; l < LANES; l++) at_i[l] += f[d * LANES + l];
+#pragma omp simd
+            for (long l = 0; l < LANES; l++) at_j[l] -= f[d * LANES + l];
+        }
+    }
+    for (long first = e0; first < e1; first += LANES) {
+        const long count = e1 - first < LANES ? e1 - first : LANES;
+#pragma omp simd
+        for (long l = 0; l < count; l++) {
+            const size_t i = si[first + l], j = sj[first + l];
+            const fpm_real rx = X[j] - X[i], ry = Y[j] - Y[i], rz = Z[j] - Z[i];
+            const fpm_real c = spring_factor(m, first + l, rx, ry, rz);
+            f[l] = c * rx, f[LANES + l] = c * ry, f[2 * LANES + l] = c * rz;
+        }
+        for (long l = 0; l < count; l++)
+            for (int d = 0; d < 3; d++) {
+                acc[d * NP + si[first + l]] += f[d * LANES + l];
+                acc[d * NP + sj[first + l]] -= f[d * LANES + l];
+            }
+    }
+}
+
+/* Where part p of PARTS starts on n items. */
+static long share(long n, long p) { return n * p / PARTS; }
+
+/* The spring and volume forces at positions x into model->acc: PARTS partial sums, each over its
+   share of the springs and hexahedra, shared out between the threads of the enclosing parallel
+   region (the same sums in the same order however many threads). */
+static void passes(fpm_model *m, const fpm_real *x) {
+    const long N = m->n, NP = N + LANES;
+    const long sb = m->nsblocks, hb = m->nhblocks, ss = m->sblock[sb], hs = m->hblock[hb];
+#pragma omp for schedule(static)
+    for (long i = 0; i < N; i++) {
+        m->X[i] = x[3 * i];
+        m->X[NP + i] = x[3 * i + 1];
+        m->X[2 * NP + i] = x[3 * i + 2];
+    }
+#pragma omp for schedule(static)
+    for (long p = 0; p < PARTS; p++) {
+        fpm_real *acc = m->acc + p * 3 * NP, *scratch = m->scratch + p * 24 * LANES;
+        memset(acc, 0, 3 * (size_t)NP * sizeof *acc);
+        hex_part(m, share(hb, p), share(hb, p + 1), hs + share(m->h - hs, p),
+                 hs + share(m->h - hs, p + 1), acc, scratch);
+        spring_part(m, share(sb, p), share(sb, p + 1), ss + share(m->s - ss, p),
+                    ss + share(m->s - ss, p + 1), acc, scratch);
+    }
+}
+
+/* The internal force at node i from the last passes. */
+INLINE void node_force(const fpm_model *m, long i, fpm_real f[3]) {
+    const long NP = m->n + LANES;
+    for (int d = 0; d < 3; d++) {
+        fpm_real sum = m->acc[d * NP + i];
+        for (int p = 1; p < PARTS; p++) sum += m->acc[(3 * p + d) * NP + i];
+        f[d] = sum;
+    }
 }
 
 static int thread_count(const fpm_model *m) {
@@ -188,15 +401,14 @@ void fpm_reset(fpm_model *m) {
 
 int fpm_internal_forces(fpm_model *m, const fpm_real *x, fpm_real *out) {
     if (!m || !x || !out) return FPM_ERR_ARGUMENT;
-    const long n = m->n, h = m->h;
+    const long n = m->n;
     const int threads = thread_count(m);
     (void)threads;
 #pragma omp parallel num_threads(threads) if (threads > 1)
     {
+        passes(m, x);
 #pragma omp for schedule(static)
-        for (long c = 0; c < h; c++) hex_forces(m, x, c);
-#pragma omp for schedule(static)
-        for (long i = 0; i < n; i++) node_force(m, x, i, out + 3 * i);
+        for (long i = 0; i < n; i++) node_force(m, i, out + 3 * i);
     }
     m->message[0] = '\0';
     return FPM_OK;
@@ -205,7 +417,7 @@ int fpm_internal_forces(fpm_model *m, const fpm_real *x, fpm_real *out) {
 int fpm_step(fpm_model *m, const fpm_real *x, fpm_real *x_next, fpm_real *v,
              const fpm_real *forces, fpm_stats *stats) {
     if (!m || !x || !x_next || !v) return FPM_ERR_ARGUMENT;
-    const long n = m->n, h = m->h;
+    const long n = m->n;
     if (forces)
         for (long k = 0; k < 3 * n; k++)
             if (!isfinite(forces[k]))
@@ -217,12 +429,11 @@ int fpm_step(fpm_model *m, const fpm_real *x, fpm_real *x_next, fpm_real *v,
     (void)threads;
 #pragma omp parallel num_threads(threads) if (threads > 1)
     {
-#pragma omp for schedule(static)
-        for (long c = 0; c < h; c++) hex_forces(m, x, c);
+        passes(m, x);
 #pragma omp for schedule(static) reduction(max : unbalanced, load) reduction(+ : sum2, moved2)
         for (long i = 0; i < n; i++) {
             fpm_real f[3], applied[3], total[3];
-            node_force(m, x, i, f);
+            node_force(m, i, f);
             for (int d = 0; d < 3; d++) {
                 applied[d] = m->mg[3 * i + d];
                 if (forces) applied[d] = applied[d] + forces[3 * i + d];
@@ -339,13 +550,16 @@ static double gershgorin_dt(const fpm_model *m, const uint32_t *si, const uint32
         rows[sj[s]] += 2.0 * k[s];
     }
     for (uint32_t c = 0; c < m->h; c++) {
-        fpm_real p[8][3], g[8][3];
+        fpm_real x[8], y[8], z[8], g[24];
         double norm[8], sum = 0.0;
-        for (int a = 0; a < 8; a++)
-            for (int d = 0; d < 3; d++) p[a][d] = m->rest[3 * (size_t)m->hex[8 * c + a] + d];
-        hex_volume(p, g);
         for (int a = 0; a < 8; a++) {
-            norm[a] = sqrt((double)(g[a][0] * g[a][0] + g[a][1] * g[a][1] + g[a][2] * g[a][2]));
+            const fpm_real *p = m->rest + 3 * (size_t)m->hex[8 * c + a];
+            x[a] = p[0], y[a] = p[1], z[a] = p[2];
+        }
+        hex_gradient(CORNERS(x), CORNERS(y), CORNERS(z), g, 1);
+        for (int a = 0; a < 8; a++) {
+            const double gx = g[3 * a], gy = g[3 * a + 1], gz = g[3 * a + 2];
+            norm[a] = sqrt(gx * gx + gy * gy + gz * gz);
             sum += norm[a];
         }
         for (int a = 0; a < 8; a++)
@@ -370,9 +584,9 @@ static double top_eigenvalue(fpm_model *m) {
         free(u), free(y), free(plus), free(minus);
         return -1.0;
     }
-    for (uint32_t e = 0; e < m->row[m->n]; e++) scale += (double)m->rest_length[e];
+    for (uint32_t e = 0; e < m->s; e++) scale += (double)m->rest_length[e];
     const double relative = sizeof(fpm_real) == 4 ? 1e-3 : 1e-6; /* above the rounding of x */
-    scale = m->row[m->n] ? relative * scale / m->row[m->n] : relative;
+    scale = m->s ? relative * scale / m->s : relative;
     uint64_t state = 0x9E3779B97F4A7C15ull;
     for (size_t k = 0; k < n3; k++) {
         state = state * 6364136223846793005ull + 1442695040888963407ull;
@@ -511,9 +725,10 @@ static int read_offsets(reader *r, const char *field, size_t count, uint32_t end
 void fpm_free(fpm_model *m) {
     if (!m) return;
     void *owned[] = {m->rest,        m->mass,        m->a,           m->denom,
-                     m->mg,          m->fixed,       m->row,         m->nbr,
-                     m->rest_length, m->stiffness,   m->hex,         m->kappa,
-                     m->volume0,     m->corner_row,  m->corner_slot, m->fc,
+                     m->mg,          m->fixed,       m->si,          m->sj,
+                     m->rest_length, m->stiffness,   m->hex,         m->corner,
+                     m->kappa,       m->volume0,     m->X,           m->acc,
+                     m->scratch,     m->sblock,      m->hblock,
                      m->case_offset, m->case_node,   m->case_force,  m->share_node,
                      m->share_offset, m->share_index, m->share_weight};
     for (size_t k = 0; k < sizeof owned / sizeof owned[0]; k++) free(owned[k]);
@@ -527,6 +742,102 @@ static void copy_message(char *error, size_t error_size, const char *message) {
     }
 }
 
+/* ------------------------------------------------------------------------- blocks */
+
+typedef struct {
+    long key[8]; /* what the lanes of a block share (offsets), then where it runs (key[7]) */
+    uint32_t index;
+} block_key;
+
+static int compare_keys(const void *a, const void *b) {
+    const block_key *p = a, *q = b;
+    for (int k = 0; k < 8; k++)
+        if (p->key[k] != q->key[k]) return p->key[k] < q->key[k] ? -1 : 1;
+    return p->index < q->index ? -1 : p->index > q->index;
+}
+
+/* An order of count items: first blocks of 2..LANES items that share key[0..6] and whose key[7]
+   counts up by one from lane to lane (block b is order[start[b]..start[b + 1]], *blocks of
+   them), then the single items in their own order. Returns the order and *start (both to
+   free), NULL when out of memory. */
+static uint32_t *block_order(block_key *keys, uint32_t count, uint32_t **start,
+                             uint32_t *blocks) {
+    uint32_t *order = malloc(((size_t)count + 1) * 4);
+    unsigned char *taken = calloc((size_t)count + 1, 1);
+    *start = malloc(((size_t)count / 2 + 2) * 4);
+    if (!order || !taken || !*start) {
+        free(order), free(taken), free(*start);
+        return NULL;
+    }
+    qsort(keys, count, sizeof *keys, compare_keys);
+    uint32_t filled = 0, b = 0;
+    for (uint32_t r = 0; r < count;) {
+        uint32_t end = r + 1;
+        while (end < count && end - r < LANES && keys[end].key[7] == keys[end - 1].key[7] + 1 &&
+               memcmp(keys[end].key, keys[r].key, 7 * sizeof(long)) == 0)
+            end++;
+        if (end - r > 1) {
+            (*start)[b++] = filled;
+            for (uint32_t k = r; k < end; k++) order[filled++] = keys[k].index, taken[keys[k].index] = 1;
+        }
+        r = end;
+    }
+    (*start)[b] = filled;
+    *blocks = b;
+    for (uint32_t e = 0; e < count; e++)
+        if (!taken[e]) order[filled++] = e;
+    free(taken);
+    return order;
+}
+
+/* The springs and hexahedra reordered into blocks (model->sblock, hblock) for the passes. */
+static int make_blocks(fpm_model *m) {
+    const uint32_t s = m->s, h = m->h;
+    block_key *keys = malloc(((size_t)(s > h ? s : h) + 1) * sizeof *keys);
+    if (!keys) return FPM_ERR_MEMORY;
+    for (uint32_t e = 0; e < s; e++) {
+        memset(keys[e].key, 0, sizeof keys[e].key);
+        keys[e].key[0] = (long)m->sj[e] - (long)m->si[e];
+        keys[e].key[7] = m->si[e];
+        keys[e].index = e;
+    }
+    uint32_t *order = block_order(keys, s, &m->sblock, &m->nsblocks);
+    uint32_t *u32 = malloc(((size_t)(s > 8 * h ? s : 8 * h) + 1) * 4);
+    fpm_real *real = malloc(((size_t)(s > h ? s : h) + 1) * sizeof(fpm_real));
+    if (!order || !u32 || !real) {
+        free(keys), free(order), free(u32), free(real);
+        return FPM_ERR_MEMORY;
+    }
+#define PERMUTE(array, tmp, count)                                                             \
+    do {                                                                                       \
+        for (uint32_t e = 0; e < (count); e++) tmp[e] = array[order[e]];                       \
+        memcpy(array, tmp, (size_t)(count) * sizeof *array);                                   \
+    } while (0)
+    PERMUTE(m->si, u32, s);
+    PERMUTE(m->sj, u32, s);
+    PERMUTE(m->rest_length, real, s);
+    PERMUTE(m->stiffness, real, s);
+    free(order);
+    for (uint32_t c = 0; c < h; c++) {
+        for (int n = 1; n < 8; n++) keys[c].key[n - 1] = (long)m->hex[8 * c + n] - m->hex[8 * c];
+        keys[c].key[7] = m->hex[8 * c];
+        keys[c].index = c;
+    }
+    order = block_order(keys, h, &m->hblock, &m->nhblocks);
+    free(keys);
+    if (!order) {
+        free(u32), free(real);
+        return FPM_ERR_MEMORY;
+    }
+    for (uint32_t c = 0; c < h; c++)
+        for (int n = 0; n < 8; n++) m->corner[(size_t)n * h + c] = m->hex[8 * (size_t)order[c] + n];
+    PERMUTE(m->kappa, real, h);
+    PERMUTE(m->volume0, real, h);
+#undef PERMUTE
+    free(order), free(u32), free(real);
+    return FPM_OK;
+}
+
 /* Everything after the header's checks: arrays read, validated, rearranged for the step. */
 static int build(fpm_model *m, const unsigned char *data, uint32_t nfixed, uint32_t entries,
                  uint32_t share_entries) {
@@ -535,8 +846,8 @@ static int build(fpm_model *m, const unsigned char *data, uint32_t nfixed, uint3
     int status = FPM_OK;
     double *rest = malloc((3 * (size_t)n + 1) * sizeof(double));
     double *mass = malloc(((size_t)n + 1) * sizeof(double));
-    uint32_t *fixed = malloc(((size_t)nfixed + 1) * 4), *si = malloc(((size_t)s + 1) * 4);
-    uint32_t *sj = malloc(((size_t)s + 1) * 4);
+    uint32_t *fixed = malloc(((size_t)nfixed + 1) * 4);
+    uint32_t *si = m->si = malloc(((size_t)s + 1) * 4), *sj = m->sj = malloc(((size_t)s + 1) * 4);
     double *length = malloc(((size_t)s + 1) * 8), *k = malloc(((size_t)s + 1) * 8);
     double *kappa = malloc(((size_t)h + 1) * 8), *volume0 = malloc(((size_t)h + 1) * 8);
     m->rest = malloc((3 * (size_t)n + 1) * sizeof(fpm_real));
@@ -545,16 +856,15 @@ static int build(fpm_model *m, const unsigned char *data, uint32_t nfixed, uint3
     m->denom = malloc(((size_t)n + 1) * sizeof(fpm_real));
     m->mg = malloc((3 * (size_t)n + 1) * sizeof(fpm_real));
     m->fixed = calloc((size_t)n + 1, 1);
-    m->row = calloc((size_t)n + 1, 4);
-    m->nbr = malloc((2 * (size_t)s + 1) * 4);
-    m->rest_length = malloc((2 * (size_t)s + 1) * sizeof(fpm_real));
-    m->stiffness = malloc((2 * (size_t)s + 1) * sizeof(fpm_real));
+    m->rest_length = malloc(((size_t)s + LANES) * sizeof(fpm_real)); /* lanes past the end */
+    m->stiffness = malloc(((size_t)s + LANES) * sizeof(fpm_real));
+    m->X = calloc(3 * ((size_t)n + LANES), sizeof(fpm_real));
+    m->acc = malloc(3 * PARTS * ((size_t)n + LANES) * sizeof(fpm_real));
+    m->scratch = malloc(24 * PARTS * LANES * sizeof(fpm_real));
     m->hex = malloc((8 * (size_t)h + 1) * 4);
-    m->kappa = malloc(((size_t)h + 1) * sizeof(fpm_real));
-    m->volume0 = malloc(((size_t)h + 1) * sizeof(fpm_real));
-    m->corner_row = calloc((size_t)n + 1, 4);
-    m->corner_slot = malloc((8 * (size_t)h + 1) * 4);
-    m->fc = malloc((24 * (size_t)h + 1) * sizeof(fpm_real));
+    m->corner = malloc((8 * (size_t)h + 1) * 4);
+    m->kappa = malloc(((size_t)h + LANES) * sizeof(fpm_real));
+    m->volume0 = malloc(((size_t)h + LANES) * sizeof(fpm_real));
     m->case_offset = malloc(((size_t)L + 1) * 4);
     m->case_node = malloc(((size_t)entries + 1) * 4);
     m->case_force = malloc((3 * (size_t)entries + 1) * 8);
@@ -563,9 +873,10 @@ static int build(fpm_model *m, const unsigned char *data, uint32_t nfixed, uint3
     m->share_index = malloc(((size_t)share_entries + 1) * 4);
     m->share_weight = malloc(((size_t)share_entries + 1) * 8);
     if (!rest || !mass || !fixed || !si || !sj || !length || !k || !kappa || !volume0 ||
-        !m->rest || !m->mass || !m->a || !m->denom || !m->mg || !m->fixed || !m->row ||
-        !m->nbr || !m->rest_length || !m->stiffness || !m->hex || !m->kappa || !m->volume0 ||
-        !m->corner_row || !m->corner_slot || !m->fc || !m->case_offset || !m->case_node ||
+        !m->rest || !m->mass || !m->a || !m->denom || !m->mg || !m->fixed || !m->scratch ||
+        !m->X || !m->acc || !m->rest_length ||
+        !m->stiffness || !m->hex || !m->corner || !m->kappa || !m->volume0 ||
+        !m->case_offset || !m->case_node ||
         !m->case_force || !m->share_node || !m->share_offset || !m->share_index ||
         !m->share_weight) {
         status = fail(m, FPM_ERR_MEMORY, "out of memory for %u nodes, %u springs", n, s);
@@ -606,46 +917,28 @@ static int build(fpm_model *m, const unsigned char *data, uint32_t nfixed, uint3
         }
         if (!m->fixed[i] && mass[i] < m->mass_min) m->mass_min = mass[i];
     }
-    /* the springs by node, each row in spring index order */
-    for (uint32_t e = 0; e < s; e++) m->row[si[e] + 1]++, m->row[sj[e] + 1]++;
-    for (uint32_t i = 0; i < n; i++) m->row[i + 1] += m->row[i];
-    {
-        uint32_t *fill = malloc(((size_t)n + 1) * 4);
-        if (!fill) {
-            status = fail(m, FPM_ERR_MEMORY, "out of memory for %u nodes", n);
-            goto done;
-        }
-        memcpy(fill, m->row, (size_t)n * 4);
-        for (uint32_t e = 0; e < s; e++) {
-            const uint32_t ends[2][2] = {{si[e], sj[e]}, {sj[e], si[e]}};
-            for (int t = 0; t < 2; t++) {
-                const uint32_t slot = fill[ends[t][0]]++;
-                m->nbr[slot] = ends[t][1];
-                m->rest_length[slot] = (fpm_real)length[e];
-                m->stiffness[slot] = (fpm_real)k[e];
-            }
-        }
-        /* the corners by node, in slot order */
-        for (size_t q = 0; q < 8 * (size_t)h; q++) m->corner_row[m->hex[q] + 1]++;
-        for (uint32_t i = 0; i < n; i++) m->corner_row[i + 1] += m->corner_row[i];
-        memcpy(fill, m->corner_row, (size_t)n * 4);
-        for (size_t q = 0; q < 8 * (size_t)h; q++) m->corner_slot[fill[m->hex[q]]++] = (uint32_t)q;
-        free(fill);
+    for (uint32_t e = 0; e < s + LANES; e++) {
+        m->rest_length[e] = e < s ? (fpm_real)length[e] : 1;
+        m->stiffness[e] = e < s ? (fpm_real)k[e] : 0;
     }
-    for (uint32_t c = 0; c < h; c++) {
-        m->kappa[c] = (fpm_real)kappa[c];
-        m->volume0[c] = (fpm_real)volume0[c];
+    for (uint32_t c = 0; c < h + LANES; c++) {
+        m->kappa[c] = c < h ? (fpm_real)kappa[c] : 0;
+        m->volume0[c] = c < h ? (fpm_real)volume0[c] : 1;
     }
     m->stable_dt = gershgorin_dt(m, si, sj, k);
+    if (m->stable_dt < 0 || make_blocks(m)) {
+        status = fail(m, FPM_ERR_MEMORY, "out of memory for %u nodes", n);
+        goto done;
+    }
     m->omega2 = top_eigenvalue(m);
-    if (m->stable_dt < 0 || m->omega2 < 0) {
+    if (m->omega2 < 0) {
         status = fail(m, FPM_ERR_MEMORY, "out of memory for %u nodes", n);
         goto done;
     }
     if ((status = check_parameters(m, m->d, m->dt))) goto done;
     set_step_arrays(m);
 done:
-    free(rest), free(mass), free(fixed), free(si), free(sj), free(length), free(k);
+    free(rest), free(mass), free(fixed), free(length), free(k);
     free(kappa), free(volume0);
     return status;
 }

@@ -7,8 +7,8 @@
        v <- (v + dt F / m) / (1 + dt d / m)                        damping taken implicitly
        x <- x + dt v                                               fixed nodes never move
 
-   Build: cc -O3 -march=native -fopenmp -c fpm_step.c (without -fopenmp: one thread; with
-   -DFPM_FLOAT32 the state and the model are float, the file stays float64).
+   Build: cc -O3 -march=native -fno-math-errno -fopenmp -c fpm_step.c (without -fopenmp: one
+   thread; with -DFPM_FLOAT32 the state and the model are float, the file stays float64).
 
    State arrays (positions x, velocities v, forces) hold 3 values per node, x y z, in node order:
    a vertex buffer as engines keep it. Every function returns FPM_OK (0) or an error code, and
@@ -32,7 +32,7 @@ typedef double fpm_real;
 #define FPM_MAGIC "FPMB"
 #define FPM_VERSION 1u
 #define FPM_HEADER_BYTES 104u
-#define FPM_THREAD_NODES 8192u
+#define FPM_THREAD_NODES 1024u
 
 enum fpm_status {
     FPM_OK = 0,
@@ -79,7 +79,9 @@ double fpm_stable_dt(const fpm_model *model);
    (FPM_ERR_UNSTABLE, FPM_ERR_VALUE) as the file's are. */
 int fpm_set_parameters(fpm_model *model, double d, double dt);
 /* Threads for the step: 0 = all OpenMP's on lattices of FPM_THREAD_NODES nodes or more, one on
-   smaller ones; n = n threads (1 without OpenMP). */
+   smaller ones; n = n threads (1 without OpenMP). The forces are summed in two fixed halves, so
+   the step's result is the same on any number of threads, and more than two share only the
+   per-node update. */
 int fpm_set_threads(fpm_model *model, int threads);
 /* The threads the step runs on (1 without OpenMP). */
 int fpm_thread_count(const fpm_model *model);
