@@ -26,6 +26,9 @@ with the engine's d in every load case.
 
 Part ``probe``: a probe at 1 kHz on the voxel organ (:func:`probe_part`).
 
+Part ``depth``: microseconds a step and the unseen presses' discrepancy at every depth, on the
+paper's cube and the voxel organ (:func:`depth_part`).
+
 Run: ``python -m bench native`` (about 4 minutes); ``BENCH_NATIVE_PARTS=damping`` for one part.
 """
 
@@ -76,30 +79,14 @@ def spec_runtime(
     start of families+volume, dt auto, d = 0.5 sqrt(E h m): the JSON export's arrays, built
     without an export."""
     from fpm import load_problem
-    from fpm.dynamics.stability import auto_time_step
-    from fpm.model.forces import cells
+    from fpm.fitting.step_budget import runtime_of
     from fpm.model.stiffness import continuum_start, model_stiffness
-    from fpm.runtime import Runtime
 
     problem = load_problem({**spec, "fpm": {"stiffness": "families+volume"}})
     stiffness = model_stiffness(problem, continuum_start(problem))
     e = problem.spec.material.youngs_modulus
-    rt = Runtime(
-        rest=problem.nodes,
-        masses=problem.solid.masses,
-        fixed=problem.fixed,
-        springs=problem.solid.springs.astype(np.int64),
-        rest_lengths=problem.rest_lengths,
-        stiffness=stiffness.springs,
-        hexahedra=problem.solid.elements(),
-        kappa=np.asarray(stiffness.volume, dtype=float),
-        rest_volumes=cells(problem).volume,
-        d=0.5 * float(np.sqrt(e * problem.h * problem.solid.masses.mean())),
-        dt=auto_time_step(problem, stiffness),
-        settle_tolerance=0.0,
-        backend=backend,
-        precision=precision,
-    )
+    d = 0.5 * float(np.sqrt(e * problem.h * problem.solid.masses.mean()))
+    rt = runtime_of(problem, stiffness, d, None, backend, precision)
     push = problem.load_cases[0].dense(problem.n_nodes)
     return rt, push
 
@@ -314,14 +301,79 @@ def probe_part() -> None:
         )
 
 
+DEPTH_CASES = (
+    {"name": "sideways", "forces": [{"at": [0.04444, 0.04444, 0.1], "vector": [0.5, 0, 0]}]},
+    {"name": "corner", "forces": [{"at": [0.1, 0.1, 0.1], "vector": [0, 0, -0.5]}]},
+)
+"""The cube's unseen presses for part ``depth``: sideways at the top and down on a corner."""
+
+
+def depth_part() -> None:
+    """Part ``depth``: the paper's Fig. 7 and Table 1 together. The paper's cube (material A,
+    the default model, two unseen presses :data:`DEPTH_CASES`) and the voxel organ at h = 7 mm
+    (its three unseen presses) calibrated with the defaults; then, at every depth of the
+    fitted model, the region step's microseconds (:meth:`fpm.runtime.Runtime.region`, the
+    slowest load case, :func:`fpm.fitting.step_budget.step_microseconds`: the native step)
+    and the unseen presses' relative discrepancy at that depth (their static equilibria
+    against the FEM reference)."""
+    import json
+
+    from bench.organ import ellipsoid_spec
+    from fpm import calibrate, load_problem, solve_fem
+    from fpm.fitting.damping.validation import validate
+    from fpm.fitting.step_budget import runtime_of, step_microseconds
+    from fpm.model.stiffness import model_stiffness, theta_of
+
+    cube = json.loads((ROOT / "examples/paper-material-a.json").read_text())
+    cube["fpm"] = {"stiffness": "families+volume"}
+    cube["validation_cases"] = list(DEPTH_CASES)
+    organ = ellipsoid_spec(0.007, validation=True)
+    print(f"{'lattice':>22} {'depth':>5} {'nodes':>6} {'us/step':>8} {'unseen %':>22}")
+    for name, spec in (("paper's cube", cube), ("voxel organ h 7 mm", organ)):
+        problem = load_problem(spec)
+        reference = solve_fem(problem)
+        result = calibrate(problem, reference=reference)
+        p = result.parameters
+        theta = theta_of(problem, p.k, p.stiffness, p.volume_stiffness)
+        whole = runtime_of(problem, model_stiffness(problem, theta), p.d, result.settle.dt)
+        cases = [(c.nodes, c.dense(problem.n_nodes)) for c in problem.all_cases]
+        for depth in range(1, p.full_depth + 1):
+            regions = [(whole.region(nodes, depth), f) for nodes, f in cases]
+            if depth > 1 and all(r.layers < depth - 1 for r, _ in regions):
+                break  # every list ended a layer ago: deeper is the same model
+            us = max(step_microseconds(r.runtime, r.forces(f)) for r, f in regions)
+            nodes = max(len(r.nodes) for r, _ in regions)
+            at = None if depth >= p.full_depth else depth
+            unseen = validate(problem, reference, theta, at, geometry=False).relative
+            print(f"{name:>22} {depth:>5} {nodes:>6,} {us:>8.1f} "
+                  f"{' / '.join(f'{u:.1f}' for u in unseen):>22}", flush=True)  # fmt: skip
+            results.record(
+                "native",
+                "depth",
+                lattice=name,
+                lattice_nodes=problem.n_nodes,
+                depth=depth,
+                full_depth=p.full_depth,
+                fitted_depth=p.depth,
+                region_nodes=nodes,
+                us_per_step=us,
+                unseen_relative=unseen,
+                worst_unseen=max(unseen),
+                backend=whole.backend_used,
+                load_average=os.getloadavg()[0],
+            )
+
+
 def main() -> None:
-    parts = os.environ.get("BENCH_NATIVE_PARTS", "steps,damping,probe").split(",")
+    parts = os.environ.get("BENCH_NATIVE_PARTS", "steps,damping,probe,depth").split(",")
     if "probe" in parts:
         probe_part()
     if "steps" in parts:
         steps_part()
     if "damping" in parts:
         damping_part()
+    if "depth" in parts:
+        depth_part()
 
 
 def steps_part() -> None:

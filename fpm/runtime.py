@@ -32,6 +32,11 @@ calibration's kernel; its ``parameters.engine`` block holds those of this step
 (``damping="engine"``, the default) and at the kernel's with ``damping="kernel"`` (or when an
 older export has no engine block).
 
+The paper's tunable speed (Sec. 3.1): :meth:`Runtime.region` is the runtime of one load's
+perturbed list up to a depth (every node beyond held at rest), so a step costs what the list
+holds, not the lattice; the export's ``parameters.depth`` is its default. Within the list it is
+the all-at-once step above; it rests where the calibration's kernel rests at that depth.
+
 This file is the recipe, in NumPy. :meth:`Runtime.step` runs it compiled where it can
 (``backend``, :mod:`fpm.native`): the C step of ``fpm/native/fpm_step.c``, compiled on first
 use with the system's C compiler, else the same arithmetic in numba, else this NumPy; in
@@ -137,6 +142,8 @@ class Runtime:
             (this recipe) or ``"auto"`` (the first that works); None: the environment's
             ``FPM_RUNTIME_BACKEND``, else ``"auto"``. ``backend_used`` says which ran.
         precision: ``"float64"``, or ``"float32"`` (the C step only: x and v are then float32).
+        depth: the export's penetration depth, layers (None: every layer), what
+            :meth:`region` cuts at unless told otherwise.
         x, v: (N, 3) positions (m) and velocities (m/s), the state :meth:`step` advances.
         steps: steps taken since the last :meth:`reset`.
         unbalanced: the largest |F_i| over the free nodes at the start of the last step, N.
@@ -161,6 +168,7 @@ class Runtime:
     shares: sp.csr_matrix | None = None
     backend: str | None = None
     precision: str = "float64"
+    depth: int | None = None
     backend_used: str = field(init=False, default="numpy")
     x: np.ndarray = field(init=False)
     v: np.ndarray = field(init=False)
@@ -261,6 +269,7 @@ class Runtime:
             shares=shares,
             backend=backend,
             precision=precision,
+            depth=None if p.get("depth") is None else int(p["depth"]),
         )
 
     @property
@@ -363,6 +372,58 @@ class Runtime:
         self.steps += 1
         return self.x
 
+    def region(self, nodes: np.ndarray, depth: int | str | None = "export") -> Region:
+        """The runtime of the perturbed list of ``nodes`` (K,) int, the loaded nodes (after
+        :meth:`applied`, the nodes its shares reach), up to ``depth`` layers (``"export"``:
+        the runtime's own :attr:`depth`; None: every layer the springs reach): those nodes free
+        (fixed nodes stay fixed), the nodes one spring or hexahedron beyond held at rest, the
+        rest of the lattice left out. Same d, dt, settle criteria, backend and precision."""
+        depth = self.depth if depth == "export" else depth
+        if isinstance(depth, str):
+            raise ValueError(f"depth: a number of layers, None or 'export', not {depth!r}")
+        n, (i, j) = self.n_nodes, self.springs.T
+        graph = sp.csr_matrix((np.ones(2 * len(i), bool), (np.r_[i, j], np.r_[j, i])), (n, n))
+        free = np.zeros(n, dtype=bool)
+        layer = np.unique(np.asarray(nodes, dtype=np.int64))
+        layer = layer[~self.fixed[layer]]
+        free[layer], layers = True, 0
+        while len(layer) and (depth is None or layers < depth):  # the paper's layers
+            reached = np.unique(graph[layer].indices)
+            layer = reached[~free[reached] & ~self.fixed[reached]]
+            free[layer] = True
+            layers += len(layer) > 0
+        springs = np.flatnonzero(free[self.springs].any(axis=1))
+        cells = (
+            np.flatnonzero(free[self.hexahedra].any(axis=1))
+            if len(self.hexahedra)
+            else np.zeros(0, int)
+        )
+        ends = [self.springs[springs].ravel(), self.hexahedra[cells].ravel()]
+        kept = np.unique(np.concatenate([*ends, np.flatnonzero(free)]))
+        local = np.full(n, -1, dtype=np.int64)
+        local[kept] = np.arange(len(kept))
+        runtime = Runtime(
+            rest=self.rest[kept],
+            masses=self.masses[kept],
+            fixed=~free[kept],
+            springs=local[self.springs[springs]],
+            rest_lengths=self.rest_lengths[springs],
+            stiffness=self.stiffness[springs],
+            hexahedra=local[self.hexahedra[cells]].reshape(-1, 8),
+            kappa=self.kappa[cells],
+            rest_volumes=self.rest_volumes[cells],
+            d=self.d,
+            dt=self.dt,
+            settle_tolerance=self.settle_tolerance,
+            settle_stiffness=self.settle_stiffness,
+            damping=self.damping,
+            gravity=self.gravity,
+            backend=self.backend_used,
+            precision=self.precision,
+            depth=None,
+        )
+        return Region(runtime, kept, layers)
+
     def run(self, forces: np.ndarray | None = None, max_steps: int = 100_000) -> int:
         """Step under constant ``forces`` until settled or ``max_steps``; the steps taken."""
         for n in range(1, max_steps + 1):
@@ -370,3 +431,30 @@ class Runtime:
             if self.settled:
                 return n
         return max_steps
+
+
+@dataclass
+class Region:
+    """A perturbed list as a runtime of its own (:meth:`Runtime.region`).
+
+    Attributes:
+        runtime: the list's nodes free, the ring beyond held at rest (its own numbering).
+        nodes: (M,) int64 the lattice's index of each of the runtime's nodes.
+        layers: the layers the list reached after the loaded one.
+    """
+
+    runtime: Runtime
+    nodes: np.ndarray
+    layers: int
+
+    def forces(self, forces: np.ndarray) -> np.ndarray:
+        """(M, 3) the region's share of the lattice's nodal ``forces`` (N, 3), N (a force on a
+        node outside the region is dropped: it would not move the list)."""
+        return np.asarray(forces).reshape(-1, 3)[self.nodes]
+
+    def positions(self, rest: np.ndarray) -> np.ndarray:
+        """(N, 3) the lattice's positions: ``rest`` (N, 3) with the region's nodes where its
+        runtime has them, m."""
+        x = np.array(rest, dtype=float)
+        x[self.nodes] = self.runtime.x
+        return x

@@ -79,6 +79,7 @@ from .result import (
     RunFacts,
     SettleFigures,
 )
+from .step_budget import budget_notes
 from .stiffness_stage import ChainResult, Progress, constrained_cost, run_chain
 from .verdict import judge
 
@@ -181,6 +182,7 @@ def finalize(
         d=float(d),
         depth=int(depth),
         full_depth=int(deepest),
+        step_budget=None if damping is None else damping.step_budget,
         h=problem.h,
         node_mass={
             "min": float(m.min()),
@@ -222,7 +224,8 @@ def finalize(
         + validation.notes
         + unseen_note(problem)
         + mode_notes(problem)
-        + field_notes,
+        + field_notes
+        + budget_notes(None if damping is None else damping.step_budget),
     )
     result.fit.verdict = judge(problem, result, theta, reference)
     return result

@@ -149,6 +149,21 @@ class Verdict(BaseModel):
     summary: str = Field(description="the verdict in one line, for a table or a page")
 
 
+class StepBudget(BaseModel):
+    """``fpm.step_budget_us``: the depth a frame budget allows (:mod:`fpm.fitting.step_budget`)."""
+
+    budget_us: float = Field(description="the budget asked for one step, microseconds")
+    depth: int = Field(description="the deepest depth whose region step meets it, layers")
+    met: bool = Field(description="whether it is met (False: even one layer is over it)")
+    microseconds: list[float] = Field(
+        description="per load case (fitted, then validation), a region step at that depth, µs"
+    )
+    nodes: int = Field(description="the largest region's nodes at that depth")
+    probed: dict[str, float] = Field(description="depth probed -> the slowest case's µs")
+    backend: str = Field(description="the runtime's backend that was timed (native, numba, numpy)")
+    machine: str = Field(description="the machine timed: processor and cores")
+
+
 class ModelParameters(BaseModel):
     """The fitted model: what an engine needs to run it (stiffness, damping, depth, the
     lattice's h and node masses, the per-cell field)."""
@@ -188,6 +203,12 @@ class ModelParameters(BaseModel):
     d: float = Field(description="nodal damping, N s/m: the fastest-settling at the spec's dt")
     depth: int = Field(description="penetration depth, layers")
     full_depth: int = Field(description="the deepest perturbed list, layers")
+    step_budget: StepBudget | None = Field(
+        None,
+        description="fpm.step_budget_us: the depth it allows and what was measured; absent "
+        "without a budget",
+        exclude_if=lambda v: v is None,
+    )
     h: float = Field(description="shortest spring rest length, m")
     node_mass: dict[str, float] = Field(description="lumped node masses: min, max, mean, total, kg")
     field: FieldFit | None = Field(
@@ -419,6 +440,7 @@ STORED_FORM: dict[str, tuple[str | None, str]] = {
     "max_steps": ("settle", "max_steps"),
     "depth": ("parameters", "depth"),
     "full_depth": ("parameters", "full_depth"),
+    "step_budget": ("parameters", "step_budget"),
     "cost": ("fit", "cost"),
     "static_cost": ("fit", "static_cost"),
     "relative_discrepancy": ("fit", "relative_discrepancy"),

@@ -233,3 +233,48 @@ def test_an_engine_applies_a_force_as_the_hat_fit_did():
     node = exported({**spec, "fpm": {"stiffness": "families+volume"}})[3]
     assert "load_shares" not in node
     np.testing.assert_array_equal(Runtime.from_export(node).applied(given), given)
+
+
+@pytest.mark.parametrize("depth", [2, 5])
+def test_a_region_rests_where_the_kernel_rests_at_its_depth(cube, depth):
+    """The paper's tunable speed: the runtime of one load's perturbed list up to ``depth``
+    layers holds only the list and the ring beyond it, and the kernel's static equilibrium at
+    that depth leaves no unbalanced force on the list's nodes (the nodes beyond it at rest in
+    both); stepped from rest, the region settles there."""
+    problem, theta, _, doc = cube
+    rt = Runtime.from_export(doc, backend="numpy")
+    forces = rt.load_case_forces(doc, 1)
+    loaded = np.flatnonzero(np.abs(forces).sum(axis=1))
+    region = rt.region(loaded, depth)
+    sub = region.runtime
+    assert region.layers == depth
+    assert len(region.nodes) < rt.n_nodes and len(sub.springs) < len(rt.springs)
+    eq = static_equilibrium(problem, k=theta, depth=depth, load_case=1, tolerance=1e-12)
+    moved = np.flatnonzero(np.abs(eq.displacements).sum(axis=1))
+    assert set(moved) <= set(region.nodes[~sub.fixed])
+    x = problem.nodes[region.nodes] + eq.displacements[region.nodes]
+    residual = sub.internal_forces(x) + region.forces(forces)
+    residual[sub.fixed] = 0.0
+    assert np.abs(residual).max() <= 1e-9 * np.abs(forces).max()
+    sub.settle_tolerance = 1e-10
+    sub.run(region.forces(forces), max_steps=20_000)
+    assert sub.settled
+    settled = region.positions(problem.nodes) - problem.nodes
+    scale = np.abs(eq.displacements).max()
+    assert np.abs(settled - eq.displacements).max() <= 1e-6 * scale
+
+
+def test_a_region_defaults_to_the_export_s_depth(cube):
+    """``parameters.depth`` of the export (here 30 layers, beyond the cube's 9: every layer) is
+    the region's unless told; a depth that is no number is refused."""
+    _, _, _, doc = cube
+    rt = Runtime.from_export(doc, backend="numpy")
+    assert rt.depth == 30
+    forces = rt.load_case_forces(doc, 0)
+    loaded = np.flatnonzero(np.abs(forces).sum(axis=1))
+    every = rt.region(loaded, None)
+    assert rt.region(loaded).layers == every.layers
+    assert len(every.nodes) == rt.n_nodes
+    assert len(rt.region(loaded, 1).nodes) < len(every.nodes)
+    with pytest.raises(ValueError, match="depth"):
+        rt.region(loaded, "auto")

@@ -31,6 +31,7 @@ from ..bounds import fit_depth, full_depth
 from ..cost import StaticCost
 from ..field import fit_field
 from ..reduced import ReducedBasis
+from ..step_budget import budget_depth
 from ..stiffness_stage import ChainResult, Progress
 from .depth import resolve_depth
 from .lockstep import Spread
@@ -69,6 +70,8 @@ class DampingStage:
             finalize).
         settle: each load case's settle stiffness, N/m, its runs settled on (the distance
             criterion, :mod:`fpm.dynamics.settle`); None: the force criterion.
+        step_budget: ``fpm.step_budget_us``: the depth its region step allows and what was
+            measured (:func:`fpm.fitting.step_budget.budget_depth`); None: no budget.
     """
 
     theta: list[float]
@@ -89,6 +92,7 @@ class DampingStage:
     field: dict[str, Any] | None = None
     validation: dict[str, Any] | None = None
     settle: list[float] | None = None
+    step_budget: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -184,6 +188,15 @@ def _fit_stage(
         )
     elif depth is None:
         depth = deepest
+    budget = None
+    if problem.spec.fpm.step_budget_us is not None:  # the deepest list the frame allows
+        if progress is not None:
+            progress({"phase": "step budget"})
+        at_theta = model_stiffness(problem, theta)
+        budget = budget_depth(
+            problem, at_theta, time_step(problem, at_theta), problem.spec.fpm.step_budget_us, depth
+        )
+        depth = budget["depth"]
     cost.solver.keep_only(depth)  # the depth probes' systems are not asked again
     checked = None if depth >= deepest else depth  # as finalize validates
     if checks and checked not in validating:
@@ -245,4 +258,5 @@ def _fit_stage(
         field=None if field is None else field.to_dict(),
         validation=validation,
         settle=plan.settle,
+        step_budget=budget,
     )

@@ -35,6 +35,15 @@ class FpmSettings(_Strict):
         "own response as a share of the case's relative discrepancy; larger trades realism "
         "for speed",
     )
+    step_budget_us: float | None = Field(
+        None,
+        gt=0,
+        description="a frame budget for one step, microseconds (two-stage): the depth is then "
+        "the deepest at most the fitted one whose region step (fpm.runtime's Runtime.region: "
+        "only the load's perturbed list moves) takes at most this on the calibrating machine, "
+        "in every load case; the result names the machine, the backend and the microseconds "
+        "measured, and its figures are at that depth. None (default): no budget",
+    )
     stiffness: StiffnessMode = Field(
         "families+volume",
         description="'families+volume' (the default where the lattice has cells with face "
