@@ -168,26 +168,35 @@ def damping_part() -> None:
     """Part ``damping`` (the module docstring)."""
     import json
 
+    from bench.organ import ellipsoid_spec
     from fpm import calibrate, load_problem
-    from fpm.dynamics.engine_damping import with_engine_damping
     from fpm.io.export import export
+
+    cube = json.loads((ROOT / "examples/paper-material-a.json").read_text())
+    cube["fpm"] = {"stiffness": "families+volume"}
+    for name, spec in (("paper's cube", cube), ("voxel organ h 7 mm", ellipsoid_spec(0.007))):
+        problem = load_problem(spec)
+        t0 = time.perf_counter()
+        result = calibrate(problem)
+        print(f"{name} calibrated in {time.perf_counter() - t0:.1f} s", flush=True)
+        doc = json.loads(export(problem, result.to_dict(), "json"))
+        settle_runs(name, doc)
+
+
+def settle_runs(name: str, doc: dict[str, Any]) -> None:
+    """Part ``damping``'s runs on one export ``doc``: each load case from rest until settled at
+    the fitted (kernel's) d and dt and at the engine's."""
+    from fpm.dynamics.engine_damping import with_engine_damping
     from fpm.runtime import Runtime
 
-    spec = json.loads((ROOT / "examples/paper-material-a.json").read_text())
-    spec["fpm"] = {"stiffness": "families+volume"}
-    problem = load_problem(spec)
-    t0 = time.perf_counter()
-    result = calibrate(problem)
-    print(f"cube calibrated in {time.perf_counter() - t0:.1f} s", flush=True)
-    doc = json.loads(export(problem, result.to_dict(), "json"))
-    kernel = Runtime.from_export(doc, backend="native")
+    kernel = Runtime.from_export(doc, backend="native", damping="kernel")
     engine, found = with_engine_damping(kernel)
     print(
         f"kernel d {kernel.d:.4g} N s/m at dt {kernel.dt * 1e3:.4g} ms; engine d {found.d:.4g} "
         f"at dt {found.dt * 1e3:.4g} ms (w {found.omega_min:.4g}..{found.omega_max:.4g} rad/s)"
     )
     print(
-        f"{'load case':>10} {'kernel d':>9} {'engine d':>9} {'ratio':>6} {'sim s':>13} {'apart':>8}"
+        f"{'load case':>20} {'kernel d':>9} {'engine d':>9} {'ratio':>6} {'sim s':>13} {'apart':>8}"
     )
     cap = int(doc["parameters"]["max_steps"]) * 20
     for j, case in enumerate(doc["load_cases"]):
@@ -198,13 +207,14 @@ def damping_part() -> None:
         u = np.abs(kernel.x - kernel.rest).max()
         apart = float(np.abs(engine.x - kernel.x).max() / u)
         print(
-            f"{case['name']:>10} {slow:>9,} {fast:>9,} {fast / slow:>6.2f} "
+            f"{case['name']:>20} {slow:>9,} {fast:>9,} {fast / slow:>6.2f} "
             f"{slow * kernel.dt:>6.3f}/{fast * engine.dt:<6.3f} {apart:>8.1e}",
             flush=True,
         )
         results.record(
             "native",
             "damping",
+            lattice=name,
             load_case=case["name"],
             kernel_d=kernel.d,
             kernel_dt=kernel.dt,

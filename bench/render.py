@@ -236,25 +236,25 @@ def native_page(document: dict[str, Any]) -> list[str]:
     ]
     cases = [r for r in document["records"] if r["part"] == "damping"]
     if cases:
-        first = cases[0]
         out += [
             "## The engine's damping",
             "",
-            "The paper's cube calibrated with the default model, its JSON export stepped by the "
-            "C step per load case from rest until settled (the export's criterion): at the "
-            f"fitted d = {sig(first['kernel_d'])} N s/m, dt = {1e3 * first['kernel_dt']:.4g} ms "
-            "(the calibration kernel's), and at `fpm.dynamics.engine_damping`'s d = "
-            f"{sig(first['engine_d'])} N s/m, dt = {1e3 * first['engine_dt']:.4g} ms (the "
-            "all-at-once step's).",
+            "The paper's cube and the voxel organ at h = 7 mm calibrated with the default "
+            "model, each JSON export stepped by the C step per load case from rest until "
+            "settled (the export's criterion): at the fitted d and dt (the calibration "
+            "kernel's) and at `fpm.dynamics.engine_damping`'s (the all-at-once step's).",
             "",
-            "| load case | steps, fitted d | steps, engine d | ratio | simulated s, fitted / "
-            "engine | settled states apart |",
-            "|---|---|---|---|---|---|",
+            "| lattice | load case | fitted d, N s/m / dt, ms | engine d / dt | steps, fitted "
+            "d | steps, engine d | ratio | simulated s, fitted / engine | settled states apart |",
+            "|---|---|---|---|---|---|---|---|---|",
         ]
         for r in cases:
             out.append(
-                f"| {r['load_case']} | {r['kernel_steps']:,} | {r['engine_steps']:,} | "
-                f"{r['steps_ratio']:.2f} | {r['kernel_steps'] * r['kernel_dt']:.3f} / "
+                f"| {r['lattice']} | {r['load_case']} | "
+                f"{sig(r['kernel_d'])} / {1e3 * r['kernel_dt']:.4g} | "
+                f"{sig(r['engine_d'])} / {1e3 * r['engine_dt']:.4g} | {r['kernel_steps']:,} | "
+                f"{r['engine_steps']:,} | {r['steps_ratio']:.2f} | "
+                f"{r['kernel_steps'] * r['kernel_dt']:.3f} / "
                 f"{r['engine_steps'] * r['engine_dt']:.3f} | {r['settled_apart']:.1e} |"
             )
         out += [
