@@ -15,7 +15,7 @@ every integer unsigned 32-bit unless said, every real float64, all little-endian
     28      n_case_entries     u32         E loaded nodes over all load cases
     32      n_share_rows       u32         R nodes with load shares (loads "hat"; else 0)
     36      n_share_entries    u32         Z
-    40      d                  f64         nodal damping, N s/m
+    40      d                  f64         nodal damping, N s/m (see below)
     48      dt                 f64         time step, s
     56      settle_tolerance   f64         the export's parameters.settle_tolerance
     64      settle_stiffness   f64         N/m, parameters.settle_stiffness
@@ -41,6 +41,9 @@ every integer unsigned 32-bit unless said, every real float64, all little-endian
             crc32              u32         CRC-32 (zlib's) of every byte before it
 
 The springs and hexahedra are structure-of-arrays: a reader takes each array with one copy.
+``d`` and ``dt`` are those of the step a reader runs (every node at once): the JSON's
+``parameters.engine`` where it has that block, else its ``parameters.d`` and ``dt`` (the
+calibration kernel's).
 """
 
 from __future__ import annotations
@@ -145,6 +148,7 @@ def from_json(doc: dict[str, Any]) -> bytes:
     if doc.get("format") != "fpm-lattice":
         raise ExportError("not an FPM lattice export (its format is not 'fpm-lattice')")
     p = doc["parameters"]
+    step = p.get("engine") or p  # the all-at-once step's d and dt where the export has them
     springs = np.asarray(doc["springs"], dtype=float).reshape(-1, 4)
     volume = doc.get("volume_stiffness") is not None
     table = doc.get("load_shares")
@@ -161,8 +165,8 @@ def from_json(doc: dict[str, Any]) -> bytes:
         hexahedra=np.asarray(doc["hexahedra"] if volume else [], dtype=np.int64),
         volume_stiffness=np.asarray(doc["volume_stiffness"] if volume else [], dtype=float),
         rest_volumes=np.asarray(doc["rest_volumes"] if volume else [], dtype=float),
-        d=float(p["d"]),
-        dt=float(p["dt"]),
+        d=float(step["d"]),
+        dt=float(step["dt"]),
         settle_tolerance=float(p["settle_tolerance"]),
         settle_stiffness=float(p.get("settle_stiffness", 0.0)),
         gravity=[float(g) for g in p.get("gravity", (0.0, 0.0, 0.0))],

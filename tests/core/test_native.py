@@ -179,7 +179,8 @@ def test_the_cli_writes_the_binary_export_the_c_example_reads(tmp_path):
     )  # fmt: skip
     run = subprocess.run([str(program), "box.fpmb"], cwd=tmp_path, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
-    rt = Runtime.from_export(doc, backend="numpy", damping="kernel")  # the binary's d and dt
+    rt = Runtime.from_export(doc, backend="numpy")  # the binary's d and dt: the engine's
+    assert doc["parameters"]["engine"] and rt.damping == "engine"
     loaded = rt.run(rt.load_case_forces(doc, 0))
     largest = np.abs(rt.x - rt.rest).max()
     released = rt.run(None)
