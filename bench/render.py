@@ -5,7 +5,7 @@
 - ``docs/bench/index.md`` (every results file: which runs, when, on which commit and machine)
   and one page per results file (``docs/bench/NAME.md``) with its tables;
 - the blocks between ``<!-- bench:NAME -->`` and ``<!-- /bench:NAME -->`` in ``README.md`` and
-  in the manual's pages (``docs/**/*.md``), NAME one of :data:`SNIPPETS` (the README's three
+  in the manual's pages (``docs/**/*.md``), NAME one of :data:`SNIPPETS` (the README's
   headline figures are ``headline``).
 
 ``python -m bench.render --check`` writes nothing and exits 1, naming the files, when a
@@ -410,7 +410,7 @@ def index_page(documents: dict[str, dict[str, Any]]) -> list[str]:
 
 
 def headline(documents: dict[str, dict[str, Any]], bench_dir: str) -> list[str]:
-    """The README's four headline figures, each with where and when it was measured."""
+    """The README's headline figures, each with where and when it was measured."""
     out = []
     rep = documents.get("replicate", {}).get("records", [])
     a = next((r for r in rep if r["material"] == "A" and r["method"] == "two-stage"), None)
@@ -484,6 +484,23 @@ def headline(documents: dict[str, dict[str, Any]], bench_dir: str) -> list[str]:
             f"settle_distance; the settled cost {two['settled_over_static_cost']:.3f} times the "
             "static one). "
             f"[Spread page]({bench_dir}/spread.md), measured {run['date'][:10]}."
+        )
+    steps = [r for r in documents.get("native", {}).get("records", []) if r["part"] == "steps"]
+    goals = [r for r in steps if r["goal_steps_per_s"] is not None]
+    if goals:
+        run = documents["native"]["runs"]["steps"]
+        rates = ", ".join(
+            f"{r['native_steps_per_s']:,.0f} steps/s at {r['nodes']:,} nodes (goal "
+            f"{r['goal_steps_per_s']:,.0f})"
+            for r in goals
+        )
+        out.append(
+            f"- **Real time where engines run it**: the fitted model's native step "
+            f"(`fpm/native/fpm_step.c`, springs and the volume term, forces changing every "
+            f"step) runs {rates} on a shared {run['machine']['cores']}-core machine, "
+            f"{min(r['speedup_over_numpy'] for r in steps):.0f}-"
+            f"{max(r['speedup_over_numpy'] for r in steps):.0f} times the NumPy runtime. "
+            f"[Native page]({bench_dir}/native.md), measured {run['date'][:10]}."
         )
     return out
 
