@@ -299,7 +299,8 @@ class CaseSpread:
         self.first_cpu: float | None = None
 
     def _after(self) -> str:
-        """The span the next hand-out's tasks wait for (:meth:`worker.jobs._Span.add_around`)."""
+        """The span the next hand-out's tasks wait for
+        (:meth:`worker.jobs.spans._Span.add_around`)."""
         return "damping" if not self.rounds else f"damping ({len(self.rounds)})"
 
     def separate(
