@@ -33,7 +33,9 @@ from service.limits import dump_spec
 from store import graph, keys, records, scratch
 from store.status import CalibrationStatus
 from store.timeline import critical_path, numbered
-from worker.spread import VALIDATION_SPAN, CaseSpread, local_threads, task_digest, to_stored
+from worker.idle import local_threads
+from worker.spread import CaseSpread
+from worker.tasks import VALIDATION_SPAN, task_digest, to_stored
 
 SMALL = json.loads(
     (Path(__file__).resolve().parents[2] / "examples" / "small-box.json").read_text()

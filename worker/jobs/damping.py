@@ -18,7 +18,8 @@ from store.status import Phase
 
 from .. import memory
 from ..problems import problem_of
-from ..spread import CaseSpread, ValidationTask, save_targets
+from ..spread import CaseSpread, ValidationTask
+from ..tasks import save_targets
 from .basis import _stored_basis
 from .chains import _chains_and_reference
 from .context import Canceled, _calibration_job
