@@ -38,6 +38,7 @@ from rq import get_current_job
 from rq.job import Job
 
 from fpm.dynamics.simulation import FpmModel
+from fpm.fitting.damping.choice import DampingPlan
 from fpm.fitting.damping.lockstep import (
     CaseRun,
     Outcome,
@@ -48,7 +49,6 @@ from fpm.fitting.damping.lockstep import (
     run_case,
     run_request,
 )
-from fpm.fitting.damping.search import DampingPlan
 from fpm.fitting.damping.validation import Validation, validate
 from fpm.model.stiffness import model_stiffness
 from store import graph, keys, records, scratch

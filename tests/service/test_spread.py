@@ -25,8 +25,8 @@ from rq.serializers import JSONSerializer
 import fpm
 from fpm.dynamics.voigt import SETTLED
 from fpm.fitting.calibration import calibrate
+from fpm.fitting.damping.choice import DampingPlan
 from fpm.fitting.damping.lockstep import LATER, CaseRun, Request, Verdict, _Runs, lockstep_cpu
-from fpm.fitting.damping.search import DampingPlan
 from fpm.fitting.damping.settings import CHUNK, CONFIRM, CONFIRM_PRUNE
 from fpm.model.stiffness import model_stiffness
 from service.limits import dump_spec

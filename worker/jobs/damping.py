@@ -10,7 +10,7 @@ import numpy as np
 from fpm.fitting.calibration import (
     fit_stage,
 )
-from fpm.fitting.damping.search import DampingPlan
+from fpm.fitting.damping.choice import DampingPlan
 from fpm.fitting.damping.unsettled import DampingError, Hopeless
 from fpm.fitting.damping.validation import validate
 from store import records, scratch
