@@ -1,8 +1,8 @@
 """The frog's organs (:mod:`bench.anatomy`): real anatomy the project did not draw, meshed as a
 user's pipeline would.
 
-The frog tissue segmentation (a 500 x 470 x 136 label volume, voxels 1 x 1 x 1.5
-mm; the tissue numbering of VTK's frog examples, :data:`FROG_TISSUES`) that ships inside
+Their source: the frog tissue segmentation (a 500 x 470 x 136 label volume, voxels 1 x 1 x
+1.5 mm; the tissue numbering of VTK's frog examples, :data:`FROG_TISSUES`) that ships inside
 pyvista's wheel as ``pyvista/examples/frog_tissues.vti``. :func:`frog_labels` fetches the wheel
 with pip (``pip download --no-deps``, into :data:`CACHE`) and reads the file with
 :func:`read_vti`, a reader of VTK XML ImageData with inline zlib-compressed binary data, so
