@@ -35,7 +35,8 @@ from typing import Any
 
 import numpy as np
 
-from bench.bench_calibration import SPEC_A, load, organ_settings, run_organ, verdict
+from bench.bench_calibration import SPEC_A, load, verdict
+from bench.organ_calibration import organ_settings, run_organ
 
 GRID_POINTS = 30
 GRID_RATIO_GOAL = 1.05

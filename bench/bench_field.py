@@ -36,8 +36,9 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from bench.bench_calibration import load, run_organ, verdict
+from bench.bench_calibration import load, verdict
 from bench.bench_volume import cube_spec, fmt, timed_fit
+from bench.organ_calibration import run_organ
 
 CUBE_FIT_GOAL, CUBE_VALIDATION_GOAL = 2.0, 4.0
 ORGAN_VALIDATION_GOAL = 8.0
@@ -223,7 +224,7 @@ def cube_training_sets() -> list[tuple[str, bool, str]]:
 
 
 def organ_5mm() -> list[tuple[str, bool, str]]:
-    from bench.bench_calibration import organ_settings
+    from bench.organ_calibration import organ_settings
 
     print(f"\n2. The organ at h = 5 mm with three validation cases ({load()})")
     spec, _ = organ_settings(0.005, "field")

@@ -21,7 +21,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench.bench_calibration import load, organ_settings, verdict
+from bench.bench_calibration import load, verdict
+from bench.organ_calibration import organ_settings
 
 ROOT = Path(__file__).resolve().parents[1]
 WORKERS = (1, 2, 3)

@@ -1,6 +1,6 @@
 """Choosing d two ways at one fitted stiffness: the damping stage's choice (the spectral
 prediction from the slowest modes, then the lockstep search:
-:func:`fpm.fitting.damping.search.fit_damping`) against a plain golden-section search over
+:func:`fpm.fitting.damping.choice.fit_damping`) against a plain golden-section search over
 log d in :func:`fpm.fitting.bounds.damping_bounds` that simulates every trial d's load cases to
 settle (the same settle criterion, cap, stiffness, depth and dt as the stage's runs).
 
@@ -60,7 +60,7 @@ def _setting(
 
 def stage_choice(problem: Any, result: Any, fem: Any) -> dict[str, Any]:
     """The stage's own choice of d, timed from the prediction on."""
-    from fpm.fitting.damping.search import fit_damping
+    from fpm.fitting.damping.choice import fit_damping
 
     solver, stiffness, depth, static, reference = _setting(problem, result, fem)
     t0 = time.perf_counter()

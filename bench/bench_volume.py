@@ -39,7 +39,8 @@ from typing import Any
 import numpy as np
 
 from bench import results
-from bench.bench_calibration import ROOT, SPEC_A, load, run_organ, verdict
+from bench.bench_calibration import ROOT, SPEC_A, load, verdict
+from bench.organ_calibration import run_organ
 
 CUBE_GOALS = {0.45: 5.0, 0.49: 10.0}
 """nu -> mean relative discrepancy goal, % (families+volume; 0.45 against the 2x2x2 reference)."""

@@ -44,7 +44,7 @@ def critical_path(spans: list[dict[str, Any]]) -> tuple[float, list[str]]:
 def numbered(spans: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """``spans`` with the names of distinct tasks that share one told apart: the second task
     named ``n`` becomes ``n [2]``, and so on (two requests at one d whose caps differ, say, are
-    named alike by :func:`worker.spread.task_name`; the critical path goes by names). A task
+    named alike by :func:`worker.tasks.task_name`; the critical path goes by names). A task
     run twice keeps its name."""
     tasks: dict[str, list[str]] = {}  # name -> the digests of the tasks so named, in order
     for span in spans:

@@ -8,8 +8,8 @@ requests the search can name before it needs them
 (:meth:`fpm.fitting.damping.lockstep._Runs.prefetch`). The damping job hands them out as tasks:
 
 - each task (the plan, and one load case at d with its cap, or one d's request) is stored
-  under its digest (:func:`task_digest`) and, when other workers are idle, enqueued as a
-  :func:`damping_case` job on the priority queue (requests ahead only then);
+  under its digest (:func:`worker.tasks.task_digest`) and, when other workers are idle,
+  enqueued as a :func:`damping_case` job on the priority queue (requests ahead only then);
 - whoever claims a task first runs it (:func:`store.scratch.claim_case`): a case job on another
   worker, or the damping job itself on its own threads, which leaves the first tasks to the
   free workers (one each), takes the others in order, and after GRACE seconds any nobody
@@ -25,11 +25,7 @@ whoever runs which task, with 1, 2 or 3 workers, and after a worker died.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import os
-import socket
-import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -37,231 +33,46 @@ from dataclasses import asdict
 from functools import partial
 from typing import Any
 
-import numpy as np
 from redis import Redis
-from rq import Worker, get_current_job
+from rq import get_current_job
 from rq.job import Job
-from rq.worker import BaseWorker
 
 from fpm.dynamics.simulation import FpmModel
+from fpm.fitting.damping.choice import DampingPlan
 from fpm.fitting.damping.lockstep import (
-    LATER,
     CaseRun,
     Outcome,
     Request,
     Resolve,
     Verdict,
-    lockstep_cpu,
     named_later,
     run_case,
     run_request,
 )
-from fpm.fitting.damping.search import DampingPlan
 from fpm.fitting.damping.validation import Validation, validate
 from fpm.model.stiffness import model_stiffness
 from store import graph, keys, records, scratch
 from store.text import escape
 
 from . import memory
+from .idle import free_workers, local_threads
 from .problems import problem_of, reference_of
+from .tasks import (
+    from_stored,
+    request_of,
+    run_task,
+    targets_of,
+    task_clock,
+    task_digest,
+    task_name,
+    validation_stored,
+)
 
 POLL = 0.1
 """Seconds between the damping job's looks at its tasks."""
 GRACE = 2.0
 """Seconds the damping job leaves the tasks it handed out to the free workers before it runs
 any of them that nobody has claimed (a free worker claims one within a fraction of that)."""
-
-
-def task_digest(spec: dict[str, Any]) -> str:
-    """The digest of a task's spec (floats by their exact hexadecimal form; ``after``, the
-    span it waits for, left out)."""
-
-    def exact(x: Any) -> Any:
-        if isinstance(x, float):
-            return x.hex()
-        if isinstance(x, dict):
-            return {k: exact(v) for k, v in x.items() if k != "after"}
-        return [exact(v) for v in x] if isinstance(x, list | tuple) else x
-
-    return hashlib.sha256(json.dumps(exact(spec), sort_keys=True).encode()).hexdigest()[:32]
-
-
-VALIDATION_SPAN = "damping: validation cases"
-
-
-def task_name(spec: dict[str, Any]) -> str:
-    """A task's span name (:mod:`store.timeline`)."""
-    if "validation" in spec:
-        return VALIDATION_SPAN
-    if "request" in spec:
-        r = spec["request"]
-        within = {None: "", LATER: " within their total"}.get(r["budget"], f" within {r['budget']}")
-        within += " within the margin's caps" if r.get("caps_later") else ""
-        return f"damping: d {r['d']:.6g}{within}, all load cases"
-    return f"damping: d {spec['d']:.6g}, load case {spec['load_case']}"
-
-
-def to_stored(runs: list[CaseRun], verdict: Verdict | None) -> tuple[dict[str, Any], bytes]:
-    """A task's runs (and a request's verdict) as stored: (JSON dict, the runs' float64
-    displacements one after the other)."""
-    data: dict[str, Any] = {"runs": [], "verdict": None if verdict is None else asdict(verdict)}
-    for run in runs:
-        entry = {k: v for k, v in asdict(run).items() if k != "displacements"}
-        data["runs"].append({**entry, "shape": list(run.displacements.shape)})
-    raw = b"".join(np.ascontiguousarray(r.displacements, dtype=np.float64).tobytes() for r in runs)
-    return data, raw
-
-
-def from_stored(data: dict[str, Any], raw: bytes) -> tuple[list[CaseRun], Verdict | None]:
-    """The stored runs and verdict back (:func:`to_stored`)."""
-    runs, offset = [], 0
-    for entry in data["runs"]:
-        shape = tuple(entry["shape"])
-        size = int(np.prod(shape)) * 8
-        displacements = np.frombuffer(raw[offset : offset + size], dtype=np.float64)
-        offset += size
-        runs.append(
-            CaseRun(
-                steps=int(entry["steps"]),
-                state=int(entry["state"]),
-                settle_force=float(entry["settle_force"]),
-                history=[(int(n), float(r)) for n, r in entry["history"]],
-                displacements=displacements.reshape(shape).copy(),
-            )
-        )
-    v = data["verdict"]
-    verdict = None if v is None else Verdict(v["outcome"], v["total"], tuple(v["predicted"]))
-    return runs, verdict
-
-
-def validation_stored(found: Validation) -> tuple[dict[str, Any], bytes]:
-    """A validation task's answer as stored (JSON; no arrays)."""
-    return {"validation": asdict(found)}, b""
-
-
-def save_targets(redis: Redis, calibration_id: str, targets: np.ndarray) -> None:
-    """The static equilibria (L, N, 3) m the d search's runs settle towards, for its tasks."""
-    data = np.ascontiguousarray(targets, dtype=np.float64)
-    scratch.save_damping_targets(redis, calibration_id, list(data.shape), data.tobytes())
-
-
-def targets_of(redis: Redis, calibration_id: str, spec: dict[str, Any]) -> np.ndarray | None:
-    """A task's static equilibria (L, N, 3) m (None: its runs do not settle towards them).
-
-    Raises:
-        LookupError: the plan names them but they are gone."""
-    if spec.get("distance") is None:
-        return None
-    found = scratch.get_damping_targets(redis, calibration_id)
-    if found is None:
-        raise LookupError("the damping stage's static equilibria are gone")
-    shape, raw = found
-    return np.frombuffer(raw, dtype=np.float64).reshape(shape).copy()
-
-
-def request_of(spec: dict[str, Any]) -> Request:
-    """A request task's :class:`Request` (JSON lists back to tuples)."""
-    r = spec["request"]
-    return Request(**{**r, "caps": tuple(r["caps"])})
-
-
-class Holding:
-    """Holds a task's claim while its run goes on: renewed every third of its expiry on a
-    thread of its own (a holder killed with its process stops renewing)."""
-
-    def __init__(self, redis: Redis, calibration_id: str, task: str, holder: str):
-        self.args = (redis, calibration_id, task, holder)
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=self._renew, daemon=True)
-
-    def _renew(self) -> None:
-        while not self.stop.wait(scratch.CLAIM_TTL / 3):
-            scratch.renew_claim(*self.args)
-
-    def __enter__(self) -> Holding:
-        self.thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop.set()
-        self.thread.join()
-
-
-def run_task(
-    redis: Redis,
-    calibration_id: str,
-    task: str,
-    spec: dict[str, Any],
-    holder: str,
-    worker: str,
-    run: Callable[[], Any],
-    clock: Callable[[], float] = time.process_time,
-    stored: Callable[[Any], tuple[dict[str, Any], bytes]] = lambda found: to_stored(*found),
-) -> float:
-    """Run a claimed task (``run``: its runs and a request's verdict, or what ``stored``
-    turns into its stored form), store them and its span, its CPU seconds by ``clock`` (a
-    case job's horse: its process; the damping job's thread that ran it: :func:`task_clock`);
-    return those CPU seconds. On an error give the claim up (another may take the task) and
-    raise."""
-    start, cpu = time.time(), clock()
-    try:
-        with Holding(redis, calibration_id, task, holder):
-            found = run()
-    except BaseException:
-        scratch.release_claim(redis, calibration_id, task)
-        raise
-    scratch.save_case_run(redis, calibration_id, task, *stored(found))
-    cpu = clock() - cpu
-    span = {
-        "name": task_name(spec),
-        "worker": worker,
-        "start": start,
-        "end": time.time(),
-        "cpu": cpu,
-        "after": [spec["after"]],
-        "task": task,
-    }
-    scratch.add_span(redis, calibration_id, span)
-    return cpu
-
-
-def task_clock() -> float:
-    """A task run on one of the damping job's threads: that thread's CPU seconds and those
-    its lockstep runs spent on the pool's threads
-    (:func:`fpm.fitting.damping.lockstep.lockstep_cpu`)."""
-    return time.thread_time() + lockstep_cpu()
-
-
-def free_workers(redis: Redis, me: str, calibration_id: str) -> int:
-    """Workers other than ``me`` that are idle now, or about to be: their job is one of this
-    calibration's tasks, whose runs the damping job is done waiting for (RQ marks a worker
-    idle a moment after its job has stored its runs)."""
-    prefix = keys.case_job_id(calibration_id, "")
-    return sum(
-        1 for w in Worker.all(connection=redis)
-        if w.name != me
-        and (w.get_state() == "idle" or (w.get_current_job_id() or "").startswith(prefix))
-    )  # fmt: skip
-
-
-def here(workers: Sequence[BaseWorker], me: str, host: str | None, state: str) -> int:
-    """Of ``workers``, those other than ``me`` on the host ``host`` in ``state`` ("busy":
-    running a job, "idle")."""
-    return sum(1 for w in workers if w.name != me and w.hostname == host and w.get_state() == state)
-
-
-def local_threads(redis: Redis, me: str, cores: int, queued: int = 0) -> int:
-    """How many tasks the damping job runs at once on its own threads: this host's ``cores``
-    less the other workers here that are busy, and the idle ones that will take one of the
-    ``queued`` tasks (enqueued as jobs, not claimed yet), at least one. Two tasks sharing the
-    core another worker leaves would each take twice as long (the kernel shares the cores
-    between worker processes evenly, not between threads), so the d whose runs they are would
-    be known later and every span on the critical path would stretch; in turn they end as
-    soon as the work allows. Workers on other hosts (or in containers of their own) are not
-    counted."""
-    workers, host = Worker.all(connection=redis), socket.gethostname()
-    taking = min(here(workers, me, host, "idle"), queued)
-    return max(1, cores - here(workers, me, host, "busy") - taking)
 
 
 class CaseSpread:
@@ -299,7 +110,8 @@ class CaseSpread:
         self.first_cpu: float | None = None
 
     def _after(self) -> str:
-        """The span the next hand-out's tasks wait for (:meth:`worker.jobs._Span.add_around`)."""
+        """The span the next hand-out's tasks wait for
+        (:meth:`worker.jobs.spans._Span.add_around`)."""
         return "damping" if not self.rounds else f"damping ({len(self.rounds)})"
 
     def separate(

@@ -29,7 +29,7 @@ beside it, and their entry points and results are importable from here (``__all_
 - :mod:`fpm.fitting.stiffness_stage`: stage 1, :func:`run_chain` (:class:`ChainResult`), the
   linear estimate, the polish;
 - :mod:`fpm.fitting.damping.stage`: stage 2, :func:`fit_stage` (:class:`DampingStage`): the
-  polish, :func:`resolve_depth`, d (:func:`fpm.fitting.damping.search.fit_damping`);
+  polish, :func:`resolve_depth`, d (:func:`fpm.fitting.damping.choice.fit_damping`);
 - :mod:`fpm.fitting.damping.validation`: the reference's parts, its units check
   (:func:`check_reference`), the last dynamic run's check, the validation cases;
 - below them: cost, annealing, reduced (families+volume's stage 1), damping (the d search).

@@ -92,7 +92,7 @@ class JobSpan(BaseModel):
     after: list[str] = Field([], description="the jobs it waited for (names)")
     task: str | None = Field(
         None,
-        description="a damping-stage task's digest (worker.spread.task_digest): two spans "
+        description="a damping-stage task's digest (worker.tasks.task_digest): two spans "
         "with one digest are one task run twice; None for the other jobs",
     )
 

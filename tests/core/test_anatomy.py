@@ -1,6 +1,7 @@
-"""The organ meshes of bench/anatomy.py: the VTK ImageData reader against files written here,
-the generated organs against their analytic shapes, their presses in the command line's form,
-and the frog's organs (with the ``anatomy`` extra) as valid tetrahedra."""
+"""The organ meshes of bench/anatomy.py (with bench/frog.py and bench/shapes.py): the VTK
+ImageData reader against files written here, the generated organs against their analytic
+shapes, their presses in the command line's form, and the frog's organs (with the ``anatomy``
+extra) as valid tetrahedra."""
 
 from __future__ import annotations
 
@@ -15,8 +16,9 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from bench import anatomy
-from bench.anatomy import ORGANS, check, read_vti
+from bench import anatomy, frog, shapes
+from bench.anatomy import ORGANS, check
+from bench.frog import read_vti
 from fpm.io.meshes.selectors import parse_force, parse_selector
 from fpm.model.tetrahedra import TetMesh, closest_on_triangles
 
@@ -87,9 +89,9 @@ def test_the_reader_reads_floats_and_refuses_what_it_cannot_read():
 
 
 GENERATED = {
-    "lobe": (anatomy.lobe, {"cells": (64, 32, 8)}),
-    "hollow": (anatomy.hollow, {"cells": 28, "layers": 4}),
-    "limb": (anatomy.limb, {"cells": (88, 12)}),
+    "lobe": (shapes.lobe, {"cells": (64, 32, 8)}),
+    "hollow": (shapes.hollow, {"cells": 28, "layers": 4}),
+    "limb": (shapes.limb, {"cells": (88, 12)}),
 }
 
 
@@ -100,7 +102,7 @@ def test_a_generated_organ_is_valid_and_converges_to_its_analytic_volume(name):
     found = check(organ.mesh())
     assert found.valid, found
     assert found.sheets == (2 if name == "hollow" else 1)  # a closed wall: outside and inside
-    assert max(found.extent) == pytest.approx(anatomy.LONGEST, rel=1e-3)
+    assert max(found.extent) == pytest.approx(shapes.LONGEST, rel=1e-3)
     error = abs(found.volume / organ.volume - 1)
     fine = build(**finer)
     tets = fine.get_cells_type("tetra")
@@ -115,18 +117,18 @@ def test_a_generated_organ_is_valid_and_converges_to_its_analytic_volume(name):
 
 def test_the_thin_parts_are_as_thin_as_they_are_said_to_be():
     lobe = np.asarray(ORGANS["lobe"].mesh().points)
-    rim = lobe[np.isclose(lobe[:, 0], anatomy.LONGEST)]
-    assert np.ptp(rim[:, 2]) == pytest.approx(0.01 * anatomy.LONGEST)  # 1% of its length
+    rim = lobe[np.isclose(lobe[:, 0], shapes.LONGEST)]
+    assert np.ptp(rim[:, 2]) == pytest.approx(0.01 * shapes.LONGEST)  # 1% of its length
     root = lobe[np.isclose(lobe[:, 0], 0)]
-    assert np.ptp(root[:, 2]) == pytest.approx(0.3 * anatomy.LONGEST)
+    assert np.ptp(root[:, 2]) == pytest.approx(0.3 * shapes.LONGEST)
     limb = np.asarray(ORGANS["limb"].mesh().points)
-    tip = limb[np.isclose(limb[:, 0], anatomy.LONGEST)]
-    assert np.ptp(tip[:, 1]) == pytest.approx(2 * anatomy.LIMB["tip"])
+    tip = limb[np.isclose(limb[:, 0], shapes.LONGEST)]
+    assert np.ptp(tip[:, 1]) == pytest.approx(2 * shapes.LIMB["tip"])
     hollow = ORGANS["hollow"].mesh()
     radial = np.asarray(hollow.points) - np.ptp(hollow.points, axis=0) / 2
-    axes = np.asarray(anatomy.HOLLOW["semi_axes"])
+    axes = np.asarray(shapes.HOLLOW["semi_axes"])
     r = np.linalg.norm(radial / axes, axis=1)
-    assert r.max() == pytest.approx(1) and r.min() == pytest.approx(1 - anatomy.HOLLOW["wall"])
+    assert r.max() == pytest.approx(1) and r.min() == pytest.approx(1 - shapes.HOLLOW["wall"])
 
 
 def test_the_check_finds_flat_inverted_loose_and_non_manifold_tetrahedra():
@@ -182,9 +184,9 @@ needs_anatomy = pytest.mark.skipif(
 
 def frog_labels():
     try:
-        return anatomy.frog_labels()
+        return frog.frog_labels()
     except subprocess.CalledProcessError as e:  # no package registry reachable
-        pytest.skip(f"pip could not fetch {anatomy.PYVISTA}: {e}")
+        pytest.skip(f"pip could not fetch {frog.PYVISTA}: {e}")
 
 
 def test_the_frog_label_volume_is_the_segmentation_pyvista_ships():
@@ -192,7 +194,7 @@ def test_the_frog_label_volume_is_the_segmentation_pyvista_ships():
     assert labels.shape == (500, 470, 136) and labels.dtype == np.uint8
     np.testing.assert_allclose(spacing, [1e-3, 1e-3, 1.5e-3])
     counts = np.bincount(labels.ravel(), minlength=30)
-    organs = {name: counts[k] for k, name in anatomy.FROG_TISSUES.items()}
+    organs = {name: counts[k] for k, name in frog.FROG_TISSUES.items()}
     assert max(organs, key=organs.get) == "skeleton"  # type: ignore[arg-type]
     assert sorted(organs, key=organs.get)[-2:-1] == ["liver"]  # type: ignore[arg-type]
     assert counts[16:].sum() < 1e-3 * counts[1:16].sum()  # the other labels are specks
@@ -203,20 +205,20 @@ def test_the_frog_label_volume_is_the_segmentation_pyvista_ships():
 @needs_anatomy
 def test_a_frog_organ_becomes_valid_tetrahedra_at_the_size_asked(tmp_path: Path, monkeypatch):
     frog_labels()  # the wheel from the user's cache; the mesh made afresh here
-    monkeypatch.setattr(anatomy, "CACHE", tmp_path)
-    mesh = anatomy.frog_organ("kidney", step=4)
+    monkeypatch.setattr(frog, "CACHE", tmp_path)
+    mesh = frog.frog_organ("kidney", step=4)
     found = check(mesh)
     assert found.valid and found.sheets == 1, found
-    assert max(found.extent) == pytest.approx(anatomy.LONGEST)
-    labels, spacing = anatomy.frog_labels()
-    kidney = anatomy.largest_piece(labels == 8)
-    scale = anatomy.LONGEST / (np.ptp(np.argwhere(kidney) * spacing, axis=0) + spacing).max()
+    assert max(found.extent) == pytest.approx(shapes.LONGEST)
+    labels, spacing = frog.frog_labels()
+    kidney = frog.largest_piece(labels == 8)
+    scale = shapes.LONGEST / (np.ptp(np.argwhere(kidney) * spacing, axis=0) + spacing).max()
     voxels = kidney.sum() * np.prod(spacing) * scale**3
     # the smoothing (1.5 mm) fills the clefts narrower than it and rounds the mesh, which is
     # then scaled by its own extent: within 20% of the voxels' volume
     assert found.volume == pytest.approx(voxels, rel=0.2)
     assert (tmp_path / "frog-kidney-s4.vtu").exists()
-    again = anatomy.frog_organ("kidney", step=4)
+    again = frog.frog_organ("kidney", step=4)
     np.testing.assert_array_equal(again.get_cells_type("tetra"), mesh.get_cells_type("tetra"))
 
 

@@ -19,10 +19,11 @@ from fpm.dynamics.simulation import FpmModel
 from fpm.dynamics.stability import auto_time_step
 from fpm.dynamics.voigt import SETTLED
 from fpm.fitting.damping import search as damping
+from fpm.fitting.damping.choice import fit_damping as find_damping
+from fpm.fitting.damping.critical import critical_damping
 from fpm.fitting.damping.lockstep import CaseRun, _piece, _Runs, predicted_steps
 from fpm.fitting.damping.margin import smallest_settling
-from fpm.fitting.damping.search import _search, _unsure, critical_damping, fastest_damping
-from fpm.fitting.damping.search import fit_damping as find_damping
+from fpm.fitting.damping.search import _search, _unsure, fastest_damping
 from fpm.fitting.damping.settings import CHUNK, MARGIN_PROBES, PREDICT_AFTER, SAMPLE, TRUST
 from fpm.fitting.damping.unsettled import (
     DampingError,

@@ -1,6 +1,7 @@
 """The repository reads as what the code is, not how it was reached: no text names a sitting, a
-round, a session, a branch or an issue number; no page of the manual is longer than one idea
-needs; and every file, page, anchor and section that a page or a docstring cites exists.
+round, a session, a branch or an issue number; no page of the manual and no Python module is
+longer than one idea needs; the product never imports the research; and every file, page,
+anchor and section that a page or a docstring cites exists.
 
 The research record (what was tried, measured and rejected) lives in dated design notes under
 docs/notes/; they are held to the same rules. mkdocs --strict checks the manual's own links and
@@ -11,6 +12,7 @@ and comments of every Python file.
 
 from __future__ import annotations
 
+import ast
 import io
 import re
 import subprocess
@@ -27,6 +29,13 @@ HERE = Path(__file__).resolve().relative_to(ROOT).as_posix()
 
 MAX_WORDS = 2500
 """The most words (``wc -w``) a page under docs/ may have: one idea, said shortly."""
+MAX_LINES = 600
+"""The most lines (``wc -l``) a Python module of ours may have: one idea, in modules of its own."""
+CODE = ("fpm", "worker", "service", "client", "fpmcal", "bench", "research", "store", "stack",
+        "manual")  # fmt: skip
+"""The packages whose modules are held to MAX_LINES."""
+PRODUCT = ("fpm", "worker", "service", "client", "fpmcal", "bench", "store", "stack")
+"""The packages of the product: research (the studies behind the notes) sits beside them."""
 
 ORDINALS = (
     "first|second|third|fourth|fifth|sixth|seventh|eighth|ninth|tenth|eleventh|twelfth|"
@@ -345,3 +354,56 @@ def test_the_citation_checks_find_what_is_stale(tmp_path):
     assert slugify("Caps: `fpm.max_steps`") == "caps-fpmmax_steps"
     assert cited_file("README.md", "fpm/io/meshes.py") is None
     assert cited_file("README.md", "fpm/io/meshes/") is not None
+
+
+# ----------------------------------------------------------------------------- modules
+
+
+def modules(package: str) -> list[Path]:
+    """The Python modules of ``package`` (a folder at the repository's root)."""
+    return sorted(p for p in (ROOT / package).rglob("*.py") if "__pycache__" not in p.parts)
+
+
+def test_no_module_is_longer_than_one_idea_needs():
+    long = {
+        p.relative_to(ROOT).as_posix(): n
+        for package in CODE
+        for p in modules(package)
+        if (n := p.read_text(encoding="utf-8").count("\n")) > MAX_LINES
+    }
+    assert long == {}, f"modules over {MAX_LINES} lines (split them: one idea a module): {long}"
+
+
+def imported(path: Path) -> set[str]:
+    """The top-level names of the modules ``path`` imports, lazy imports in functions included
+    (a relative import is its own package's, never another's)."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            names.update(a.name.split(".")[0] for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+            names.add(node.module.split(".")[0])
+    return names
+
+
+def test_the_product_never_imports_the_research():
+    found = [
+        p.relative_to(ROOT).as_posix()
+        for package in PRODUCT
+        for p in modules(package)
+        if "research" in imported(p)
+    ]
+    assert found == [], (
+        "product modules that import research (it may import them, not back):\n" + "\n".join(found)
+    )
+
+
+def test_the_module_checks_find_what_they_look_for(tmp_path):
+    """The checks above on planted modules: a lazy import of research, a relative one."""
+    lazy = tmp_path / "lazy.py"
+    lazy.write_text("def f():\n    from research import graded\n")
+    relative = tmp_path / "relative.py"
+    relative.write_text("from .research import x\nimport researchers\n")
+    assert "research" in imported(lazy)
+    assert "research" not in imported(relative)
+    assert len(modules("research")) > 0

@@ -1,5 +1,5 @@
 """A calibration whose damping stage failed leaves its FEM reference and its chains stored
-(worker/jobs.py: the reference by its FEM hash, the chains by the identity of their fit,
+(worker/jobs/: the reference by its FEM hash, the chains by the identity of their fit,
 store.hashing.stiffness_hash), and a calibration of the same fit submitted after it (the spec
 with another damping setting, or the same spec again) resumes from them: no FEM job, no
 annealing."""
@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-import worker.jobs as jobs
+import worker.jobs.chains as chain_jobs
 from store import keys, records, scratch
 from store.hashing import stiffness_hash
 
@@ -35,7 +35,7 @@ def test_a_failed_damping_stage_keeps_the_reference_and_the_chains_for_a_retry(
     def no_annealing(*args: Any, **kwargs: Any) -> None:
         raise AssertionError("the chains should have been reused")
 
-    monkeypatch.setattr(jobs, "run_chain", no_annealing)
+    monkeypatch.setattr(chain_jobs, "run_chain", no_annealing)
     retry = api.post("/v1/calibrations", json=small_spec).json()  # max_steps as the example's
     assert retry["id"] != failed["id"] and retry["fem_cached"] is True
     run_workers()

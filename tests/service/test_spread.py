@@ -25,15 +25,17 @@ from rq.serializers import JSONSerializer
 import fpm
 from fpm.dynamics.voigt import SETTLED
 from fpm.fitting.calibration import calibrate
+from fpm.fitting.damping.choice import DampingPlan
 from fpm.fitting.damping.lockstep import LATER, CaseRun, Request, Verdict, _Runs, lockstep_cpu
-from fpm.fitting.damping.search import DampingPlan
 from fpm.fitting.damping.settings import CHUNK, CONFIRM, CONFIRM_PRUNE
 from fpm.model.stiffness import model_stiffness
 from service.limits import dump_spec
 from store import graph, keys, records, scratch
 from store.status import CalibrationStatus
 from store.timeline import critical_path, numbered
-from worker.spread import VALIDATION_SPAN, CaseSpread, local_threads, task_digest, to_stored
+from worker.idle import local_threads
+from worker.spread import CaseSpread
+from worker.tasks import VALIDATION_SPAN, task_digest, to_stored
 
 SMALL = json.loads(
     (Path(__file__).resolve().parents[2] / "examples" / "small-box.json").read_text()

@@ -7,7 +7,7 @@ import pytest
 
 from client.cli import show_calibration
 from client.progress import render
-from fpmcal.cli import _Bar
+from fpmcal.progress import _Bar
 from store.status import Phase, calibration_stages
 
 

@@ -22,7 +22,8 @@ from service.limits import dump_spec
 from store import graph, keys, records
 from store.hashing import fem_hash, spec_hash
 from store.status import CalibrationStatus
-from worker import jobs as worker_jobs
+from worker.jobs import basis as basis_job
+from worker.jobs import chains as chain_jobs
 
 pytestmark = pytest.mark.redis
 
@@ -169,7 +170,7 @@ def test_families_volume_builds_its_reduced_basis_once_beside_the_fem(
         chains[1]: (keys.CHAIN_JOB, sorted([fem, basis])),
     }
     built: list[str] = []
-    for module in (worker_jobs, stiffness_stage, damping_stage):
+    for module in (basis_job, stiffness_stage, damping_stage):
 
         def counted(problem, real=module.first_basis, name=module.__name__):
             built.append(name)
@@ -177,18 +178,18 @@ def test_families_volume_builds_its_reduced_basis_once_beside_the_fem(
 
         monkeypatch.setattr(module, "first_basis", counted)
     given = []
-    real_run_chain = worker_jobs.run_chain
+    real_run_chain = chain_jobs.run_chain
 
     def recording_run_chain(problem, reference, chain, **kw):
         given.append(kw["basis"])
         return real_run_chain(problem, reference, chain, **kw)
 
-    monkeypatch.setattr(worker_jobs, "run_chain", recording_run_chain)
+    monkeypatch.setattr(chain_jobs, "run_chain", recording_run_chain)
     run_workers()
     monkeypatch.undo()
     done = records.get_calibration(redis, record.id)
     assert done.status == CalibrationStatus.SUCCEEDED, done.error
-    assert built == ["worker.jobs"] and len(given) == 2 and None not in given
+    assert built == ["worker.jobs.basis"] and len(given) == 2 and None not in given
     expected = calibrate(fpm.load_problem(small_spec))
     for name in ("stiffness", "volume_stiffness", "d", "d_min", "depth", "cost", "static_cost",
                  "relative_discrepancy", "settle_steps", "evaluations"):  # fmt: skip
@@ -326,7 +327,7 @@ def test_chain_of_a_dead_worker_is_retried_and_resumes(
     # Count the cost evaluations the retried chain really makes (two-stage chains evaluate
     # static equilibria).
     evaluations = []
-    real_run_chain = worker_jobs.run_chain
+    real_run_chain = chain_jobs.run_chain
 
     def counting_run_chain(problem, reference, chain, **kw):
         calls = [0]
@@ -342,7 +343,7 @@ def test_chain_of_a_dead_worker_is_retried_and_resumes(
         evaluations.append(calls[0])
         return result
 
-    monkeypatch.setattr(worker_jobs, "run_chain", counting_run_chain)
+    monkeypatch.setattr(chain_jobs, "run_chain", counting_run_chain)
     run_workers()
     done = records.get_calibration(redis, record.id)
     assert done.status == CalibrationStatus.SUCCEEDED, done.error

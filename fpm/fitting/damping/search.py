@@ -1,6 +1,7 @@
 """Choosing d: the nodal damping that settles fastest at the fitted stiffness (docs/physics.md).
 
-:func:`fit_damping` chooses it (the prediction, then :func:`fastest_damping`'s search).
+:func:`fpm.fitting.damping.choice.fit_damping` chooses it (the prediction, then
+:func:`fastest_damping`'s search).
 
 A settled FPM state does not depend on d; d only decides how fast, and whether, a run settles
 at the spec's dt. So once the stiffness is fitted, d is chosen for the real-time loop: the value
@@ -22,13 +23,14 @@ fastest d sits near that edge and below it runs diverge or creep) starts from th
 estimate of that edge: a probe at the edge, and 12% below it only if the edge settles.
 
 Without a prediction (a lattice at rest that is a mechanism, e.g. 'axis' springs), from two
-critical-damping estimates (:func:`critical_damping`): critical damping of a mode with nodal
-damping d I and lumped masses M is d = 2 omega (u^T M u) / (u^T u), and Rayleigh's quotient of
-a shape u that loads f hold, omega^2 = f.u / (u^T M u), estimates omega. Two shapes bracket the
-slow motion a load excites: the static deflection u0 = K^-1 f and the deflection under its own
-inertia, u1 = K^-1 M u0 (one step of inverse iteration). The search starts from the two and
-their geometric mean and walks and refines as above; the margin comes from the d already tried
-(their steps, or the predictions they were dropped on) and then by walking down and bisecting.
+critical-damping estimates (:mod:`fpm.fitting.damping.critical`): critical damping of a mode
+with nodal damping d I and lumped masses M is d = 2 omega (u^T M u) / (u^T u), and Rayleigh's
+quotient of a shape u that loads f hold, omega^2 = f.u / (u^T M u), estimates omega. Two shapes
+bracket the slow motion a load excites: the static deflection u0 = K^-1 f and the deflection
+under its own inertia, u1 = K^-1 M u0 (one step of inverse iteration). The search starts from
+the two and their geometric mean and walks and refines as above; the margin comes from the d
+already tried (their steps, or the predictions they were dropped on) and then by walking down
+and bisecting.
 
 Runs (:mod:`fpm.fitting.damping.lockstep`) advance in pieces of ``chunk`` steps
 (:class:`fpm.dynamics.simulation.DynamicRun`), all load cases
@@ -46,25 +48,19 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from ...dynamics.eigen import Modes
-from ...dynamics.equilibrium import StaticSolver
-from ...dynamics.modes import Prediction, predict_damping, total_steps
+from ...dynamics.modes import Prediction, total_steps
 from ...dynamics.reduced_step import StepModel
-from ...dynamics.settle import by_distance, case_distances, nominal_distance
 from ...dynamics.simulation import DynamicRun
 from ...dynamics.stability import time_step
-from ...dynamics.step_caps import FALLBACK_STEPS, SCHEMA_MAX_STEPS, auto_max_steps
+from ...dynamics.step_caps import FALLBACK_STEPS, SCHEMA_MAX_STEPS
 from ...dynamics.voigt import SETTLED
-from ...fem.linear_solver import NegativeCurvature, SingularStiffnessError
 from ...model.forces import Stiffness
 from ...model.problem import Problem
-from ..bounds import damping_bounds
-from ..diagnosis import SMALL_STRAIN
 from .lockstep import (
     CaseRun,
     Request,
@@ -120,49 +116,6 @@ class DampingFit:
         return int(sum(self.steps))
 
 
-@dataclass(frozen=True)
-class DampingPlan:
-    """What one dynamic run of the d search needs besides d and its cap (JSON-able): the
-    stiffness theta (N/m; kappa Pa) the model is built from (:func:`model_stiffness`), the
-    depth, the time step dt (s), whether a stiffness field replaced theta's model (its
-    runs are not handed to other processes), each load case's settle stiffness (N/m, the
-    distance criterion of :mod:`fpm.dynamics.settle`; None: the force criterion), and each
-    load case's settle distance where the runs settle on the target criterion (None: they do
-    not; the static equilibria they settle towards travel beside the plan:
-    :func:`fit_damping`'s ``static``)."""
-
-    theta: list[float]
-    depth: int
-    dt: float
-    field: bool = False
-    settle: list[float] | None = None
-    distance: list[float] | None = None
-
-
-def critical_damping(
-    problem: Problem, displacements: np.ndarray, loads: np.ndarray | None = None
-) -> float:
-    """Critical damping estimate, N s/m, from shapes (L, N, 3) held by ``loads`` (L, N, 3), N
-    (None: each load case's forces, so the shapes are static displacements).
-
-    The geometric mean over load cases of ``2 omega (u^T M u) / (u^T u)`` with Rayleigh's
-    ``omega^2 = f.u / (u^T M u)``.
-    """
-    m = problem.solid.masses
-    estimates = []
-    for j, case in enumerate(problem.load_cases):
-        u = displacements[j]
-        f = case.dense(problem.n_nodes) if loads is None else loads[j]
-        mu2 = float(np.einsum("n,ni,ni->", m, u, u))
-        u2 = float(np.einsum("ni,ni->", u, u))
-        work = float(np.einsum("ni,ni->", f, u))
-        if mu2 > 0 and work > 0:
-            estimates.append(2 * math.sqrt(work / mu2) * mu2 / u2)
-    if not estimates:
-        raise ValueError("no load case moves: cannot estimate the damping")
-    return float(np.exp(np.mean(np.log(estimates))))
-
-
 def fastest_damping(
     problem: Problem,
     stiffness: Stiffness | np.ndarray,
@@ -193,8 +146,8 @@ def fastest_damping(
         depth: penetration depth (None = every layer).
         bounds: (low, high) for d, N s/m.
         guesses: two estimates of d to start from when there is no ``prediction`` (e.g.
-            :func:`critical_damping` of the static and of the inertia-loaded shapes; equal
-            when only one is known), clipped into the bounds.
+            :func:`fpm.fitting.damping.critical.critical_damping` of the static and of the
+            inertia-loaded shapes; equal when only one is known), clipped into the bounds.
         progress: called with {"d", "total_steps"} after each d tried.
         prediction: the fastest d predicted from the modes (:mod:`fpm.dynamics.modes`): the
             search starts there and confirms it.
@@ -535,125 +488,3 @@ def _next_point(tried: list[float], y_best: float, settings: DampingSettings) ->
     if abs(wide) < 2 * math.log(settings.resolution):
         return None
     return y_best + GOLDEN * wide
-
-
-def damping_guesses(
-    problem: Problem,
-    solver: StaticSolver,
-    stiffness: Stiffness,
-    depth: int,
-    static: np.ndarray,
-) -> tuple[float, float]:
-    """Two critical-damping estimates, N s/m (:func:`critical_damping`): from the static shapes
-    ``static`` (L, N, 3), and from the shapes their inertia deflects the linear lattice into
-    (one inverse iteration); the first twice when the lattice at rest is not held (an 'axis'
-    lattice is a mechanism there)."""
-    upper = critical_damping(problem, static)
-    masses = problem.solid.masses[None, :, None]
-    try:
-        inertia = np.stack(
-            [
-                solver.linear_response(j, stiffness, depth, masses[0] * static[j])
-                for j in range(len(problem.load_cases))
-            ]
-        )
-        return critical_damping(problem, inertia, masses * static), upper
-    except (SingularStiffnessError, NegativeCurvature):
-        return upper, upper
-
-
-def fit_damping(
-    problem: Problem,
-    solver: StaticSolver,
-    stiffness: Stiffness,
-    depth: int,
-    static: np.ndarray,
-    dt: float,
-    progress: Any = None,
-    plan: DampingPlan | None = None,
-    spread: Callable[[DampingPlan, np.ndarray | None], Spread | None] | None = None,
-    reference: np.ndarray | None = None,
-    modes: dict[bytes, Modes] | None = None,
-    settings: DampingSettings = DEFAULT,
-) -> tuple[DampingFit, DampingPlan]:
-    """The fastest-settling d at (``stiffness``, ``depth``, ``dt`` s), from ``static`` (L, N,
-    3) the static equilibria, m, ``reference`` (L, N, 3) the reference's displacements at the
-    lattice nodes, m (the settle distances 'auto' read: :func:`fpm.dynamics.settle.case_distances`;
-    None: the nominal distance), and ``plan`` (None: made of ``stiffness``' parameters) with
-    each case's settle stiffness: the distance criterion's (:mod:`fpm.dynamics.settle`) read
-    from the modes of the prediction, or None for the force criterion (the spec names a
-    settle_tolerance, or there are no modes). The search of
-    :func:`fpm.fitting.damping.search.fastest_damping`
-    started at the d the lattice's slowest modes predict
-    (:func:`fpm.dynamics.modes.predict_damping`), with fpm.max_steps 'auto' taken from the
-    steps predicted there (:func:`fpm.dynamics.modes.auto_max_steps`). Where the lattice at
-    rest has no modes to predict from (a mechanism, e.g. 'axis' springs) or no d settles in
-    the reduced steps, from the two critical-damping estimates of :func:`damping_guesses`,
-    'auto' then being FALLBACK_STEPS. ``spread``: given the plan and the static equilibria its
-    runs settle towards (the target criterion; None: not), runs the search's runs over
-    other processes (:func:`fastest_damping`); ``modes``: the slowest
-    modes already found (:class:`fpm.dynamics.modes_ahead.ModesAhead`). Returns the fit and the
-    plan its runs followed."""
-    bounds = damping_bounds(problem)
-    asked = problem.spec.fpm.max_steps
-    why = strain_notes(problem, static, reference)
-    if plan is None:
-        plan = DampingPlan([float(t) for t in stiffness.parameters()], int(depth), dt)
-    distance = None
-    if by_distance(problem.spec):  # the target criterion: the runs settle towards static
-        distance = case_distances(problem.spec, static, reference)
-    try:
-        prediction, models = predict_damping(
-            problem, solver, stiffness, depth, dt, bounds, static, distances=distance,
-            modes=modes,
-        )  # fmt: skip
-    except (ValueError, SingularStiffnessError, NegativeCurvature, np.linalg.LinAlgError):
-        guesses = damping_guesses(problem, solver, stiffness, depth, static)
-        cap = FALLBACK_STEPS if asked == "auto" else int(asked)
-        fit = fastest_damping(
-            problem, stiffness, depth, bounds, guesses, dt=dt, progress=progress, max_steps=cap,
-            auto=asked == "auto", spread=None if spread is None else spread(plan, None), why=why,
-            settings=settings,
-        )  # fmt: skip
-        return fit, plan
-    targets = None
-    if distance is not None:
-        each = [nominal_distance(problem.spec) * m.mode_stiffness for m in models]
-        plan = replace(plan, settle=each, distance=distance)
-        targets = static
-    cap = auto_max_steps(prediction.steps) if asked == "auto" else int(asked)
-    fit = fastest_damping(
-        problem, stiffness, depth, bounds, (prediction.d, prediction.d), dt=dt,
-        progress=progress, prediction=prediction, models=models, max_steps=cap,
-        auto=asked == "auto", spread=None if spread is None else spread(plan, targets),
-        settle=plan.settle, targets=targets, distances=plan.distance, why=why,
-        settings=settings,
-    )  # fmt: skip
-    return fit, plan
-
-
-def strain_notes(problem: Problem, static: np.ndarray, reference: np.ndarray | None) -> list[str]:
-    """Per load case, how far its loads take the solid, for a case that cannot settle: the
-    largest spring strain |l / L - 1| of its static equilibrium ``static`` (L, N, 3) m and the
-    largest displacement of the reference ``reference`` (L, N, 3) m (None: not said) as a
-    share of the solid's smallest bounding-box extent."""
-    springs, rest = problem.solid.springs, problem.rest_lengths
-    extents = np.ptp(problem.nodes, axis=0)
-    extent = float(extents[extents > 0].min())
-    notes = []
-    for j, u in enumerate(static):
-        x = problem.nodes + u
-        strain = float(
-            np.abs(np.linalg.norm(x[springs[:, 1]] - x[springs[:, 0]], axis=1) / rest - 1).max()
-        )
-        note = f"its static equilibrium strains a spring by {100 * strain:.0f}%"
-        if reference is not None:
-            moved = float(np.linalg.norm(reference[j], axis=1).max()) / extent
-            note += (
-                f", and the FEM moves a node by {100 * moved:.0f}% of the solid's smallest "
-                f"extent ({extent:.3g} m)"
-            )
-            if moved > SMALL_STRAIN:
-                note += ", far outside the small strain its linear reference assumes"
-        notes.append(note)
-    return notes

@@ -7,7 +7,7 @@ polished on static equilibria), depth 'auto' resolved
 (:func:`fpm.fitting.damping.depth.resolve_depth`; the paper method's finalize uses it too), the
 validation cases started beside the stage (:func:`fpm.fitting.damping.validation.validate`),
 with ``fpm.stiffness: "field"`` the per-cell field at that depth
-(:func:`fpm.fitting.field.fit_field`), then d (:func:`fpm.fitting.damping.search.fit_damping`,
+(:func:`fpm.fitting.field.fit_field`), then d (:func:`fpm.fitting.damping.choice.fit_damping`,
 N s/m, at the dt of theta or of the field) and the final check of its runs
 (:func:`fpm.fitting.damping.validation.final_run`). Its result, :class:`DampingStage`, is
 JSON-able: the runs of the fastest d are the calibration's last dynamic run.
@@ -33,10 +33,10 @@ from ..field import fit_field
 from ..reduced import ReducedBasis
 from ..step_budget import budget_depth
 from ..stiffness_stage import ChainResult, Progress
+from .choice import DampingPlan, fit_damping
 from .depth import resolve_depth
 from .lockstep import Spread
 from .polish import chain_to_polish, polish_stiffness
-from .search import DampingPlan, fit_damping
 from .settings import DEFAULT, DampingSettings
 from .validation import FinalRun, Validation, final_run, reference_displacements, validate
 
@@ -126,7 +126,7 @@ def fit_stage(
     (:func:`fpm.fitting.damping.polish.polish_stiffness`) from the best chain's state on
     ``basis``, the calibration's first basis (built there when None: the same bits).
 
-    ``spread``: given the :class:`~fpm.fitting.damping.search.DampingPlan` (what a run needs
+    ``spread``: given the :class:`~fpm.fitting.damping.choice.DampingPlan` (what a run needs
     besides d and its caps) and the static equilibria (L, N, 3) m its runs settle towards
     (None: none), the :class:`~fpm.fitting.damping.lockstep.Spread` that runs the predicted d's
     load cases and the d tried next over other processes (None: here); the worker hands them
