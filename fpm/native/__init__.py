@@ -12,7 +12,9 @@ works; the default, or the environment variable ``FPM_RUNTIME_BACKEND``). Enviro
 
 The library is compiled with ``-O3 -march=native -ffp-contract=off`` (no fused multiply-add:
 the float64 step is then the NumPy recipe's arithmetic, summed in another order),
-``-fno-math-errno`` (so that square roots vectorise) and ``-fopenmp`` when the compiler has it.
+``-fno-math-errno -fno-trapping-math`` (so that square roots vectorise and a block's lanes past
+its end may be computed and dropped: the values are the same) and ``-fopenmp`` when the compiler
+has it.
 """
 
 from __future__ import annotations
@@ -36,8 +38,9 @@ HERE = Path(__file__).resolve().parent
 SOURCE, HEADER = HERE / "fpm_step.c", HERE / "fpm_step.h"
 BACKENDS = ("auto", "native", "numba", "numpy")
 FLAGS = [
-    "-std=c99", "-O3", "-march=native", "-ffp-contract=off", "-fno-math-errno", "-fPIC", "-shared"
-]
+    "-std=c99", "-O3", "-march=native", "-ffp-contract=off", "-fno-math-errno",
+    "-fno-trapping-math", "-fPIC", "-shared",
+]  # fmt: skip
 """Compiler flags; ``-fopenmp`` is tried first, then without it (one thread)."""
 PRECISIONS = {"float64": np.float64, "float32": np.float32}
 

@@ -7,8 +7,8 @@
        v <- (v + dt F / m) / (1 + dt d / m)                        damping taken implicitly
        x <- x + dt v                                               fixed nodes never move
 
-   Build: cc -O3 -march=native -fno-math-errno -fopenmp -c fpm_step.c (without -fopenmp: one
-   thread; with -DFPM_FLOAT32 the state and the model are float, the file stays float64).
+   Build: cc -O3 -march=native -fno-math-errno -fno-trapping-math -fopenmp -c fpm_step.c
+   (without -fopenmp: one thread; with -DFPM_FLOAT32 the state and the model are float, the file stays float64).
 
    State arrays (positions x, velocities v, forces) hold 3 values per node, x y z, in node order:
    a vertex buffer as engines keep it. Every function returns FPM_OK (0) or an error code, and
