@@ -497,7 +497,10 @@ def headline(documents: dict[str, dict[str, Any]], bench_dir: str) -> list[str]:
         out.append(
             f"- **Real time where engines run it**: the fitted model's native step "
             f"(`fpm/native/fpm_step.c`, springs and the volume term, forces changing every "
-            f"step) runs {rates} on a shared {run['machine']['cores']}-core machine, "
+            f"step) runs {rates} on a shared {run['machine']['cores']}-core machine in "
+            f"float64 ("
+            + " / ".join(f"{r['float32_steps_per_s']:,.0f}" for r in goals)
+            + " in float32, an option that keeps the equilibrium within 1e-4), "
             f"{min(r['speedup_over_numpy'] for r in steps):.0f}-"
             f"{max(r['speedup_over_numpy'] for r in steps):.0f} times the NumPy runtime. "
             f"[Native page]({bench_dir}/native.md), measured {run['date'][:10]}."
