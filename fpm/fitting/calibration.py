@@ -225,10 +225,23 @@ def finalize(
         + unseen_note(problem)
         + mode_notes(problem)
         + field_notes
-        + budget_notes(None if damping is None else damping.step_budget),
+        + budget_notes(None if damping is None else damping.step_budget)
+        + unfitted_notes(damping),
     )
     result.fit.verdict = judge(problem, result, theta, reference)
     return result
+
+
+def unfitted_notes(damping: DampingStage | None) -> list[str]:
+    """The warning of a damping stage that fitted no d (:attr:`DampingStage.unfitted`)."""
+    if damping is None or damping.unfitted is None:
+        return []
+    return [
+        f"damping not fitted: {damping.unfitted}. The stiffness and every figure stand (they "
+        f"are static equilibria); d = {damping.d:.4g} N s/m is the critical-damping estimate, "
+        "not checked by a run, so this kernel may settle slowly at it; an engine steps at the "
+        "export's engine d and dt (parameters.engine), which do not depend on it"
+    ]
 
 
 def _settle_figures(

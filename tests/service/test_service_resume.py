@@ -46,3 +46,27 @@ def test_a_failed_damping_stage_keeps_the_reference_and_the_chains_for_a_retry(
     # the reused chains are stage 1: the polish starts from their best state
     assert done["result"]["chains"][0]["x"] == kept[0]["x"]
     assert min(c["cost"] for c in done["result"]["chains"]) == best["cost"]
+
+
+def test_a_search_too_slow_with_the_product_s_own_cap_keeps_the_static_fit(
+    api, run_workers, small_spec, monkeypatch: pytest.MonkeyPatch
+):
+    """Through the workers: the damping job's search settles nothing with dt and max_steps
+    'auto' (the product's own choice): the calibration succeeds with the static fit, its
+    parameter set stored, a warning saying d is an estimate, the result unsettled."""
+    from fpm.fitting.damping import stage
+    from fpm.fitting.damping.unsettled import Hopeless
+
+    def too_slow(*args: Any, **kwargs: Any) -> None:
+        raise Hopeless("load case 'pull' does not settle: its decay predicts 4,000,000 steps")
+
+    monkeypatch.setattr(stage, "fit_damping", too_slow)
+    spec = {**small_spec, "fpm": {**small_spec["fpm"], "dt": "auto", "max_steps": "auto"}}
+    submitted = api.post("/v1/calibrations", json=spec).json()
+    run_workers()
+    done = api.get(f"/v1/calibrations/{submitted['id']}").json()
+    assert done["status"] == "succeeded", done.get("error")
+    assert done["parameter_set_id"] is not None
+    result = done["result"]
+    assert result["settled"] is False and result["damping_runs"] == 0
+    assert any(w.startswith("damping not fitted") and "4,000,000" in w for w in result["warnings"])

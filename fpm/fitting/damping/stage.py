@@ -34,10 +34,13 @@ from ..reduced import ReducedBasis
 from ..step_budget import budget_depth
 from ..stiffness_stage import ChainResult, Progress
 from .choice import DampingPlan, fit_damping
+from .critical import damping_guesses
 from .depth import resolve_depth
 from .lockstep import Spread
 from .polish import chain_to_polish, polish_stiffness
+from .search import DampingFit
 from .settings import DEFAULT, DampingSettings
+from .unsettled import DampingError
 from .validation import FinalRun, Validation, final_run, reference_displacements, validate
 
 
@@ -72,6 +75,10 @@ class DampingStage:
             criterion, :mod:`fpm.dynamics.settle`); None: the force criterion.
         step_budget: ``fpm.step_budget_us``: the depth its region step allows and what was
             measured (:func:`fpm.fitting.step_budget.budget_depth`); None: no budget.
+        unfitted: why no d was fitted (the search's :class:`DampingError`, with the dt and
+            cap the product chose: :func:`chose_the_runs`): d is then the critical-damping
+            estimate (:func:`unfitted_damping`), the final run the static equilibria,
+            unsettled; None: d was fitted.
     """
 
     theta: list[float]
@@ -93,6 +100,7 @@ class DampingStage:
     validation: dict[str, Any] | None = None
     settle: list[float] | None = None
     step_budget: dict[str, Any] | None = None
+    unfitted: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -100,6 +108,27 @@ class DampingStage:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> DampingStage:
         return cls(**{**data, "final": FinalRun(**data["final"])})
+
+
+def chose_the_runs(problem: Problem) -> bool:
+    """Whether the product chose the d search's dt and step cap (``fpm.dt`` and
+    ``fpm.max_steps`` both 'auto'): a dt stable by construction, so a search that settles
+    nothing was too slow, and the stage keeps the static fit (:func:`unfitted_damping`);
+    a dt or cap the spec names is the user's, and its failure says what to change."""
+    return problem.spec.fpm.dt == "auto" and problem.spec.fpm.max_steps == "auto"
+
+
+def unfitted_damping(
+    problem: Problem, solver: Any, stiffness: Any, depth: int, static: np.ndarray
+) -> DampingFit:
+    """Where the d search finds no d that settles (it raised :class:`DampingError`): the
+    stiffness fitted on static equilibria stands, so the stage keeps it and gives d as the
+    geometric mean of the two critical-damping estimates (:func:`damping_guesses`), with no run
+    behind it: the static equilibria ``static`` (L, N, 3) m stand for the settled states."""
+    low, high = damping_guesses(problem, solver, stiffness, depth, static)
+    d = float(np.sqrt(low * high))
+    cases = len(problem.load_cases)
+    return DampingFit(d, [0] * cases, static, d, d, 0, residuals=[0.0] * cases)
 
 
 Validator = Callable[[list[float], "int | None"], "Future[Validation]"]
@@ -216,22 +245,29 @@ def _fit_stage(
         progress({"phase": "damping"})
     dt = time_step(problem, stiffness)
     plan = DampingPlan([float(t) for t in theta], int(depth), dt, field is not None)
-    fit, plan = fit_damping(
-        problem,
-        cost.solver,
-        stiffness,
-        depth,
-        static,
-        dt,
-        None if progress is None else (lambda i: progress({"phase": "damping", **i})),
-        plan,
-        spread,
-        disp,
-        ahead.modes(depth),
-        settings,
-    )
+    unfitted = None
+    try:
+        fit, plan = fit_damping(
+            problem,
+            cost.solver,
+            stiffness,
+            depth,
+            static,
+            dt,
+            None if progress is None else (lambda i: progress({"phase": "damping", **i})),
+            plan,
+            spread,
+            disp,
+            ahead.modes(depth),
+            settings,
+        )
+    except DampingError as error:
+        if not chose_the_runs(problem):  # the spec's dt or cap: its advice is the answer
+            raise
+        unfitted = str(error)  # the product's own dt and cap: the static fit stands
+        fit = unfitted_damping(problem, cost.solver, stiffness, depth, static)
     final = final_run(
-        cost, stiffness, depth, fit.displacements, fit.steps, settled=True,
+        cost, stiffness, depth, fit.displacements, fit.steps, settled=unfitted is None,
         residuals=fit.residuals, settle=plan.settle, statics=static, distances=plan.distance,
         settings=settings,
     )  # fmt: skip
@@ -257,6 +293,7 @@ def _fit_stage(
         max_steps=fit.max_steps,
         field=None if field is None else field.to_dict(),
         validation=validation,
-        settle=plan.settle,
+        settle=None if unfitted else plan.settle,
         step_budget=budget,
+        unfitted=unfitted,
     )
