@@ -24,16 +24,20 @@ lattice at rest that is a mechanism, a d that does not settle in the reduced ste
 default before 'auto'."""
 SCHEMA_MAX_STEPS = 1_000_000
 """The schema's largest fpm.max_steps."""
+AUTO_CEILING = 100_000
+"""fpm.max_steps 'auto' is at most this: a lattice whose kernel needs more steps to settle a load
+case (100 s of simulated time at 1 ms) is not interactive, and a search for its fastest d would
+run for hours (the damping stage then keeps the static fit: fpm.fitting.damping.stage)."""
 
 
 def auto_max_steps(predicted: list[float] | float) -> int:
     """fpm.max_steps 'auto' from predicted steps (one per load case, or one): AUTO_MARGIN
-    times the largest, at least AUTO_MIN_STEPS, at most SCHEMA_MAX_STEPS; FALLBACK_STEPS when
+    times the largest, at least AUTO_MIN_STEPS, at most AUTO_CEILING; FALLBACK_STEPS when
     one does not settle."""
     values = [float(p) for p in predicted] if isinstance(predicted, list) else [float(predicted)]
     if not values or not all(math.isfinite(v) for v in values):
         return FALLBACK_STEPS
-    return int(min(SCHEMA_MAX_STEPS, max(AUTO_MIN_STEPS, math.ceil(AUTO_MARGIN * max(values)))))
+    return int(min(AUTO_CEILING, max(AUTO_MIN_STEPS, math.ceil(AUTO_MARGIN * max(values)))))
 
 
 def fixed_max_steps(value: int | str) -> int:

@@ -238,9 +238,10 @@ def unfitted_notes(damping: DampingStage | None) -> list[str]:
         return []
     return [
         f"damping not fitted: {damping.unfitted}. The stiffness and every figure stand (they "
-        f"are static equilibria); d = {damping.d:.4g} N s/m is the critical-damping estimate, "
-        "not checked by a run, so this kernel may settle slowly at it; an engine steps at the "
-        "export's engine d and dt (parameters.engine), which do not depend on it"
+        f"are static equilibria); d = {damping.d:.4g} N s/m is an estimate (the modes' "
+        "prediction, else the critical damping), not checked by a run, so this kernel may "
+        "settle slowly at it; an engine steps at the export's engine d and dt "
+        "(parameters.engine), which do not depend on it"
     ]
 
 

@@ -37,7 +37,7 @@ def test_a_search_that_settles_nothing_keeps_the_static_fit(box, monkeypatch):
     assert not kept.settle.settled and kept.run.damping_runs == 0
     assert kept.fit.verdict.grade != "good"
     note = next(w for w in kept.warnings if w.startswith("damping not fitted"))
-    assert "3,000,000 steps" in note and "critical-damping estimate" in note
+    assert "3,000,000 steps" in note and "an estimate" in note
     # d is the critical-damping estimate: within a few times the fitted one, never a bound
     assert 0.1 < kept.parameters.d / fitted.parameters.d < 10
 
@@ -52,3 +52,17 @@ def test_with_the_spec_s_own_cap_the_failure_is_the_answer(box, monkeypatch):
     monkeypatch.setattr(stage, "fit_damping", none_settles)
     with pytest.raises(DampingError, match="max_steps 5"):
         calibrate(capped, reference=ref)
+
+
+def test_a_lattice_predicted_too_slow_is_not_searched(box, monkeypatch):
+    """Where the modes predict more steps than fpm.max_steps 'auto' allows (here the ceiling
+    lowered under the box's prediction), no run is made: the fit keeps the predicted d."""
+    from fpm.fitting.damping import choice
+
+    problem, ref = box
+    monkeypatch.setattr(choice, "AUTO_CEILING", 10)
+    kept = calibrate(problem, reference=ref)
+    note = next(w for w in kept.warnings if w.startswith("damping not fitted"))
+    assert "over the 10 fpm.max_steps 'auto' allows" in note
+    assert kept.run.damping_runs == 0 and not kept.settle.settled
+    assert kept.parameters.d == kept.settle.d_predicted

@@ -16,9 +16,9 @@ import numpy as np
 
 from ...dynamics.eigen import Modes
 from ...dynamics.equilibrium import StaticSolver
-from ...dynamics.modes import predict_damping
+from ...dynamics.modes import Prediction, predict_damping
 from ...dynamics.settle import by_distance, case_distances, nominal_distance
-from ...dynamics.step_caps import FALLBACK_STEPS, auto_max_steps
+from ...dynamics.step_caps import AUTO_CEILING, FALLBACK_STEPS, auto_max_steps
 from ...fem.linear_solver import NegativeCurvature, SingularStiffnessError
 from ...model.forces import Stiffness
 from ...model.problem import Problem
@@ -30,6 +30,7 @@ from .lockstep import (
 )
 from .search import DampingFit, fastest_damping
 from .settings import DEFAULT, DampingSettings
+from .unsettled import Hopeless
 
 
 @dataclass(frozen=True)
@@ -110,6 +111,8 @@ def fit_damping(
         each = [nominal_distance(problem.spec) * m.mode_stiffness for m in models]
         plan = replace(plan, settle=each, distance=distance)
         targets = static
+    if asked == "auto" and max(prediction.steps) > AUTO_CEILING:
+        raise too_slow(prediction, dt)
     cap = auto_max_steps(prediction.steps) if asked == "auto" else int(asked)
     fit = fastest_damping(
         problem, stiffness, depth, bounds, (prediction.d, prediction.d), dt=dt,
@@ -119,6 +122,21 @@ def fit_damping(
         settings=settings,
     )  # fmt: skip
     return fit, plan
+
+
+def too_slow(prediction: Prediction, dt: float) -> Hopeless:
+    """The error of a lattice whose fastest d is predicted to need more than fpm.max_steps
+    'auto' allows (:data:`fpm.dynamics.step_caps.AUTO_CEILING`), raised before any run."""
+    most = max(prediction.steps)
+    error = Hopeless(
+        f"the fastest d the lattice's slowest modes predict ({prediction.d:.4g} N s/m) needs "
+        f"{most:,.0f} steps to settle its slowest load case ({most * dt:.3g} s simulated at dt "
+        f"{dt:.3g} s), over the {AUTO_CEILING:,} fpm.max_steps 'auto' allows: so slow a "
+        "lattice is not interactive in this kernel (a coarser or better-shaped lattice settles "
+        "in fewer steps; fpm.max_steps set to a number searches anyway)"
+    )
+    error.predicted = prediction.d
+    return error
 
 
 def strain_notes(problem: Problem, static: np.ndarray, reference: np.ndarray | None) -> list[str]:

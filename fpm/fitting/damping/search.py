@@ -57,7 +57,7 @@ from ...dynamics.modes import Prediction, total_steps
 from ...dynamics.reduced_step import StepModel
 from ...dynamics.simulation import DynamicRun
 from ...dynamics.stability import time_step
-from ...dynamics.step_caps import FALLBACK_STEPS, SCHEMA_MAX_STEPS
+from ...dynamics.step_caps import AUTO_CEILING, FALLBACK_STEPS, SCHEMA_MAX_STEPS
 from ...dynamics.voigt import SETTLED
 from ...model.forces import Stiffness
 from ...model.problem import Problem
@@ -180,10 +180,10 @@ def fastest_damping(
         auto = auto or value == "auto"
         max_steps = FALLBACK_STEPS if value == "auto" else int(value)
     step = time_step(problem, stiffness) if dt is None else dt
-    limit = SCHEMA_MAX_STEPS if auto else max_steps  # the most steps a run may ever be given
+    limit = AUTO_CEILING if auto else max_steps  # the most steps a run may ever be given
     earlier: list[tuple[int, float, bool]] | None = None  # the predicted d's cases at its cap
     for attempt in range(settings.retries + 1):
-        last = not auto or attempt == settings.retries or max_steps >= SCHEMA_MAX_STEPS
+        last = not auto or attempt == settings.retries or max_steps >= limit
         runs = _Runs(problem, stiffness, depth, step, spread, settle=settle, targets=targets,
                       distances=distances, settings=settings)  # fmt: skip
         runs.max_steps = max_steps
@@ -211,7 +211,7 @@ def fastest_damping(
         finally:
             runs.close()
         grown = max(settings.max_steps_growth * max_steps, 1.5 * need)
-        max_steps = int(min(SCHEMA_MAX_STEPS, grown))
+        max_steps = int(min(limit, grown))
     raise AssertionError("unreachable")
 
 

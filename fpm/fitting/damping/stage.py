@@ -119,16 +119,24 @@ def chose_the_runs(problem: Problem) -> bool:
 
 
 def unfitted_damping(
-    problem: Problem, solver: Any, stiffness: Any, depth: int, static: np.ndarray
+    problem: Problem,
+    solver: Any,
+    stiffness: Any,
+    depth: int,
+    static: np.ndarray,
+    predicted: float | None = None,
 ) -> DampingFit:
     """Where the d search finds no d that settles (it raised :class:`DampingError`): the
     stiffness fitted on static equilibria stands, so the stage keeps it and gives d as the
-    geometric mean of the two critical-damping estimates (:func:`damping_guesses`), with no run
-    behind it: the static equilibria ``static`` (L, N, 3) m stand for the settled states."""
-    low, high = damping_guesses(problem, solver, stiffness, depth, static)
-    d = float(np.sqrt(low * high))
+    fastest d the modes ``predicted`` (N s/m), else the geometric mean of the two
+    critical-damping estimates (:func:`damping_guesses`), with no run behind it: the static
+    equilibria ``static`` (L, N, 3) m stand for the settled states."""
+    d = predicted
+    if d is None:
+        low, high = damping_guesses(problem, solver, stiffness, depth, static)
+        d = float(np.sqrt(low * high))
     cases = len(problem.load_cases)
-    return DampingFit(d, [0] * cases, static, d, d, 0, residuals=[0.0] * cases)
+    return DampingFit(d, [0] * cases, static, d, d, 0, predicted=predicted, residuals=[0.0] * cases)
 
 
 Validator = Callable[[list[float], "int | None"], "Future[Validation]"]
@@ -265,7 +273,7 @@ def _fit_stage(
         if not chose_the_runs(problem):  # the spec's dt or cap: its advice is the answer
             raise
         unfitted = str(error)  # the product's own dt and cap: the static fit stands
-        fit = unfitted_damping(problem, cost.solver, stiffness, depth, static)
+        fit = unfitted_damping(problem, cost.solver, stiffness, depth, static, error.predicted)
     final = final_run(
         cost, stiffness, depth, fit.displacements, fit.steps, settled=unfitted is None,
         residuals=fit.residuals, settle=plan.settle, statics=static, distances=plan.distance,

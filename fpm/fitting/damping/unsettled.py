@@ -162,7 +162,10 @@ def what_would_work(runs: _Runs, d: float, max_steps: int) -> str:
 
 
 class DampingError(RuntimeError):
-    """No d in the bounds settles every load case."""
+    """No d in the bounds settles every load case. ``predicted``: the fastest d the modes
+    predicted, N s/m, where the search knew it (None: not)."""
+
+    predicted: float | None = None
 
 
 class Hopeless(DampingError):

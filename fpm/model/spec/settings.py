@@ -77,7 +77,9 @@ class FpmSettings(_Strict):
         description="steps per load case before a run gives up (a cap: the result reports the "
         "steps each load case took and the cap, max_steps), 1 to 1,000,000, or 'auto' "
         "(default): three times the steps the lattice's slowest modes predict at the fitted d, "
-        "at least 1,000 (20,000 where nothing predicts it, e.g. the paper method)",
+        "at least 1,000, at most 100,000 (20,000 where nothing predicts it, e.g. the paper "
+        "method); a lattice predicted to need more is not searched: the calibration keeps its "
+        "static fit and says d was not fitted",
     )
     settle_distance: float | Literal["auto"] = Field(
         "auto",
