@@ -47,7 +47,15 @@ def result_table(problem: Any, result: CalibrationResult) -> str:
     d_min = settle.d_min
     if d_min is not None:
         lines.append(f"d_min  {d_min:12.5g} N s/m (smallest d that settles)")
-    lines += [f"depth  {fitted.depth:12d} layers", f"cost   {fit.cost:12.5g} m (Eq. 2)", ""]
+    lines.append(f"depth  {fitted.depth:12d} layers")
+    budget = fitted.step_budget
+    if budget is not None:
+        met = "meets" if budget.met else "over"
+        lines.append(
+            f"       a step of its region {max(budget.microseconds):,.0f} us, {met} the "
+            f"{budget.budget_us:,.0f} us budget ({budget.backend}, {budget.machine})"
+        )
+    lines += [f"cost   {fit.cost:12.5g} m (Eq. 2)", ""]
     relative = list(fit.relative_discrepancy)
     h_percent = fit.discrepancy_h
     ratios = list(fit.compliance_ratio or [None] * len(problem.load_cases))

@@ -70,6 +70,10 @@ def test_a_calibration_with_a_budget_reports_its_depth_and_judges_there():
     assert budget.backend in ("native", "numba", "numpy") and "cores" in budget.machine
     stored = result.to_dict()
     assert stored["step_budget"]["depth"] == result.parameters.depth
+    from fpmcal.result_table import result_table
+
+    table = result_table(problem, result)
+    assert "meets the 1,000,000,000 us budget" in table and budget.machine in table
     tight = fpm.load_problem(soft_box_spec(step_budget_us=1e-3))
     cut = calibrate(tight, reference=ref)
     assert cut.parameters.depth == 1 and not cut.parameters.step_budget.met
