@@ -74,7 +74,7 @@ class Newton:
         if _largest(gradient) > target:
             basis = predictor.basis(scale, spread)
             if basis is not None:
-                u, gradient = _galerkin(system, k, forces, u, gradient, basis, target, stats)
+                u, gradient = _galerkin(system, k, forces, u, gradient, basis, target)
         return u, gradient
 
     def _newton(

@@ -136,12 +136,11 @@ class _Predictor:
 
 @dataclass
 class _Stats:
-    """What one static solve did: Newton, CG and reduced-model iterations, why it stopped
-    (``message``) and where it started (``start``: "rest" or "predicted")."""
+    """What one static solve did: Newton and CG iterations, why it stopped (``message``) and
+    where it started (``start``: "rest" or "predicted")."""
 
     iterations: int = 0
     linear_iterations: int = 0
-    reduced_iterations: int = 0
     message: str = ""
     start: str = "rest"
 
@@ -154,7 +153,6 @@ def _galerkin(
     gradient: np.ndarray,
     basis: np.ndarray,
     target: float,
-    stats: _Stats,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Minimise E over u + span(basis) (basis (M, 3, m) orthonormal): chord-Newton steps on
     the m x m reduced tangent Q^T K Q at the start (exact; clamped where the exact one is not
@@ -190,7 +188,6 @@ def _galerkin(
             break
         u = u + alpha * step
         gradient = system.gradient(u, k, forces)
-        stats.reduced_iterations += 1
         if _largest(gradient) <= target:
             break
     return u, gradient

@@ -60,7 +60,7 @@ tests/core/test_spectrum.py checks the parts on lattices small enough for dense 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -193,7 +193,6 @@ class StepModel:
     residual_gram: np.ndarray | None = None
     slowness: float = 0.0
     spread: float = 1.0
-    _powers: dict[float, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
 
     def iteration(self, d: float) -> np.ndarray:
         """(2k, 2k) T(d): (q+, q) = T (q, q-)."""

@@ -111,14 +111,12 @@ class LoadPath:
         residual_history: per converged step, ||R|| / ||f|| before each Newton iteration and
             after the last (so ``newton_iterations[s] + 1`` values).
         residual: final ||R|| / ||f|| over the free unknowns.
-        failed_steps: load steps that failed and were halved.
     """
 
     load_factors: list[float] = field(default_factory=list)
     newton_iterations: list[int] = field(default_factory=list)
     residual_history: list[list[float]] = field(default_factory=list)
     residual: float = 0.0
-    failed_steps: int = 0
 
     @property
     def load_steps(self) -> int:
@@ -356,7 +354,6 @@ def load_path(
         try:
             u_next, history = newton(solid, start, end * forces, scale)
         except _StepFailed as failure:
-            path.failed_steps += 1
             if step <= smallest * (1 + 1e-9):
                 raise NewtonError(
                     f"neo-Hookean FEM, load case '{name}': Newton did not converge in load step "

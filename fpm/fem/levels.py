@@ -160,7 +160,7 @@ def _within(mesh: Mesh, budget: int) -> None:
         )
 
 
-def summarise(levels: list[Level], notes: list[str], loads: str = "spread") -> FemResult:
+def summarise(levels: list[Level], notes: list[str]) -> FemResult:
     """The last level's result, with the estimated error (its change from the level before)
     and every level's figures."""
     last = levels[-1].result
@@ -188,7 +188,7 @@ def summarise(levels: list[Level], notes: list[str], loads: str = "spread") -> F
         estimated_error=error,
         refinements=levels[-1].refinements,
         levels=table,
-        loads=loads,
+        loads="spread",
         notes=list(last.notes) + notes,
     )
 

@@ -281,7 +281,6 @@ def tet10_reference(
     method: str = "auto",
     *,
     loads: Callable[[Tet10Mesh, Location], np.ndarray] | None = None,
-    supports: Callable[[Tet10Mesh], np.ndarray] | None = None,
 ) -> FemResult:
     """The linear-elastic reference of ``problem`` solved with 10-node tetrahedra on the mesh
     ``tets`` (T, 4) on ``nodes`` (N, 3), m, read at the lattice's nodes.
@@ -292,8 +291,7 @@ def tet10_reference(
     (:meth:`~fpm.model.tetrahedra.TetMesh.locate`, :func:`interpolate`); a lattice node the
     spec fixes reads 0 (it is held in the fit's model too). ``loads`` (mesh, where the lattice
     nodes lie) -> (L, M, 3) nodal forces replaces the point loads (:mod:`fpm.fem.refine`
-    spreads them: :mod:`fpm.fem.loads`), ``supports`` (mesh) -> (M,) held nodes replaces
-    :func:`fixed_nodes` (a refined mesh holds what its coarsest level held).
+    spreads them: :mod:`fpm.fem.loads`).
 
     Returns:
         a :class:`FemResult` on the lattice: displacements (L, N_lattice, 3), m; ``element``
@@ -330,7 +328,7 @@ def tet10_reference(
     gravity = np.asarray(problem.spec.fpm.gravity, dtype=float)
     if np.any(gravity):
         forces = forces + body_forces(mesh, density, gravity)[None]
-    fixed = fixed_nodes(problem, mesh) if supports is None else supports(mesh)
+    fixed = fixed_nodes(problem, mesh)
     if not fixed.any():
         raise FemError(
             "the tetrahedral mesh is not held: no node of it is near the spec's fixed nodes"

@@ -151,9 +151,7 @@ def fit_field(
     depth: int | None,
     *,
     weights: Sequence[float] = WEIGHTS,
-    edges: np.ndarray | None = None,
     iterations: tuple[int, int, int] = (FOUR_ITERATIONS, CV_ITERATIONS, FINAL_ITERATIONS),
-    threads: int | None = None,
     progress: Progress | None = None,
 ) -> FieldStage:
     """The field on top of the families+volume fit ``theta``, its smoothness weight chosen by
@@ -166,12 +164,12 @@ def fit_field(
             are not given: they stay unseen).
         solver: the static solver of the first load case (its hierarchies and warm starts are
             reused); the others get their own.
-        edges: the smoothness graph (default: :func:`cell_adjacency` of the hexahedra, cut
-            between material regions).
         iterations: L-BFGS-B iterations of a fold's four-parameter refit, of a fold's field
             fit at one weight, and of the final field fit.
-        threads: load cases solved at once in an evaluation (None: one per core; each load
-            case has its own static solver, so the answer does not depend on it).
+
+    The smoothness graph is :func:`cell_adjacency` of the hexahedra, cut between material
+    regions; the load cases of an evaluation are solved one per core at once (each has its own
+    static solver, so the answer does not depend on how many).
     """
     four_iterations, cv_iterations, final_iterations = iterations
     t0 = time.perf_counter()
@@ -181,14 +179,13 @@ def fit_field(
     hexahedra = problem.solid.elements()
     if hexahedra is None:
         raise ValueError("a network geometry has no cells for a stiffness field")
-    if edges is None:
-        labels = None if problem.regions is None else problem.regions.cells
-        edges = cell_adjacency(hexahedra, labels)
+    labels = None if problem.regions is None else problem.regions.cells
+    edges = cell_adjacency(hexahedra, labels)
     theta = [float(t) for t in theta]
     patterns = load_patterns(problem)
     folds = patterns if len(patterns) > 1 else [[j] for j in cases]
     family = FamilyMap(problem)
-    workers = max(1, min(len(cases), threads or os.cpu_count() or 1))
+    workers = max(1, min(len(cases), os.cpu_count() or 1))
     solvers = Solvers([solver, *(StaticSolver(problem) for _ in cases[1:])], workers)
     evaluations = 0
 

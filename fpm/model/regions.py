@@ -39,7 +39,6 @@ class RegionMap:
 
     Attributes:
         names: per region present, its name (``"base"`` for the spec's own material).
-        spec_index: per region present, its index in ``material.regions`` (-1: the base).
         materials: per region present, (E, Pa; nu; density, kg/m^3).
         cells: (H,) the region (index into ``names``) of every lattice cell, aligned with the
             solid's hexahedra.
@@ -49,7 +48,6 @@ class RegionMap:
     """
 
     names: tuple[str, ...]
-    spec_index: tuple[int, ...]
     materials: tuple[tuple[float, float, float], ...]
     cells: np.ndarray
     tagged: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -246,7 +244,6 @@ def lattice_regions(
     return (
         RegionMap(
             names=tuple(BASE_REGION if j < 0 else names[j] for j in present),
-            spec_index=tuple(present),
             materials=tuple(region_material(spec, j) for j in present),
             cells=slot[which_region + 1],
             tagged=tagged,

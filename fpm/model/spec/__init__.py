@@ -19,7 +19,6 @@ from .base import (  # noqa: F401
     FEM_VERSION,
     MAX_DT,
     MODEL_VERSION,
-    STIFFNESS_MODES,
     UNITS_HINT,
     VOLUME_MODES,
     Connectivity,

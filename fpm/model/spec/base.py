@@ -53,7 +53,6 @@ def exactly_one(model: _M, fields: tuple[str, ...]) -> _M:
 
 MaterialModel = Literal["linear", "neo-hookean"]
 StiffnessMode = Literal["families+volume", "single", "families", "field"]
-STIFFNESS_MODES: tuple[str, ...] = get_args(StiffnessMode)
 VOLUME_MODES = ("families+volume", "field")
 """The stiffness modes with the volume term and springs assembled from cells (theta: the
 families, then kappa); ``field`` adds per-cell factors on top
