@@ -95,7 +95,9 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def hexahedron_volumes(x: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Volumes (C,) m^3 of the trilinear hexahedra ``corners`` (C, 8) at positions ``x`` (N, 3),
     and their gradients dV/dx (C, 8, 3), m^2 (exact: V is linear in each corner)."""
-    a = np.matmul(COEFFICIENTS, x[corners]).transpose(1, 2, 0)  # (6, 3, C): a_k, component, cell
+    # einsum's own loops, not BLAS: a multithreaded BLAS call leaves its threads spinning, which
+    # starves the native step's threads in an engine's loop (bench native, part probe)
+    a = np.einsum("kn,cnd->kdc", COEFFICIENTS, x[corners])  # (6, 3, C): a_k, component, cell
     volume = np.zeros(len(corners))
     grad_a = np.zeros_like(a)
     for p, q, r, w in TRIPLES:
@@ -104,7 +106,7 @@ def hexahedron_volumes(x: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, 
         grad_a[p] += w * qr
         grad_a[q] += w * _cross(a[r], a[p])
         grad_a[r] += w * _cross(a[p], a[q])
-    grad = np.tensordot(COEFFICIENTS, grad_a, axes=(0, 0))  # (8, 3, C)
+    grad = np.einsum("kn,kdc->ndc", COEFFICIENTS, grad_a)  # (8, 3, C)
     return volume, grad.transpose(2, 0, 1)
 
 
