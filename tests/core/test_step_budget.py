@@ -12,7 +12,6 @@ from fpm.fitting import step_budget
 from fpm.fitting.calibration import calibrate
 from fpm.model.stiffness import continuum_start, model_stiffness
 
-
 ROOT = Path(__file__).resolve().parents[2]
 
 
