@@ -60,7 +60,8 @@ def runtime_of(
     None: :func:`fpm.dynamics.stability.auto_time_step`), stepped by ``backend`` in
     ``precision``: the JSON export's arrays (the volume term's where the model has one), built
     from the problem without an export, settling never (a timing loop's)."""
-    volume = stiffness.volume is not None
+    hexahedra = problem.solid.elements() if stiffness.volume is not None else None
+    volume = hexahedra is not None
     return Runtime(
         rest=problem.nodes,
         masses=problem.solid.masses,
@@ -68,7 +69,7 @@ def runtime_of(
         springs=problem.solid.springs.astype(np.int64),
         rest_lengths=problem.rest_lengths,
         stiffness=stiffness.springs,
-        hexahedra=problem.solid.elements() if volume else np.zeros((0, 8), np.int64),
+        hexahedra=np.zeros((0, 8), np.int64) if hexahedra is None else hexahedra,
         kappa=np.asarray(stiffness.volume, dtype=float) if volume else np.zeros(0),
         rest_volumes=cells(problem).volume if volume else np.zeros(0),
         d=d,
