@@ -205,12 +205,12 @@ def lattice_regions(
             np.asarray(tetra["tetrahedra"], dtype=np.int64),
             tet_tags,
         )
-        where = locate_tags(tagged[0], tagged[1], centres)
-        tags = tet_tags[where.element]
-        if not where.inside.all():
+        located = locate_tags(tagged[0], tagged[1], centres)
+        tags = tet_tags[located.element]
+        if not located.inside.all():
             notes.append(
-                f"material.regions: {int((~where.inside).sum())} lattice cell centres lie outside "
-                "the tagged mesh and take the tag of the nearest tetrahedron"
+                f"material.regions: {int((~located.inside).sum())} lattice cell centres lie "
+                "outside the tagged mesh and take the tag of the nearest tetrahedron"
             )
     which_region, overlaps = assign(regions, centres, tags)
     names = region_names(regions)
