@@ -71,7 +71,7 @@ def grid_best(
         for j, cap in enumerate(caps):
             run = model.run(
                 j, k=stiffness, d=float(d), depth=depth, dt=result.settle.dt, max_steps=cap,
-                **run_criterion(problem.spec, None if settle is None else settle[j]),
+                settle=run_criterion(problem.spec, None if settle is None else settle[j]),
             )  # fmt: skip
             runs.append(run)
             if not run.settled:

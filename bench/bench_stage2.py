@@ -111,7 +111,7 @@ def golden_choice(problem: Any, result: Any, stage: dict[str, Any]) -> dict[str,
             for j in range(cases):
                 run = model.run(
                     j, k=stage["_stiffness"], d=math.exp(y), depth=stage["_depth"],
-                    dt=result.settle.dt, max_steps=cap, **settle[j],
+                    dt=result.settle.dt, max_steps=cap, settle=settle[j],
                 )  # fmt: skip
                 counts["runs"] += 1
                 counts["steps"] += run.steps

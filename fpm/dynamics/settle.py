@@ -198,20 +198,18 @@ def run_criterion(
     settle_stiffness: float | None,
     static: np.ndarray | None = None,
     distance: float | None = None,
-) -> dict[str, SettleCriterion]:
-    """A run's settle argument (``settle=`` of :meth:`fpm.dynamics.simulation.FpmModel.start`):
+) -> SettleCriterion:
+    """A run's settle criterion (``settle=`` of :meth:`fpm.dynamics.simulation.FpmModel.start`):
     the force criterion (``settle_stiffness`` None), the distance criterion (1) at
     ``settle_stiffness`` = the nominal distance times lambda (N/m, :func:`nominal_distance`),
     or, given ``static`` (N, 3) the run's static equilibrium displacements (m) and its settle
     ``distance``, the target criterion (2) with the same lambda."""
     if settle_stiffness is None:
-        return {"settle": SettleCriterion(force_tolerance=force_tolerance(spec))}
+        return SettleCriterion(force_tolerance=force_tolerance(spec))
     if static is None or distance is None:
-        return {"settle": SettleCriterion(stiffness=float(settle_stiffness))}
-    return {
-        "settle": SettleCriterion(
-            target=static,
-            reach=distance * nodal_size(static),
-            slowness=nominal_distance(spec) / float(settle_stiffness),
-        )
-    }
+        return SettleCriterion(stiffness=float(settle_stiffness))
+    return SettleCriterion(
+        target=static,
+        reach=distance * nodal_size(static),
+        slowness=nominal_distance(spec) / float(settle_stiffness),
+    )

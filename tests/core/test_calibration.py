@@ -211,7 +211,7 @@ def test_two_stage_calibration_recovers_k_and_the_fastest_settling_d(small):
     def total(d):
         runs = [
             model.run(j, k=stiffness, d=d, depth=result.parameters.depth, dt=result.settle.dt,
-                      max_steps=2000, **settle[j])
+                      max_steps=2000, settle=settle[j])
             for j in range(2)
         ]  # fmt: skip
         return sum(r.steps for r in runs) if all(r.settled for r in runs) else math.inf

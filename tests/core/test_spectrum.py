@@ -162,7 +162,7 @@ def test_the_predicted_d_is_the_exact_steps_fastest(stiffness):
 
     def total(d: float) -> float:
         runs = [
-            model.run(j, k=stiffness_, d=d, depth=None, dt=dt, max_steps=50_000, **settle[j])
+            model.run(j, k=stiffness_, d=d, depth=None, dt=dt, max_steps=50_000, settle=settle[j])
             for j in range(len(problem.load_cases))
         ]  # fmt: skip
         return sum(r.steps for r in runs) if all(r.settled for r in runs) else math.inf
@@ -171,7 +171,7 @@ def test_the_predicted_d_is_the_exact_steps_fastest(stiffness):
     assert total(prediction.d) <= 1.2 * min(total(d) for d in grid)
     # and the predicted steps are those of the runs within 25%
     runs = [model.run(j, k=stiffness_, d=prediction.d, depth=None, dt=dt, max_steps=50_000,
-                      **settle[j]) for j in range(2)]  # fmt: skip
+                      settle=settle[j]) for j in range(2)]  # fmt: skip
     for predicted, run in zip(prediction.steps, runs, strict=True):
         assert predicted == pytest.approx(run.steps, rel=0.25)
 

@@ -164,7 +164,7 @@ def run_case(
     static equilibrium, and its settle ``distance``, the target criterion."""
     run = model.start(
         load_case, k=stiffness, d=d, depth=depth, dt=dt,
-        **run_criterion(model.problem.spec, settle_stiffness, static, distance),
+        settle=run_criterion(model.problem.spec, settle_stiffness, static, distance),
     )  # fmt: skip
     while not run.finished and run.steps < cap:
         _piece(run, min(settings.chunk, cap - run.steps), settings)
@@ -452,7 +452,7 @@ class _Runs:
                 d=d,
                 depth=self.depth,
                 dt=self.dt,
-                **run_criterion(self.problem.spec, self.case_settle(j), *self.case_target(j)),
+                settle=run_criterion(self.problem.spec, self.case_settle(j), *self.case_target(j)),
             )  # fmt: skip
             for j in range(self.cases)
         ]

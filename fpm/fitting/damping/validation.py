@@ -340,5 +340,5 @@ def replayed_run(problem: Problem, record: dict[str, Any], load_case: int) -> Si
     cap = record.get("max_steps") or fixed_max_steps(problem.spec.fpm.max_steps)
     return fpm_model(problem).run(
         load_case, k=model_stiffness(problem, theta), d=record["d"], depth=depth,
-        dt=record["dt"], max_steps=int(cap), **criterion,
+        dt=record["dt"], max_steps=int(cap), settle=criterion,
     )  # fmt: skip
