@@ -34,9 +34,9 @@ TIMED_STEPS = 50
 """Steps per timed loop (a region of 10^4 nodes steps them in a few ms)."""
 
 
-def cpu_model() -> str:
+def cpu_name() -> str:
     """The processor's name as the system gives it (``/proc/cpuinfo``'s model name where
-    there is one), and the core count: the machine a timing holds for."""
+    there is one): with the core count, the machine a timing holds for."""
     cpu = platform.processor() or platform.machine()
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -45,7 +45,7 @@ def cpu_model() -> str:
                 break
     except OSError:
         pass
-    return f"{cpu}, {os.cpu_count()} cores"
+    return cpu
 
 
 def runtime_of(
@@ -139,7 +139,7 @@ def budget_depth(
         "nodes": nodes,
         "probed": {str(k): max(v[0]) for k, v in sorted(probed.items())},
         "backend": whole.backend_used,
-        "machine": cpu_model(),
+        "machine": f"{cpu_name()}, {os.cpu_count()} cores",
     }
 
 
