@@ -130,17 +130,24 @@ def each_column(
     columns: list[np.ndarray],
     cycle: Callable[[np.ndarray], np.ndarray],
     rtol: float = AMG_TOLERANCE,
+    starts: list[np.ndarray] | None = None,
 ) -> list[CgResult]:
     """:func:`conjugate_gradients` of ``k`` to ``rtol`` for each right-hand side in
-    ``columns``, on up to :data:`COLUMN_THREADS` threads (one preconditioning first, which sets
-    up the hierarchy's coarse solver, made on first use, before the threads share it)."""
+    ``columns`` (from ``starts``, one per column, None: from 0), on up to
+    :data:`COLUMN_THREADS` threads (one preconditioning first, which sets up the hierarchy's
+    coarse solver, made on first use, before the threads share it)."""
+    x0s: list[np.ndarray | None] = [None] * len(columns) if starts is None else list(starts)
+
+    def one(b: np.ndarray, x0: np.ndarray | None) -> CgResult:
+        return conjugate_gradients(k, b, cycle, rtol=rtol, x0=x0)
+
     if len(columns) < 2 or COLUMN_THREADS < 2:
-        return [conjugate_gradients(k, b, cycle, rtol=rtol) for b in columns]
+        return [one(b, x0) for b, x0 in zip(columns, x0s, strict=True)]
     from concurrent.futures import ThreadPoolExecutor
 
     cycle(np.zeros(k.shape[0]))
     with ThreadPoolExecutor(min(COLUMN_THREADS, len(columns))) as pool:
-        return list(pool.map(lambda b: conjugate_gradients(k, b, cycle, rtol=rtol), columns))
+        return list(pool.map(one, columns, x0s))
 
 
 def amg_hierarchy(
@@ -303,8 +310,10 @@ def conjugate_gradients(
     rtol: float = AMG_TOLERANCE,
     max_iterations: int = AMG_MAX_ITERATIONS,
     nodal_stop: float = 0.0,
+    x0: np.ndarray | None = None,
 ) -> CgResult:
-    """Preconditioned CG from x = 0 for ``a`` (n, n) SPD until ||b - a x|| <= rtol ||b||, or,
+    """Preconditioned CG from ``x0`` (n,) (None: x = 0) for ``a`` (n, n) SPD until
+    ||b - a x|| <= rtol ||b||, or,
     with ``nodal_stop`` > 0, until every node's residual (3 consecutive unknowns) has a norm of
     at most ``nodal_stop``; stops quietly after ``max_iterations`` (``converged`` False).
 
@@ -315,11 +324,13 @@ def conjugate_gradients(
         NegativeCurvature: a search direction p with p.a p <= 0 (``a`` is not positive
             definite); ``args[0]`` is the iterations done.
     """
-    x = np.zeros_like(b)
-    r = b.copy()
+    x = np.zeros_like(b) if x0 is None else np.array(x0, dtype=float)
     norm_b = math.sqrt(dot(b, b))
     if norm_b == 0.0:
-        return CgResult(x, 0, 0.0, True)
+        return CgResult(np.zeros_like(b), 0, 0.0, True)
+    r = b.copy() if x0 is None else b - a @ x
+    if x0 is not None and math.sqrt(dot(r, r)) <= rtol * norm_b:  # the start is the answer
+        return CgResult(x, 0, math.sqrt(dot(r, r)) / norm_b, True)
     z = precondition(r)
     p = z.copy()
     rz = dot(r, z)

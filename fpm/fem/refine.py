@@ -35,7 +35,8 @@ measure), in %.
   FEM nodes than ``reference.node_budget`` (:data:`~fpm.fem.levels.DEFAULT_NODE_BUDGET`), or
   would cost as much as that many nodes of a well-shaped mesh (its nodes times the CG
   iterations the level before needed, over :data:`~fpm.fem.levels.WORK_ITERATIONS`), and hands
-  back the last level with its last change.
+  back the last level with its last change. On tetrahedra each level's CG starts from the
+  level before's field (:class:`~fpm.fem.tet10.NestedStart`: nested iteration).
   ``refine: "check"`` (the default for hexahedra) keeps the 8-node reference
   on the voxels as it is, nodal point loads and all (bit for bit), and estimates its error by
   one refinement with the spread loads: the change between the two is how far the reference
@@ -76,7 +77,7 @@ from .samples import (
     tetrahedron_volume_samples,
 )
 from .solution import FemError, FemResult, solve_dirichlet
-from .tet10 import Tet10Mesh, tet10_reference
+from .tet10 import NestedStart, Tet10Mesh, tet10_reference
 from .uniform_refinement import refine_hexahedra
 
 CHECK_NODES = 60_000
@@ -134,6 +135,7 @@ def refined_tet_reference(
     budget = problem.spec.reference.node_budget or DEFAULT_NODE_BUDGET
     forces = np.stack([case.as_given().dense(problem.n_nodes) for case in problem.all_cases])
     loads = tetrahedron_loads(problem, forces)
+    nested = NestedStart()  # each level's CG starts from the level before's field
 
     def level(refinements: int, x: np.ndarray, t: np.ndarray) -> Mesh:
         # Supports by position at every level (fpm.fem.tet10.fixed_nodes): the region the
@@ -142,7 +144,8 @@ def refined_tet_reference(
         # selector's box: the 360-tetrahedron organ held below z = -25 mm moved 2.4 times as
         # much as the lattice that holds every node there.)
         def solve() -> FemResult:
-            return replace(tet10_reference(problem, x, t, method, loads=loads), loads="spread")
+            solved = tet10_reference(problem, x, t, method, loads=loads, nested=nested)
+            return replace(solved, loads="spread")
 
         mesh = TetMesh(x, t)  # a 10-node mesh's nodes: corners plus distinct edges
         return Mesh(

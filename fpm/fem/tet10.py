@@ -48,6 +48,7 @@ from ..model.tetrahedra import (
     Location,
     TetMesh,
     TetMeshError,
+    barycentric,
     edge_matrices,
     signed_volumes,
     validate_tetrahedra,
@@ -215,6 +216,43 @@ def interpolate(mesh: Tet10Mesh, values: np.ndarray, where: Location) -> np.ndar
     return np.einsum("...pac,pa->...pc", values[..., mesh.elements[where.element], :], weights)
 
 
+@dataclass
+class NestedStart:
+    """Nested iteration over a refined reference's levels: each level's CG starts from the field
+    of the level before, its quadratic interpolation at the finer mesh's nodes, rather than from
+    zero. The 1-to-8 split (:meth:`fpm.model.tetrahedra.TetMesh.refine`) keeps every child in
+    its parent (children of tetrahedron t at 8t .. 8t + 7), so each node's parent is known and
+    the start is exact where the coarse field is right; only the part of the answer the coarse
+    mesh could not hold is left for the iterations.
+
+    Attributes:
+        mesh: the last level solved (None before the first).
+        u: (L, M, 3) its displacements at every node, m.
+    """
+
+    mesh: Tet10Mesh | None = None
+    u: np.ndarray | None = None
+
+    def keep(self, mesh: Tet10Mesh, u: np.ndarray) -> None:
+        """Remember ``mesh``'s displacements ``u`` (L, M, 3), m, for the next level."""
+        self.mesh, self.u = mesh, u
+
+    def guess(self, mesh: Tet10Mesh) -> np.ndarray | None:
+        """(L, M', 3) the kept field at the nodes of ``mesh`` when it is the kept mesh's 1-to-8
+        split (8 children per tetrahedron), m; else None (nothing to start from)."""
+        coarse, u = self.mesh, self.u
+        if coarse is None or u is None or len(mesh.elements) != 8 * len(coarse.elements):
+            return None
+        node, first = np.unique(mesh.elements.ravel(), return_index=True)
+        parent = first // mesh.elements.shape[1] // 8
+        lam = barycentric(coarse.nodes[coarse.corners[parent]], mesh.nodes[node])
+        start = np.zeros((len(u), len(mesh.nodes), 3))
+        for case in range(len(u)):  # one case at a time: (M', 10, 3) at once, not (L, M', 10, 3)
+            values = u[case][coarse.elements[parent]]
+            start[case, node] = np.einsum("mac,ma->mc", values, shape_functions(lam))
+        return start
+
+
 def point_loads(mesh: Tet10Mesh, forces: np.ndarray, where: Location) -> np.ndarray:
     """(..., M, 3) nodal forces, N, equivalent to point ``forces`` (..., P, 3), N, at located
     points: each goes to its tetrahedron's 10 nodes times their shape function values there."""
@@ -281,6 +319,7 @@ def tet10_reference(
     method: str = "auto",
     *,
     loads: Callable[[Tet10Mesh, Location], np.ndarray] | None = None,
+    nested: NestedStart | None = None,
 ) -> FemResult:
     """The linear-elastic reference of ``problem`` solved with 10-node tetrahedra on the mesh
     ``tets`` (T, 4) on ``nodes`` (N, 3), m, read at the lattice's nodes.
@@ -291,7 +330,9 @@ def tet10_reference(
     (:meth:`~fpm.model.tetrahedra.TetMesh.locate`, :func:`interpolate`); a lattice node the
     spec fixes reads 0 (it is held in the fit's model too). ``loads`` (mesh, where the lattice
     nodes lie) -> (L, M, 3) nodal forces replaces the point loads (:mod:`fpm.fem.refine`
-    spreads them: :mod:`fpm.fem.loads`).
+    spreads them: :mod:`fpm.fem.loads`). ``nested``: the CG starts from the level before's
+    field where this mesh is its split, and the field is kept for the next
+    (:class:`NestedStart`; the direct solve takes no start).
 
     Returns:
         a :class:`FemResult` on the lattice: displacements (L, N_lattice, 3), m; ``element``
@@ -338,8 +379,16 @@ def tet10_reference(
     free = np.repeat(~fixed & used, 3)
     method = choose_method(int(free.sum())) if method == "auto" else method
     k = stiffness_matrix(mesh, c)
-    solve = solve_direct if method == "direct" else solve_p_multigrid
-    u, residuals, iterations = solve(k, forces.reshape(len(cases), -1), free, mesh, method)
+    f = forces.reshape(len(cases), -1)
+    if method == "direct":
+        u, residuals, iterations = solve_direct(k, f, free, mesh, method)
+    else:
+        start = None if nested is None else nested.guess(mesh)
+        u, residuals, iterations = solve_p_multigrid(
+            k, f, free, mesh, method, start=None if start is None else start.reshape(len(f), -1)
+        )
+    if nested is not None:
+        nested.keep(mesh, u.reshape(len(cases), -1, 3))
     u_lattice = interpolate(mesh, u.reshape(len(cases), -1, 3), where)
     u_lattice[:, problem.fixed] = 0.0
     names = [case.name for case in cases]
@@ -376,7 +425,13 @@ def corner_prolongation(mesh: Tet10Mesh) -> sp.csr_matrix:
 
 
 def solve_p_multigrid(
-    k: sp.bsr_matrix, forces: np.ndarray, free: np.ndarray, mesh: Tet10Mesh, method: str = "amg"
+    k: sp.bsr_matrix,
+    forces: np.ndarray,
+    free: np.ndarray,
+    mesh: Tet10Mesh,
+    method: str = "amg",
+    *,
+    start: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """Solve K u = f, u = 0 where not ``free``, by CG preconditioned with a two-grid p-multigrid
     cycle: a forward 3x3 block Gauss-Seidel sweep on the quadratic K, the correction on the
@@ -392,6 +447,8 @@ def solve_p_multigrid(
         free: (3M,) bool, whole nodes (the three unknowns of a node together).
         mesh: the 10-node mesh.
         method: unused (the signature of :func:`solve_direct`).
+        start: (L, 3M) displacements the CG starts from, m (None: from zero;
+            :class:`NestedStart`).
 
     Returns:
         u (L, 3M), m; residuals (L,) ||K u - f|| / ||f|| over the free unknowns; the CG
@@ -427,7 +484,8 @@ def solve_p_multigrid(
     f = forces[:, free]
     u = np.zeros_like(forces, dtype=float)
     try:  # the load cases on up to COLUMN_THREADS threads, each as alone, bit for bit
-        results = each_column(kff, list(f), precondition, rtol=CG_TOLERANCE)
+        starts = None if start is None else list(start[:, free])
+        results = each_column(kff, list(f), precondition, rtol=CG_TOLERANCE, starts=starts)
     except NegativeCurvature:
         raise singular from None
     for case, result in enumerate(results):

@@ -249,6 +249,48 @@ def test_quadratic_fields_interpolate_exactly_at_lattice_nodes_inside_and_outsid
     assert np.abs(tet10.interpolate(mesh, field(mesh.nodes), where) - field(nearest)).max() < 1e-13
 
 
+def test_nested_start_carries_a_quadratic_field_exactly_to_the_split_mesh():
+    """The next level's CG starts from the coarse field at the split mesh's nodes: a quadratic
+    field is carried exactly (every child lies in its parent), and a mesh that is not the
+    split gets no start."""
+    nodes, tets = cube_tetrahedra(2, jitter=0.25)
+    coarse = tet10.quadratic_mesh(nodes, tets)
+    x_fine, t_fine = TetMesh(nodes, tets).refine()[:2]
+    fine = tet10.quadratic_mesh(x_fine, t_fine)
+
+    def field(x: np.ndarray) -> np.ndarray:
+        return np.stack([x[:, 0] ** 2 - x[:, 1], x[:, 0] * x[:, 2], 3 * x[:, 1] * x[:, 2]], axis=1)
+
+    nested = tet10.NestedStart()
+    assert nested.guess(fine) is None
+    nested.keep(coarse, np.stack([field(coarse.nodes), 2 * field(coarse.nodes)]))
+    start = nested.guess(fine)
+    assert start is not None and start.shape == (2, len(fine.nodes), 3)
+    assert np.abs(start[0] - field(fine.nodes)).max() < 1e-13
+    assert np.abs(start[1] - 2 * field(fine.nodes)).max() < 2e-13
+    assert nested.guess(coarse) is None
+
+
+def test_cg_started_at_the_answer_takes_no_iteration_and_from_near_it_fewer():
+    """conjugate_gradients from x0: the exact solution stops at once; a start near it needs
+    fewer iterations than zero for the same tolerance and lands on the same answer."""
+    from fpm.fem.linear_solver import conjugate_gradients
+
+    rng = np.random.default_rng(0)
+    n = 60
+    a = np.diag(np.linspace(1.0, 1e3, n))
+    q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    a = q @ a @ q.T
+    b = rng.normal(size=n)
+    exact = np.linalg.solve(a, b)
+    identity = np.array  # no preconditioner
+    assert conjugate_gradients(a, b, identity, rtol=1e-10, x0=exact).iterations == 0
+    cold = conjugate_gradients(a, b, identity, rtol=1e-10)
+    warm = conjugate_gradients(a, b, identity, rtol=1e-10, x0=exact + 1e-4 * rng.normal(size=n))
+    assert warm.converged and cold.converged and warm.iterations < cold.iterations
+    assert np.abs(warm.x - exact).max() < 1e-6 * np.abs(exact).max()
+
+
 def test_point_loads_are_consistent_and_reactions_balance_them_and_the_weight():
     """A point force goes to its tetrahedron's nodes with the same resultant and moment; solved
     on a clamped cube, the reactions balance the applied forces and the weight."""
