@@ -378,9 +378,8 @@ def solve_p_multigrid(
     cycle: a forward 3x3 block Gauss-Seidel sweep on the quadratic K, the correction on the
     linear (corner) field ``P^T K P`` by the project's smoothed-aggregation V-cycle
     (:func:`fpm.fem.linear_solver.amg_hierarchy`, rigid-body modes), a backward sweep
-    (symmetric, as CG needs). On the 50,000-tetrahedron organ it needs about 100 iterations
-    where smoothed aggregation on the quadratic K itself needs twice the time
-    (bench/bench_fem.py).
+    (symmetric, as CG needs; against smoothed aggregation on the quadratic K itself:
+    bench/bench_fem.py).
 
     Args:
         k: (3M, 3M) stiffness, N/m, 3x3 blocks (:func:`stiffness_matrix`).
