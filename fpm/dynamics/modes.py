@@ -187,8 +187,8 @@ def reduced_steps(
             hierarchy = None
             if kept is not None:
                 # above DENSE_UP_TO the modes read the hierarchy's own levels (the finest
-                # level's matrix is the stiffness), so the tangent at rest, 0.18 GB on the
-                # 93,705-node organ, is assembled only where there is no hierarchy yet
+                # level's matrix is the stiffness), so the tangent at rest is assembled only
+                # where there is no hierarchy yet
                 hierarchy = kept.hierarchy
                 tangent = hierarchy.levels[0].A
             else:

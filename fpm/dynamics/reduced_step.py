@@ -143,7 +143,6 @@ def lower_projection(
     out = np.zeros((shapes.shape[1], shapes.shape[1]))
     for start in range(0, len(both), 200_000):
         # summed over 200,000 springs at a time, each sum taken 25,000 springs at a time
-        # (the gathered shapes of a piece are 4.8 MB per mode instead of 38)
         chunk = np.zeros_like(out)
         for piece in range(start, min(start + 200_000, len(both)), 25_000):
             s = both[piece : min(piece + 25_000, start + 200_000)]

@@ -33,8 +33,7 @@ WORK_ITERATIONS = 100
 """``refine: "auto"`` also stops before a level whose predicted work, its FEM nodes times the
 CG iterations per case the level before needed (refinement does not lower them), is over
 ``reference.node_budget`` times this: about what a well-shaped mesh needs, where one of
-slivers needs many times as many (examples/lobe.vtu: 717 at the mesh as given, the cap of
-1,000 once refined, 85,000 nodes taking longer than 340,000 of a well-shaped organ)."""
+slivers needs many times as many."""
 
 __all__ = [
     "DEFAULT_NODE_BUDGET",

@@ -141,8 +141,7 @@ def refined_tet_reference(
         # Supports by position at every level (fpm.fem.tet10.fixed_nodes): the region the
         # spec's selectors name, which each finer mesh resolves better. (Holding only what the
         # mesh as given held would keep the region fixed, but a coarse mesh misses most of a
-        # selector's box: the 360-tetrahedron organ held below z = -25 mm moved 2.4 times as
-        # much as the lattice that holds every node there.)
+        # selector's box.)
         def solve() -> FemResult:
             solved = tet10_reference(problem, x, t, method, loads=loads, nested=nested)
             return replace(solved, loads="spread")

@@ -73,10 +73,7 @@ GAUSS_4 = np.array([[_A, _B, _B, _B], [_B, _A, _B, _B], [_B, _B, _A, _B], [_B, _
 """(4, 4) barycentric coordinates of the 4-point Gauss rule (degree 2); each weight is V / 4."""
 
 CG_TOLERANCE = 1e-7
-"""The p-multigrid CG's relative residual ||K u - f|| / ||f||. The reference is judged to
-0.1-1% (its estimated error); on the organ at 6.5 mm (342,225 FEM nodes) 1e-7 moves its
-displacements at the lattice nodes by 2e-6 % from a solve to 1e-9 (the hexahedral FEM's
-tolerance) in 55 iterations per case instead of 72."""
+"""The p-multigrid CG's relative residual ||K u - f|| / ||f||."""
 CHUNK = 4096
 """Elements per chunk of the stiffness assembly (bounds the (chunk, 30, 30) temporaries)."""
 
@@ -174,8 +171,7 @@ def stiffness_matrix(mesh: Tet10Mesh, c: np.ndarray) -> sp.bsr_matrix:
 def _add_blocks(data: np.ndarray, where: np.ndarray, ke: np.ndarray) -> None:
     """``data`` (P, 9) += the 3x3 node blocks of element matrices ``ke`` (E, 30, 30), block
     (a, b) of element e into row ``where[100 e + 10 a + b]`` (row-major 3x3). In element order,
-    as one sum per global block; a loop rather than nine ``np.bincount`` over all P blocks per
-    chunk of elements (at 342,225 FEM nodes those took 20 of the assembly's 27 s)."""
+    as one sum per global block."""
     for e in range(ke.shape[0]):
         for a in range(10):
             for b in range(10):
@@ -437,9 +433,8 @@ def solve_p_multigrid(
     cycle: a forward 3x3 block Gauss-Seidel sweep on the quadratic K, the correction on the
     linear (corner) field ``P^T K P`` by the project's smoothed-aggregation V-cycle
     (:func:`fpm.fem.linear_solver.amg_hierarchy`, rigid-body modes), a backward sweep
-    (symmetric, as CG needs). On the 50,000-tetrahedron organ it needs about 100 iterations
-    where smoothed aggregation on the quadratic K itself needs twice the time
-    (bench/bench_fem.py).
+    (symmetric, as CG needs; against smoothed aggregation on the quadratic K itself:
+    bench/bench_fem.py).
 
     Args:
         k: (3M, 3M) stiffness, N/m, 3x3 blocks (:func:`stiffness_matrix`).

@@ -151,8 +151,7 @@ def hexahedron_springs(hexahedra: np.ndarray, connectivity: str) -> tuple[np.nda
     pairs.sort(axis=1)
     family = np.tile(local_families(connectivity), len(hexahedra))
     # One int64 key per pair sorts as the pairs do (lexicographically): np.unique on it is the
-    # same answer as on the rows (axis=0), 10x sooner (1.2 of load_problem's 1.5 s at 93,705
-    # nodes, spent in every job that builds the problem).
+    # same answer as on the rows (axis=0), sooner.
     n = np.int64(int(hexahedra.max()) + 1 if hexahedra.size else 1)
     keys, inverse = np.unique(pairs[:, 0].astype(np.int64) * n + pairs[:, 1], return_inverse=True)
     springs = np.stack([keys // n, keys % n], axis=1)
@@ -290,16 +289,16 @@ def thin_cells(hexahedra: np.ndarray) -> np.ndarray:
     return (free[:, 0::2] & free[:, 1::2]).any(axis=1)
 
 
-def thin_parts(hexahedra: np.ndarray, min_cells: int = THIN_PART_CELLS) -> list[np.ndarray]:
+def thin_parts(hexahedra: np.ndarray) -> list[np.ndarray]:
     """The parts one cell thick of the lattice ``hexahedra`` (H, 8): groups of thin cells
-    (:func:`thin_cells`) joined through shared nodes, of at least ``min_cells`` cells; each an
-    ascending array of cell indices, the largest group first."""
+    (:func:`thin_cells`) joined through shared nodes, of at least :data:`THIN_PART_CELLS` cells;
+    each an ascending array of cell indices, the largest group first."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
     hexahedra = np.asarray(hexahedra, dtype=np.int64)
     thin = np.flatnonzero(thin_cells(hexahedra))
-    if len(thin) < min_cells:
+    if len(thin) < THIN_PART_CELLS:
         return []
     n_nodes = int(hexahedra.max()) + 1
     rows = np.repeat(np.arange(len(thin)), 8)
@@ -309,7 +308,7 @@ def thin_parts(hexahedra: np.ndarray, min_cells: int = THIN_PART_CELLS) -> list[
     )
     labels = connected_components(graph, directed=False)[1][: len(thin)]
     sizes = np.bincount(labels)
-    big = [g for g in np.argsort(-sizes, kind="stable") if sizes[g] >= min_cells]
+    big = [g for g in np.argsort(-sizes, kind="stable") if sizes[g] >= THIN_PART_CELLS]
     return [thin[labels == g] for g in big]
 
 

@@ -11,9 +11,7 @@ cut. A depth passes when, in every load case, at that stiffness:
   from full depth's by at most tolerance times the case's relative discrepancy at full depth,
   in Eq. 2's norm (the sum of nodal lengths, relative to full depth's response). A load at the
   same place in another direction, which the fit never saw, then changes by at most what the
-  cost test lets the fitted loads lose. With the cost test alone, the bench's organ at
-  h = 6.5 mm was cut to 10 of its 11 layers, and its unseen lateral press lost 8.3 points
-  (docs/explanation/organs-spec.md, *Why every layer*).
+  cost test lets the fitted loads lose (docs/explanation/organs-spec.md, *Why every layer*).
 
 A truncated list holds the nodes beyond it at rest, so the share of full depth's response
 beyond the list is a lower bound of the change: a depth whose share exceeds the allowance fails
@@ -49,11 +47,10 @@ def resolve_depth(
     passes the cost and the response tests (module docstring) with ``tolerance`` (relative).
 
     Each cost probe is a static solve per load case, started from full depth's equilibrium on
-    the probe's list. The answer is usually close to full depth (32 of 33 layers on the organ at
-    h = 3 mm with the cost test alone: 2 probes where bisection from 0 takes 6, each of the
-    deepest, costliest lists). Returns (depth, full depth, {depth probed: case costs, m}; a
-    depth the response test's bound refused has no costs). Where full depth has no finite cost
-    (a load case diverged or found no equilibrium: its case costs stop there), full depth.
+    the probe's list; the probes step down from full depth, each step twice the last, then
+    bisect. Returns (depth, full depth, {depth probed: case costs, m}; a depth the response
+    test's bound refused has no costs). Where full depth has no finite cost (a load case
+    diverged or found no equilibrium: its case costs stop there), full depth.
     """
     full = cost(theta, None)
     deepest = full_depth(cost.problem)

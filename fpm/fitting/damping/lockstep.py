@@ -37,9 +37,9 @@ from .settings import DEFAULT, DampingSettings
 
 LATER = -1
 """A :class:`Request`'s budget that is named once the runs have started: a d run beside the
-predicted d's whose total is its budget (:meth:`_Runs.separate`). The search no longer asks
-for one (its confirming d run only after the predicted d's runs:
-:func:`fpm.fitting.damping.search._unsure`); a worker still runs such a request as any other."""
+predicted d's whose total is its budget (:meth:`_Runs.separate`). The search asks for none
+(its confirming d run only after the predicted d's runs:
+:func:`fpm.fitting.damping.search._unsure`); a worker runs such a request as any other."""
 
 
 def _piece(run: DynamicRun, steps: int, settings: DampingSettings = DEFAULT) -> int:

@@ -59,11 +59,8 @@ MARGIN_PROBES = 2
 """With a prediction, the margin search asks for at most this many probes: the reduced step's
 edge (run at once beside the predicted d's runs where a worker is free), and half a walk's step
 (12%) below it only where the edge settles. d_min is then the smallest d found that settles,
-bracketed to 1.12x or by the tried d above the edge. The edge comes first because on the target
-criterion runs 12% below it do not settle within the caps on the organs measured, so a probe
-there tells nothing the edge's own failure does not; an open walk down would take more probes
-than the fastest d's own runs (docs/notes/2026-11-28-calibration-measured.md, *The margin's
-order*)."""
+bracketed to 1.12x or by the tried d above the edge (why the edge comes first:
+docs/notes/2026-11-28-calibration-measured.md, *The margin's order*)."""
 
 HOPELESS = 10.0
 """The search stops at once (:class:`fpm.fitting.damping.unsettled.DampingError` naming the load

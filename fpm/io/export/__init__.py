@@ -28,33 +28,21 @@ from ...model.problem import Problem
 from ...model.stiffness import has_volume
 from ..errors import ExportError
 from .json_format import (
-    ENERGY,
-    LOADS,
-    STEP,
-    UNITS,
     engine_parameters,
     fit_figures,
-    load_shares,
     resolved_max_steps,
-    settle_parameters,
     to_json,
 )
-from .lattice import Lattice, Parameters, build_lattice
-from .sofa import SOFA_NO_VOLUME, SOFA_PLUGINS, sofa_python_scene, sofa_scene
-from .vtu import fpm_displacements, fpm_equilibria, vtu_bytes, vtu_export
+from .lattice import Parameters, build_lattice
+from .sofa import SOFA_NO_VOLUME, sofa_python_scene, sofa_scene
+from .vtu import fpm_displacements, fpm_equilibria, vtu_export
 
 __all__ = [
-    "ENERGY",
     "FORMATS",
-    "LOADS",
     "MEDIA_TYPES",
     "SOFA_NO_VOLUME",
-    "SOFA_PLUGINS",
-    "STEP",
     "SUFFIXES",
-    "UNITS",
     "ExportError",
-    "Lattice",
     "Parameters",
     "build_lattice",
     "engine_parameters",
@@ -62,13 +50,10 @@ __all__ = [
     "export_warnings",
     "fpm_displacements",
     "fpm_equilibria",
-    "load_shares",
     "resolved_max_steps",
-    "settle_parameters",
     "sofa_python_scene",
     "sofa_scene",
     "to_json",
-    "vtu_bytes",
 ]
 
 FORMATS = ("json", "vtu", "sofa", "sofa-python")

@@ -26,7 +26,7 @@ cropped to the solid cells. :func:`spec_from_mesh` adds the material, fixed node
 cases given as short selector strings (:func:`parse_selector`, :func:`parse_force`) and
 ``fpmcal spec from-mesh`` is its command line.
 
-The package's modules, one idea each (public names all imported from here):
+The package's modules, one idea each (the names used elsewhere imported from here):
 :mod:`.reading`, :mod:`.voxelise`, :mod:`.geometry`, :mod:`.selectors`, :mod:`.conform`,
 :mod:`.from_mesh`, :mod:`.sizing` (the spacing for a node count).
 """
@@ -40,20 +40,12 @@ from .conform import (  # noqa: F401
     conform_spec,
 )
 from .from_mesh import (  # noqa: F401
-    LATTICES,
     spec_from_mesh,
 )
 from .geometry import (  # noqa: F401
-    HEXAHEDRA,
-    SURFACE_CELLS,
-    TAG_NAMES,
-    VOLUME_CELLS,
-    MeshGeometry,
-    cell_tags,
     geometry_from_mesh,
 )
 from .reading import (  # noqa: F401
-    legacy_format,
     mesh_suffix,
     read_mesh,
     read_reference,
@@ -62,8 +54,6 @@ from .selectors import FORCE_HELP, SELECTOR_HELP, parse_force, parse_selector  #
 from .sizing import lattice_nodes, spacing_for_nodes  # noqa: F401
 from .voxelise import (  # noqa: F401
     lattice,
-    one_piece,
-    open_edges,
     voxelise_surface,
     voxelise_tetrahedra,
 )

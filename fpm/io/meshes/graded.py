@@ -101,9 +101,9 @@ def run_lengths(occupancy: np.ndarray) -> np.ndarray:
     return out
 
 
-def thin_groups(occupancy: np.ndarray, min_cells: int = THIN_PART_CELLS) -> list[np.ndarray]:
+def thin_groups(occupancy: np.ndarray) -> list[np.ndarray]:
     """The thin parts of ``occupancy`` (cx, cy, cz): groups (joined through faces, edges or
-    corners) of at least ``min_cells`` solid cells whose run along some axis is at most
+    corners) of at least :data:`THIN_PART_CELLS` solid cells whose run along some axis is at most
     :data:`THIN_RUN` cells; each a (C, 3) array of cell indices, the largest first."""
     from scipy.ndimage import label
 
@@ -113,7 +113,7 @@ def thin_groups(occupancy: np.ndarray, min_cells: int = THIN_PART_CELLS) -> list
     if not count:
         return []
     sizes = np.bincount(labels.ravel())[1:]
-    order = [g for g in np.argsort(-sizes, kind="stable") if sizes[g] >= min_cells]
+    order = [g for g in np.argsort(-sizes, kind="stable") if sizes[g] >= THIN_PART_CELLS]
     return [np.argwhere(labels == g + 1) for g in order]
 
 

@@ -7,7 +7,7 @@ Validation here is what can be checked without building the solid; checks that n
 :func:`fpm.model.problem.load_problem`, which raises the same kind of error with the field's
 location.
 
-The schema is split by part of the spec (public names all imported from here): :mod:`.base`,
+The schema is split by part of the spec (the names used elsewhere imported from here): :mod:`.base`,
 :mod:`.materials`, :mod:`.geometry`, :mod:`.settings`, :mod:`.reference`, :mod:`.problem_spec`.
 """
 
@@ -21,21 +21,11 @@ from .base import (  # noqa: F401
     MODEL_VERSION,
     UNITS_HINT,
     VOLUME_MODES,
-    Connectivity,
-    Face,
-    MaterialModel,
     StiffnessMode,
-    Vector3,
-    _Strict,
     lame_constants,
 )
 from .geometry import (  # noqa: F401
-    FORCE_FIELDS,
-    SELECTOR_FIELDS,
     BoxGeometry,
-    Force,
-    Geometry,
-    LoadCase,
     MeshGeometry,
     NetworkGeometry,
     Selector,
@@ -43,32 +33,22 @@ from .geometry import (  # noqa: F401
 )
 from .materials import (  # noqa: F401
     BASE_REGION,
-    MATERIAL_TYPES,
-    REGION_SELECTOR_FIELDS,
     Material,
     MaterialRegion,
     RegionSelector,
-    Sphere,
     TransverselyIsotropicMaterial,
     region_names,
-    validate_material,
 )
 from .problem_spec import (  # noqa: F401
     ProblemSpec,
 )
 from .reference import (  # noqa: F401
-    MAX_REFINE,
-    MESH_ID_PATTERN,
-    Integration,
-    NodeIndex,
     ReferenceMesh,
     ReferenceSettings,
 )
 from .settings import (  # noqa: F401
-    DEFAULT_T_FINAL,
     MOVES_CAP,
     AnnealingSettings,
-    Bounds,
     FpmSettings,
     lundy_mees_moves,
 )
