@@ -65,15 +65,19 @@ from .linear_solver import (
     v_cycle,
 )
 from .materials import has_materials, tetrahedron_elasticity
-from .solution import RESIDUAL_LIMIT, FemError, FemResult
+from .solution import FemError, FemResult
 from .solution import solve_dirichlet as _solve_direct
 
 _A, _B = 0.5854101966249685, 0.1381966011250105
 GAUSS_4 = np.array([[_A, _B, _B, _B], [_B, _A, _B, _B], [_B, _B, _A, _B], [_B, _B, _B, _A]])
 """(4, 4) barycentric coordinates of the 4-point Gauss rule (degree 2); each weight is V / 4."""
 
-CG_TOLERANCE = 1e-7
-"""The p-multigrid CG's relative residual ||K u - f|| / ||f||."""
+CG_TOLERANCE = 1e-5
+"""The p-multigrid CG's relative residual ||K u - f|| / ||f||. The reference is judged to
+0.1-1% (its estimated error, the change from one level to the next); the CG's own error at
+the lattice nodes stays orders of magnitude below that."""
+RESIDUAL_LIMIT = 10 * CG_TOLERANCE
+"""A relative residual above this after the solve means K was (nearly) singular."""
 CHUNK = 4096
 """Elements per chunk of the stiffness assembly (bounds the (chunk, 30, 30) temporaries)."""
 
@@ -487,6 +491,7 @@ def solve_p_multigrid(
         u[case, free] = result.x
     residuals = np.array([r.residual for r in results])
     iterations = [int(r.iterations) for r in results]
-    if not np.all(np.isfinite(u)) or residuals.max(initial=0.0) > RESIDUAL_LIMIT:
+    unmet = not all(r.converged for r in results)  # within AMG_MAX_ITERATIONS
+    if unmet or not np.all(np.isfinite(u)) or residuals.max(initial=0.0) > RESIDUAL_LIMIT:
         raise singular
     return u, residuals, iterations
