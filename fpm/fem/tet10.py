@@ -53,17 +53,18 @@ from ..model.tetrahedra import (
     signed_volumes,
     validate_tetrahedra,
 )
+from . import linear_solver
 from .assembly import keep_nodes, unique_inverse
 from .elasticity import constitutive_matrix, strain_displacement
 from .linear_solver import (
+    AMG_MAX_ITERATIONS,
     NegativeCurvature,
-    _compiled_sweep,
     amg_hierarchy,
     choose_method,
-    each_column,
     rigid_body_modes,
     v_cycle,
 )
+from .load_case_cg import compiled_sweep_columns, solve_columns
 from .materials import has_materials, tetrahedron_elasticity
 from .solution import FemError, FemResult
 from .solution import solve_dirichlet as _solve_direct
@@ -470,21 +471,30 @@ def solve_p_multigrid(
     kc = sp.bsr_matrix(p.T @ kff @ p, blocksize=(3, 3))
     hierarchy = amg_hierarchy(kc, rigid_body_modes(mesh.nodes[: mesh.n_corners][corners_free]))
     inverse = get_block_diag(kff, blocksize=3, inv_flag=True)
-    sweep = _compiled_sweep()
+    sweep = compiled_sweep_columns()
     restrict = p.T.tocsr()
 
-    def precondition(r: np.ndarray) -> np.ndarray:
+    def precondition(r: np.ndarray) -> np.ndarray:  # (n, c) -> (n, c), column by column
         x = np.zeros_like(r)
         sweep(kff.indptr, kff.indices, kff.data, inverse, x, r, True)
-        x += p @ v_cycle(hierarchy, restrict @ (r - kff @ x))
+        coarse = restrict @ (r - kff @ x)
+        corrections = [v_cycle(hierarchy, np.ascontiguousarray(col)) for col in coarse.T]
+        x += p @ np.stack(corrections, axis=1)
         sweep(kff.indptr, kff.indices, kff.data, inverse, x, r, False)
         return x
 
-    f = forces[:, free]
+    f = np.ascontiguousarray(forces[:, free].T)  # (n, L)
     u = np.zeros_like(forces, dtype=float)
-    try:  # the load cases on up to COLUMN_THREADS threads, each as alone, bit for bit
-        starts = None if start is None else list(start[:, free])
-        results = each_column(kff, list(f), precondition, rtol=CG_TOLERANCE, starts=starts)
+    try:  # the load cases in lockstep, in up to COLUMN_THREADS groups: the same for any
+        results = solve_columns(
+            kff,
+            f,
+            precondition,
+            rtol=CG_TOLERANCE,
+            max_iterations=AMG_MAX_ITERATIONS,
+            threads=linear_solver.COLUMN_THREADS,
+            x0=None if start is None else np.ascontiguousarray(start[:, free].T),
+        )
     except NegativeCurvature:
         raise singular from None
     for case, result in enumerate(results):
