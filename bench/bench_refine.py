@@ -343,7 +343,8 @@ def export_figures(problem: Any, result: Any, reference: Any) -> dict[str, Any]:
         ]
 
     at_depth = None if depth is None else int(depth)
-    figures, every = solved(at_depth), solved(None)
+    figures = solved(at_depth)
+    every = figures if at_depth is None else solved(None)  # the fitted depth is every layer
     reported = result.fit.relative_discrepancy + result.fit.validation_relative_discrepancy
     fitted = len(problem.load_cases)
     return {
