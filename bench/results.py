@@ -57,9 +57,10 @@ def recorded(bench: str) -> list[dict[str, Any]]:
     return list(_records.get(bench, []))
 
 
-CODE_ONLY = [".", ":!docs", ":!tests", ":!*.md"]
-"""What "uncommitted changes" counts: tracked files other than the manual, the tests and Markdown
-(editing a page while a benchmark runs does not change what it measures)."""
+CODE_ONLY = [".", ":!docs", ":!tests", ":!*.md", ":!bench/results"]
+"""What "uncommitted changes" counts: tracked files other than the manual, the tests, Markdown
+and the benchmark results (editing a page while a benchmark runs, or a benchmark run in parts
+writing its rows, does not change what it measures)."""
 
 
 def commit() -> tuple[str, bool]:
