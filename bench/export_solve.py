@@ -26,6 +26,13 @@ CORNERS = np.array(
 """The export's corner order (``hexahedra``: VTK's), in reference coordinates."""
 
 
+FLOOR = 1e-6
+"""The unbalanced force's share of the applied one under which :func:`solve` also stops once
+Newton stalls (:data:`STALL` steps without halving it): its round-off floor, which on a large
+lattice under a small load can lie above the tolerance asked."""
+STALL = 20
+
+
 def volume_gradients(corners: np.ndarray) -> np.ndarray:
     """(C, 8, 3) dV/dx of trilinear hexahedra with corners (C, 8, 3), m^2: at each of the
     2x2x2 Gauss points, d det J / d x_n = cof(J) dN_n (dN_n the shape function's gradient in
@@ -181,8 +188,8 @@ def solve(
     fixed nodes held, and with ``depth`` (layers) the nodes beyond its perturbed list
     (:func:`layers`) held at rest too: the static equilibrium of the export's energy
     (``nonlinear``: Newton steps on it, each with a backtracking line search, until the
-    unbalanced force is below ``tolerance`` times the applied one), or the model linearised
-    at rest.
+    unbalanced force is below ``tolerance`` times the applied one, or below :data:`FLOOR`
+    times it where Newton stalls), or the model linearised at rest.
 
     Raises:
         ArithmeticError: no equilibrium within 200 Newton steps, or a singular stiffness."""
@@ -204,9 +211,14 @@ def solve(
 
     # Newton on the potential energy from rest, with a positive tangent and a backtracking
     # line search (a soft organ's loads carry the linear solution far past equilibrium)
+    history: list[float] = []
     for _ in range(200):
         residual = (forces + internal_forces(model, u.reshape(-1, 3))).ravel()[dofs]
-        if np.linalg.norm(residual) <= tolerance * size:
+        history.append(float(np.linalg.norm(residual)))
+        if history[-1] <= tolerance * size:
+            return u.reshape(-1, 3)
+        stalled = len(history) > STALL and history[-1] > 0.5 * min(history[-STALL - 1 : -1])
+        if stalled and history[-1] <= FLOOR * size:  # the round-off floor, not a failure
             return u.reshape(-1, 3)
         tangent = stiffness(model, u.reshape(-1, 3))[dofs][:, dofs].tocsc()
         step = np.zeros_like(u)
