@@ -242,3 +242,19 @@ def _plate_on_block() -> tuple[np.ndarray, list[tuple[str, np.ndarray]]]:
     keep[6:, :, 2:4] = True  # the flap: two layers of the grid, 6 mm thick, beyond it
     points, tets = grid_tetrahedra((10, 6, 6), np.array([0.06, 0.036, 0.018]), keep)
     return points, [("tetra", tets)]
+
+
+def test_a_part_refined_in_one_region_with_an_earlier_one_is_named_and_counted_once():
+    """Two thin parts whose refined neighbourhoods join are one region of h/2: the notes count
+    its cells and nodes once, under the first, and say the second was refined with it."""
+    from types import SimpleNamespace
+
+    from fpm.io.meshes.conform import refined_notes
+    from fpm.io.meshes.graded import RefinedPart
+
+    first = RefinedPart(np.array([0.0, 0.0, 0.0]), thin_cells=27, cells=102, nodes_added=1168)
+    second = RefinedPart(np.array([0.1, 0.0, 0.0]), thin_cells=10, cells=0, with_part=0)
+    notes = refined_notes(SimpleNamespace(parts=[first, second], spacing=0.0157))
+    assert "refined to h/2 over 102 cells: 1168 nodes" in notes[0]
+    assert "part 2 one cell thick" in notes[1] and "with part 1 (one region" in notes[1]
+    assert "over 0 cells" not in notes[1]

@@ -56,6 +56,9 @@ class RefinedPart:
             not coarse nodes).
         still_thin: fine cells still one cell across (at h/2) in groups of at least
             :data:`THIN_PART_CELLS`: the part is thinner than the finest level, modelled there.
+        with_part: the index of an earlier part whose refined region this one's joined (their
+            neighbourhoods touch), or None; its cells, nodes and still-thin cells are counted
+            there, and are 0 here.
     """
 
     centre: np.ndarray
@@ -63,6 +66,7 @@ class RefinedPart:
     cells: int
     nodes_added: int = 0
     still_thin: int = 0
+    with_part: int | None = None
 
 
 @dataclass
@@ -264,8 +268,13 @@ def _account(
     fine = np.zeros(2 * np.asarray(region.shape), dtype=bool)
     fine[tuple(small.T)] = True
     thin = (run_lengths(fine) == 1).any(axis=0)[tuple(small.T)]
-    for part, g in zip(parts, groups, strict=True):
-        at = labels[tuple(g[0])]
+    first: dict[int, int] = {}  # region piece -> the first part refined in it
+    for index, (part, g) in enumerate(zip(parts, groups, strict=True)):
+        at = int(labels[tuple(g[0])])
+        if at in first:  # one region with an earlier part: counted there, once
+            part.with_part = first[at]
+            continue
+        first[at] = index
         part.cells = int((labels == at).sum())
         corners = np.unique(fine_hexahedra[cell_label == at])
         part.nodes_added = int(added[corners].sum())
