@@ -247,10 +247,11 @@ class NestedStart:
         node, first = np.unique(mesh.elements.ravel(), return_index=True)
         parent = first // mesh.elements.shape[1] // 8
         lam = barycentric(coarse.nodes[coarse.corners[parent]], mesh.nodes[node])
+        weights = shape_functions(lam)  # (M', 10)
         start = np.zeros((len(u), len(mesh.nodes), 3))
         for case in range(len(u)):  # one case at a time: (M', 10, 3) at once, not (L, M', 10, 3)
             values = u[case][coarse.elements[parent]]
-            start[case, node] = np.einsum("mac,ma->mc", values, shape_functions(lam))
+            start[case, node] = np.einsum("mac,ma->mc", values, weights)
         return start
 
 
