@@ -31,28 +31,30 @@ from ..model.stiffness import FLOOR, family_names, has_volume
 
 def stiffness_bounds(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
     """(lower, upper) for the stiffness parameters: the spec's k bounds, else
-    [E h / 100, 10 E h] N/m, the same for every family. families+volume: each family from
-    FLOOR mu h (its 'zero') to the top of the k bounds, and kappa in [FLOOR mu, 10 (lambda +
+    [E h / 100, 10 E h] N/m (h: the lattice's cell size, :attr:`Problem.spacing`), the same for
+    every family. families+volume: each family from FLOOR mu h (its 'zero') to the top of the
+    k bounds, and kappa in [FLOOR mu, 10 (lambda +
     2 mu)] Pa (kappa >= 0: for nu < 1/4 it stays at its floor, see
     :func:`fpm.model.stiffness.continuum_start`)."""
     if is_extended(problem):  # per material region, or the transversely isotropic lattice's
         return materials.bounds(problem, problem.spec.annealing.bounds.k, FLOOR)
-    eh = problem.spec.material.youngs_modulus * problem.h
+    eh = problem.spec.material.youngs_modulus * problem.spacing
     k = problem.spec.annealing.bounds.k or (eh / 100, 10 * eh)
     n = len(family_names(problem))
     if not has_volume(problem):
         return np.full(n, float(k[0])), np.full(n, float(k[1]))
     m = problem.spec.material
     mu, lam = lame_constants(m.youngs_modulus, m.poisson_ratio)
-    low = min(float(k[0]), FLOOR * mu * problem.h)
+    low = min(float(k[0]), FLOOR * mu * problem.spacing)
     lower = np.append(np.full(n - 1, low), FLOOR * mu)
     upper = np.append(np.full(n - 1, float(k[1])), 10 * (lam + 2 * mu))
     return lower, upper
 
 
 def damping_bounds(problem: Problem) -> tuple[float, float]:
-    """(lower, upper) for d, N s/m: the spec's, else [0.1, 5] sqrt(E h m)."""
-    eh = problem.spec.material.youngs_modulus * problem.h
+    """(lower, upper) for d, N s/m: the spec's, else [0.1, 5] sqrt(E h m) (h: the cell size,
+    :attr:`Problem.spacing`; m: the mean node mass)."""
+    eh = problem.spec.material.youngs_modulus * problem.spacing
     scale = float(np.sqrt(eh * problem.solid.masses.mean()))
     d = problem.spec.annealing.bounds.d or (0.1 * scale, 5 * scale)
     return float(d[0]), float(d[1])

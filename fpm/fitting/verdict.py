@@ -358,11 +358,11 @@ def _coarse(problem: Problem) -> str | None:
 
     extents = np.ptp(problem.nodes, axis=0)
     extent = float(extents[extents > 0].min())
-    across = extent / problem.h
+    across = extent / problem.spacing
     if across < SETTINGS.cells_across - 1e-9:
         return (
             f"{across:.1f} cells across the solid's smallest extent ({extent:.3g} m at "
-            f"h = {problem.h:.3g} m)"
+            f"h = {problem.spacing:.3g} m)"
         )
     hexahedra = problem.solid.elements()
     if hexahedra is None:

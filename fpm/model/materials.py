@@ -185,7 +185,7 @@ def start(problem: Problem, floor: float) -> list[float]:
     """The fit's start: per region the continuum start of its material (k1 = k2 = mu h,
     k3 = floor mu h, kappa = lambda - mu, at least floor mu); for a transversely isotropic
     material the closed form of :func:`fpm.model.anisotropy.closed_form_start` and its s."""
-    h = problem.h
+    h = problem.spacing  # the cell size (fpm.model.problem.Problem.spacing)
     f = len(families(problem))
     if is_transverse(problem):
         material = problem.spec.material
@@ -222,7 +222,7 @@ def bounds(
     kappa in [floor mu, 10 (lambda + 2 mu)]. Transversely isotropic: mu the smaller shear
     modulus, E the transverse modulus, kappa up to 10 times the largest normal stiffness, and
     the axial scale within :data:`SCALE_SPAN` of the closed form's."""
-    h = problem.h
+    h = problem.spacing  # the cell size (fpm.model.problem.Problem.spacing)
     f = len(families(problem))
     lower: list[float] = []
     upper: list[float] = []

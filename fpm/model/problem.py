@@ -25,11 +25,11 @@ from .checks import (
     check_supplied_reference,
     thin_part_warnings,
 )
-from .geometry import Solid, build_solid, lumped_masses, spring_lengths
+from .geometry import Solid, build_solid, hexahedron_volumes, lumped_masses, spring_lengths
 from .hat_loads import hat_shares, spread_forces
 from .regions import RegionMap, check_material, lattice_regions
 from .selectors import Loc, NodeFinder, dotted, fmt
-from .spec import ProblemSpec, Selector
+from .spec import MeshGeometry, ProblemSpec, Selector
 
 if TYPE_CHECKING:
     import scipy.sparse as sp
@@ -138,6 +138,10 @@ class Problem:
         load_cases: one :class:`LoadCase` per spec load case, in spec order.
         rest_lengths: (S,) spring rest lengths, m.
         h: shortest spring rest length, m (discrepancies are quoted in % of h).
+        spacing: the lattice's cell size, m, what the stiffness scales with (k ~ mu spacing):
+            :func:`lattice_spacing`. It is h on a regular lattice; on a lattice conformed to a
+            mesh's surface, whose moved nodes make some springs many times shorter than the
+            cells, it is the cells' typical size.
         size: bounding-box diagonal, m (a node moving further than this has diverged).
         cache: what is derived from the problem once and kept with it (e.g. the FPM's
             neighbour arrays): :class:`ProblemCache`.
@@ -158,6 +162,7 @@ class Problem:
     load_cases: list[LoadCase]
     rest_lengths: np.ndarray
     h: float = field(init=False)
+    spacing: float = field(init=False)
     size: float = field(init=False)
     cache: ProblemCache = field(init=False, repr=False, default_factory=ProblemCache)
     notes: list[str] = field(default_factory=list)
@@ -168,6 +173,7 @@ class Problem:
 
     def __post_init__(self) -> None:
         self.h = float(self.rest_lengths.min())
+        self.spacing = lattice_spacing(self.solid, self.spec, self.h)
         self.size = float(np.linalg.norm(np.ptp(self.solid.nodes, axis=0)))
 
     @property
@@ -198,6 +204,25 @@ class Problem:
                 regions=self.regions,
             )
         return found
+
+
+def lattice_spacing(solid: Solid, spec: ProblemSpec, h: float) -> float:
+    """The cell size the lattice's stiffness scales with, m.
+
+    A box or a voxel lattice is regular: its shortest spring ``h``. A mesh of hexahedra (a
+    lattice conformed to a surface, a graded lattice, a user's mesh): the median over its cells
+    of the cube root of the volume, times 2^level for a graded lattice's finer cells (a cell of
+    level L is 2^-L the size of a level-0 one, and its springs get 2^-L of the family's k).
+    The shortest spring is not that size there: conforming the lattice to the surface moves
+    nodes up to 0.75 of a cell, leaving springs 2-30 times shorter than the cells. A network
+    has no cells: ``h``.
+    """
+    if not isinstance(spec.geometry, MeshGeometry) or solid.hexahedra is None:
+        return h
+    size = np.cbrt(np.abs(hexahedron_volumes(solid.nodes, solid.hexahedra)))
+    if solid.levels is not None:
+        size = size * 2.0 ** solid.levels.astype(float)
+    return float(np.median(size))
 
 
 def load_patterns(problem: Problem) -> list[list[int]]:

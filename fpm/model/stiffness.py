@@ -85,7 +85,8 @@ def assembly_weights(problem: Problem) -> np.ndarray:
 
 def continuum_start(problem: Problem) -> list[float]:
     """families+volume: the closed-form parameters whose lattice, in its interior, is the
-    material's isotropic solid: k1 = k2 = mu h, k3 = 0, kappa = lambda - mu (N/m, Pa).
+    material's isotropic solid: k1 = k2 = mu h, k3 = 0, kappa = lambda - mu (N/m, Pa; h the
+    cell size, :attr:`fpm.model.problem.Problem.spacing`).
 
     For nu < 1/4, lambda - mu < 0: a negative volume stiffness could make cells collapse, so
     kappa starts (and stays, see :func:`fpm.fitting.bounds.stiffness_bounds`) at its
@@ -99,7 +100,7 @@ def continuum_start(problem: Problem) -> list[float]:
         return materials.start(problem, FLOOR)
     m = problem.spec.material
     mu, lam = lame_constants(m.youngs_modulus, m.poisson_ratio)
-    h = problem.h
+    h = problem.spacing
     names = family_names(problem)
     k = [mu * h, mu * h, FLOOR * mu * h][: len(names) - 1]
     return [*k, max(lam - mu, FLOOR * mu)]

@@ -13,6 +13,7 @@ from helpers_fpm import MATERIAL, box_spec, network_spec
 
 import fpm
 from fpm.model.geometry import hexahedron_volumes
+from fpm.model.stiffness import continuum_start
 
 RHO = MATERIAL["density"]
 
@@ -241,3 +242,30 @@ def test_hexahedron_springs_are_the_unique_sorted_pairs_with_the_lowest_family(c
     np.minimum.at(lowest, inverse.ravel(), np.tile(local_families(connectivity), len(hexahedra)))
     assert springs.dtype == np.int32 and np.array_equal(springs, expected)
     assert np.array_equal(families, lowest)
+
+
+def test_spacing_is_the_cell_size_where_a_moved_node_shortens_a_spring() -> None:
+    """On a regular lattice the stiffness's scale is h; a lattice conformed to a surface moves
+    nodes and leaves springs far shorter than its cells: the scale stays the cells' size (the
+    median of cube roots of the volumes), and a graded lattice's level-1 cells count double."""
+    spacing = np.array([0.01, 0.01, 0.01])
+    cells = list(product(range(4), range(4), range(3)))
+    regular = solid_of(cells_mesh(cells, spacing, np.random.default_rng(2)))
+    assert regular.spacing == pytest.approx(0.01, rel=1e-12)
+    assert regular.h == pytest.approx(0.01, rel=1e-12)
+    box = fpm.load_problem(box_spec((5, 5, 4)))
+    assert box.spacing == box.h  # regular: the shortest spring itself
+    moved = cells_mesh(cells, spacing, np.random.default_rng(2))
+    corner = int(np.argmin(np.linalg.norm(np.asarray(moved["nodes"]), axis=1)))  # (0, 0, 0)
+    moved["nodes"][corner] = [0.008, 0.008, 0.008]  # its body diagonal: 3.5 mm, not 17 mm
+    conformed = solid_of(moved)
+    assert conformed.h < 0.004
+    assert conformed.spacing == pytest.approx(0.01, rel=1e-12)  # 47 of 48 cells unchanged
+    spec = box_spec((2, 2, 2), fpm_settings={"stiffness": "families+volume"})
+    spec["geometry"] = {**moved, "connectivity": "full"}
+    mu = MATERIAL["youngs_modulus"] / (2 * (1 + MATERIAL["poisson_ratio"]))
+    k1 = continuum_start(fpm.load_problem(spec))[0]
+    assert k1 == pytest.approx(mu * 0.01, rel=1e-12)  # k1 = mu h, h the cells' size
+    graded = solid_of({**cells_mesh(cells, spacing / 2, np.random.default_rng(2)),
+                       "levels": [1] * len(cells)})  # fmt: skip
+    assert graded.spacing == pytest.approx(0.01, rel=1e-12)

@@ -133,7 +133,10 @@ def spec_from_mesh(
     if stiffness is not None:
         spec["fpm"]["stiffness"] = stiffness
     problem = load_problem(spec)  # selectors and the fpm settings checked against the solid
-    notes = made.notes + conformed + [f"{problem.n_nodes} nodes, h = {problem.h:.4g} m"]
+    notes = made.notes + conformed + [
+        f"{problem.n_nodes} nodes, cells of {problem.spacing:.4g} m (the stiffness's scale), the "
+        f"shortest spring h = {problem.h:.4g} m (discrepancies are in % of it)"
+    ]
     notes += problem.notes
     if made.tetrahedra is not None:
         notes.append(
