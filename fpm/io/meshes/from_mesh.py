@@ -133,10 +133,11 @@ def spec_from_mesh(
     if stiffness is not None:
         spec["fpm"]["stiffness"] = stiffness
     problem = load_problem(spec)  # selectors and the fpm settings checked against the solid
-    notes = made.notes + conformed + [
-        f"{problem.n_nodes} nodes, cells of {problem.spacing:.4g} m (the stiffness's scale), the "
-        f"shortest spring h = {problem.h:.4g} m (discrepancies are in % of it)"
-    ]
+    size = (
+        f"{problem.n_nodes} nodes, cells of {problem.spacing:.4g} m (the stiffness's scale), "
+        f"the shortest spring h = {problem.h:.4g} m (discrepancies are in % of it)"
+    )
+    notes = [*made.notes, *conformed, size]
     notes += problem.notes
     if made.tetrahedra is not None:
         notes.append(
