@@ -3,8 +3,9 @@
 - stiffness (:func:`stiffness_bounds`), the same for every spring family: the spec's
   ``annealing.bounds.k``, else [E h / 100, 10 E h] N/m (a lattice of cells of size h has an
   effective modulus of order k/h; h is :attr:`fpm.model.problem.Problem.spacing`, the shortest
-  spring on a regular lattice, the cells' typical size on one conformed to a surface); families+volume: each family from FLOOR mu h (its 'zero') to the top of
-  the k bounds, and kappa in [FLOOR mu, 10 (lambda + 2 mu)] Pa;
+  spring on a regular lattice, the cells' typical size on one conformed to a surface);
+  families+volume: each family from FLOOR mu h (its 'zero') to the top of the k bounds, and
+  kappa in [FLOOR mu, 10 (lambda + 2 mu)] Pa;
 - d (:func:`damping_bounds`): the spec's ``annealing.bounds.d``, else [0.1, 5] sqrt(E h m) N s/m,
   m the mean node mass: sqrt(k m) is the damping scale of a node on springs of stiffness k ~ E h;
 - depth, layers of the perturbed list: the chains fit at the spec's integer depth, or at every
