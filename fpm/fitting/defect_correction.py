@@ -71,8 +71,11 @@ def fit_reduced(
     each round that goes on, while no solve runs (the damping stage starts the modes there:
     :class:`fpm.dynamics.modes_ahead.ModesAhead`).
 
-    Returns (parameters, their normalised static cost (inf if a load case has no equilibrium),
-    the full linear solves it made)."""
+    A round where a load case has no static equilibrium ends the fit at the round before (at
+    ``start`` when it is the first).
+
+    Returns (parameters, their normalised static cost (inf when the first round already had
+    no equilibrium), the full linear solves it made)."""
     problem = cost.problem
     model = ReducedLinearModel.of(problem, basis, cost.reference)
     n_cases = len(model.cases)
@@ -86,6 +89,7 @@ def fit_reduced(
     static = float("inf")
     step = FIRST_STEP
     solved: list[Equilibrium] = []
+    kept: tuple[np.ndarray, float, Stiffness | None, list[Equilibrium]] = (y, static, None, [])
     with ThreadPoolExecutor(threads, thread_name_prefix="reduced") as pool:
         for rounds in range(1, DEFECT_ROUNDS + 1):
             previous = y
@@ -108,11 +112,16 @@ def fit_reduced(
             model.add(linear[j] for j in range(n_cases))  # the basis grows
             solved = [equilibria[j] for j in range(n_cases)]
             if not all(e.converged for e in solved):
-                static = float("inf")
+                # No equilibrium there: the reduced model led where the solid has none (a
+                # lattice that shears freely under a stiff volume term, say). The answer is
+                # the last round that had one, or the start.
+                y, static, kept_stiffness, solved = kept
+                stiffness = kept_stiffness or stiffness
                 break
             cost.evaluations += 1
             static = sum(cost.case_cost(j, e.displacements) for j, e in enumerate(solved))
             static /= cost.reference_cost
+            kept = (y, static, stiffness, solved)
             for case, equilibrium in zip(model.cases, solved, strict=True):
                 assert case.last is not None
                 defect = equilibrium.displacements[case.free] - case.last.reshape(-1, 3)
