@@ -202,6 +202,45 @@ def test_the_fit_is_the_same_on_one_or_two_threads():
     assert answers[0] == answers[1]
 
 
+def test_a_round_without_equilibrium_ends_the_fit_at_the_round_before(monkeypatch):
+    """The reduced model can lead where the solid has no static equilibrium; the fit then
+    keeps the last round that had one (its parameters and cost, as an uninterrupted fit of
+    that many rounds gives them) or, failing in the first round, the start."""
+    import dataclasses
+
+    import fpm.fitting.defect_correction as dc
+    from fpm.fitting.bounds import stiffness_bounds
+
+    problem, reference = small_fit(validation=False)
+    start = list(np.array(continuum_start(problem)) * np.array([1.2, 0.8, 20.0, 1.1]))
+    bounds = stiffness_bounds(problem)
+    real = dc._solver_round
+
+    def fit(fail_from: int | None, rounds: int = dc.DEFECT_ROUNDS):
+        calls = {"n": 0}
+
+        def solver_round(responses, statics, solver, stiffness, depth):
+            linear, solved = real(responses, statics, solver, stiffness, depth)
+            if responses:  # solver 0: once per round
+                calls["n"] += 1
+            if fail_from is not None and calls["n"] >= fail_from:
+                solved = {j: dataclasses.replace(e, converged=False) for j, e in solved.items()}
+            return linear, solved
+
+        monkeypatch.setattr(dc, "_solver_round", solver_round)
+        monkeypatch.setattr(dc, "DEFECT_ROUNDS", rounds)
+        cost = StaticCost(problem, reference.displacements[:2], None)
+        return dc.fit_reduced(cost, first_basis(problem), start, bounds, threads=1)
+
+    theta, static, _ = fit(fail_from=1)
+    assert theta == list(np.exp(np.clip(np.log(start), *np.log(bounds))))
+    assert static == float("inf")
+    one_round = fit(fail_from=None, rounds=1)
+    assert one_round[1] < float("inf")
+    failed_second = fit(fail_from=2)
+    assert failed_second[:2] == one_round[:2]
+
+
 def test_stage_two_validates_beside_the_search():
     """The validation cases, solved on a thread beside the d search once the polish is done,
     are what finalize would have solved itself, to the bit."""
