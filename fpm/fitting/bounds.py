@@ -35,9 +35,8 @@ def stiffness_bounds(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
     """(lower, upper) for the stiffness parameters: the spec's k bounds, else
     [E h / 100, 10 E h] N/m (h: the lattice's cell size, :attr:`Problem.spacing`), the same for
     every family. families+volume: each family from FLOOR mu h (its 'zero') to the top of the
-    k bounds, and kappa in [FLOOR mu, 10 (lambda +
-    2 mu)] Pa (kappa >= 0: for nu < 1/4 it stays at its floor, see
-    :func:`fpm.model.stiffness.continuum_start`)."""
+    k bounds, and kappa in [FLOOR mu, 10 (lambda + 2 mu)] Pa (kappa >= 0: for nu < 1/4 it
+    stays at its floor, see :func:`fpm.model.stiffness.continuum_start`)."""
     if is_extended(problem):  # per material region, or the transversely isotropic lattice's
         return materials.bounds(problem, problem.spec.annealing.bounds.k, FLOOR)
     eh = problem.spec.material.youngs_modulus * problem.spacing

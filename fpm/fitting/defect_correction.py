@@ -116,7 +116,8 @@ def fit_reduced(
                 # lattice that shears freely under a stiff volume term, say). The answer is
                 # the last round that had one, or the start.
                 y, static, kept_stiffness, solved = kept
-                stiffness = kept_stiffness or stiffness
+                if kept_stiffness is not None:  # else solved is empty: nothing to seed
+                    stiffness = kept_stiffness
                 break
             cost.evaluations += 1
             static = sum(cost.case_cost(j, e.displacements) for j, e in enumerate(solved))

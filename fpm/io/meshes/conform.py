@@ -251,17 +251,16 @@ def refined_notes(graded: GradedLattice) -> list[str]:
     and what is still one cell thick at h/2."""
     out = []
     for i, part in enumerate(graded.parts):
+        refined = (
+            f"h/2 over {part.cells} cells: {part.nodes_added} nodes"
+            if part.with_part is None
+            else f"h/2 with part {part.with_part + 1} (one region: its cells and nodes are "
+            "counted there)"
+        )
         line = (
             f"graded lattice: part {i + 1} one cell thick at h = {graded.spacing:.4g} m "
-            f"({part.thin_cells} cells around {_fmt(part.centre)} m) refined to "
-            f"h/2 over {part.cells} cells: {part.nodes_added} nodes"
+            f"({part.thin_cells} cells around {_fmt(part.centre)} m) refined to {refined}"
         )
-        if part.with_part is not None:
-            line = (
-                f"graded lattice: part {i + 1} one cell thick at h = {graded.spacing:.4g} m "
-                f"({part.thin_cells} cells around {_fmt(part.centre)} m) refined to h/2 with "
-                f"part {part.with_part + 1} (one region: its cells and nodes are counted there)"
-            )
         if part.still_thin:
             line += f"; {part.still_thin} of its cells are one cell thick at h/2 too (modelled so)"
         out.append(line)
