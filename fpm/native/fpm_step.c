@@ -6,9 +6,14 @@
    direction in one row), and the hexahedra into blocks side by side along x: a block's lanes
    load their nodes with contiguous vector loads and add their forces with contiguous vector
    stores, no gather and no scatter; the springs and hexahedra in no block take gathers. The
-   forces are summed into PARTS partial sums, each over a fixed share of the blocks (a thread
-   per share), added node by node in a fixed order: the threads change no bit of the step.
-   Against the NumPy recipe (fpm.runtime) the sums differ in order only: within rounding. */
+   nodes are cut into PARTS ranges, and the forces summed into PARTS partial sums, part p over
+   the springs and hexahedra whose first node is in its range (a thread per part: it copies,
+   sums and steps its own nodes, so that two threads share only the nodes near where their
+   ranges meet), added node by node in a fixed order: the threads change no bit of the step.
+   With AVX-512 (float64), a spring block's 1 / length comes from the 14-bit reciprocal square
+   root estimate and two Newton steps instead of a square root and a division. Against the
+   NumPy recipe (fpm.runtime) the step differs in the order of sums and in that 1 / length:
+   within rounding. */
 #include "fpm_step.h"
 
 #include <math.h>
@@ -38,7 +43,16 @@
 #define MESSAGE_BYTES 320
 #define LANES 8 /* springs and hexahedra side by side in a block */
 #define PARTS 2 /* partial sums of the forces: fixed, so that threads change no bit */
+#define SCRATCH (24 * LANES + 64) /* a part's scratch, fpm_real: 24 LANES and a gap, so that
+                                     no two parts share a cache line */
 #define POWER_ITERATIONS 40
+
+#if defined(__AVX512F__) && !defined(FPM_FLOAT32)
+#include <immintrin.h>
+#define FPM_AVX512 1 /* a block of LANES = 8 doubles is one AVX-512 register */
+#else
+#define FPM_AVX512 0
+#endif
 
 struct fpm_model {
     uint32_t n, s, h, ncases, nshare;
@@ -48,8 +62,12 @@ struct fpm_model {
     double mass_min;  /* the lightest free node, kg */
     fpm_real *rest, *mass, *a, *denom, *mg; /* a = dt / m, denom = 1 + a d, mg = m g (3 N) */
     unsigned char *fixed;
+    fpm_real *free_;     /* 1 at a free node, 0 at a fixed one */
+    fpm_real *no_forces; /* 3 N zeros */
     uint32_t *si, *sj;                /* S spring ends, blocks first */
     uint32_t nsblocks, nhblocks;      /* blocks of 2..LANES springs, hexahedra */
+    uint32_t spart[PARTS + 1], hpart[PARTS + 1];     /* part p's blocks: from [p] to [p + 1] */
+    uint32_t ssingle[PARTS + 1], hsingle[PARTS + 1]; /* part p's single items */
     uint32_t *sblock, *hblock; /* block b: items sblock[b]..sblock[b + 1]; then the single ones */
     fpm_real *rest_length, *stiffness; /* S */
     uint32_t *hex;                    /* 8 H corners, hexahedron by hexahedron */
@@ -241,6 +259,11 @@ INLINE fpm_real minus_pressure(const fpm_model *m, long c, fpm_real volume) {
     return -(m->kappa[c] * (volume - m->volume0[c]) / m->volume0[c]);
 }
 
+/* The corners in the order their forces are added: those one node apart along x (0 and 1, 3
+   and 2, 4 and 5, 7 and 6) far apart, so that a load of a window waits for no store to the
+   window one node over still in flight. */
+static const int APART[8] = {0, 2, 4, 6, 1, 3, 5, 7};
+
 /* Part p's share of the hexahedra: blocks b0..b1 (their lanes side by side along x, corners
    lane 0's plus l: vector loads and stores; lanes past a block's end add nothing) and the
    single hexahedra c0..c1 (gathers), their corner forces added to acc (3 NP: x, y, z). */
@@ -266,10 +289,14 @@ static void hex_part(fpm_model *m, long b0, long b1, long c0, long c1, fpm_real 
             UNROLL for (int k = 0; k < 24; k++) g[k * LANES + l] *= factor;
         }
 #undef AT
-        for (int k = 0; k < 24; k++) {
-            fpm_real *restrict out = acc + (k % 3) * NP + q[k / 3];
+        for (int c = 0; c < 8; c++) {
+            const int n = APART[c];
+            for (int d = 0; d < 3; d++) {
+                fpm_real *restrict out = acc + d * NP + q[n];
+                const fpm_real *restrict from = g + (3 * n + d) * LANES;
 #pragma omp simd
-            for (long l = 0; l < LANES; l++) out[l] += g[k * LANES + l];
+                for (long l = 0; l < LANES; l++) out[l] += from[l];
+            }
         }
     }
     for (long first = c0; first < c1; first += LANES) {
@@ -306,6 +333,33 @@ static void spring_part(fpm_model *m, long b0, long b1, long e0, long e1, fpm_re
     for (long b = b0; b < b1; b++) {
         const long first = m->sblock[b], count = m->sblock[b + 1] - first;
         const long i = si[first], j = sj[first];
+#if FPM_AVX512
+        /* 1/L from the 14-bit estimate and two Newton steps (to within an ulp or two of
+           1/sqrt): no square root, no division */
+        const __mmask8 live = (__mmask8)((1u << count) - 1u);
+        const __m512d rx = _mm512_sub_pd(_mm512_loadu_pd(X + j), _mm512_loadu_pd(X + i));
+        const __m512d ry = _mm512_sub_pd(_mm512_loadu_pd(Y + j), _mm512_loadu_pd(Y + i));
+        const __m512d rz = _mm512_sub_pd(_mm512_loadu_pd(Z + j), _mm512_loadu_pd(Z + i));
+        const __m512d r2 = _mm512_add_pd(_mm512_add_pd(_mm512_mul_pd(rx, rx),
+                                                       _mm512_mul_pd(ry, ry)),
+                                         _mm512_mul_pd(rz, rz));
+        const __m512d half = _mm512_set1_pd(0.5), three_halves = _mm512_set1_pd(1.5);
+        const __m512d half_r2 = _mm512_mul_pd(half, r2);
+        __m512d y = _mm512_rsqrt14_pd(r2);
+        for (int newton = 0; newton < 2; newton++)
+            y = _mm512_mul_pd(y, _mm512_sub_pd(three_halves,
+                                               _mm512_mul_pd(half_r2, _mm512_mul_pd(y, y))));
+        const __m512d k = _mm512_loadu_pd(m->stiffness + first);
+        const __m512d rest = _mm512_loadu_pd(m->rest_length + first);
+        const __m512d stretch = _mm512_sub_pd(_mm512_set1_pd(1.0), _mm512_mul_pd(rest, y));
+        const __m512d c = _mm512_maskz_mul_pd(live, k, stretch);
+        const __m512d f[3] = {_mm512_mul_pd(c, rx), _mm512_mul_pd(c, ry), _mm512_mul_pd(c, rz)};
+        for (int d = 0; d < 3; d++) {
+            fpm_real *at_i = acc + d * NP + i, *at_j = acc + d * NP + j;
+            _mm512_storeu_pd(at_i, _mm512_add_pd(_mm512_loadu_pd(at_i), f[d]));
+            _mm512_storeu_pd(at_j, _mm512_sub_pd(_mm512_loadu_pd(at_j), f[d]));
+        }
+#else
 #pragma omp simd
         for (long l = 0; l < LANES; l++) {
             const fpm_real rx = X[j + l] - X[i + l], ry = Y[j + l] - Y[i + l];
@@ -321,6 +375,7 @@ static void spring_part(fpm_model *m, long b0, long b1, long e0, long e1, fpm_re
 #pragma omp simd
             for (long l = 0; l < LANES; l++) at_j[l] -= f[d * LANES + l];
         }
+#endif
     }
     for (long first = e0; first < e1; first += LANES) {
         const long count = e1 - first < LANES ? e1 - first : LANES;
@@ -342,35 +397,47 @@ static void spring_part(fpm_model *m, long b0, long b1, long e0, long e1, fpm_re
 /* Where part p of PARTS starts on n items. */
 static long share(long n, long p) { return n * p / PARTS; }
 
-/* The spring and volume forces at positions x into model->acc: PARTS partial sums, each over its
-   share of the springs and hexahedra, shared out between the threads of the enclosing parallel
-   region (the same sums in the same order however many threads). */
+/* The part of node i: the p with share(n, p) <= i < share(n, p + 1). */
+static long part_of(long n, long i) {
+    long p = 0;
+    while (p + 1 < PARTS && share(n, p + 1) <= i) p++;
+    return p;
+}
+
+/* The spring and volume forces at positions x into model->acc: PARTS partial sums, part p over
+   the springs and hexahedra whose first node is one of its nodes, shared out between the
+   threads of the enclosing parallel region (the same sums in the same order however many
+   threads). A part's nodes and the items it sums are those its thread copies and steps, so
+   that threads exchange only the nodes near where two parts meet. The sums must be zero
+   before (the step zeroes them as it reads them). */
 static void passes(fpm_model *m, const fpm_real *x) {
     const long N = m->n, NP = N + LANES;
-    const long sb = m->nsblocks, hb = m->nhblocks, ss = m->sblock[sb], hs = m->hblock[hb];
 #pragma omp for schedule(static)
-    for (long i = 0; i < N; i++) {
-        m->X[i] = x[3 * i];
-        m->X[NP + i] = x[3 * i + 1];
-        m->X[2 * NP + i] = x[3 * i + 2];
-    }
+    for (long p = 0; p < PARTS; p++)
+        for (long i = share(N, p); i < share(N, p + 1); i++) {
+            m->X[i] = x[3 * i];
+            m->X[NP + i] = x[3 * i + 1];
+            m->X[2 * NP + i] = x[3 * i + 2];
+        }
 #pragma omp for schedule(static)
     for (long p = 0; p < PARTS; p++) {
-        fpm_real *acc = m->acc + p * 3 * NP, *scratch = m->scratch + p * 24 * LANES;
-        memset(acc, 0, 3 * (size_t)NP * sizeof *acc);
-        hex_part(m, share(hb, p), share(hb, p + 1), hs + share(m->h - hs, p),
-                 hs + share(m->h - hs, p + 1), acc, scratch);
-        spring_part(m, share(sb, p), share(sb, p + 1), ss + share(m->s - ss, p),
-                    ss + share(m->s - ss, p + 1), acc, scratch);
+        fpm_real *acc = m->acc + p * 3 * NP, *scratch = m->scratch + p * SCRATCH;
+        hex_part(m, m->hpart[p], m->hpart[p + 1], m->hsingle[p], m->hsingle[p + 1], acc, scratch);
+        spring_part(m, m->spart[p], m->spart[p + 1], m->ssingle[p], m->ssingle[p + 1], acc,
+                    scratch);
     }
 }
 
-/* The internal force at node i from the last passes. */
-INLINE void node_force(const fpm_model *m, long i, fpm_real f[3]) {
+/* The internal force at node i from the last passes, the partial sums zeroed for the next. */
+INLINE void take_node_force(fpm_model *m, long i, fpm_real f[3]) {
     const long NP = m->n + LANES;
     for (int d = 0; d < 3; d++) {
         fpm_real sum = m->acc[d * NP + i];
-        for (int p = 1; p < PARTS; p++) sum += m->acc[(3 * p + d) * NP + i];
+        m->acc[d * NP + i] = 0;
+        for (int p = 1; p < PARTS; p++) {
+            sum += m->acc[(3 * p + d) * NP + i];
+            m->acc[(3 * p + d) * NP + i] = 0;
+        }
         f[d] = sum;
     }
 }
@@ -408,62 +475,89 @@ int fpm_internal_forces(fpm_model *m, const fpm_real *x, fpm_real *out) {
     {
         passes(m, x);
 #pragma omp for schedule(static)
-        for (long i = 0; i < n; i++) node_force(m, i, out + 3 * i);
+        for (long p = 0; p < PARTS; p++)
+            for (long i = share(n, p); i < share(n, p + 1); i++) take_node_force(m, i, out + 3 * i);
     }
     m->message[0] = '\0';
     return FPM_OK;
+}
+
+/* The Voigt step of nodes i0..i1 from the last passes (the partial sums zeroed as they are
+   read): v' = (v + a f) / (1 + a d), x' = x + dt v'. Branch-free, so that it runs in SIMD
+   lanes: a fixed node's velocity is multiplied by 0 (it stays at x) and its force
+   counts in no sum. Into sums: the largest |f|^2 and |f_applied|^2 of a free node, the sum of
+   |f|^2 over the free nodes and of |x - rest|^2 over all. */
+static void advance(fpm_model *m, const fpm_real *restrict x, fpm_real *restrict x_next,
+                    fpm_real *restrict v, const fpm_real *restrict forces, long i0, long i1,
+                    double sums[4]) {
+    const long NP = m->n + LANES;
+    const fpm_real dt = (fpm_real)m->dt;
+    fpm_real *restrict acc = m->acc;
+    const fpm_real *restrict mg = m->mg, *restrict rest = m->rest, *restrict a = m->a;
+    const fpm_real *restrict denom = m->denom, *restrict free_ = m->free_;
+    double unbalanced2 = 0, load2 = 0, sum2 = 0, moved2 = 0;
+#pragma omp simd reduction(max : unbalanced2, load2) reduction(+ : sum2, moved2)
+    for (long i = i0; i < i1; i++) {
+        double mag2 = 0, pull2 = 0;
+        for (int d = 0; d < 3; d++) {
+            fpm_real f = acc[d * NP + i];
+            acc[d * NP + i] = 0;
+            for (int p = 1; p < PARTS; p++) {
+                f += acc[(3 * p + d) * NP + i];
+                acc[(3 * p + d) * NP + i] = 0;
+            }
+            const fpm_real applied = mg[3 * i + d] + forces[3 * i + d];
+            const fpm_real total = applied + f;
+            const fpm_real u = x[3 * i + d] - rest[3 * i + d];
+            moved2 += (double)(u * u);
+            mag2 += (double)(total * total);
+            pull2 += (double)(applied * applied);
+            const fpm_real vn = free_[i] * ((v[3 * i + d] + a[i] * total) / denom[i]);
+            v[3 * i + d] = vn;
+            x_next[3 * i + d] = x[3 * i + d] + dt * vn;
+        }
+        mag2 *= free_[i];
+        pull2 *= free_[i];
+        sum2 += mag2;
+        unbalanced2 = mag2 > unbalanced2 ? mag2 : unbalanced2;
+        load2 = pull2 > load2 ? pull2 : load2;
+    }
+    sums[0] = unbalanced2, sums[1] = load2, sums[2] = sum2, sums[3] = moved2;
 }
 
 int fpm_step(fpm_model *m, const fpm_real *x, fpm_real *x_next, fpm_real *v,
              const fpm_real *forces, fpm_stats *stats) {
     if (!m || !x || !x_next || !v) return FPM_ERR_ARGUMENT;
     const long n = m->n;
-    if (forces)
-        for (long k = 0; k < 3 * n; k++)
-            if (!isfinite(forces[k]))
-                return fail(m, FPM_ERR_FORCES, "forces[%ld].%c: not finite (%g)", k / 3,
-                            "xyz"[k % 3], (double)forces[k]);
-    const fpm_real dt = (fpm_real)m->dt;
-    double unbalanced = 0.0, load = 0.0, sum2 = 0.0, moved2 = 0.0;
+    if (forces) {
+        fpm_real check = 0; /* 0 * f is NaN only where f is not finite */
+#pragma omp simd reduction(+ : check)
+        for (long k = 0; k < 3 * n; k++) check += 0 * forces[k];
+        if (check != 0 || check != check)
+            for (long k = 0; k < 3 * n; k++)
+                if (!isfinite(forces[k]))
+                    return fail(m, FPM_ERR_FORCES, "forces[%ld].%c: not finite (%g)", k / 3,
+                                "xyz"[k % 3], (double)forces[k]);
+    }
+    double unbalanced2 = 0, load2 = 0, sum2 = 0, moved2 = 0;
     const int threads = thread_count(m);
     (void)threads;
 #pragma omp parallel num_threads(threads) if (threads > 1)
     {
         passes(m, x);
-#pragma omp for schedule(static) reduction(max : unbalanced, load) reduction(+ : sum2, moved2)
-        for (long i = 0; i < n; i++) {
-            fpm_real f[3], applied[3], total[3];
-            node_force(m, i, f);
-            for (int d = 0; d < 3; d++) {
-                applied[d] = m->mg[3 * i + d];
-                if (forces) applied[d] = applied[d] + forces[3 * i + d];
-                total[d] = applied[d] + f[d];
-                const fpm_real u = x[3 * i + d] - m->rest[3 * i + d];
-                moved2 += (double)(u * u);
-            }
-            if (m->fixed[i]) {
-                for (int d = 0; d < 3; d++) {
-                    v[3 * i + d] = 0;
-                    x_next[3 * i + d] = x[3 * i + d];
-                }
-                continue;
-            }
-            const double mag2 = (double)(total[0] * total[0] + total[1] * total[1] +
-                                         total[2] * total[2]);
-            const double magnitude = sqrt(mag2);
-            sum2 += mag2;
-            if (magnitude > unbalanced) unbalanced = magnitude;
-            const double pull = sqrt((double)(applied[0] * applied[0] + applied[1] * applied[1] +
-                                              applied[2] * applied[2]));
-            if (pull > load) load = pull;
-            const fpm_real a = m->a[i], denom = m->denom[i];
-            for (int d = 0; d < 3; d++) {
-                const fpm_real vn = (v[3 * i + d] + a * total[d]) / denom;
-                v[3 * i + d] = vn;
-                x_next[3 * i + d] = x[3 * i + d] + dt * vn;
-            }
+#pragma omp for schedule(static) reduction(max : unbalanced2, load2) \
+    reduction(+ : sum2, moved2)
+        for (long p = 0; p < PARTS; p++) {
+            double part[4];
+            advance(m, x, x_next, v, forces ? forces : m->no_forces, share(n, p), share(n, p + 1),
+                    part);
+            unbalanced2 = part[0] > unbalanced2 ? part[0] : unbalanced2;
+            load2 = part[1] > load2 ? part[1] : load2;
+            sum2 += part[2];
+            moved2 += part[3];
         }
     }
+    const double unbalanced = sqrt((double)unbalanced2), load = sqrt((double)load2);
     if (!isfinite(sum2) || !isfinite(moved2))
         return fail(m, FPM_ERR_DIVERGED,
                     "the state is not finite: the step diverged (dt %g s, d %g N s/m)", m->dt,
@@ -724,7 +818,7 @@ static int read_offsets(reader *r, const char *field, size_t count, uint32_t end
 
 void fpm_free(fpm_model *m) {
     if (!m) return;
-    void *owned[] = {m->rest,        m->mass,        m->a,           m->denom,
+    void *owned[] = {m->free_, m->no_forces, m->rest, m->mass,        m->a,           m->denom,
                      m->mg,          m->fixed,       m->si,          m->sj,
                      m->rest_length, m->stiffness,   m->hex,         m->corner,
                      m->kappa,       m->volume0,     m->X,           m->acc,
@@ -745,23 +839,27 @@ static void copy_message(char *error, size_t error_size, const char *message) {
 /* ------------------------------------------------------------------------- blocks */
 
 typedef struct {
+    long part;   /* the part that sums it */
     long key[8]; /* what the lanes of a block share (offsets), then where it runs (key[7]) */
     uint32_t index;
 } block_key;
 
 static int compare_keys(const void *a, const void *b) {
     const block_key *p = a, *q = b;
+    if (p->part != q->part) return p->part < q->part ? -1 : 1;
     for (int k = 0; k < 8; k++)
         if (p->key[k] != q->key[k]) return p->key[k] < q->key[k] ? -1 : 1;
     return p->index < q->index ? -1 : p->index > q->index;
 }
 
-/* An order of count items: first blocks of 2..LANES items that share key[0..6] and whose key[7]
-   counts up by one from lane to lane (block b is order[start[b]..start[b + 1]], *blocks of
-   them), then the single items in their own order. Returns the order and *start (both to
+/* An order of count items: first blocks of 2..LANES items of one part that share key[0..6] and
+   whose key[7] counts up by one from lane to lane (block b is order[start[b]..start[b + 1]],
+   *blocks of them; part p's are blocks parts[p]..parts[p + 1]), then the single items part by
+   part (part p's from singles[p] to singles[p + 1]). Returns the order and *start (both to
    free), NULL when out of memory. */
 static uint32_t *block_order(block_key *keys, uint32_t count, uint32_t **start,
-                             uint32_t *blocks) {
+                             uint32_t *blocks, uint32_t parts[PARTS + 1],
+                             uint32_t singles[PARTS + 1]) {
     uint32_t *order = malloc(((size_t)count + 1) * 4);
     unsigned char *taken = calloc((size_t)count + 1, 1);
     *start = malloc(((size_t)count / 2 + 2) * 4);
@@ -771,9 +869,13 @@ static uint32_t *block_order(block_key *keys, uint32_t count, uint32_t **start,
     }
     qsort(keys, count, sizeof *keys, compare_keys);
     uint32_t filled = 0, b = 0;
+    long part = 0;
+    parts[0] = 0;
     for (uint32_t r = 0; r < count;) {
+        while (part < keys[r].part) parts[++part] = b;
         uint32_t end = r + 1;
-        while (end < count && end - r < LANES && keys[end].key[7] == keys[end - 1].key[7] + 1 &&
+        while (end < count && end - r < LANES && keys[end].part == keys[r].part &&
+               keys[end].key[7] == keys[end - 1].key[7] + 1 &&
                memcmp(keys[end].key, keys[r].key, 7 * sizeof(long)) == 0)
             end++;
         if (end - r > 1) {
@@ -782,10 +884,16 @@ static uint32_t *block_order(block_key *keys, uint32_t count, uint32_t **start,
         }
         r = end;
     }
+    while (part < PARTS) parts[++part] = b;
     (*start)[b] = filled;
     *blocks = b;
-    for (uint32_t e = 0; e < count; e++)
-        if (!taken[e]) order[filled++] = e;
+    part = 0;
+    singles[0] = filled;
+    for (uint32_t r = 0; r < count; r++) {
+        while (part < keys[r].part) singles[++part] = filled;
+        if (!taken[keys[r].index]) order[filled++] = keys[r].index;
+    }
+    while (part < PARTS) singles[++part] = filled;
     free(taken);
     return order;
 }
@@ -799,9 +907,10 @@ static int make_blocks(fpm_model *m) {
         memset(keys[e].key, 0, sizeof keys[e].key);
         keys[e].key[0] = (long)m->sj[e] - (long)m->si[e];
         keys[e].key[7] = m->si[e];
+        keys[e].part = part_of(m->n, m->si[e]);
         keys[e].index = e;
     }
-    uint32_t *order = block_order(keys, s, &m->sblock, &m->nsblocks);
+    uint32_t *order = block_order(keys, s, &m->sblock, &m->nsblocks, m->spart, m->ssingle);
     uint32_t *u32 = malloc(((size_t)(s > 8 * h ? s : 8 * h) + 1) * 4);
     fpm_real *real = malloc(((size_t)(s > h ? s : h) + 1) * sizeof(fpm_real));
     if (!order || !u32 || !real) {
@@ -821,9 +930,10 @@ static int make_blocks(fpm_model *m) {
     for (uint32_t c = 0; c < h; c++) {
         for (int n = 1; n < 8; n++) keys[c].key[n - 1] = (long)m->hex[8 * c + n] - m->hex[8 * c];
         keys[c].key[7] = m->hex[8 * c];
+        keys[c].part = part_of(m->n, m->hex[8 * c]);
         keys[c].index = c;
     }
-    order = block_order(keys, h, &m->hblock, &m->nhblocks);
+    order = block_order(keys, h, &m->hblock, &m->nhblocks, m->hpart, m->hsingle);
     free(keys);
     if (!order) {
         free(u32), free(real);
@@ -856,11 +966,13 @@ static int build(fpm_model *m, const unsigned char *data, uint32_t nfixed, uint3
     m->denom = malloc(((size_t)n + 1) * sizeof(fpm_real));
     m->mg = malloc((3 * (size_t)n + 1) * sizeof(fpm_real));
     m->fixed = calloc((size_t)n + 1, 1);
+    m->free_ = malloc(((size_t)n + 1) * sizeof(fpm_real));
+    m->no_forces = calloc(3 * (size_t)n + 1, sizeof(fpm_real));
     m->rest_length = malloc(((size_t)s + LANES) * sizeof(fpm_real)); /* lanes past the end */
     m->stiffness = malloc(((size_t)s + LANES) * sizeof(fpm_real));
     m->X = calloc(3 * ((size_t)n + LANES), sizeof(fpm_real));
-    m->acc = malloc(3 * PARTS * ((size_t)n + LANES) * sizeof(fpm_real));
-    m->scratch = malloc(24 * PARTS * LANES * sizeof(fpm_real));
+    m->acc = calloc(3 * PARTS * ((size_t)n + LANES), sizeof(fpm_real)); /* zero: passes add */
+    m->scratch = malloc(PARTS * SCRATCH * sizeof(fpm_real));
     m->hex = malloc((8 * (size_t)h + 1) * 4);
     m->corner = malloc((8 * (size_t)h + 1) * 4);
     m->kappa = malloc(((size_t)h + LANES) * sizeof(fpm_real));
@@ -873,7 +985,8 @@ static int build(fpm_model *m, const unsigned char *data, uint32_t nfixed, uint3
     m->share_index = malloc(((size_t)share_entries + 1) * 4);
     m->share_weight = malloc(((size_t)share_entries + 1) * 8);
     if (!rest || !mass || !fixed || !si || !sj || !length || !k || !kappa || !volume0 ||
-        !m->rest || !m->mass || !m->a || !m->denom || !m->mg || !m->fixed || !m->scratch ||
+        !m->rest || !m->mass || !m->a || !m->denom || !m->mg || !m->fixed || !m->free_ ||
+        !m->no_forces || !m->scratch ||
         !m->X || !m->acc || !m->rest_length ||
         !m->stiffness || !m->hex || !m->corner || !m->kappa || !m->volume0 ||
         !m->case_offset || !m->case_node ||
@@ -908,6 +1021,7 @@ static int build(fpm_model *m, const unsigned char *data, uint32_t nfixed, uint3
             goto done;
         }
     for (uint32_t i = 0; i < nfixed; i++) m->fixed[fixed[i]] = 1;
+    for (uint32_t i = 0; i < n; i++) m->free_[i] = m->fixed[i] ? 0 : 1;
     m->mass_min = INFINITY;
     for (uint32_t i = 0; i < n; i++) {
         m->mass[i] = (fpm_real)mass[i];
