@@ -7,15 +7,17 @@ sqrt(E h m): 10^3 = 1,000 nodes (the paper's cube), 13^3 = 2,197, 27^3 = 19,683 
 volumes: the JSON export's arrays; no calibration, no export's settle modes), stepped under a
 push on the top centre node that changes every step.
 
-Per lattice: steps/s of the native float64 step (its default threads: OpenMP's from
-FPM_THREAD_NODES nodes, one below), of the float32 step, and of the NumPy runtime; the stream
+Per lattice: steps/s of the native float64 step timed from C as an engine calls it
+(bench/step_loop.c: no Python between steps; its default threads: OpenMP's from
+FPM_THREAD_NODES nodes, one below), the same step from Python (``Runtime.step``: ctypes and the
+array checks added), the float32 step and the NumPy runtime from Python; the stream
 bound: the seconds of a loop reading the bytes the step reads and writes once per step (model
 arrays and state, bench/stream.c, same compiler, flags and threads), measured in the same run;
-the ratio native / stream (1 = at the bound). The wall clock of a shared machine: the load
+the ratio C loop / stream (1 = at the bound). The wall clock of a shared machine: the load
 average is recorded beside, and the CPU seconds of the native step per step as well.
 
-Goals: >= 20,000 steps/s at about 2,000 nodes, >= 1,000 at about 20,000, >= 150 at about
-100,000; within 2x of the stream bound; >= 20x the NumPy runtime.
+Goals (the C loop): >= 20,000 steps/s at about 2,000 nodes, >= 1,000 at about 20,000, >= 150
+at about 100,000; within 2x of the stream bound; >= 20x the NumPy runtime.
 
 Part ``damping``: the paper's cube (material A's forces) calibrated with the default model
 (two-stage, families+volume, dt auto), its JSON export stepped by the C step per load case from
@@ -126,24 +128,54 @@ def step_bytes(rt: Any) -> int:
 
 
 def stream_library() -> ctypes.CDLL:
-    """bench/stream.c compiled as the native step is (flags, OpenMP), into its cache."""
+    """bench/stream.c and bench/step_loop.c (with fpm_step.c) compiled as the native step is
+    (flags, OpenMP), into its cache."""
     from fpm import native
 
     cc = native.compiler()
     if cc is None:
         raise native.CompilerUnavailable("no C compiler")
-    target = native.cache_dir() / f"stream{native._suffix()}"
-    source = Path(__file__).with_name("stream.c")
-    if not target.exists() or target.stat().st_mtime < source.stat().st_mtime:
+    here = Path(__file__).parent
+    sources = [here / "stream.c", here / "step_loop.c", native.SOURCE]
+    newest = max(source.stat().st_mtime for source in [*sources, native.HEADER])
+    target = native.cache_dir() / f"bench_loops{native._suffix()}"
+    if not target.exists() or target.stat().st_mtime < newest:
         target.parent.mkdir(parents=True, exist_ok=True)
         subprocess.run(
-            [cc, *native.FLAGS, "-fopenmp", str(source), "-o", str(target)],
+            [cc, *native.FLAGS, "-fopenmp", f"-I{native.HERE}", *map(str, sources), "-o",
+             str(target), "-lm"],
             check=True, capture_output=True,
         )  # fmt: skip
     lib = ctypes.CDLL(str(target))
     lib.stream_pass.restype = ctypes.c_double
     lib.stream_pass.argtypes = [ctypes.c_void_p, ctypes.c_long, ctypes.c_int, ctypes.c_long]
+    lib.step_seconds.restype = ctypes.c_double
+    lib.step_seconds.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_void_p, ctypes.c_long,
+                                 ctypes.c_long, ctypes.c_int]  # fmt: skip
     return lib
+
+
+def c_loop_seconds(lib: ctypes.CDLL, rt: Any, push: np.ndarray, threads: int) -> float:
+    """Seconds per float64 step of ``rt``'s lattice stepped from C (bench/step_loop.c) under
+    16 pushes that change every step, best of 5 rounds of about 0.1 s."""
+    from fpm.native import runtime_bytes
+
+    data = runtime_bytes(rt)
+    pushes = np.ascontiguousarray(
+        [push * (1.0 + 0.5 * np.sin(0.01 * n)) for n in range(16)], dtype=np.float64
+    )
+    steps = 20
+    while True:
+        t0 = time.perf_counter()
+        lib.step_seconds(data, len(data), pushes.ctypes.data, 16, steps, threads)
+        if time.perf_counter() - t0 > 0.1:
+            break
+        steps *= 2
+    best = min(lib.step_seconds(data, len(data), pushes.ctypes.data, 16, steps, threads)
+               for _ in range(5))  # fmt: skip
+    if best < 0:
+        raise RuntimeError("bench/step_loop.c could not load the binary export")
+    return best
 
 
 def stream_seconds(lib: ctypes.CDLL, nbytes: int, threads: int) -> float:
@@ -390,26 +422,28 @@ def steps_part() -> None:
     """Part ``steps`` (the module docstring)."""
     lib = stream_library()
     print(
-        f"{'nodes':>8} {'springs':>9} {'native/s':>10} {'goal':>7} {'f32/s':>9} "
-        f"{'numpy/s':>8} {'x numpy':>8} {'stream/s':>9} {'x stream':>8} {'cpu us':>7} {'load':>5}"
+        f"{'nodes':>8} {'springs':>9} {'C loop/s':>9} {'goal':>7} {'python/s':>9} "
+        f"{'f32/s':>9} {'numpy/s':>8} {'x numpy':>8} {'stream/s':>9} {'x stream':>8} "
+        f"{'cpu us':>7} {'load':>5}"
     )
     for side in SIDES:
         load = os.getloadavg()[0]
         rt, push = box_runtime(side, "native")
+        threads = rt._engine.thread_count
+        c_rate = 1.0 / c_loop_seconds(lib, rt, push, threads)
         native_rate, cpu = steps_per_second(rt, push)
         f32, push32 = box_runtime(side, "native", "float32")
         f32_rate, _ = steps_per_second(f32, push32)
         numpy_rt, _ = box_runtime(side, "numpy")
         numpy_rate, _ = steps_per_second(numpy_rt, push)
-        threads = rt._engine.thread_count
         nbytes = step_bytes(rt)
         stream = stream_seconds(lib, nbytes, threads)
-        ratio = 1.0 / native_rate / stream
+        ratio = 1.0 / c_rate / stream
         goal = GOALS.get(side)
         print(
-            f"{rt.n_nodes:>8,} {len(rt.springs):>9,} {native_rate:>10,.0f} "
-            f"{goal or 0:>7,.0f} {f32_rate:>9,.0f} {numpy_rate:>8,.1f} "
-            f"{native_rate / numpy_rate:>8.1f} {1 / stream:>9,.0f} {ratio:>8.2f} "
+            f"{rt.n_nodes:>8,} {len(rt.springs):>9,} {c_rate:>9,.0f} {goal or 0:>7,.0f} "
+            f"{native_rate:>9,.0f} {f32_rate:>9,.0f} {numpy_rate:>8,.1f} "
+            f"{c_rate / numpy_rate:>8.1f} {1 / stream:>9,.0f} {ratio:>8.2f} "
             f"{cpu * 1e6:>7.0f} {load:>5.2f}",
             flush=True,
         )
@@ -420,18 +454,20 @@ def steps_part() -> None:
             springs=len(rt.springs),
             hexahedra=len(rt.hexahedra),
             threads=threads,
+            c_loop_steps_per_s=c_rate,
             native_steps_per_s=native_rate,
             native_cpu_us_per_step=cpu * 1e6,
+            python_overhead_us=1e6 / native_rate - 1e6 / c_rate,
             float32_steps_per_s=f32_rate,
             numpy_steps_per_s=numpy_rate,
-            speedup_over_numpy=native_rate / numpy_rate,
+            speedup_over_numpy=c_rate / numpy_rate,
             step_bytes=nbytes,
             stream_steps_per_s=1.0 / stream,
             stream_ratio=ratio,
             goal_steps_per_s=goal,
-            meets_goal=None if goal is None else native_rate >= goal,
+            meets_goal=None if goal is None else c_rate >= goal,
             meets_stream_goal=ratio <= STREAM_GOAL,
-            meets_numpy_goal=native_rate / numpy_rate >= NUMPY_GOAL,
+            meets_numpy_goal=c_rate / numpy_rate >= NUMPY_GOAL,
             load_average=load,
         )
 

@@ -205,22 +205,25 @@ def native_page(document: dict[str, Any]) -> list[str]:
         "# The native step",
         "",
         "Steps per second of the C step (`fpm/native/fpm_step.c`, float64 unless said; its "
-        "default threads) and of the NumPy runtime (`fpm.runtime`) on boxes at the paper's "
+        "default threads) timed from C as an engine calls it (`bench/step_loop.c`), the same "
+        "step from Python (`Runtime.step`: ctypes and the array checks added), float32 and the "
+        "NumPy runtime (`fpm.runtime`) from Python, on boxes at the paper's "
         "spacing with the default model (springs and the volume term), a push that changes "
         "every step; the stream bound: passes per second of a loop reading the bytes the step "
         "reads and writes once (`bench/bench_native.py`), in the same run. Wall clock of the "
         "shared machine, its load average beside; CPU microseconds per step of the C step "
         "(all its threads) beside that. [The native step](../reference/native-step.md).",
         "",
-        "| nodes | springs | threads | C steps/s | goal | float32 | NumPy | x NumPy | stream "
-        "bound | C / stream | CPU µs a step | load |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| nodes | springs | threads | C steps/s | goal | from Python | float32 | NumPy | "
+        "x NumPy | stream bound | C / stream | CPU µs a step | load |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         goal = "-" if r["goal_steps_per_s"] is None else f"{r['goal_steps_per_s']:,.0f}"
         out.append(
             f"| {r['nodes']:,} | {r['springs']:,} | {r['threads']} | "
-            f"{r['native_steps_per_s']:,.0f} | {goal} | {r['float32_steps_per_s']:,.0f} | "
+            f"{r['c_loop_steps_per_s']:,.0f} | {goal} | {r['native_steps_per_s']:,.0f} | "
+            f"{r['float32_steps_per_s']:,.0f} | "
             f"{r['numpy_steps_per_s']:,.1f} | {r['speedup_over_numpy']:.1f} | "
             f"{r['stream_steps_per_s']:,.0f} | {r['stream_ratio']:.1f} | "
             f"{r['native_cpu_us_per_step']:,.0f} | {r['load_average']:.1f} |"
@@ -492,17 +495,17 @@ def headline(documents: dict[str, dict[str, Any]], bench_dir: str) -> list[str]:
     if goals:
         run = documents["native"]["runs"]["steps"]
         rates = ", ".join(
-            f"{r['native_steps_per_s']:,.0f} steps/s at {r['nodes']:,} nodes (goal "
+            f"{r['c_loop_steps_per_s']:,.0f} steps/s at {r['nodes']:,} nodes (goal "
             f"{r['goal_steps_per_s']:,.0f})"
             for r in goals
         )
         out.append(
             f"- **Real time where engines run it**: the fitted model's native step "
             f"(`fpm/native/fpm_step.c`, springs and the volume term, forces changing every "
-            f"step) runs {rates} on a shared {run['machine']['cores']}-core machine in "
-            f"float64 ("
+            f"step, timed from C) runs {rates} on a shared {run['machine']['cores']}-core "
+            f"machine in float64 ("
             + " / ".join(f"{r['float32_steps_per_s']:,.0f}" for r in goals)
-            + " in float32, an option that keeps the equilibrium within 1e-4), "
+            + " in float32 from Python, an option that keeps the equilibrium within 1e-4), "
             f"{min(r['speedup_over_numpy'] for r in steps):.0f}-"
             f"{max(r['speedup_over_numpy'] for r in steps):.0f} times the NumPy runtime. "
             f"[Native page]({bench_dir}/native.md), measured {run['date'][:10]}."

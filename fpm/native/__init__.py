@@ -178,6 +178,7 @@ class NativeStep:
         self.n_nodes = int(self._lib.fpm_node_count(handle))
         self._stats = _Stats()
         self._stats_ref = ctypes.byref(self._stats)
+        self._states: dict[int, tuple[np.ndarray, int]] = {}
         self.threads = threads
 
     def __del__(self) -> None:
@@ -219,6 +220,19 @@ class NativeStep:
             )
         return a.ctypes.data
 
+    def _state(self, a: np.ndarray, name: str) -> int:
+        """The address of a state array (x, x_next, v), checked once: a runtime steps the same
+        three arrays again and again, and the check costs microseconds a step. The array is
+        held while its address is kept, so that its id stays its own."""
+        kept = self._states.get(id(a))
+        if kept is not None and kept[0] is a:
+            return kept[1]
+        if len(self._states) >= 6:
+            self._states.clear()
+        address = self._array(a, name)
+        self._states[id(a)] = (a, address)
+        return address
+
     def step(
         self, x: np.ndarray, x_next: np.ndarray, v: np.ndarray, forces: np.ndarray | None
     ) -> tuple[float, bool]:
@@ -227,9 +241,9 @@ class NativeStep:
         self._check(
             self._lib.fpm_step(
                 self._model,
-                self._array(x, "x"),
-                self._array(x_next, "x_next"),
-                self._array(v, "v"),
+                self._state(x, "x"),
+                self._state(x_next, "x_next"),
+                self._state(v, "v"),
                 f,
                 self._stats_ref,
             )
