@@ -1,19 +1,22 @@
 /* fpm_step.c: see fpm_step.h. C99; OpenMP when compiled with it, one thread without.
 
    Layout in memory, for the machine: positions are copied to structure-of-arrays (all x, then
-   y, z) at the start of a step. The springs are reordered into blocks of up to LANES springs
-   whose ends i are consecutive nodes and whose j - i is the same (a lattice's springs along one
-   direction in one row), and the hexahedra into blocks side by side along x: a block's lanes
-   load their nodes with contiguous vector loads and add their forces with contiguous vector
-   stores, no gather and no scatter; the springs and hexahedra in no block take gathers. The
-   nodes are cut into PARTS ranges, and the forces summed into PARTS partial sums, part p over
-   the springs and hexahedra whose first node is in its range (a thread per part: it copies,
-   sums and steps its own nodes, so that two threads share only the nodes near where their
-   ranges meet), added node by node in a fixed order: the threads change no bit of the step.
-   With AVX-512 (float64), a spring block's 1 / length comes from the 14-bit reciprocal square
-   root estimate and two Newton steps instead of a square root and a division. Against the
-   NumPy recipe (fpm.runtime) the step differs in the order of sums and in that 1 / length:
-   within rounding. */
+   y, z) at the start of a step. Most springs are pulled: cut into slots of LANES consecutive
+   nodes (a window) and one offset to the other ends, each spring in the slots of both its ends,
+   so that a window's spring forces are summed in registers and stored once, loads only (a
+   spring computed twice costs less than two stores to nodes another spring reads). The springs
+   whose slots would be mostly empty (irregular parts) are reordered into blocks of up to LANES
+   springs whose ends i are consecutive nodes and whose j - i is the same, and the hexahedra
+   into blocks side by side along x: a block's lanes load their nodes with contiguous vector
+   loads and add their forces with contiguous vector stores; the springs and hexahedra in no
+   block take gathers. The nodes are cut into PARTS ranges, and the forces summed into PARTS
+   partial sums, part p over the slots of its windows and the blocks whose first node is in its
+   range (a thread per part: it copies, sums and steps its own nodes, so that two threads share
+   only the nodes near where their ranges meet), added node by node in a fixed order: the
+   threads change no bit of the step. With AVX-512 (float64), 1 / length comes from the 14-bit
+   reciprocal square root estimate and two Newton steps instead of a square root and a
+   division. Against the NumPy recipe (fpm.runtime) the step differs in the order of sums and
+   in that 1 / length: within rounding. */
 #include "fpm_step.h"
 
 #include <math.h>
@@ -46,6 +49,7 @@
 #define SCRATCH (24 * LANES + 64) /* a part's scratch, fpm_real: 24 LANES and a gap, so that
                                      no two parts share a cache line */
 #define POWER_ITERATIONS 40
+#define SLOT_LANES 4 /* a slot of pulled springs fills at least this many of its LANES */
 
 #if defined(__AVX512F__) && !defined(FPM_FLOAT32)
 #include <immintrin.h>
@@ -68,12 +72,18 @@ struct fpm_model {
     uint32_t nsblocks, nhblocks;      /* blocks of 2..LANES springs, hexahedra */
     uint32_t spart[PARTS + 1], hpart[PARTS + 1];     /* part p's blocks: from [p] to [p + 1] */
     uint32_t ssingle[PARTS + 1], hsingle[PARTS + 1]; /* part p's single items */
+    uint32_t nslots, slot_part[PARTS + 1]; /* pulled springs: slots, part p's from [p] */
+    uint32_t *slot_window;                 /* the slot's nodes: LANES w .. LANES w + 7 */
+    int32_t *slot_offset;                  /* the other ends: those nodes plus it */
+    unsigned char *slot_live;              /* bit l: a spring in lane l */
+    fpm_real *slot_k, *slot_length;        /* LANES a slot: N/m, m */
     uint32_t *sblock, *hblock; /* block b: items sblock[b]..sblock[b + 1]; then the single ones */
     fpm_real *rest_length, *stiffness; /* S */
     uint32_t *hex;                    /* 8 H corners, hexahedron by hexahedron */
     uint32_t *corner;                 /* the same, corner by corner: corner[a H + c] */
     fpm_real *kappa, *volume0;        /* H */
-    fpm_real *X;       /* 3 NP, NP = N + LANES: positions, all x then y, z (padded with 0) */
+    fpm_real *Xbuf, *X; /* 3 NP, NP = N + 2 LANES: positions, all x then y, z, each with LANES
+                          zeros before and after (X: the first x) */
     fpm_real *acc;     /* PARTS x 3 NP: the passes' partial sums of the internal forces */
     fpm_real *scratch; /* PARTS x 24 LANES */
     uint32_t *case_offset, *case_node;
@@ -269,7 +279,7 @@ static const int APART[8] = {0, 2, 4, 6, 1, 3, 5, 7};
    single hexahedra c0..c1 (gathers), their corner forces added to acc (3 NP: x, y, z). */
 static void hex_part(fpm_model *m, long b0, long b1, long c0, long c1, fpm_real *restrict acc,
                      fpm_real *restrict g) {
-    const long H = m->h, NP = m->n + LANES;
+    const long H = m->h, NP = m->n + 2 * LANES;
     const fpm_real *restrict X = m->X, *restrict Y = X + NP, *restrict Z = X + 2 * NP;
     const uint32_t *restrict corner = m->corner;
     for (long b = b0; b < b1; b++) {
@@ -327,7 +337,7 @@ INLINE fpm_real spring_factor(const fpm_model *m, long e, fpm_real rx, fpm_real 
    end i, - on end j). f: 3 LANES scratch. */
 static void spring_part(fpm_model *m, long b0, long b1, long e0, long e1, fpm_real *restrict acc,
                         fpm_real *restrict f) {
-    const long NP = m->n + LANES;
+    const long NP = m->n + 2 * LANES;
     const fpm_real *restrict X = m->X, *restrict Y = X + NP, *restrict Z = X + 2 * NP;
     const uint32_t *restrict si = m->si, *restrict sj = m->sj;
     for (long b = b0; b < b1; b++) {
@@ -394,8 +404,72 @@ static void spring_part(fpm_model *m, long b0, long b1, long e0, long e1, fpm_re
     }
 }
 
-/* Where part p of PARTS starts on n items. */
-static long share(long n, long p) { return n * p / PARTS; }
+/* Part p's pulled springs: slots u0..u1, window by window. A slot holds the springs from the
+   window's nodes (lanes) to the nodes offset further, each spring in the slots of both its
+   ends: the window's forces are summed in registers over its slots and added to acc once, no
+   store to a node another slot of the same pass reads. */
+static void pull_part(fpm_model *m, long u0, long u1, fpm_real *restrict acc) {
+    const long NP = m->n + 2 * LANES;
+    const fpm_real *restrict X = m->X, *restrict Y = X + NP, *restrict Z = X + 2 * NP;
+    const fpm_real *restrict slot_k = m->slot_k, *restrict slot_length = m->slot_length;
+    for (long u = u0; u < u1;) {
+        const long w = m->slot_window[u], base = LANES * w;
+#if FPM_AVX512
+        const __m512d x0 = _mm512_loadu_pd(X + base), y0 = _mm512_loadu_pd(Y + base);
+        const __m512d z0 = _mm512_loadu_pd(Z + base);
+        const __m512d half = _mm512_set1_pd(0.5), three_halves = _mm512_set1_pd(1.5);
+        __m512d fx = _mm512_setzero_pd(), fy = _mm512_setzero_pd(), fz = _mm512_setzero_pd();
+        for (; u < u1 && m->slot_window[u] == (uint32_t)w; u++) {
+            const long o = base + m->slot_offset[u];
+            const __m512d rx = _mm512_sub_pd(_mm512_loadu_pd(X + o), x0);
+            const __m512d ry = _mm512_sub_pd(_mm512_loadu_pd(Y + o), y0);
+            const __m512d rz = _mm512_sub_pd(_mm512_loadu_pd(Z + o), z0);
+            const __m512d r2 = _mm512_add_pd(_mm512_add_pd(_mm512_mul_pd(rx, rx),
+                                                           _mm512_mul_pd(ry, ry)),
+                                             _mm512_mul_pd(rz, rz));
+            const __m512d half_r2 = _mm512_mul_pd(half, r2);
+            __m512d y = _mm512_rsqrt14_pd(r2);
+            for (int newton = 0; newton < 2; newton++)
+                y = _mm512_mul_pd(y, _mm512_sub_pd(three_halves,
+                                                   _mm512_mul_pd(half_r2, _mm512_mul_pd(y, y))));
+            const __m512d k = _mm512_loadu_pd(slot_k + LANES * u);
+            const __m512d rest = _mm512_loadu_pd(slot_length + LANES * u);
+            const __m512d stretch = _mm512_sub_pd(_mm512_set1_pd(1.0), _mm512_mul_pd(rest, y));
+            const __m512d c = _mm512_maskz_mul_pd((__mmask8)m->slot_live[u], k, stretch);
+            fx = _mm512_add_pd(fx, _mm512_mul_pd(c, rx));
+            fy = _mm512_add_pd(fy, _mm512_mul_pd(c, ry));
+            fz = _mm512_add_pd(fz, _mm512_mul_pd(c, rz));
+        }
+        fpm_real *at_x = acc + base, *at_y = acc + NP + base, *at_z = acc + 2 * NP + base;
+        _mm512_storeu_pd(at_x, _mm512_add_pd(_mm512_loadu_pd(at_x), fx));
+        _mm512_storeu_pd(at_y, _mm512_add_pd(_mm512_loadu_pd(at_y), fy));
+        _mm512_storeu_pd(at_z, _mm512_add_pd(_mm512_loadu_pd(at_z), fz));
+#else
+        fpm_real f[3][LANES] = {{0}};
+        for (; u < u1 && m->slot_window[u] == (uint32_t)w; u++) {
+            const long o = base + m->slot_offset[u];
+            const unsigned live = m->slot_live[u];
+#pragma omp simd
+            for (long l = 0; l < LANES; l++) {
+                const fpm_real rx = X[o + l] - X[base + l], ry = Y[o + l] - Y[base + l];
+                const fpm_real rz = Z[o + l] - Z[base + l];
+                const fpm_real length = SQRT(rx * rx + ry * ry + rz * rz);
+                const fpm_real factor =
+                    slot_k[LANES * u + l] * (length - slot_length[LANES * u + l]) / length;
+                const fpm_real c = (live >> l) & 1u ? factor : 0;
+                f[0][l] += c * rx, f[1][l] += c * ry, f[2][l] += c * rz;
+            }
+        }
+        for (int d = 0; d < 3; d++)
+#pragma omp simd
+            for (long l = 0; l < LANES; l++) acc[d * NP + base + l] += f[d][l];
+#endif
+    }
+}
+
+/* Where part p of PARTS starts on n nodes: a multiple of LANES, so that no window of LANES
+   nodes is in two parts. */
+static long share(long n, long p) { return p >= PARTS ? n : n * p / PARTS / LANES * LANES; }
 
 /* The part of node i: the p with share(n, p) <= i < share(n, p + 1). */
 static long part_of(long n, long i) {
@@ -411,7 +485,7 @@ static long part_of(long n, long i) {
    that threads exchange only the nodes near where two parts meet. The sums must be zero
    before (the step zeroes them as it reads them). */
 static void passes(fpm_model *m, const fpm_real *x) {
-    const long N = m->n, NP = N + LANES;
+    const long N = m->n, NP = N + 2 * LANES;
 #pragma omp for schedule(static)
     for (long p = 0; p < PARTS; p++)
         for (long i = share(N, p); i < share(N, p + 1); i++) {
@@ -425,12 +499,13 @@ static void passes(fpm_model *m, const fpm_real *x) {
         hex_part(m, m->hpart[p], m->hpart[p + 1], m->hsingle[p], m->hsingle[p + 1], acc, scratch);
         spring_part(m, m->spart[p], m->spart[p + 1], m->ssingle[p], m->ssingle[p + 1], acc,
                     scratch);
+        pull_part(m, m->slot_part[p], m->slot_part[p + 1], acc);
     }
 }
 
 /* The internal force at node i from the last passes, the partial sums zeroed for the next. */
 INLINE void take_node_force(fpm_model *m, long i, fpm_real f[3]) {
-    const long NP = m->n + LANES;
+    const long NP = m->n + 2 * LANES;
     for (int d = 0; d < 3; d++) {
         fpm_real sum = m->acc[d * NP + i];
         m->acc[d * NP + i] = 0;
@@ -490,7 +565,7 @@ int fpm_internal_forces(fpm_model *m, const fpm_real *x, fpm_real *out) {
 static void advance(fpm_model *m, const fpm_real *restrict x, fpm_real *restrict x_next,
                     fpm_real *restrict v, const fpm_real *restrict forces, long i0, long i1,
                     double sums[4]) {
-    const long NP = m->n + LANES;
+    const long NP = m->n + 2 * LANES;
     const fpm_real dt = (fpm_real)m->dt;
     fpm_real *restrict acc = m->acc;
     const fpm_real *restrict mg = m->mg, *restrict rest = m->rest, *restrict a = m->a;
@@ -821,10 +896,11 @@ void fpm_free(fpm_model *m) {
     void *owned[] = {m->free_, m->no_forces, m->rest, m->mass,        m->a,           m->denom,
                      m->mg,          m->fixed,       m->si,          m->sj,
                      m->rest_length, m->stiffness,   m->hex,         m->corner,
-                     m->kappa,       m->volume0,     m->X,           m->acc,
+                     m->kappa,       m->volume0,     m->Xbuf,        m->acc,
                      m->scratch,     m->sblock,      m->hblock,
                      m->case_offset, m->case_node,   m->case_force,  m->share_node,
-                     m->share_offset, m->share_index, m->share_weight};
+                     m->share_offset, m->share_index, m->share_weight, m->slot_window,
+                     m->slot_offset, m->slot_live, m->slot_k, m->slot_length};
     for (size_t k = 0; k < sizeof owned / sizeof owned[0]; k++) free(owned[k]);
     free(m);
 }
@@ -898,25 +974,138 @@ static uint32_t *block_order(block_key *keys, uint32_t count, uint32_t **start,
     return order;
 }
 
+/* A spring end for the slots: its window, the offset to the other end, its lane. */
+typedef struct {
+    long part, window, offset;
+    uint32_t lane, spring;
+} end_key;
+
+static int compare_ends(const void *a, const void *b) {
+    const end_key *p = a, *q = b;
+    if (p->part != q->part) return p->part < q->part ? -1 : 1;
+    if (p->window != q->window) return p->window < q->window ? -1 : 1;
+    if (p->offset != q->offset) return p->offset < q->offset ? -1 : 1;
+    if (p->lane != q->lane) return p->lane < q->lane ? -1 : 1;
+    return p->spring < q->spring ? -1 : p->spring > q->spring;
+}
+
+static int same_slot(const end_key *p, const end_key *q) {
+    return p->window == q->window && p->offset == q->offset;
+}
+
+/* The pulled springs (pulled[e] = 1) and their slots: a spring is pulled when each of its ends
+   is in a slot of at least SLOT_LANES lanes of pulled springs (a window of LANES nodes, one
+   offset to the other ends, at most one spring a lane); the others are left to the blocks. */
+static int make_slots(fpm_model *m, unsigned char *pulled) {
+    const uint32_t s = m->s;
+    const size_t count = 2 * (size_t)s;
+    end_key *ends = malloc((count + 1) * sizeof *ends);
+    if (!ends) return FPM_ERR_MEMORY;
+    for (uint32_t e = 0; e < s; e++)
+        for (int end = 0; end < 2; end++) {
+            const long node = end ? m->sj[e] : m->si[e], other = end ? m->si[e] : m->sj[e];
+            ends[2 * (size_t)e + end] = (end_key){part_of(m->n, node), node / LANES,
+                                                  other - node, (uint32_t)(node % LANES), e};
+        }
+    qsort(ends, count, sizeof *ends, compare_ends);
+    memset(pulled, 1, s);
+    for (int changed = 1; changed;) {
+        changed = 0;
+        for (size_t r = 0; r < count;) {
+            size_t end = r;
+            unsigned live = 0;
+            int lanes = 0;
+            for (; end < count && same_slot(ends + end, ends + r); end++) {
+                if (!pulled[ends[end].spring]) continue;
+                if ((live >> ends[end].lane) & 1u) { /* a second spring in the lane */
+                    pulled[ends[end].spring] = 0, changed = 1;
+                } else {
+                    live |= 1u << ends[end].lane, lanes++;
+                }
+            }
+            if (lanes > 0 && lanes < SLOT_LANES)
+                for (size_t k = r; k < end; k++)
+                    if (pulled[ends[k].spring]) pulled[ends[k].spring] = 0, changed = 1;
+            r = end;
+        }
+    }
+    uint32_t slots = 0; /* those with a pulled spring */
+    for (size_t r = 0, end; r < count; r = end) {
+        int any = 0;
+        for (end = r; end < count && same_slot(ends + end, ends + r); end++)
+            any |= pulled[ends[end].spring];
+        slots += (uint32_t)any;
+    }
+    m->slot_window = malloc(((size_t)slots + 1) * 4);
+    m->slot_offset = malloc(((size_t)slots + 1) * 4);
+    m->slot_live = calloc((size_t)slots + 1, 1);
+    m->slot_k = calloc(LANES * ((size_t)slots + 1), sizeof(fpm_real));
+    m->slot_length = calloc(LANES * ((size_t)slots + 1), sizeof(fpm_real));
+    if (!m->slot_window || !m->slot_offset || !m->slot_live || !m->slot_k || !m->slot_length) {
+        free(ends);
+        return FPM_ERR_MEMORY;
+    }
+    uint32_t u = 0;
+    long part = 0;
+    m->slot_part[0] = 0;
+    for (size_t r = 0, end; r < count; r = end) {
+        int any = 0;
+        for (end = r; end < count && same_slot(ends + end, ends + r); end++)
+            any |= pulled[ends[end].spring];
+        if (any) {
+            while (part < ends[r].part) m->slot_part[++part] = u;
+            m->slot_window[u] = (uint32_t)ends[r].window;
+            m->slot_offset[u] = (int32_t)ends[r].offset;
+            for (size_t k = r; k < end; k++) {
+                const uint32_t e = ends[k].spring, l = ends[k].lane;
+                if (!pulled[e]) continue;
+                m->slot_live[u] |= (unsigned char)(1u << l);
+                m->slot_k[LANES * (size_t)u + l] = m->stiffness[e];
+                m->slot_length[LANES * (size_t)u + l] = m->rest_length[e];
+            }
+            u++;
+        }
+    }
+    while (part < PARTS) m->slot_part[++part] = u;
+    m->nslots = u;
+    free(ends);
+    return FPM_OK;
+}
+
 /* The springs and hexahedra reordered into blocks (model->sblock, hblock) for the passes. */
 static int make_blocks(fpm_model *m) {
     const uint32_t s = m->s, h = m->h;
+    unsigned char *pulled = calloc((size_t)s + 1, 1);
+    uint32_t *subset = malloc(((size_t)s + 1) * 4);
     block_key *keys = malloc(((size_t)(s > h ? s : h) + 1) * sizeof *keys);
-    if (!keys) return FPM_ERR_MEMORY;
-    for (uint32_t e = 0; e < s; e++) {
-        memset(keys[e].key, 0, sizeof keys[e].key);
-        keys[e].key[0] = (long)m->sj[e] - (long)m->si[e];
-        keys[e].key[7] = m->si[e];
-        keys[e].part = part_of(m->n, m->si[e]);
-        keys[e].index = e;
-    }
-    uint32_t *order = block_order(keys, s, &m->sblock, &m->nsblocks, m->spart, m->ssingle);
-    uint32_t *u32 = malloc(((size_t)(s > 8 * h ? s : 8 * h) + 1) * 4);
-    fpm_real *real = malloc(((size_t)(s > h ? s : h) + 1) * sizeof(fpm_real));
-    if (!order || !u32 || !real) {
-        free(keys), free(order), free(u32), free(real);
+    if (!pulled || !subset || !keys || make_slots(m, pulled)) {
+        free(pulled), free(subset), free(keys);
         return FPM_ERR_MEMORY;
     }
+    uint32_t scattered = 0;
+    for (uint32_t e = 0; e < s; e++)
+        if (!pulled[e]) subset[scattered++] = e;
+    for (uint32_t k = 0; k < scattered; k++) {
+        const uint32_t e = subset[k];
+        memset(keys[k].key, 0, sizeof keys[k].key);
+        keys[k].key[0] = (long)m->sj[e] - (long)m->si[e];
+        keys[k].key[7] = m->si[e];
+        keys[k].part = part_of(m->n, m->si[e]);
+        keys[k].index = k;
+    }
+    uint32_t *blocks =
+        block_order(keys, scattered, &m->sblock, &m->nsblocks, m->spart, m->ssingle);
+    uint32_t *order = malloc(((size_t)s + 1) * 4);
+    uint32_t *u32 = malloc(((size_t)(s > 8 * h ? s : 8 * h) + 1) * 4);
+    fpm_real *real = malloc(((size_t)(s > h ? s : h) + 1) * sizeof(fpm_real));
+    if (!blocks || !order || !u32 || !real) {
+        free(pulled), free(subset), free(keys), free(blocks), free(order), free(u32), free(real);
+        return FPM_ERR_MEMORY;
+    }
+    for (uint32_t k = 0; k < scattered; k++) order[k] = subset[blocks[k]];
+    for (uint32_t e = 0, k = scattered; e < s; e++) /* then the pulled ones */
+        if (pulled[e]) order[k++] = e;
+    free(pulled), free(subset), free(blocks);
 #define PERMUTE(array, tmp, count)                                                             \
     do {                                                                                       \
         for (uint32_t e = 0; e < (count); e++) tmp[e] = array[order[e]];                       \
@@ -970,8 +1159,9 @@ static int build(fpm_model *m, const unsigned char *data, uint32_t nfixed, uint3
     m->no_forces = calloc(3 * (size_t)n + 1, sizeof(fpm_real));
     m->rest_length = malloc(((size_t)s + LANES) * sizeof(fpm_real)); /* lanes past the end */
     m->stiffness = malloc(((size_t)s + LANES) * sizeof(fpm_real));
-    m->X = calloc(3 * ((size_t)n + LANES), sizeof(fpm_real));
-    m->acc = calloc(3 * PARTS * ((size_t)n + LANES), sizeof(fpm_real)); /* zero: passes add */
+    m->Xbuf = calloc(3 * ((size_t)n + 2 * LANES), sizeof(fpm_real));
+    m->X = m->Xbuf ? m->Xbuf + LANES : NULL;
+    m->acc = calloc(3 * PARTS * ((size_t)n + 2 * LANES), sizeof(fpm_real)); /* zero: passes add */
     m->scratch = malloc(PARTS * SCRATCH * sizeof(fpm_real));
     m->hex = malloc((8 * (size_t)h + 1) * 4);
     m->corner = malloc((8 * (size_t)h + 1) * 4);

@@ -1,6 +1,7 @@
 """The native step (fpm/native/fpm_step.c, compiled here with the system's C compiler) and its
 numba twin against fpm.runtime's NumPy recipe; the binary export and the C loader's checks."""
 
+import copy
 import json
 import shutil
 import struct
@@ -95,7 +96,11 @@ def test_the_compiled_step_is_the_numpy_recipe(request, lattice, backend):
 def test_runs_settle_in_the_same_steps(organ):
     """At the kernel's d, which is overdamped: at the engine's every mode oscillates as it
     decays, the unbalanced force crosses the settle threshold more than once, and a rounding
-    difference can pick another crossing (474 against 480 steps on this organ)."""
+    difference can pick another crossing (474 against 480 steps on this organ). At a settle
+    tolerance of 1e-9, not the fixture's 1e-12: there the threshold (1e-14 N) is the rounding
+    floor of the force sums, where their order, not the step, decides the crossing."""
+    organ = copy.deepcopy(organ)
+    organ["parameters"]["settle_tolerance"] = 1e-9
     counts = {}
     for backend in ("numpy", "native", "numba"):
         rt = Runtime.from_export(organ, backend=backend, damping="kernel")
