@@ -11,9 +11,11 @@ import numpy as np
 import pytest
 
 import fpm
-from fpm.fitting.damping.settings import GEOMETRY_GAP
+from fpm.fitting.damping.settings import DEFAULT
 from fpm.fitting.damping.validation import validate
 from tests.core.test_export import soft_block_spec
+
+GEOMETRY_GAP = DEFAULT.geometry_gap
 
 THETA = [30.0, 20.0, 4.0, 2e4]  # k per family, N/m, and kappa, Pa: a soft block's
 

@@ -27,7 +27,7 @@ from fpm.dynamics.voigt import SETTLED
 from fpm.fitting.calibration import calibrate
 from fpm.fitting.damping.choice import DampingPlan
 from fpm.fitting.damping.lockstep import LATER, CaseRun, Request, Verdict, _Runs, lockstep_cpu
-from fpm.fitting.damping.settings import CHUNK, CONFIRM, CONFIRM_PRUNE
+from fpm.fitting.damping.settings import DEFAULT
 from fpm.model.stiffness import model_stiffness
 from service.limits import dump_spec
 from store import graph, keys, records, scratch
@@ -36,6 +36,8 @@ from store.timeline import critical_path, numbered
 from worker.idle import local_threads
 from worker.spread import CaseSpread
 from worker.tasks import VALIDATION_SPAN, task_digest, to_stored
+
+CHUNK, CONFIRM, CONFIRM_PRUNE = DEFAULT.chunk, DEFAULT.confirm, DEFAULT.confirm_prune
 
 SMALL = json.loads(
     (Path(__file__).resolve().parents[2] / "examples" / "small-box.json").read_text()
