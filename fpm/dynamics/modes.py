@@ -1,19 +1,9 @@
 """What the lattice's slowest modes predict for the FPM step: the nodal damping d that settles
-every load case in the fewest steps, before any run (docs/physics.md, *Calibration*, damping:
-*the prediction*).
-
-**1. The slowest modes** (:func:`fpm.dynamics.eigen.lowest_modes`): ``K phi = w^2 M phi``,
-the k lowest, as Phi (3M, k) M-orthonormal (Phi^T M Phi = I; kg^-1/2) and w^2 (k,) 1/s^2.
-
-**2. The reduced step** of each load case on them (:func:`reduced_steps`, one set of modes per
-distinct perturbed list; the step itself: :mod:`fpm.dynamics.reduced_step`), its settle force
-on the spec's criterion.
-
-**3. The fastest d** (:func:`fastest_predicted`) minimises the predicted steps summed over the
-load cases (:func:`total_steps`): a log grid over the bounds, then golden-section refinement.
-
-How close the prediction comes to the dynamic kernel's runs:
-docs/explanation/physics/damping-prediction.md.
+every load case in the fewest steps, before any run: the slowest modes
+(:func:`fpm.dynamics.eigen.lowest_modes`), the reduced step of each load case on them
+(:func:`reduced_steps`, :mod:`fpm.dynamics.reduced_step`), and the d with the fewest predicted
+steps summed over the load cases (:func:`fastest_predicted`)
+(docs/explanation/physics/damping-prediction.md).
 """
 
 from __future__ import annotations
@@ -120,13 +110,9 @@ def predict_damping(
     modes: dict[bytes, Modes] | None = None,
 ) -> tuple[Prediction, list[StepModel]]:
     """The predicted fastest d of ``problem``'s load cases at ``stiffness``, ``depth`` and
-    ``dt``, within ``bounds`` (N s/m), and the reduced steps it came from.
-
-    ``solver``: the problem's static solver (its systems, perturbed lists and multigrid
-    hierarchies); ``static`` (L, N, 3): the static equilibria, m (None: the modes' linear
-    response); ``distances``: each case's settle distance towards them (None: the spec's,
-    :func:`fpm.dynamics.settle.nominal_distance`). One set of modes per distinct list;
-    ``modes``: those already found (:class:`fpm.dynamics.modes_ahead.ModesAhead`), keyed as
+    ``dt``, within ``bounds`` (N s/m), and the reduced steps it came from. ``static`` (L, N, 3)
+    m: the static equilibria (None: the modes' linear response); ``distances``: each case's
+    settle distance towards them (None: the spec's); ``modes``: those already found, keyed as
     :func:`reduced_steps` keys them.
 
     Raises:
