@@ -19,8 +19,8 @@ from fpm.dynamics.simulation import FpmModel
 from fpm.dynamics.stability import auto_time_step
 from fpm.dynamics.voigt import SETTLED
 from fpm.fitting.damping import search as damping
+from fpm.fitting.damping.choice import critical_damping
 from fpm.fitting.damping.choice import fit_damping as find_damping
-from fpm.fitting.damping.critical import critical_damping
 from fpm.fitting.damping.lockstep import CaseRun, _piece, _Runs, predicted_steps
 from fpm.fitting.damping.margin import smallest_settling
 from fpm.fitting.damping.search import _search, _unsure, fastest_damping
