@@ -26,9 +26,6 @@ from ...model.forces import Stiffness
 from ...model.problem import Problem
 from .settings import DEFAULT, DampingSettings
 
-LATER = -1
-"""A :class:`Request`'s budget named once the runs have started (:meth:`_Runs.separate`)."""
-
 
 def _piece(run: DynamicRun, steps: int, settings: DampingSettings = DEFAULT) -> int:
     """Advance ``run`` by ``steps`` in samples of ``settings.sample``; the steps taken."""
@@ -102,9 +99,9 @@ class CaseRun:
 @dataclass(frozen=True)
 class Request:
     """One d's lockstep runs as the search asks for them (:meth:`_Runs.__call__`'s arguments):
-    d (N s/m), each case's cap, the budget (None: none; LATER: named once the runs have
-    started), how predictions decide; ``caps_later``: the caps are named once the runs have
-    started, within ``caps`` (a margin probe run beside the predicted d's)."""
+    d (N s/m), each case's cap, the budget (None: none), how predictions decide;
+    ``caps_later``: the caps are named once the runs have started, within ``caps`` (a margin
+    probe run beside the predicted d's)."""
 
     d: float
     caps: tuple[int, ...]
@@ -147,8 +144,8 @@ def run_case(
 
 
 Resolve = Callable[[], dict[str, Any] | None]
-"""Where a lockstep learns what is named later (None: not yet): {"budget": int or None}, or
-{"caps": [int per case], or None: drop the request} (:func:`named_later`)."""
+"""Where a lockstep learns the caps named later (None: not yet): {"caps": [int per case], or
+None: drop the request} (:func:`named_later`)."""
 
 
 def run_request(
@@ -185,14 +182,11 @@ def named_later(
     caps: list[int],
     settings: DampingSettings = DEFAULT,
 ) -> dict[str, Any]:
-    """What ``request``, run beside a d's cases (``runs``, each to ``caps``), learns once they
-    have ended, as the search would make it: a confirming d's budget (their
-    :func:`settled_total`), or a margin probe's caps, ``margin_cap`` times each case's steps
-    within its own (None where they did not all settle)."""
-    total = settled_total(runs, caps)
-    if not request.caps_later:
-        return {"budget": total}
-    if total is None:
+    """What a margin probe ``request``, run beside a d's cases (``runs``, each to ``caps``),
+    learns once they have ended, as the search would make it: its caps, ``margin_cap`` times
+    each case's steps within its own (None where they did not all settle:
+    :func:`settled_total`)."""
+    if settled_total(runs, caps) is None:
         return {"caps": None}
     cap = settings.margin_cap
     return {"caps": [min(c, cap * r.steps) for r, c in zip(runs, request.caps, strict=True)]}
@@ -304,17 +298,15 @@ class _Runs:
         """Every load case at d, each run on its own to its end, and the verdict the lockstep would
         reach (:func:`replay_verdict`): for a d with no budget run to the cap, the same as
         :meth:`__call__` but that a failed d's other cases also run to their end.
-        ``beside``: requests run at the same time by ``spread`` (their budget or caps named
-        from this d's runs), kept as :meth:`prefetch` keeps them."""
+        ``beside``: margin probes run at the same time by ``spread`` (their caps named from
+        this d's runs), kept as :meth:`prefetch` keeps them."""
         if self.spread is None:
             runs = list(self.pool.map(self.local, range(self.cases), [d] * self.cases, caps))
         else:
             runs, outcomes = self.spread.separate(d, caps, self.local, list(beside), self.locked)
             for request, outcome in zip(beside, outcomes, strict=True):
                 named = named_later(request, runs, caps, self.settings)
-                if "budget" in named:
-                    self._keep([replace(request, budget=named["budget"])], [outcome])
-                elif named["caps"] is not None:
+                if named["caps"] is not None:
                     taken = replace(request, caps=tuple(named["caps"]), caps_later=False)
                     self._keep([taken], [outcome])
         self.count += self.cases
@@ -371,12 +363,12 @@ class _Runs:
     def _lockstep(
         self, request: Request, resolve: Resolve | None = None
     ) -> tuple[list[DynamicRun | CaseRun], Verdict, int]:
-        """:meth:`__call__`'s runs of ``request``, and the steps they took. Until a budget LATER or
-        caps named later are named (``resolve``, looked at every ``settings.look`` s) the cases
+        """:meth:`__call__`'s runs of ``request``, and the steps they took. Until caps named
+        later are named (``resolve``, looked at every ``settings.look`` s) the cases
         run on undecided up to ``settings.hold`` steps; the milestones passed are then decided
         in turn as they would have been, so the verdict is the same."""
         d, caps, budget = request.d, list(request.caps), request.budget
-        pending = budget == LATER or request.caps_later
+        pending = request.caps_later
         if pending and resolve is None:
             raise ValueError("what is named later needs where to learn it")
         looked = -math.inf
@@ -412,11 +404,10 @@ class _Runs:
                     for future in running:
                         work += _spent(future)
                     running.clear()
-                    if named.get("caps", caps) is None:  # the search will not ask for it
+                    if named["caps"] is None:  # the search will not ask for it
                         dropped: list[DynamicRun | CaseRun] = list(runs)
                         return dropped, Verdict("dropped"), work
-                    budget = named.get("budget", budget)
-                    caps, pending = list(named.get("caps", caps)), False
+                    caps, pending = list(named["caps"]), False
             # (a run past a cap named later, as it stood at that cap)
             seen = [_capped(r, c) for r, c in zip(runs, caps, strict=True)]
             stopped = [r.finished or r.steps >= c for r, c in zip(seen, caps, strict=True)]
