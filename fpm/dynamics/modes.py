@@ -9,7 +9,6 @@ steps summed over the load cases (:func:`fastest_predicted`)
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,25 +24,11 @@ from .settle import by_distance, force_tolerance, mode_stiffness, nodal_size, no
 
 @dataclass
 class Prediction:
-    """The fastest-settling d predicted from the modes, before any run.
-
-    Attributes:
-        d: the predicted fastest d, N s/m.
-        steps: (L,) predicted steps per load case at d.
-        radius: (L,) spectral radius of each case's reduced step at d.
-        modes: modes per list (count, per distinct list).
-        seconds: wall time of the modes and the prediction, s.
-    """
+    """The fastest-settling d predicted from the modes before any run, N s/m, and the (L,)
+    steps predicted per load case there."""
 
     d: float
     steps: list[float]
-    radius: list[float]
-    modes: list[int]
-    seconds: float = 0.0
-
-    @property
-    def total(self) -> float:
-        return float(sum(self.steps))
 
 
 def total_steps(models: list[StepModel], d: float, cap: int, budget: float = NEVER) -> float:
@@ -119,7 +104,6 @@ def predict_damping(
         ValueError: no d in the bounds settles in the reduced steps (e.g. a tolerance of 0).
         SingularStiffnessError: the lattice at rest is not held (a mechanism).
     """
-    t0 = time.perf_counter()
     found: dict[bytes, Modes] = {} if modes is None else dict(modes)
     with single_threaded_blas():
         models = reduced_steps(
@@ -127,15 +111,7 @@ def predict_damping(
             distances=distances,
         )  # fmt: skip
         d, steps = fastest_predicted(models, bounds, cap)
-        radius = [m.radius(d) for m in models]
-    prediction = Prediction(
-        d=d,
-        steps=steps,
-        radius=radius,
-        modes=[len(v.w2) for v in found.values()],
-        seconds=time.perf_counter() - t0,
-    )
-    return prediction, models
+    return Prediction(d, steps), models
 
 
 def reduced_steps(
