@@ -73,7 +73,7 @@ def bench_spacing(h: float, families: bool) -> None:
         changes = [(f"k {f - 1:+.0%}", np.array([f])) for f in (1.01, 1.05, 1.3)]
     for label, factor in changes:
         for case in cases:
-            solver.forget(multigrid=False)
+            solver._predictors.clear()  # the next solves start from rest
             solver.solve(case, stiffness0, None)
             t0 = time.perf_counter()
             result = solver.solve(case, spring_stiffness(problem, theta0 * factor), None)
@@ -87,7 +87,7 @@ def walk(
     problem: fpm.Problem, solver: StaticSolver, theta0: np.ndarray, tolerance: float | None
 ) -> None:
     """The annealing-like random walk; prints one summary line."""
-    solver.forget(multigrid=False)
+    solver._predictors.clear()  # the next solves start from rest
     built = solver.hierarchies_built
     rng = np.random.default_rng(0)
     theta = theta0.copy()

@@ -7,7 +7,7 @@ The lattice: the soft-tissue box of the volume page (0.1 m, E 10 kPa, nu 0.45, t
 ``NODES`` per side, pressed on top at four nodes and pulled sideways, with two validation cases;
 the families+volume model at its continuum start (:func:`fpm.fitting.reduced.chain_start`), d
 the critical-damping estimate of its static shapes
-(:func:`fpm.fitting.damping.critical.critical_damping`) at dt 'auto'. The FEM reference is solved
+(:func:`fpm.fitting.damping.choice.critical_damping`) at dt 'auto'. The FEM reference is solved
 first and handed to the export (as the service hands its stored one), so the export's own time is
 what is measured.
 
@@ -27,7 +27,7 @@ import numpy as np
 import fpm
 from bench import results
 from fpm.dynamics.stability import time_step
-from fpm.fitting.damping.critical import critical_damping
+from fpm.fitting.damping.choice import critical_damping
 from fpm.fitting.reduced import chain_start
 from fpm.io.export import Parameters, build_lattice, export, fpm_displacements, fpm_equilibria
 from fpm.model.stiffness import model_stiffness, stiffness_dict, volume_stiffness

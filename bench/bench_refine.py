@@ -325,7 +325,7 @@ def export_figures(problem: Any, result: Any, reference: Any) -> dict[str, Any]:
     import json
 
     from bench import export_solve
-    from fpm.fitting.damping.validation import reference_displacements, validation_reference
+    from fpm.fitting.reference import reference_displacements, validation_reference
     from fpm.io.export import export
 
     model = json.loads(export(problem, result.to_dict(), "json"))
@@ -420,7 +420,8 @@ def judged(problem: Any, result: Any, reference: Any) -> tuple[list[float], list
     import numpy as np
 
     from fpm.fitting.cost import StaticCost, discrepancies
-    from fpm.fitting.damping.validation import reference_displacements, validate
+    from fpm.fitting.damping.validation import validate
+    from fpm.fitting.reference import reference_displacements
     from fpm.model.stiffness import fitted_theta
 
     theta = fitted_theta(problem, result.parameters)

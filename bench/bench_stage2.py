@@ -46,7 +46,7 @@ def _setting(
     """The stage's inputs at the result: (solver, stiffness, depth, static (L, N, 3) m, the
     reference's displacements (L, N, 3) m, which the settle distances 'auto' read)."""
     from fpm.dynamics.equilibrium import StaticSolver
-    from fpm.fitting.damping.validation import reference_displacements
+    from fpm.fitting.reference import reference_displacements
     from fpm.model.stiffness import fitted_theta, model_stiffness
 
     stiffness = model_stiffness(problem, fitted_theta(problem, result.to_dict()))

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from fpm.fem.solution import FemResult
-from fpm.fitting.damping.validation import reference_displacements
+from fpm.fitting.reference import reference_displacements
 from fpm.fitting.stiffness_stage import ChainResult
 from fpm.model.spec import MODEL_VERSION
 from store.hashing import canonical, fem_hash, fem_spec, stiffness_spec

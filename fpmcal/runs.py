@@ -61,8 +61,8 @@ def cmd_equilibrium(args: argparse.Namespace) -> None:
 
 def cmd_fem(args: argparse.Namespace) -> None:
     from fpm.fem.reference import solve_fem
-    from fpm.fitting.damping.validation import resolution_notes
     from fpm.fitting.diagnosis import UnitsError, check_reference
+    from fpm.fitting.reference import resolution_notes
 
     problem = _load(args.spec)
     result = solve_fem(problem, progress=_fem_levels)

@@ -30,7 +30,7 @@ def diagnose(organ: str, spacing: float, refine: int) -> None:
     from bench.tet_organ import surface_spec
     from fpm.fem.levels import relative_change
     from fpm.fitting.cost import StaticCost
-    from fpm.fitting.damping.validation import reference_displacements
+    from fpm.fitting.reference import reference_displacements
     from fpm.model.stiffness import fitted_theta
 
     spec = surface_spec(organ, spacing, refine=refine)

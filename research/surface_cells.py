@@ -181,7 +181,7 @@ def calibrated_linear(
     case, the nodal loads (N, 3) N of those cases, the lattice's cells' :func:`spring_blocks`
     (H, 4, 24, 24), which :func:`cell_blocks` takes)."""
     import fpm
-    from fpm.fitting.damping.validation import reference_displacements, validation_reference
+    from fpm.fitting.reference import reference_displacements, validation_reference
 
     result = fpm.calibrate(problem, reference=reference)
     theta = np.array([*result.parameters.stiffness.values(), result.parameters.volume_stiffness])

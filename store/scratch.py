@@ -239,7 +239,7 @@ def release_claim(redis: Redis, calibration_id: str, task: str) -> None:
 
 def name_later(redis: Redis, calibration_id: str, task: str, named: dict[str, Any]) -> None:
     """Name, once, what request task ``task`` learns once its runs have started
-    (:func:`fpm.fitting.damping.lockstep.named_later`: its budget or its caps)."""
+    (:func:`fpm.fitting.damping.lockstep.named_later`: its caps)."""
     redis.hsetnx(keys.case_run(calibration_id, task), "named", json.dumps(named))
 
 

@@ -138,9 +138,9 @@ def stage_one(problem: fpm.Problem, reference: Any, chain: int = 0) -> tuple[lis
     damping stage's polish). Returns (theta, its normalised static cost)."""
     from fpm.fitting.bounds import fit_depth, stiffness_bounds
     from fpm.fitting.cost import StaticCost
-    from fpm.fitting.damping.validation import reference_displacements
     from fpm.fitting.defect_correction import fit_reduced
     from fpm.fitting.reduced import first_basis
+    from fpm.fitting.reference import reference_displacements
     from fpm.fitting.stiffness_stage import run_chain
 
     annealed = run_chain(problem, reference, chain)

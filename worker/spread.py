@@ -123,9 +123,8 @@ class CaseSpread:
         local_request: Callable[[Request, Resolve], Outcome],
     ) -> tuple[list[CaseRun], list[Outcome | None]]:
         """Every load case at d as a task (run here when no other worker is free), and each
-        request ``beside`` as a task after them, only when other workers are free: what they
-        learn later (their budget or caps) is named in their tasks once the cases' runs are
-        all stored."""
+        request ``beside`` as a task after them, only when other workers are free: the caps
+        they learn later are named in their tasks once the cases' runs are all stored."""
         after = self._after()
         free = free_workers(self.redis, self.worker, self.calibration_id)
         asked = beside if free else []
@@ -142,8 +141,8 @@ class CaseSpread:
         ]
 
         def name_later() -> bool:
-            """Once the cases' runs are all stored, what the requests learn from them (their
-            budget or caps) in their tasks."""
+            """Once the cases' runs are all stored, the caps the requests learn from them, in
+            their tasks."""
             cases = tasks[: len(caps)]
             if not all(scratch.has_case_run(self.redis, self.calibration_id, t) for t in cases):
                 return False
@@ -181,7 +180,7 @@ class CaseSpread:
         )
 
     def _resolve(self, task: str) -> Resolve:
-        """Where request task ``task`` run here learns its budget named later."""
+        """Where request task ``task`` run here learns its caps named later."""
         return partial(scratch.named_later, self.redis, self.calibration_id, task)
 
     def _round(
@@ -365,7 +364,7 @@ def _one_request(
 def _one_named_later(
     local: Callable[[Request, Resolve], Outcome], resolve: Resolve, request: Request
 ) -> tuple[list[CaseRun], Verdict | None]:
-    """One d's request whose budget is named later run here (``resolve``: where from)."""
+    """One d's request whose caps are named later run here (``resolve``: where from)."""
     return local(request, resolve)
 
 

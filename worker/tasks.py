@@ -15,7 +15,6 @@ import numpy as np
 from redis import Redis
 
 from fpm.fitting.damping.lockstep import (
-    LATER,
     CaseRun,
     Request,
     Verdict,
@@ -48,7 +47,7 @@ def task_name(spec: dict[str, Any]) -> str:
         return VALIDATION_SPAN
     if "request" in spec:
         r = spec["request"]
-        within = {None: "", LATER: " within their total"}.get(r["budget"], f" within {r['budget']}")
+        within = "" if r["budget"] is None else f" within {r['budget']}"
         within += " within the margin's caps" if r.get("caps_later") else ""
         return f"damping: d {r['d']:.6g}{within}, all load cases"
     return f"damping: d {spec['d']:.6g}, load case {spec['load_case']}"

@@ -26,9 +26,8 @@ from numba import njit
 from ..fem.linear_solver import v_cycle
 
 MODES = 16
-"""Lowest modes the prediction keeps: enough to hold the couplings that set the fastest d (too
-few miss them on the paper's cube; more do not move it). The measurements:
-docs/notes/2026-11-28-calibration-measured.md, *The prediction's settings*."""
+"""Lowest modes the prediction keeps (docs/notes/2026-11-28-calibration-measured.md, *The
+prediction's settings*)."""
 EXTRA = 4
 """LOBPCG iterates this many vectors more than it keeps (the last ones converge slowest)."""
 DENSE_UP_TO = 600
@@ -37,17 +36,13 @@ COARSE_UP_TO = 600
 """LOBPCG starts from the eigenvectors of the finest multigrid level with at most this many
 unknowns (a dense eigensolve there), carried up to the lattice."""
 TOLERANCE = 0.1
-"""LOBPCG stops once every kept mode's residual |K x - w^2 M x| is below this times |K x|
-(the eigenvalues are then good to about its square, and the predicted fastest d hardly moves
-with it)."""
+"""LOBPCG stops once every kept mode's residual |K x - w^2 M x| is below this times |K x|."""
 SETTLED_VALUES = 1e-3
 """LOBPCG also stops once no kept eigenvalue moved by more than this (relative) in an
 iteration."""
 MAX_ITERATIONS = 3
-"""LOBPCG iterations at most on each level. The prediction needs the slow modes' span more
-than converged vectors (the reduced step is a Galerkin model on whatever basis it gets), and
-each iteration on a large lattice costs tens of V-cycles: a few iterations predict the fastest
-d within about a percent of converged modes."""
+"""LOBPCG iterations at most on each level: the reduced step needs the slow modes' span more
+than converged vectors."""
 
 _BLAS_LOCK = threading.Lock()
 _BLAS: list[tuple[Callable[[int], None], Callable[[], int]]] | None = None
@@ -91,10 +86,8 @@ def _blas_controls() -> list[tuple[Callable[[int], None], Callable[[], int]]]:
 
 @contextmanager
 def single_threaded_blas() -> Iterator[None]:
-    """Run the block with OpenBLAS on one thread. Its threads wait on each other on a busy
-    machine, making small dense eigensolves many times slower (:func:`_gram` explains the tall
-    products). The dense algebra here is small or done in compiled loops, so one thread loses
-    nothing."""
+    """Run the block with OpenBLAS on one thread (its threads wait on each other on a busy
+    machine; the dense algebra here is small or compiled)."""
     global _BLAS
     with _BLAS_LOCK:
         if _BLAS is None:
@@ -151,13 +144,11 @@ def lowest_modes(
     with lumped ``masses`` (M,) kg: K phi = w^2 M phi.
 
     Dense up to :data:`DENSE_UP_TO` unknowns. Above, level by level up ``hierarchy`` (a
-    pyamg hierarchy of ``tangent``, required there; level l has the operator K_l = P^T K_{l-1}
-    P and the mass M_l = P^T M_{l-1} P): a dense solve on the finest level with at most
-    :data:`COARSE_UP_TO` unknowns, then on each finer level LOBPCG from the level below's
-    modes carried up, preconditioned by the V-cycle from that level down. The coarse levels
-    are cheap and their modes good starts, so the lattice itself needs few iterations
-    (``iterations`` counts those). ``threads``: the block's V-cycles on this many threads
-    (None: :data:`CYCLE_THREADS`; the same modes, bit for bit, on any number).
+    pyamg hierarchy of ``tangent``, required there; K_l = P^T K_{l-1} P, M_l likewise): a
+    dense solve on the finest level of at most :data:`COARSE_UP_TO` unknowns, then LOBPCG on
+    each finer level from the modes below, preconditioned by the V-cycle from that level down.
+    ``threads``: the block's V-cycles on this many threads (None: :data:`CYCLE_THREADS`; the
+    same bits on any number).
     """
     n = tangent.shape[0]
     m = np.repeat(np.asarray(masses, float), 3)
@@ -244,9 +235,8 @@ def _cycles(hierarchy: object, r: np.ndarray, level: int, threads: int | None = 
 
 @njit(cache=True, nogil=True)
 def _gram(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """x^T y for tall x (n, a), y (n, b): (a, b). Compiled rather than BLAS: a threaded BLAS
-    on a busy machine spends far longer waiting between its threads than one thread takes
-    (:func:`fpm.fem.linear_solver.conjugate_gradients` avoids it for the same reason)."""
+    """x^T y for tall x (n, a), y (n, b): (a, b); compiled, not a threaded BLAS (which waits on
+    its threads on a busy machine)."""
     out = np.zeros((x.shape[1], y.shape[1]))
     _gram_into(out, x, y)
     return out
@@ -316,19 +306,11 @@ def _lobpcg(
     diagonal: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Block LOBPCG for K x = w^2 M x (``apply``: K, ``mass``: M, on blocks of vectors):
-    Rayleigh-Ritz on S = [X, T R, P] each iteration (R the residuals, T the preconditioner, P the
-    last change of X orthogonal to X), until the first ``count`` residuals are below
-    :data:`TOLERANCE` relative, or ``iterations``. ``diagonal``: M's diagonal (n,) when M is
-    diagonal (the lattice's lumped masses): the M-weighted Gram matrices are then summed without
-    forming M s (:func:`_weighted_gram`).
-
-    Lean on memory: S stays three blocks (never side by side), its Gram matrices are summed
-    block by block, K is applied to one block at a time for S^T K S (K X is kept from the
-    residual) and the new X and P are each one combination of the blocks (P's coefficients
-    follow from S^T M S): at most five blocks at once (X, T, P, the new X and P), about half the
-    columns of the lattice that S and K S side by side would hold, for two more products by K
-    per iteration (K X and K P). Returns (w^2, X, K X, iterations taken), ascending, X
-    M-orthonormal."""
+    Rayleigh-Ritz on S = [X, T R, P] each iteration (R the residuals, T the preconditioner, P
+    the last change of X orthogonal to X), until the first ``count`` residuals are below
+    :data:`TOLERANCE` relative, or ``iterations``. ``diagonal``: M's diagonal (n,) where M is
+    diagonal. S stays three blocks, its Gram matrices summed block by block, to hold at most
+    five blocks at once. Returns (w^2, X, K X, iterations taken), ascending, X M-orthonormal."""
     block = x.shape[1]
 
     def m_gram(blocks: list[np.ndarray]) -> np.ndarray:

@@ -219,13 +219,6 @@ class StaticSolver(Newton, LinearSolves):
         """(M, 3) constant nodal forces on the free nodes, N (load case plus weight)."""
         return self.loads(load_case)[system.free]
 
-    def forget(self, *, multigrid: bool = True) -> None:
-        """Drop the warm starts (the next solves start from rest) and, unless ``multigrid`` is
-        False, the multigrid hierarchies."""
-        self._predictors.clear()
-        if multigrid:
-            self._multigrid.clear()
-
     def solve(
         self,
         load_case: int,

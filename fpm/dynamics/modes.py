@@ -1,25 +1,14 @@
 """What the lattice's slowest modes predict for the FPM step: the nodal damping d that settles
-every load case in the fewest steps, before any run (docs/physics.md, *Calibration*, damping:
-*the prediction*).
-
-**1. The slowest modes** (:func:`fpm.dynamics.eigen.lowest_modes`): ``K phi = w^2 M phi``,
-the k lowest, as Phi (3M, k) M-orthonormal (Phi^T M Phi = I; kg^-1/2) and w^2 (k,) 1/s^2.
-
-**2. The reduced step** of each load case on them (:func:`reduced_steps`, one set of modes per
-distinct perturbed list; the step itself: :mod:`fpm.dynamics.reduced_step`), its settle force
-on the spec's criterion.
-
-**3. The fastest d** (:func:`fastest_predicted`) minimises the predicted steps summed over the
-load cases (:func:`total_steps`): a log grid over the bounds, then golden-section refinement.
-
-How close the prediction comes to the dynamic kernel's runs:
-docs/explanation/physics/damping-prediction.md.
+every load case in the fewest steps, before any run: the slowest modes
+(:func:`fpm.dynamics.eigen.lowest_modes`), the reduced step of each load case on them
+(:func:`reduced_steps`, :mod:`fpm.dynamics.reduced_step`), and the d with the fewest predicted
+steps summed over the load cases (:func:`fastest_predicted`)
+(docs/explanation/physics/damping-prediction.md).
 """
 
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,25 +24,11 @@ from .settle import by_distance, force_tolerance, mode_stiffness, nodal_size, no
 
 @dataclass
 class Prediction:
-    """The fastest-settling d predicted from the modes, before any run.
-
-    Attributes:
-        d: the predicted fastest d, N s/m.
-        steps: (L,) predicted steps per load case at d.
-        radius: (L,) spectral radius of each case's reduced step at d.
-        modes: modes per list (count, per distinct list).
-        seconds: wall time of the modes and the prediction, s.
-    """
+    """The fastest-settling d predicted from the modes before any run, N s/m, and the (L,)
+    steps predicted per load case there."""
 
     d: float
     steps: list[float]
-    radius: list[float]
-    modes: list[int]
-    seconds: float = 0.0
-
-    @property
-    def total(self) -> float:
-        return float(sum(self.steps))
 
 
 def total_steps(models: list[StepModel], d: float, cap: int, budget: float = NEVER) -> float:
@@ -120,20 +95,15 @@ def predict_damping(
     modes: dict[bytes, Modes] | None = None,
 ) -> tuple[Prediction, list[StepModel]]:
     """The predicted fastest d of ``problem``'s load cases at ``stiffness``, ``depth`` and
-    ``dt``, within ``bounds`` (N s/m), and the reduced steps it came from.
-
-    ``solver``: the problem's static solver (its systems, perturbed lists and multigrid
-    hierarchies); ``static`` (L, N, 3): the static equilibria, m (None: the modes' linear
-    response); ``distances``: each case's settle distance towards them (None: the spec's,
-    :func:`fpm.dynamics.settle.nominal_distance`). One set of modes per distinct list;
-    ``modes``: those already found (:class:`fpm.dynamics.modes_ahead.ModesAhead`), keyed as
+    ``dt``, within ``bounds`` (N s/m), and the reduced steps it came from. ``static`` (L, N, 3)
+    m: the static equilibria (None: the modes' linear response); ``distances``: each case's
+    settle distance towards them (None: the spec's); ``modes``: those already found, keyed as
     :func:`reduced_steps` keys them.
 
     Raises:
         ValueError: no d in the bounds settles in the reduced steps (e.g. a tolerance of 0).
         SingularStiffnessError: the lattice at rest is not held (a mechanism).
     """
-    t0 = time.perf_counter()
     found: dict[bytes, Modes] = {} if modes is None else dict(modes)
     with single_threaded_blas():
         models = reduced_steps(
@@ -141,15 +111,7 @@ def predict_damping(
             distances=distances,
         )  # fmt: skip
         d, steps = fastest_predicted(models, bounds, cap)
-        radius = [m.radius(d) for m in models]
-    prediction = Prediction(
-        d=d,
-        steps=steps,
-        radius=radius,
-        modes=[len(v.w2) for v in found.values()],
-        seconds=time.perf_counter() - t0,
-    )
-    return prediction, models
+    return Prediction(d, steps), models
 
 
 def reduced_steps(

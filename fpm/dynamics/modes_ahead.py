@@ -1,20 +1,11 @@
-"""The slowest modes found ahead, on a thread of their own, while the static fit goes on.
+"""The slowest modes found ahead, on a thread of their own, while the polish goes on.
 
-The prediction of the fastest d (:func:`fpm.dynamics.modes.predict_damping`) reads each
-list's slowest modes off the static solver's multigrid hierarchy of that list: its finest
-level's matrix is the stiffness the modes solve, its V-cycle their preconditioner
-(:func:`fpm.dynamics.modes.reduced_steps`). That hierarchy is built by the polish's first
-round (:func:`fpm.fitting.defect_correction.fit_reduced`, on the tangent at rest at the round's
-parameters) and kept while CG stays fast on it. Found after the polish, the modes would run
-alone on the damping job's critical path, while the polish leaves part of a core idle
+The prediction (:func:`fpm.dynamics.modes.reduced_steps`) reads each list's slowest modes off
+the static solver's multigrid hierarchy of that list, which the polish builds and keeps.
+:class:`ModesAhead` finds them after a round of the polish, one V-cycle at a time; the
+prediction takes those whose hierarchy is still the one they were found on and finds the
+others itself, so the modes are the same whatever the timing
 (docs/explanation/physics/calibration-speed.md, *The modes beside the polish*).
-
-:class:`ModesAhead` takes the hierarchies as they stand after a round of the polish and finds
-their modes on one thread (one V-cycle at a time, so the polish keeps its two threads); the
-prediction then takes the modes of every list whose hierarchy is still the one they were found
-on, and finds the others as before. So the modes are the ones the prediction would have found
-whenever the polish did not rebuild the hierarchy after that round, bit for bit, and otherwise
-those of the newer hierarchy; which happens depends on the runs only, never on timing.
 """
 
 from __future__ import annotations

@@ -1,62 +1,17 @@
 """When a dynamic run has settled: near its static equilibrium, at every lattice size
-(docs/explanation/physics/settle.md).
+(docs/explanation/physics/settle.md, *Two criteria, one promise*).
 
-A run of one load case stops once it is settled. Near the static equilibrium x* of its list,
-with K the free nodes' tangent (SPD) and r the unbalanced force (N), the error is
-``x - x* = -K^-1 r``. A criterion on the force alone ("largest |r_i| below a tolerance times
-the largest applied force", the paper's) is not scale-free: K's lowest eigenvalues fall like
-h^2 as the lattice is refined, so the same force tolerance lets the state sit further from rest
-on a finer lattice (the figures: docs/explanation/physics/settle.md).
-
-**The distance criterion.** With Euclidean norms over the list's unknowns,
-``|x - x*| <= |r| / lambda_min(K)``: a run is settled when
-
-    |r| < settle_distance * lambda * |u|                                               (1)
-
-(u = x - rest, |.| the 2-norm over the list's nodes), i.e. when that bound on its distance from
-the static equilibrium is below ``fpm.settle_distance`` times its displacement. lambda, the
-*mode stiffness* (N/m, :func:`mode_stiffness`), is K's lowest eigenvalue estimated on the span
-of the list's slowest modes (:mod:`fpm.dynamics.modes`; a Rayleigh-Ritz value: with
-M-orthonormal shapes Phi, the lowest eigenvalue of ``diag(w^2)`` against ``Phi^T Phi``). Late
-in a run the error lives in those modes, where the bound is nearly an equality. Both sides of
-(1) scale alike with the load and with the lattice (lambda falls like h^2 as the lattice is
-refined, and with it the force the criterion accepts): it means the same on a 4.7k- and a
-93.7k-node organ. (1) is the kernel's ``settle_stiffness = settle_distance * lambda``
-(:func:`fpm.dynamics.voigt.run_steps`), checked every sweep. 2-norms, not largest nodal
-values: the calibration's cost sums over every node, and a point load's peak displacement is
-many times the typical one, so a distance relative to the peak would let the state sit well
-above the static cost while its peak is close to equilibrium.
-
-**The target criterion.** Where the static equilibrium u* of the list is known (the damping
-stage solves it before its d search), the distance need not be bounded: it is measured, in the
-calibration's own norm (paper Eq. 2 sums the nodal distances |.|_1 = sum_i |.|_i over the
-nodes). A run is settled when its *reach* from there is below its settle distance times the
-equilibrium's displacement,
-
-    sum_i sqrt(|x_i - x*_i|^2 + m_i |v_i|^2 / lambda) < distance * sum_i |u*_i|          (2)
-
-The first term is the distance itself; the second is how far the velocities could still
-carry each node along the slowest mode (for that mode, the square of its swing's amplitude),
-so a run that passes through the equilibrium on its way to an overshoot is not called settled.
-In this norm the triangle inequality bounds what settling adds to the fit's figures: a case
-settled at distance delta has a cost within delta * sum |u*| of its static cost. So the default
-distance ('auto', :func:`case_distances`) is :data:`SHARE` of the load cases' static
-discrepancy against the reference, together, ``sum_j sum |u*_j - u_ref_j| / sum_j sum |u*_j|``,
-the same for every case: the settled cost (paper Eq. 2, a sum over the cases) is within
-(1 + SHARE) of the static cost, whatever the lattice's size or the load, and no case is more
-than :data:`NOMINAL` (1%) from its static equilibrium. One distance for all, not each case's
-own share: a case the model fits closely would otherwise settle the more closely and take the
-longest.
-
-The estimate is what the run knows; the damping stage also *measures* the settled state's
-distance against the static equilibrium it has solved (:func:`measured_distance`), and the
-result reports both per load case.
-
-Where the spec names ``fpm.settle_tolerance`` the force criterion keeps its meaning. It is
-also the criterion where there are no modes to read: the paper method's joint (k, d)
-annealing (thousands of dynamic runs at trial stiffnesses, none of which has its modes; the
-paper's Table 1 is reproduced with it) and a lattice that is a mechanism at rest (``axis``
-springs), with :data:`FORCE_TOLERANCE` where the spec names none.
+- **The force criterion** (the paper's): the largest unbalanced nodal force below a tolerance
+  times the largest applied force. Not scale-free, so kept where the spec names
+  ``fpm.settle_tolerance`` or there are no modes to read (the paper method; a mechanism).
+- **The distance criterion** (1): ``|r| < settle_distance * lambda * |u|``, 2-norms over the
+  list's unknowns, lambda the *mode stiffness* (N/m, :func:`mode_stiffness`): a bound on the
+  distance from the static equilibrium below ``fpm.settle_distance`` times the displacement.
+- **The target criterion** (2), where the static equilibrium u* is known:
+  ``sum_i sqrt(|x_i - x*_i|^2 + m_i |v_i|^2 / lambda) < distance * sum_i |u*_i|`` in the
+  calibration's norm (paper Eq. 2), the velocities' term the reach of a swing still under way;
+  settle distance 'auto' (:func:`case_distances`) is :data:`SHARE` of the load cases' static
+  discrepancy, so the settled cost is within (1 + SHARE) of the static cost.
 """
 
 from __future__ import annotations

@@ -30,8 +30,8 @@ beside it, and their entry points and results are importable from here (``__all_
   linear estimate, the polish;
 - :mod:`fpm.fitting.damping.stage`: stage 2, :func:`fit_stage` (:class:`DampingStage`): the
   polish, :func:`resolve_depth`, d (:func:`fpm.fitting.damping.choice.fit_damping`);
-- :mod:`fpm.fitting.damping.validation`: the reference's parts, its units check
-  (:func:`check_reference`), the last dynamic run's check, the validation cases;
+- :mod:`fpm.fitting.reference`: the reference's parts, its checks (:func:`check_reference`);
+- :mod:`fpm.fitting.damping.validation`: the last dynamic run's check, the validation cases;
 - below them: cost, annealing, reduced (families+volume's stage 1), damping (the d search).
 
 Defaults:
@@ -55,21 +55,14 @@ from ..dynamics.step_caps import fixed_max_steps
 from ..model import materials
 from ..model.problem import Problem
 from ..model.stiffness import has_volume, stiffness_dict, volume_stiffness
-from .bounds import damping_bounds, fit_depth, full_depth, mode_notes, stiffness_bounds
+from .bounds import fit_depth, full_depth, mode_notes
 from .cost import CostFunction, StaticCost, dynamic_time_step
 from .damping.depth import resolve_depth
 from .damping.stage import DampingStage, fit_stage
-from .damping.validation import (
-    FinalRun,
-    Validation,
-    check_reference,
-    final_run,
-    reference_displacements,
-    unseen_note,
-    validate,
-)
+from .damping.validation import FinalRun, Validation, final_run, validate
 from .field import field_parts
 from .reduced import first_basis
+from .reference import check_reference, reference_displacements
 from .result import (
     CalibrationResult,
     ChainSummary,
@@ -80,7 +73,7 @@ from .result import (
     SettleFigures,
 )
 from .step_budget import budget_notes
-from .stiffness_stage import ChainResult, Progress, constrained_cost, run_chain
+from .stiffness_stage import ChainResult, Progress, run_chain
 from .verdict import judge
 
 __all__ = [
@@ -95,11 +88,6 @@ __all__ = [
     "fit_stage",
     "DampingStage",
     "Progress",
-    # imported from here before they moved beside it
-    "constrained_cost",
-    "damping_bounds",
-    "resolve_depth",
-    "stiffness_bounds",
 ]
 
 EQUALLY_GOOD = 0.001
@@ -123,6 +111,21 @@ def pick_paper_state(chains: list[ChainResult]) -> tuple[list[float], float]:
     fast = [s for s in candidates if sum(s.steps or ()) <= fewest * (1 + SAME_SPEED)]
     pick = min(fast, key=lambda s: (s.cost, sum(s.steps or ())))
     return list(pick.x[:-1]), float(pick.x[-1])
+
+
+def unseen_note(problem: Problem) -> list[str]:
+    """A note when a calibration of several stiffness parameters has no validation cases: its
+    figures are then all on the loads it was fitted to, which flatter it. The paper's model (one
+    k: ``fpm.stiffness`` ``"single"``) or method, which judge their fit on its own loads as the
+    paper does, get none (one k has little room to flatter itself)."""
+    paper = problem.spec.fpm.stiffness == "single" or problem.spec.annealing.method == "paper"
+    if problem.validation_cases or paper:
+        return []
+    return [
+        "no validation cases: every figure here is on the loads the fit was chosen for, which "
+        "flatter it; name a few loads it never sees as validation_cases to learn how it does "
+        "elsewhere (docs/howto/validation-cases.md)"
+    ]
 
 
 def finalize(

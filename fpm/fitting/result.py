@@ -269,12 +269,6 @@ class FitFigures(BaseModel):
         """Mean over the load cases, %."""
         return sum(self.relative_discrepancy) / len(self.relative_discrepancy)
 
-    @property
-    def mean_validation_discrepancy(self) -> float | None:
-        """Mean over the validation cases, % (None without validation cases)."""
-        v = self.validation_relative_discrepancy
-        return sum(v) / len(v) if v else None
-
 
 class SettleFigures(BaseModel):
     """How the model's runs settle: the time step and step cap, the steps per load case, the

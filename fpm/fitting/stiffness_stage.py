@@ -47,8 +47,8 @@ from ..model.stiffness import (
 from .annealing import AnnealingError, Checkpoint, Schedule, State, anneal
 from .bounds import damping_bounds, fit_depth, stiffness_bounds
 from .cost import CostFunction, Evaluation, StaticCost
-from .damping.validation import reference_displacements
 from .reduced import ReducedBasis, ReducedLinearModel, chain_start, first_basis
+from .reference import reference_displacements
 
 POLISH_SPAN = 0.1
 """The polish searches log(k) within +-this of the annealed state (inside the bounds)."""

@@ -36,8 +36,8 @@ from ..model.problem import Problem
 from ..model.spec import lame_constants
 from ..model.stiffness import VOLUME, family_names, has_volume
 from .bounds import stiffness_bounds
-from .damping.validation import reference_displacements, validation_reference
 from .diagnosis import SMALL_STRAIN
+from .reference import reference_displacements, validation_reference
 from .result import BoundHit, CalibrationResult, Cause, Floor, Verdict
 
 

@@ -15,7 +15,7 @@ from fpm.fem import tet10
 from fpm.fem.materials import hexahedron_stiffness, tetrahedron_elasticity
 from fpm.fem.solution import solve_dirichlet
 from fpm.fitting.cost import StaticCost
-from fpm.fitting.damping.validation import reference_displacements
+from fpm.fitting.reference import reference_displacements
 from fpm.model.anisotropy import closed_form_start, lattice_constants
 from fpm.model.spec import ReferenceSettings
 from fpm.model.stiffness import (

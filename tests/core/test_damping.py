@@ -19,12 +19,12 @@ from fpm.dynamics.simulation import FpmModel
 from fpm.dynamics.stability import auto_time_step
 from fpm.dynamics.voigt import SETTLED
 from fpm.fitting.damping import search as damping
+from fpm.fitting.damping.choice import critical_damping
 from fpm.fitting.damping.choice import fit_damping as find_damping
-from fpm.fitting.damping.critical import critical_damping
 from fpm.fitting.damping.lockstep import CaseRun, _piece, _Runs, predicted_steps
 from fpm.fitting.damping.margin import smallest_settling
 from fpm.fitting.damping.search import _search, _unsure, fastest_damping
-from fpm.fitting.damping.settings import CHUNK, MARGIN_PROBES, PREDICT_AFTER, SAMPLE, TRUST
+from fpm.fitting.damping.settings import DEFAULT
 from fpm.fitting.damping.unsettled import (
     DampingError,
     Hopeless,
@@ -34,6 +34,9 @@ from fpm.fitting.damping.unsettled import (
 )
 from fpm.model.forces import Stiffness
 from fpm.model.stiffness import model_stiffness, spring_stiffness
+
+CHUNK, MARGIN_PROBES, PREDICT_AFTER = DEFAULT.chunk, DEFAULT.margin_probes, DEFAULT.predict_after
+SAMPLE, TRUST = DEFAULT.sample, DEFAULT.trust
 
 K = 50.0
 """N/m."""

@@ -11,9 +11,11 @@ import numpy as np
 import pytest
 
 import fpm
-from fpm.fitting.damping.settings import GEOMETRY_GAP
+from fpm.fitting.damping.settings import DEFAULT
 from fpm.fitting.damping.validation import validate
 from tests.core.test_export import soft_block_spec
+
+GEOMETRY_GAP = DEFAULT.geometry_gap
 
 THETA = [30.0, 20.0, 4.0, 2e4]  # k per family, N/m, and kappa, Pa: a soft block's
 
@@ -70,7 +72,7 @@ def test_a_calibration_without_validation_cases_says_its_figures_flatter_it():
     """Every figure of a fit of several stiffness parameters with no validation cases is on
     its own loads: the result says so, unless the paper's model (one k) or method (which judge
     the fit on its own loads, as the paper does) was asked for."""
-    from fpm.fitting.damping.validation import unseen_note
+    from fpm.fitting.calibration import unseen_note
 
     spec = copy.deepcopy(soft_block_spec())
     spec.pop("validation_cases", None)

@@ -32,7 +32,7 @@ from fpm.fem.samples import (
 )
 from fpm.fem.solution import FemError, FemResult
 from fpm.fem.uniform_refinement import refine_hexahedra
-from fpm.fitting.damping.validation import check_reference
+from fpm.fitting.reference import check_reference
 from fpm.model import tetrahedra
 from fpm.model.tetrahedra import TetMesh
 from store.hashing import fem_hash

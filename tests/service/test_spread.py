@@ -26,8 +26,8 @@ import fpm
 from fpm.dynamics.voigt import SETTLED
 from fpm.fitting.calibration import calibrate
 from fpm.fitting.damping.choice import DampingPlan
-from fpm.fitting.damping.lockstep import LATER, CaseRun, Request, Verdict, _Runs, lockstep_cpu
-from fpm.fitting.damping.settings import CHUNK, CONFIRM, CONFIRM_PRUNE
+from fpm.fitting.damping.lockstep import CaseRun, Request, Verdict, _Runs, lockstep_cpu
+from fpm.fitting.damping.settings import DEFAULT
 from fpm.model.stiffness import model_stiffness
 from service.limits import dump_spec
 from store import graph, keys, records, scratch
@@ -36,6 +36,8 @@ from store.timeline import critical_path, numbered
 from worker.idle import local_threads
 from worker.spread import CaseSpread
 from worker.tasks import VALIDATION_SPAN, task_digest, to_stored
+
+CHUNK, CONFIRM, CONFIRM_PRUNE = DEFAULT.chunk, DEFAULT.confirm, DEFAULT.confirm_prune
 
 SMALL = json.loads(
     (Path(__file__).resolve().parents[2] / "examples" / "small-box.json").read_text()
@@ -140,35 +142,6 @@ def predicted_runs():
         yield runs, predicted
     finally:
         runs.close()
-
-
-@pytest.mark.parametrize("named_after", [0.0, 0.7])
-def test_a_budget_named_later_gives_the_verdict_of_the_budget_known(named_after, predicted_runs):
-    """A confirming d run beside the predicted d's learns its budget (their total) only once
-    they have ended: its cases run on undecided until then (up to HOLD steps), and the
-    milestones they passed are decided afterwards, as the lockstep with the budget known
-    decides them (the same verdict, its total and predictions to the bit), however late the
-    budget comes."""
-    runs, predicted = predicted_runs
-    caps = [1_000_000] * runs.cases
-    total = sum(r.steps for r in predicted)
-    for d in (0.11 / CONFIRM, 0.11 * CONFIRM):
-        known, verdict = runs(d, caps, total, prune=CONFIRM_PRUNE)
-        start, looks = time.monotonic(), []
-
-        def resolve(start=start, looks=looks):
-            looks.append(time.monotonic())
-            return {"budget": total} if time.monotonic() - start >= named_after else None
-
-        later, late = runs.locked(Request(d, tuple(caps), LATER, prune=CONFIRM_PRUNE), resolve)
-        assert (late.outcome, late.total, late.predicted) == (
-            verdict.outcome, verdict.total, verdict.predicted
-        )  # fmt: skip
-        assert verdict.outcome in ("lost", "done")
-        if verdict.outcome == "done":
-            assert [r.steps for r in later] == [r.steps for r in known]
-        if named_after:  # it ran undecided (up to HOLD steps), looking for the budget
-            assert len(looks) >= 2
 
 
 @pytest.mark.parametrize("named_after", [0.0, 0.7])
@@ -292,7 +265,8 @@ def test_a_request_waiting_for_its_name_starts_once_the_cases_are_claimed(redis)
     spread.threads = 1
     specs = [{**asdict(plan), "d": 0.1, "load_case": j, "cap": 100, "after": "damping"}
              for j in (0, 1)]  # fmt: skip
-    specs.append({**asdict(plan), "request": {"d": 0.2, "budget": LATER}, "after": "damping"})
+    named_later = {"d": 0.2, "budget": None, "caps_later": True}
+    specs.append({**asdict(plan), "request": named_later, "after": "damping"})
     tasks = [task_digest(spec) for spec in specs]
     assert scratch.claim_case(redis, "calibration", tasks[0], "another worker")
     run = CaseRun(

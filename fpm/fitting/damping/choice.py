@@ -1,13 +1,12 @@
-"""Choosing d: the nodal damping that settles fastest at the fitted stiffness (docs/physics.md).
-
-:func:`fit_damping` chooses it: the prediction of the lattice's slowest modes (or, without one,
-the critical-damping estimates of :mod:`fpm.fitting.damping.critical`), then the search of
-:func:`fpm.fitting.damping.search.fastest_damping`, with the plan its runs follow
-(:class:`DampingPlan`) and, for a case that cannot settle, how far its loads take the solid
-(:func:`strain_notes`)."""
+"""Choosing d, the nodal damping that settles fastest at the fitted stiffness: the prediction
+of the lattice's slowest modes (or, without one, the critical-damping estimates), then the
+search (:func:`fpm.fitting.damping.search.fastest_damping`), with the plan its runs follow.
+The critical-damping estimates (:func:`damping_guesses`) are where the search starts when the
+modes predict nothing (docs/explanation/physics/damping-prediction.md)."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
@@ -24,10 +23,7 @@ from ...model.forces import Stiffness
 from ...model.problem import Problem
 from ..bounds import damping_bounds
 from ..diagnosis import SMALL_STRAIN
-from .critical import damping_guesses
-from .lockstep import (
-    Spread,
-)
+from .lockstep import Spread
 from .search import DampingFit, fastest_damping
 from .settings import DEFAULT, DampingSettings
 from .unsettled import Hopeless
@@ -36,13 +32,10 @@ from .unsettled import Hopeless
 @dataclass(frozen=True)
 class DampingPlan:
     """What one dynamic run of the d search needs besides d and its cap (JSON-able): the
-    stiffness theta (N/m; kappa Pa) the model is built from (:func:`model_stiffness`), the
-    depth, the time step dt (s), whether a stiffness field replaced theta's model (its
-    runs are not handed to other processes), each load case's settle stiffness (N/m, the
-    distance criterion of :mod:`fpm.dynamics.settle`; None: the force criterion), and each
-    load case's settle distance where the runs settle on the target criterion (None: they do
-    not; the static equilibria they settle towards travel beside the plan:
-    :func:`fit_damping`'s ``static``)."""
+    stiffness theta (N/m; kappa Pa), the depth, dt (s), whether a stiffness field replaced
+    theta's model (its runs stay in this process), each load case's settle stiffness (N/m;
+    None: the force criterion) and settle distance (None: the runs do not settle towards the
+    static equilibria, which travel beside the plan)."""
 
     theta: list[float]
     depth: int
@@ -66,24 +59,17 @@ def fit_damping(
     modes: dict[bytes, Modes] | None = None,
     settings: DampingSettings = DEFAULT,
 ) -> tuple[DampingFit, DampingPlan]:
-    """The fastest-settling d at (``stiffness``, ``depth``, ``dt`` s), from ``static`` (L, N,
-    3) the static equilibria, m, ``reference`` (L, N, 3) the reference's displacements at the
-    lattice nodes, m (the settle distances 'auto' read: :func:`fpm.dynamics.settle.case_distances`;
-    None: the nominal distance), and ``plan`` (None: made of ``stiffness``' parameters) with
-    each case's settle stiffness: the distance criterion's (:mod:`fpm.dynamics.settle`) read
-    from the modes of the prediction, or None for the force criterion (the spec names a
-    settle_tolerance, or there are no modes). The search of
-    :func:`fpm.fitting.damping.search.fastest_damping`
-    started at the d the lattice's slowest modes predict
-    (:func:`fpm.dynamics.modes.predict_damping`), with fpm.max_steps 'auto' taken from the
-    steps predicted there (:func:`fpm.dynamics.modes.auto_max_steps`). Where the lattice at
-    rest has no modes to predict from (a mechanism, e.g. 'axis' springs) or no d settles in
-    the reduced steps, from the two critical-damping estimates of :func:`damping_guesses`,
-    'auto' then being FALLBACK_STEPS. ``spread``: given the plan and the static equilibria its
-    runs settle towards (the target criterion; None: not), runs the search's runs over
-    other processes (:func:`fastest_damping`); ``modes``: the slowest
-    modes already found (:class:`fpm.dynamics.modes_ahead.ModesAhead`). Returns the fit and the
-    plan its runs followed."""
+    """The fastest-settling d at (``stiffness``, ``depth``, ``dt`` s), and the plan its runs
+    followed (``plan``; None: made of ``stiffness``' parameters).
+
+    ``static`` (L, N, 3) m: the static equilibria; ``reference`` (L, N, 3) m: the reference at
+    the lattice nodes, which settle distance 'auto' reads (None: the nominal distance);
+    ``modes``: the slowest modes already found (:class:`fpm.dynamics.modes_ahead.ModesAhead`).
+    The search starts at the d the modes predict (:func:`fpm.dynamics.modes.predict_damping`),
+    fpm.max_steps 'auto' from the steps predicted there; where the lattice at rest has no modes
+    (a mechanism) or nothing settles in the reduced steps, from the two critical-damping
+    estimates, 'auto' then FALLBACK_STEPS. ``spread``: given the plan and the static
+    equilibria its runs settle towards (None: not), what runs the search's runs elsewhere."""
     bounds = damping_bounds(problem)
     asked = problem.spec.fpm.max_steps
     why = strain_notes(problem, static, reference)
@@ -125,8 +111,8 @@ def fit_damping(
 
 
 def too_slow(prediction: Prediction, dt: float) -> Hopeless:
-    """The error of a lattice whose fastest d is predicted to need more than fpm.max_steps
-    'auto' allows (:data:`fpm.dynamics.step_caps.AUTO_CEILING`), raised before any run."""
+    """The error raised before any run when the predicted fastest d needs more steps than
+    fpm.max_steps 'auto' allows (:data:`fpm.dynamics.step_caps.AUTO_CEILING`)."""
     most = max(prediction.steps)
     error = Hopeless(
         f"the fastest d the lattice's slowest modes predict ({prediction.d:.4g} N s/m) needs "
@@ -140,10 +126,10 @@ def too_slow(prediction: Prediction, dt: float) -> Hopeless:
 
 
 def strain_notes(problem: Problem, static: np.ndarray, reference: np.ndarray | None) -> list[str]:
-    """Per load case, how far its loads take the solid, for a case that cannot settle: the
-    largest spring strain |l / L - 1| of its static equilibrium ``static`` (L, N, 3) m and the
-    largest displacement of the reference ``reference`` (L, N, 3) m (None: not said) as a
-    share of the solid's smallest bounding-box extent."""
+    """Per load case, how far its loads take the solid, said of a case that cannot settle: the
+    largest spring strain of its static equilibrium ``static`` (L, N, 3) m and the largest
+    displacement of ``reference`` (L, N, 3) m (None: not said) against the solid's smallest
+    bounding-box extent."""
     springs, rest = problem.solid.springs, problem.rest_lengths
     extents = np.ptp(problem.nodes, axis=0)
     extent = float(extents[extents > 0].min())
@@ -164,3 +150,51 @@ def strain_notes(problem: Problem, static: np.ndarray, reference: np.ndarray | N
                 note += ", far outside the small strain its linear reference assumes"
         notes.append(note)
     return notes
+
+
+def critical_damping(
+    problem: Problem, displacements: np.ndarray, loads: np.ndarray | None = None
+) -> float:
+    """Critical damping estimate, N s/m, from shapes (L, N, 3) held by ``loads`` (L, N, 3), N
+    (None: each load case's forces, so the shapes are static displacements).
+
+    The geometric mean over load cases of ``2 omega (u^T M u) / (u^T u)`` with Rayleigh's
+    ``omega^2 = f.u / (u^T M u)``.
+    """
+    m = problem.solid.masses
+    estimates = []
+    for j, case in enumerate(problem.load_cases):
+        u = displacements[j]
+        f = case.dense(problem.n_nodes) if loads is None else loads[j]
+        mu2 = float(np.einsum("n,ni,ni->", m, u, u))
+        u2 = float(np.einsum("ni,ni->", u, u))
+        work = float(np.einsum("ni,ni->", f, u))
+        if mu2 > 0 and work > 0:
+            estimates.append(2 * math.sqrt(work / mu2) * mu2 / u2)
+    if not estimates:
+        raise ValueError("no load case moves: cannot estimate the damping")
+    return float(np.exp(np.mean(np.log(estimates))))
+
+
+def damping_guesses(
+    problem: Problem,
+    solver: StaticSolver,
+    stiffness: Stiffness,
+    depth: int,
+    static: np.ndarray,
+) -> tuple[float, float]:
+    """Two critical-damping estimates, N s/m: from the static shapes ``static`` (L, N, 3) m and
+    from the shapes their inertia deflects the linear lattice into (one inverse iteration); the
+    first twice where the lattice at rest is not held (a mechanism)."""
+    upper = critical_damping(problem, static)
+    masses = problem.solid.masses[None, :, None]
+    try:
+        inertia = np.stack(
+            [
+                solver.linear_response(j, stiffness, depth, masses[0] * static[j])
+                for j in range(len(problem.load_cases))
+            ]
+        )
+        return critical_damping(problem, inertia, masses * static), upper
+    except (SingularStiffnessError, NegativeCurvature):
+        return upper, upper

@@ -1,28 +1,9 @@
-"""Depth 'auto': the shortest perturbed list that keeps the fitted model what it is (the paper's
-penetration depth, Sec. 3, chosen after the stiffness; docs/explanation/physics/fpm.md).
-
-The stiffness is fitted at full depth; 'auto' then asks how far each load case's list can be
-cut. A depth passes when, in every load case, at that stiffness:
-
-- **the cost test**: the case's Eq. 2 cost is within (1 + tolerance) of full depth's (the loads
-  the fit saw are met as well);
-- **the response test**: the model's own response to the case's forces turned along x, y and z
-  (each loaded node's force magnitude along one axis; the lattice linearised at rest) changes
-  from full depth's by at most tolerance times the case's relative discrepancy at full depth,
-  in Eq. 2's norm (the sum of nodal lengths, relative to full depth's response). A load at the
-  same place in another direction, which the fit never saw, then changes by at most what the
-  cost test lets the fitted loads lose (docs/explanation/organs-spec.md, *Why every layer*).
-
-A truncated list holds the nodes beyond it at rest, so the share of full depth's response
-beyond the list is a lower bound of the change: a depth whose share exceeds the allowance fails
-with no solve. Load cases with the same force pattern (the same nodes, proportional
-magnitudes) share their responses: the response is linear. Where the lattice at rest is a
-mechanism (the paper's 'axis' springs have no linear response), the cost test decides alone.
-
-The answer is the smallest depth that passes, found by galloping down from full depth (full - 1,
-full - 2, full - 4, ...) until a depth fails, then bisecting between it and the last that
-passed; a depth passes or fails the same way wherever it is asked.
-"""
+"""Depth 'auto': the shortest perturbed list that keeps the fitted model what it is. A depth
+passes when in every load case its cost is within (1 + tolerance) of full depth's (the cost
+test) and the model's own linear response to the case's forces turned along x, y and z changes
+by at most tolerance times the case's relative discrepancy (the response test); the smallest
+that passes is found by galloping down from full depth, then bisecting
+(docs/explanation/physics/calibration-paper-depth.md)."""
 
 from __future__ import annotations
 
@@ -43,15 +24,9 @@ from ..stiffness_stage import Progress
 def resolve_depth(
     cost: StaticCost, theta: list[float], tolerance: float, progress: Progress | None = None
 ) -> tuple[int, int, dict[int, list[float]]]:
-    """Depth 'auto' at the stiffness ``theta`` fitted at full depth: the smallest depth that
-    passes the cost and the response tests (module docstring) with ``tolerance`` (relative).
-
-    Each cost probe is a static solve per load case, started from full depth's equilibrium on
-    the probe's list; the probes step down from full depth, each step twice the last, then
-    bisect. Returns (depth, full depth, {depth probed: case costs, m}; a depth the response
-    test's bound refused has no costs). Where full depth has no finite cost (a load case
-    diverged or found no equilibrium: its case costs stop there), full depth.
-    """
+    """Depth 'auto' at the stiffness ``theta`` fitted at full depth, with ``tolerance``
+    (relative). Returns (depth, full depth, {depth probed: case costs, m}; none where the
+    response test's bound refused it); full depth where it has no finite cost."""
     full = cost(theta, None)
     deepest = full_depth(cost.problem)
     probed: dict[int, list[float]] = {deepest: full.case_costs}

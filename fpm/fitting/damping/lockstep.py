@@ -1,18 +1,9 @@
-"""The d search's runs (:mod:`fpm.fitting.damping.search`): every load case at one d advanced in
-lockstep pieces on threads, the verdicts taken at each milestone, and the runs as other
-processes hand them back.
-
-A d's runs advance in pieces of ``chunk`` steps (:class:`fpm.dynamics.simulation.DynamicRun`;
-the settings named here are those of :class:`fpm.fitting.damping.settings.DampingSettings`),
-all load cases together (:class:`_Runs`). At each milestone every case has passed, a
-:class:`Verdict` (:func:`verdict_at`) decides whether the d is lost (its steps add up to the
-budget, or its cases' decays predict more than ``prune`` times it: :func:`predicted_steps`),
-settled, or runs on. Decisions are taken only from each case's own state at the milestone, so
-a search repeats exactly however the threads interleave, and a case run on its own to its end
-by another process (:func:`run_case`, :class:`CaseRun`) replays to the same verdict
-(:func:`replay_verdict`). A :class:`Request` is one d's lockstep runs as the search asks for
-them; :func:`run_request` runs it for another process's search.
-"""
+"""The d search's runs: every load case at one d advanced in lockstep pieces of ``chunk``
+steps on threads (:class:`_Runs`), a :class:`Verdict` taken at each milestone every case has
+passed (:func:`verdict_at`): lost, settled, or running on. Decisions read only each case's own
+state at the milestone, so a search repeats exactly however the threads interleave, and a case
+run on its own by another process (:func:`run_case`) replays to the same verdict
+(:func:`replay_verdict`). docs/explanation/service/many-workers.md says how they spread."""
 
 from __future__ import annotations
 
@@ -35,16 +26,9 @@ from ...model.forces import Stiffness
 from ...model.problem import Problem
 from .settings import DEFAULT, DampingSettings
 
-LATER = -1
-"""A :class:`Request`'s budget that is named once the runs have started: a d run beside the
-predicted d's whose total is its budget (:meth:`_Runs.separate`). The search asks for none
-(its confirming d run only after the predicted d's runs:
-:func:`fpm.fitting.damping.search._unsure`); a worker runs such a request as any other."""
-
 
 def _piece(run: DynamicRun, steps: int, settings: DampingSettings = DEFAULT) -> int:
-    """Advance ``run`` by ``steps``, in samples of ``settings.sample`` steps (its residual
-    history); returns the steps taken."""
+    """Advance ``run`` by ``steps`` in samples of ``settings.sample``; the steps taken."""
     start, sample = run.steps, settings.sample
     while run.steps - start < steps and not run.advance(min(sample, steps - run.steps + start)):
         pass
@@ -61,9 +45,8 @@ _LOCKSTEP_CPU = threading.local()
 
 
 def lockstep_cpu() -> float:
-    """The CPU seconds that the lockstep runs started from this thread (:meth:`_Runs.locked`)
-    have spent on the pool's threads so far: added to the thread's own ``time.thread_time()``
-    it is what a request run here cost, wherever its pieces ran."""
+    """CPU seconds the lockstep runs started from this thread have spent on the pool's threads
+    so far (added to the thread's own ``time.thread_time()``: what a request run here cost)."""
     return float(getattr(_LOCKSTEP_CPU, "seconds", 0.0))
 
 
@@ -77,9 +60,7 @@ def _spent(future: Future[tuple[int, float]]) -> int:
 @dataclass
 class CaseRun:
     """One load case run on its own to its end (settled, diverged, or ``cap`` steps), as the
-    search reads it: what :func:`verdict_at` and :func:`predicted_steps` read of a
-    :class:`~fpm.dynamics.simulation.DynamicRun`, and the settled displacements. JSON-able but
-    for ``displacements``, which travels as raw float64 bytes (:mod:`fpm.fitting.case_runs`).
+    search reads it. JSON-able but for ``displacements`` (raw float64 bytes in transit).
 
     Attributes:
         steps: time steps taken; state: voigt.RUNNING (reached its cap), SETTLED or DIVERGED
@@ -111,23 +92,16 @@ class CaseRun:
         """Where ``run`` stands (its displacements only if it settled)."""
         if isinstance(run, CaseRun):
             return run
-        settled = run.state == SETTLED
-        return cls(
-            steps=run.steps,
-            state=run.state,
-            settle_force=run.settle_force,
-            history=list(run.history),
-            displacements=run.result().displacements if settled else np.zeros((0, 3)),
-        )
+        moved = run.result().displacements if run.state == SETTLED else np.zeros((0, 3))
+        return cls(run.steps, run.state, run.settle_force, list(run.history), moved)
 
 
 @dataclass(frozen=True)
 class Request:
-    """One d's lockstep runs as the search asks for them (:meth:`_Runs.__call__`'s
-    arguments): d (N s/m), each case's cap, the budget (None: none; LATER: named once the
-    runs have started), and how predictions decide; ``caps_later``: the caps are named once
-    the runs have started, within ``caps`` (a margin probe's, run beside the predicted d's
-    whose steps set them)."""
+    """One d's lockstep runs as the search asks for them (:meth:`_Runs.__call__`'s arguments):
+    d (N s/m), each case's cap, the budget (None: none), how predictions decide;
+    ``caps_later``: the caps are named once the runs have started, within ``caps`` (a margin
+    probe run beside the predicted d's)."""
 
     d: float
     caps: tuple[int, ...]
@@ -157,11 +131,9 @@ def run_case(
     settings: DampingSettings = DEFAULT,
 ) -> CaseRun:
     """Load case ``load_case`` at (``stiffness``, ``d`` N s/m, ``depth``, ``dt`` s) from rest
-    to its end: settled, diverged or ``cap`` steps; advanced in the same pieces of
-    ``settings.chunk`` steps as the lockstep runs of :class:`_Runs`, so the very same floating-point
-    sequence whatever process runs it. ``settle_stiffness``: the distance criterion's, N/m
-    (:mod:`fpm.dynamics.settle`); None: the force criterion; with ``static`` (N, 3) m, the case's
-    static equilibrium, and its settle ``distance``, the target criterion."""
+    to its end (settled, diverged or ``cap`` steps), in the same pieces as :class:`_Runs`, so
+    the same floating-point sequence in any process. ``settle_stiffness`` (N/m), ``static``
+    (N, 3) m and ``distance``: its settle criterion (:func:`fpm.dynamics.settle.run_criterion`)."""
     run = model.start(
         load_case, k=stiffness, d=d, depth=depth, dt=dt,
         settle=run_criterion(model.problem.spec, settle_stiffness, static, distance),
@@ -172,9 +144,8 @@ def run_case(
 
 
 Resolve = Callable[[], dict[str, Any] | None]
-"""Where a lockstep learns what is named later (None: not yet): {"budget": int or None} for
-a budget LATER, {"caps": [int per case], or None: drop the request} for caps named later
-(:func:`named_later`)."""
+"""Where a lockstep learns the caps named later (None: not yet): {"caps": [int per case], or
+None: drop the request} (:func:`named_later`)."""
 
 
 def run_request(
@@ -188,10 +159,8 @@ def run_request(
     targets: np.ndarray | None = None,
     distances: Sequence[float] | None = None,
 ) -> Outcome:
-    """One d's lockstep runs (:meth:`_Runs.locked`) at (``stiffness``, ``depth``, ``dt`` s)
-    in this process, for another's search; ``resolve``: where what is named later (a budget
-    LATER, or caps) comes from; ``settle``, ``targets``, ``distances``: each case's settle
-    stiffness, static equilibrium and settle distance (as :class:`_Runs`)."""
+    """One d's lockstep runs (:meth:`_Runs.locked`) in this process, for another's search;
+    ``resolve``: where what is named later comes from; the rest as :class:`_Runs` takes them."""
     runs = _Runs(problem, stiffness, depth, dt, settle=settle, targets=targets, distances=distances)
     try:
         return runs.locked(request, resolve)
@@ -200,9 +169,8 @@ def run_request(
 
 
 def settled_total(runs: list[CaseRun], caps: list[int]) -> int | None:
-    """The total steps of a d whose cases each ran on their own to their end, as the search
-    takes it for the best so far (:func:`replay_verdict` done and every case settled), else
-    None."""
+    """The total steps of a d whose cases each ran on their own to their end, where the search
+    would take it for the best so far, else None."""
     if replay_verdict(runs, caps).outcome == "done" and all(r.state == SETTLED for r in runs):
         return sum(r.steps for r in runs)
     return None
@@ -214,38 +182,26 @@ def named_later(
     caps: list[int],
     settings: DampingSettings = DEFAULT,
 ) -> dict[str, Any]:
-    """What ``request``, run beside a d's cases (``runs``, each to ``caps``), learns once
-    they have ended, as the search would make it with that d the best so far: a confirming
-    d's budget, their :func:`settled_total`; a margin probe's caps, ``settings.margin_cap`` times
-    each case's steps within the request's own (None when they did not all settle: then the search
-    makes no such probe)."""
-    total = settled_total(runs, caps)
-    if not request.caps_later:
-        return {"budget": total}
-    if total is None:
+    """What a margin probe ``request``, run beside a d's cases (``runs``, each to ``caps``),
+    learns once they have ended, as the search would make it: its caps, ``margin_cap`` times
+    each case's steps within its own (None where they did not all settle:
+    :func:`settled_total`)."""
+    if settled_total(runs, caps) is None:
         return {"caps": None}
     cap = settings.margin_cap
     return {"caps": [min(c, cap * r.steps) for r, c in zip(runs, request.caps, strict=True)]}
 
 
 def _capped(run: DynamicRun, cap: int) -> DynamicRun | CaseRun:
-    """``run`` as it would stand had it been capped at ``cap`` steps (a run that went on
-    past a cap named later): its state and residual history up to there (the kernel checks
-    settling every step, so a run that ended by the cap ended the same way)."""
+    """``run`` as it stood at ``cap`` steps (a run that went on past a cap named later)."""
     if run.steps <= cap:
         return run
-    return CaseRun(
-        steps=cap,
-        state=RUNNING,
-        settle_force=run.settle_force,
-        history=[(n, r) for n, r in run.history if n <= cap],
-    )
+    return CaseRun(cap, RUNNING, run.settle_force, [(n, r) for n, r in run.history if n <= cap])
 
 
 class Spread(Protocol):
-    """How the search's runs may be spread over other processes (the worker's:
-    :class:`worker.spread.CaseSpread`). Whatever runs them, the runs are the same, so the
-    search's answer does not depend on it."""
+    """How the search's runs may be spread over other processes
+    (:class:`worker.spread.CaseSpread`); the runs, and so the answer, are the same."""
 
     def separate(
         self,
@@ -255,34 +211,30 @@ class Spread(Protocol):
         beside: list[Request],
         local_request: Callable[[Request, Resolve], Outcome],
     ) -> tuple[list[CaseRun], list[Outcome | None]]:
-        """Every load case of one d run on its own to its end, ``[CaseRun per case]``, where
-        ``local(j, d, cap)`` runs case j in this process (:func:`run_case`); and, only when
-        other workers are free, the requests ``beside`` at the same time, learning what
-        :func:`named_later` makes of the cases' runs (a budget LATER, or caps) once those
-        have all ended: their outcomes in order (None: not run), ``local_request(request,
-        resolve)`` running one here."""
+        """Every load case of one d run on its own to its end (``local(j, d, cap)`` runs case j
+        here) and, where other workers are free, the requests ``beside`` at the same time,
+        learning what :func:`named_later` makes of the cases' runs: their outcomes in order
+        (None: not run), ``local_request`` running one here."""
         ...
 
     def ahead(
         self, requests: list[Request], local: Callable[[Request], Outcome]
     ) -> list[Outcome | None]:
-        """Requests the search will probably make next, at once (:meth:`_Runs.prefetch`):
-        their outcomes in order (None: not run), ``local`` running one here."""
+        """Requests the search will probably make next, at once: their outcomes in order (None:
+        not run), ``local`` running one here."""
         ...
 
 
 def replay_verdict(
     runs: list[CaseRun], caps: list[int], settings: DampingSettings = DEFAULT
 ) -> Verdict:
-    """The verdict the lockstep runs of :class:`_Runs` reach for a d run to its cap with no
-    budget (the predicted d's runs), from its cases run each to its end: the milestones every
-    ``settings.chunk`` steps in turn, as the lockstep checks them, until one decides ``failed`` (a
-    case diverged or reached its cap unsettled by it) or every case ended before it (``done``)."""
+    """The verdict the lockstep runs reach for a d run to its cap with no budget, replayed from
+    its cases run each to its end: the milestones in turn until one decides ``failed``, else
+    ``done``."""
     verdict, milestone = Verdict("running"), settings.chunk
     while verdict.outcome == "running" and not all(r.steps < milestone for r in runs):
-        verdict = verdict_at(
-            runs, caps, milestone, None, estimate=False, to_cap=True, settings=settings
-        )
+        verdict = verdict_at(runs, caps, milestone, None, estimate=False, to_cap=True,
+                             settings=settings)  # fmt: skip
         milestone += settings.chunk
     return Verdict("done") if verdict.outcome == "running" else verdict
 
@@ -290,14 +242,9 @@ def replay_verdict(
 class _Runs:
     """Runs every load case at one d, in pieces, on threads (the kernel releases the GIL).
 
-    ``spread``: runs the predicted d's cases (no budget, to the cap: each case's run
-    independent of the others') and the d the search will probably try next
-    (:meth:`prefetch`) over other processes (:class:`Spread`; None: the cases on these
-    threads, nothing ahead). ``settle``: each load case's settle stiffness, N/m (the distance
-    criterion, :mod:`fpm.dynamics.settle`); None: the force criterion. ``targets``: (L, N, 3)
-    each load case's static equilibrium displacements, m, and ``distances`` (L,) their settle
-    distances: with ``settle``, the runs settle on the target criterion. ``settings``: how
-    the runs advance and are judged (:class:`fpm.fitting.damping.settings.DampingSettings`)."""
+    ``spread``: runs the predicted d's cases and the d tried next over other processes (None:
+    here, nothing ahead). ``settle`` (L,) N/m, ``targets`` (L, N, 3) m and ``distances`` (L,):
+    the runs' settle criterion (:func:`fpm.dynamics.settle.run_criterion`)."""
 
     def __init__(
         self,
@@ -317,15 +264,12 @@ class _Runs:
         self.settle = None if settle is None else [float(s) for s in settle]
         self.targets = targets if distances is not None else None
         self.distances = None if distances is None else [float(s) for s in distances]
-        self.stiffness = stiffness
-        self.depth = depth
-        self.dt = dt
+        self.stiffness, self.depth, self.dt = stiffness, depth, dt
         self.model = FpmModel(problem)
         self.cases = len(problem.load_cases)
         self.threads = min(self.cases, os.cpu_count() or 1)
         self.pool = ThreadPoolExecutor(self.threads)
-        self.count = 0
-        self.work = 0
+        self.count, self.work = 0, 0  # runs made and steps taken, once the search takes them
         self.max_steps = fixed_max_steps(problem.spec.fpm.max_steps)  # each run's cap on steps
         self.spread = spread
         self.fetched: dict[Request, Outcome] = {}
@@ -351,22 +295,18 @@ class _Runs:
     def separate(
         self, d: float, caps: list[int], beside: Sequence[Request] = ()
     ) -> tuple[list[CaseRun], Verdict]:
-        """Every load case at d, each run on its own to its end (by ``spread``), and the
-        verdict the lockstep would reach (:func:`replay_verdict`). For a d with no budget run
-        to the cap, the same runs and verdict as :meth:`__call__`, but that a failed d's
-        other cases also run to their end. ``beside``: requests the search will probably make
-        next (a budget LATER, or caps named later: :func:`named_later` of this d's runs), run
-        at the same time by ``spread`` where other workers are free, to be taken as
-        :meth:`prefetch` ed."""
+        """Every load case at d, each run on its own to its end, and the verdict the lockstep would
+        reach (:func:`replay_verdict`): for a d with no budget run to the cap, the same as
+        :meth:`__call__` but that a failed d's other cases also run to their end.
+        ``beside``: margin probes run at the same time by ``spread`` (their caps named from
+        this d's runs), kept as :meth:`prefetch` keeps them."""
         if self.spread is None:
             runs = list(self.pool.map(self.local, range(self.cases), [d] * self.cases, caps))
         else:
             runs, outcomes = self.spread.separate(d, caps, self.local, list(beside), self.locked)
             for request, outcome in zip(beside, outcomes, strict=True):
                 named = named_later(request, runs, caps, self.settings)
-                if "budget" in named:
-                    self._keep([replace(request, budget=named["budget"])], [outcome])
-                elif named["caps"] is not None:
+                if named["caps"] is not None:
                     taken = replace(request, caps=tuple(named["caps"]), caps_later=False)
                     self._keep([taken], [outcome])
         self.count += self.cases
@@ -374,8 +314,8 @@ class _Runs:
         return runs, replay_verdict(runs, caps, self.settings)
 
     def prefetch(self, requests: list[Request]) -> None:
-        """Run ``requests`` at once by ``spread`` (none without it), to be taken by the calls
-        that make the very same requests (one that differs, e.g. in its budget, runs anew)."""
+        """Run ``requests`` at once by ``spread`` (none without it), for the calls that make the
+        very same requests."""
         requests = [r for r in requests if r not in self.fetched]
         if self.spread is None or not requests:
             return
@@ -388,11 +328,8 @@ class _Runs:
                 self.fetched[request] = outcome
 
     def locked(self, request: Request, resolve: Resolve | None = None) -> Outcome:
-        """``request``'s lockstep runs here, as :class:`CaseRun`; not counted in ``count``
-        and ``work`` until the search takes them (:meth:`__call__`), whoever ran them.
-        ``resolve``: where what is named later (a budget LATER, or caps) comes from. The CPU
-        seconds its pieces spend on the pool's threads are credited to the calling thread
-        (:func:`lockstep_cpu`)."""
+        """``request``'s lockstep runs here, as :class:`CaseRun`, not counted until the search
+        takes them; their pool threads' CPU seconds credited to this thread."""
         runs, verdict, _ = self._lockstep(request, resolve)
         return [CaseRun.of(run) for run in runs], verdict
 
@@ -407,17 +344,11 @@ class _Runs:
         to_cap: bool = False,
     ) -> tuple[Sequence[DynamicRun | CaseRun], Verdict]:
         """Every load case at d, case j for at most ``caps[j]`` steps, until every case has
-        settled, one has diverged or reached its cap unsettled, or a :class:`Verdict` of
-        :func:`verdict_at` ends it: at each milestone (every ``settings.chunk`` steps) that every
-        case has passed, the d is ``lost`` once the steps taken up to there add up to
-        ``budget`` (None: no such limit), or once the predictions there exceed ``prune`` times
-        the budget (``settings.prune`` times a cap; with ``to_cap`` a case runs on to its cap
-        whatever its decay predicts); with ``estimate`` it ``settles`` once every case is predicted
-        within its cap.
-
-        Decisions are taken only from each case's own state at the milestone, so they do not
-        depend on how the threads happened to interleave: a search repeats exactly. A request
-        run ahead (:meth:`prefetch`) is taken from there."""
+        settled, one has diverged or reached its cap unsettled, or a milestone's
+        :func:`verdict_at` decides (``budget``: a d is lost once its steps add up to it;
+        ``prune``: or its predicted total exceeds this times it; ``to_cap``: a case runs on to
+        its cap whatever its decay predicts; ``estimate``: it settles once every case is
+        predicted within its cap). A request run ahead (:meth:`prefetch`) is taken from there."""
         request = Request(d, tuple(caps), budget, estimate, prune, to_cap)
         if request in self.fetched:
             fetched, verdict = self.fetched.pop(request)
@@ -432,13 +363,12 @@ class _Runs:
     def _lockstep(
         self, request: Request, resolve: Resolve | None = None
     ) -> tuple[list[DynamicRun | CaseRun], Verdict, int]:
-        """:meth:`__call__`'s runs of ``request``, and the steps they took. A budget LATER
-        or caps named later (by ``resolve``, looked at every ``settings.look`` seconds): until
-        then the cases run on undecided, up to ``settings.hold`` steps, then the milestones they
-        have passed are decided in turn as they would have been with the budget or caps known (a
-        case past its cap as it stood there), so the verdict is the same."""
+        """:meth:`__call__`'s runs of ``request``, and the steps they took. Until caps named
+        later are named (``resolve``, looked at every ``settings.look`` s) the cases
+        run on undecided up to ``settings.hold`` steps; the milestones passed are then decided
+        in turn as they would have been, so the verdict is the same."""
         d, caps, budget = request.d, list(request.caps), request.budget
-        pending = budget == LATER or request.caps_later
+        pending = request.caps_later
         if pending and resolve is None:
             raise ValueError("what is named later needs where to learn it")
         looked = -math.inf
@@ -474,11 +404,10 @@ class _Runs:
                     for future in running:
                         work += _spent(future)
                     running.clear()
-                    if named.get("caps", caps) is None:  # the search will not ask for it
+                    if named["caps"] is None:  # the search will not ask for it
                         dropped: list[DynamicRun | CaseRun] = list(runs)
                         return dropped, Verdict("dropped"), work
-                    budget = named.get("budget", budget)
-                    caps, pending = list(named.get("caps", caps)), False
+                    caps, pending = list(named["caps"]), False
             # (a run past a cap named later, as it stood at that cap)
             seen = [_capped(r, c) for r, c in zip(runs, caps, strict=True)]
             stopped = [r.finished or r.steps >= c for r, c in zip(seen, caps, strict=True)]
@@ -522,11 +451,9 @@ class _Runs:
 class Verdict:
     """How a d's runs ended: ``done`` (every case settled, diverged or reached its cap),
     ``failed`` (a case diverged or reached its cap unsettled), ``lost`` (it cannot win;
-    ``total``: the steps it would take at least, from its steps and predictions at the
-    deciding milestone), ``settles`` (every case predicted within its cap) or ``dropped`` (a
-    request run ahead whose caps were named None: the search will not make it).
-    ``predicted``: each case's predicted steps (:func:`predicted_steps`) when the decision
-    came from them."""
+    ``total``: the steps it would take at least), ``settles`` (every case predicted within its
+    cap) or ``dropped`` (a request whose caps were named None); ``predicted``: each case's
+    predicted steps where they decided."""
 
     outcome: str
     total: float = 0.0
@@ -536,13 +463,11 @@ class Verdict:
 def predicted_steps(
     run: DynamicRun | CaseRun, at: int | None = None, settings: DampingSettings = DEFAULT
 ) -> float:
-    """The steps ``run`` will have taken when it settles, predicted from the decay of its
-    residual up to step ``at`` (None: its steps so far): the envelope (largest sample) over the
-    last ``settings.chunk`` steps against that over the chunk before, extrapolated
-    exponentially down to the settle force. Its steps if it finished by then; ``at`` before
-    ``settings.predict_after``, or
-    when the run never settles (settle force 0), no prediction: ``at`` itself; inf when the
-    envelope does not decay."""
+    """The steps ``run`` will have taken when it settles, from the decay of its residual up to
+    step ``at`` (None: now): the envelope over the last ``chunk`` steps against the chunk
+    before, extrapolated exponentially to the settle force. Its steps if it finished by then;
+    ``at`` itself before ``predict_after`` or where it never settles; inf where the envelope
+    does not decay."""
     at = run.steps if at is None else at
     if run.finished and run.steps <= at:
         return float(run.steps) if not run.diverged else math.inf
@@ -571,12 +496,10 @@ def verdict_at(
     to_cap: bool = False,
     settings: DampingSettings = DEFAULT,
 ) -> Verdict:
-    """The d's verdict at milestone ``at`` (every case ended or past it): ``failed`` if a case
-    diverged or reached its cap unsettled by ``at``; ``lost`` if the steps taken up to ``at``
-    add up to ``budget``, or (past ``settings.predict_after``) a case is predicted past
-    ``settings.prune`` times its cap
-    or the predicted total past ``prune`` times ``budget``; ``settles`` (with ``estimate``) if
-    every case settled within its cap or is predicted within it; else ``running``."""
+    """The d's verdict at milestone ``at`` (every case ended or past it): ``failed``, ``lost``
+    (the steps taken add up to ``budget``, or past ``predict_after`` a case is predicted past
+    ``settings.prune`` times its cap or the total past ``prune`` times ``budget``),
+    ``settles`` (with ``estimate``, every case within its cap) or ``running``."""
     if any(
         (r.diverged and r.steps <= at) or (not r.finished and c <= at and r.steps >= c)
         for r, c in zip(runs, caps, strict=True)

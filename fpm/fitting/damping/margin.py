@@ -1,13 +1,5 @@
-"""The stability margin of the d search (:mod:`fpm.fitting.damping.search`): the smallest d
-that still settles every load case within ``margin_cap`` times its steps at the fastest d (the
-settings named here are those of :class:`fpm.fitting.damping.settings.DampingSettings`).
-
-The fastest d sits near the stability edge, and below it runs diverge or creep. The d already
-tried by the search answer first (their settled steps, or the predictions they were dropped on);
-with the reduced steps of :mod:`fpm.dynamics.reduced_step` the edge they estimate
-(:func:`predicted_edge`) is probed next, and 12% below it only if the edge settles; without
-them the search walks down and bisects.
-"""
+"""The d search's stability margin: the smallest d that still settles every load case within
+``margin_cap`` times its steps at the fastest d (below it runs diverge or creep)."""
 
 from __future__ import annotations
 
@@ -26,9 +18,9 @@ def predicted_edge(
     cap: int,
     settings: DampingSettings = DEFAULT,
 ) -> float | None:
-    """log d of the reduced steps' estimate of the margin: the smallest d (by bisection on log
-    d, to 1%) whose predicted steps stay within ``settings.margin_cap`` times their own at
-    ``d_best`` in every load case; None if they do not settle at ``d_best``."""
+    """log d of the reduced steps' estimate of the margin: the smallest d (bisection on log d,
+    to 1%) whose predicted steps stay within ``margin_cap`` times theirs at ``d_best`` in
+    every load case; None where they do not settle at ``d_best``."""
     fastest = [m.steps(d_best, cap) for m in models]
     if not all(math.isfinite(f) and f > 0 for f in fastest):
         return None
@@ -61,15 +53,11 @@ def smallest_settling(
     settings: DampingSettings = DEFAULT,
 ) -> float:
     """log d of the smallest d whose runs all settle within ``margin_cap`` times their steps at
-    the fastest d (``settings``). The d tried by the search answer first, from their settled
-    steps or from the predictions they were stopped on (``forecast``): from the smallest that
-    settles, the largest below it that does not brackets the edge. With ``edge`` (log d; the reduced
-    steps' estimate) the edge itself is probed next (run ahead where a worker is free), and where it
-    settles, ``step / 2`` below it. Without a bracket the walk goes down by ``step`` while d
-    settles; bisection narrows the bracket to ``step / 2`` (log); with an ``edge`` at most
-    ``margin_probes`` probes in all (d_min is then the smallest d found that settles). A probe stops
-    once its decay predicts the answer (past ``predict_after`` steps): d_min is an estimate where
-    runs are long, exact where they settle sooner."""
+    the fastest d. The d the search tried answer first (their steps, or the predictions they
+    were stopped on: ``forecast``); then ``edge`` (log d, the reduced steps' estimate), and
+    ``step / 2`` below it where it settles, ``margin_probes`` probes at most; without an edge
+    the walk goes down by ``step`` and bisects to ``step / 2``. A probe stops once its decay
+    predicts the answer, so d_min is an estimate where runs are long."""
     fastest = steps[y_best] or []
     caps = [min(max_steps, settings.margin_cap * s) for s in fastest]
 

@@ -1,12 +1,5 @@
-"""The polish of stage 2: the chains' best stiffness theta (N/m; kappa in Pa) polished on
-static equilibria at the depth the chains fitted at.
-
-:func:`chain_to_polish` picks the chain whose best state is polished; :func:`polish_stiffness`
-polishes it: with families+volume the defect-corrected reduced fit
-(:func:`fpm.fitting.defect_correction.fit_reduced`), else
-:func:`fpm.fitting.stiffness_stage.polish` (with families, from the better of the chains' best
-and the best single k).
-"""
+"""The polish of stage 2: the chains' best stiffness theta (N/m; kappa Pa) polished on static
+equilibria at the depth the chains fitted at."""
 
 from __future__ import annotations
 
@@ -35,12 +28,10 @@ from .settings import DEFAULT, DampingSettings
 def chain_to_polish(
     problem: Problem, chains: list[ChainResult], settings: DampingSettings = DEFAULT
 ) -> ChainResult:
-    """The chain whose best state stage 2 takes: the cheapest; with material regions or a
-    transversely isotropic material, among the chains within ``settings.same_fit`` of it, the
-    one with the longest time step. A region the loads barely strain (a stiff inclusion) leaves
-    its parameters free to drift upwards at no cost, and a drifted kappa shortens dt, and with
-    it the settle steps, several times (the paper method picks the fastest-settling of its
-    equally good states alike)."""
+    """The chain whose best state stage 2 takes: the cheapest; with material regions or
+    anisotropy, among those within ``settings.same_fit`` of it, the one with the longest time
+    step (a region the loads barely strain lets its parameters drift up at no cost, and a
+    drifted kappa shortens dt several times)."""
     best = min(chains, key=lambda c: c.cost)
     if not is_extended(problem):
         return best
@@ -57,11 +48,9 @@ def polish_stiffness(
     ahead: ModesAhead,
 ) -> tuple[list[float], int]:
     """The polished stiffness theta from the chosen chain's best ``start``, and the static
-    solves the polish made beside ``cost``'s evaluations. families+volume (and field): the
-    defect-corrected reduced fit on ``basis``, the calibration's first basis (built here when
-    None: the same bits), which starts ``ahead`` (the slowest modes, found beside it) after its
-    rounds; its last round's static equilibria are the warm starts of the stage's static solves
-    at the answer. Otherwise :func:`_polish`."""
+    solves made beside ``cost``'s evaluations. families+volume (and field): the
+    defect-corrected reduced fit on ``basis`` (built when None), which starts ``ahead`` after
+    its rounds; otherwise :func:`_polish`."""
     if progress is not None:
         progress({"phase": "polish"})
     bounds = stiffness_bounds(problem)
@@ -84,7 +73,7 @@ def _polish(
 ) -> list[float]:
     """The polished stiffness from the chains' best ``start`` (not families+volume): with
     families, from the better of it and the best single k, under that k's case costs as
-    ceilings (:func:`fpm.fitting.stiffness_stage.polish`)."""
+    ceilings."""
     ceilings = None
     if len(start) > 1:
         uniform, _ = polish(

@@ -1,48 +1,11 @@
-"""Choosing d: the nodal damping that settles fastest at the fitted stiffness (docs/physics.md).
+"""The d search: the d in the bounds that settles every load case in the fewest total steps,
+with the real dynamic kernel (:class:`fpm.dynamics.simulation.FpmModel`).
 
-:func:`fpm.fitting.damping.choice.fit_damping` chooses it (the prediction, then
-:func:`fastest_damping`'s search).
-
-A settled FPM state does not depend on d; d only decides how fast, and whether, a run settles
-at the spec's dt. So once the stiffness is fitted, d is chosen for the real-time loop: the value
-in the search bounds that settles every load case in the fewest total time steps, found with the
-real dynamic kernel (:class:`fpm.dynamics.simulation.FpmModel`).
-
-Where the search starts. Normally from the prediction of :mod:`fpm.dynamics.modes`: the
-lattice's slowest modes at the fitted stiffness, the FPM step reduced to them, and the d with
-the fewest predicted steps (how close it comes: docs/explanation/physics/damping-prediction.md).
-The search (:func:`fastest_damping`) then confirms it with a run on either side,
-``confirm`` apart (the settings named here are those of
-:class:`fpm.fitting.damping.settings.DampingSettings`), each stopped as soon as its decay predicts
-it slower than the prediction's own runs (a few hundred steps; a side is not run where the reduced
-steps rule it out: :func:`_unsure`), walks on only if one of them is faster (each step 1.6x longer,
-until the fewest total steps are bracketed) and refines by a few golden-section steps between the
-best d and its neighbours where they are still far apart. The margin (the smallest d that still
-settles every load case within ``margin_cap`` times its fastest steps: the stability margin, the
-fastest d sits near that edge and below it runs diverge or creep) starts from the reduced step's own
-estimate of that edge: a probe at the edge, and 12% below it only if the edge settles.
-
-Without a prediction (a lattice at rest that is a mechanism, e.g. 'axis' springs), from two
-critical-damping estimates (:mod:`fpm.fitting.damping.critical`): critical damping of a mode
-with nodal damping d I and lumped masses M is d = 2 omega (u^T M u) / (u^T u), and Rayleigh's
-quotient of a shape u that loads f hold, omega^2 = f.u / (u^T M u), estimates omega. Two shapes
-bracket the slow motion a load excites: the static deflection u0 = K^-1 f and the deflection
-under its own inertia, u1 = K^-1 M u0 (one step of inverse iteration). The search starts from
-the two and their geometric mean and walks and refines as above; the margin comes from the d
-already tried (their steps, or the predictions they were dropped on) and then by walking down
-and bisecting.
-
-Runs (:mod:`fpm.fitting.damping.lockstep`) advance in pieces of ``chunk`` steps
-(:class:`fpm.dynamics.simulation.DynamicRun`), all load cases
-together, and a d is dropped as soon as its load cases have taken as many steps between them as
-the best d's total: it can no longer win, so a poor d costs at most the best total, not a
-full run of every case. Earlier still, once every running case has taken ``predict_after`` steps,
-the decay of its residual (the largest unbalanced force, sampled every ``sample`` steps; its
-envelope over the last two pieces) predicts the steps it still needs, and a d whose predicted total
-exceeds ``prune`` times the best total is dropped then; likewise a margin probe whose predicted
-steps exceed ``prune`` times its cap. A prediction only ever drops a d: every figure the search
-returns comes from runs that settled. The runs of the fastest d are kept: they are the calibration's
-final dynamic check."""
+From the predicted d (:mod:`fpm.dynamics.modes`) it confirms with a run on either side, walks
+on only where one is faster and refines by golden section; without a prediction it brackets
+from two critical-damping estimates. A d is dropped once its steps, or its runs' decays,
+say it cannot win (:mod:`fpm.fitting.damping.lockstep`); every figure returned comes from runs
+that settled. How and why: docs/explanation/physics/damping-search.md."""
 
 from __future__ import annotations
 
@@ -93,7 +56,6 @@ class DampingFit:
             (its cost in kernel steps, the final runs included).
         predicted: the fastest d predicted from the modes before any run, N s/m (None: the
             search started from the critical-damping estimates).
-        predicted_steps: (L,) the steps predicted per load case at ``predicted``.
         max_steps: the cap on each run's steps (the spec's, or 'auto' resolved).
         residuals: (L,) the largest unbalanced nodal force of each case's last sweep at d, N.
     """
@@ -107,7 +69,6 @@ class DampingFit:
     tried: list[tuple[float, int | None]] = field(default_factory=list)
     work: int = 0
     predicted: float | None = None
-    predicted_steps: list[float] = field(default_factory=list)
     max_steps: int = 0
     residuals: list[float] = field(default_factory=list)
 
@@ -136,44 +97,24 @@ def fastest_damping(
     why: Sequence[str] | None = None,
     settings: DampingSettings = DEFAULT,
 ) -> DampingFit:
-    """The d in ``bounds`` that settles every load case in the fewest total steps.
+    """The d in ``bounds`` (N s/m) that settles every load case in the fewest total steps, at
+    ``stiffness`` (a :class:`~fpm.model.forces.Stiffness` or (S,) N/m), ``depth`` (None: every
+    layer) and ``dt`` s (None: the spec's, 'auto' resolved at ``stiffness``).
 
-    Args:
-        problem: the problem (settle_tolerance, and max_steps unless given, from its spec).
-        stiffness: the model's :class:`~fpm.model.forces.Stiffness`
-            (:func:`fpm.model.stiffness.model_stiffness`), or (S,) per-spring stiffness, N/m.
-        dt: the time step, s; None = the spec's (resolved at ``stiffness`` for 'auto').
-        depth: penetration depth (None = every layer).
-        bounds: (low, high) for d, N s/m.
-        guesses: two estimates of d to start from when there is no ``prediction`` (e.g.
-            :func:`fpm.fitting.damping.critical.critical_damping` of the static and of the
-            inertia-loaded shapes; equal when only one is known), clipped into the bounds.
-        progress: called with {"d", "total_steps"} after each d tried.
-        prediction: the fastest d predicted from the modes (:mod:`fpm.dynamics.modes`): the
-            search starts there and confirms it.
-        models: the reduced steps the prediction came from (one per load case): the margin
-            starts from their estimate of it.
-        max_steps: each run's cap on steps (None: the spec's; its 'auto' without a prediction
-            is :data:`fpm.dynamics.modes.FALLBACK_STEPS`, repeated as ``auto`` says).
-        auto: the cap came from fpm.max_steps 'auto': if nothing settles within it, the search
-            is repeated with ``settings.max_steps_growth`` times the cap
-            (``settings.retries`` times at most).
-        spread: runs the predicted d's load cases, each on its own, and the d tried next
-            over other processes (:class:`Spread`; None: here); the answer is the same
-            whatever runs them.
-        settle: each load case's settle stiffness, N/m: its runs settle on the distance
-            criterion (:mod:`fpm.dynamics.settle`); None: on the force criterion.
-        targets: (L, N, 3) each load case's static equilibrium displacements, m, and
-            ``distances`` (L,) their settle distances: with ``settle``, the runs settle on the
-            target criterion (``spread`` has them too).
-        why: per load case, what may keep it from settling (its strain), said when it cannot
-            settle within the budget (:func:`fpm.fitting.damping.unsettled.hopeless`).
-        settings: the stage's settings (:class:`fpm.fitting.damping.settings.DampingSettings`).
+    Starts at ``prediction`` (the fastest d the modes predict; ``models``, its reduced steps,
+    also place the margin's first probe), else brackets from ``guesses`` (two estimates of d,
+    clipped into the bounds). ``max_steps`` caps each run (None: the spec's); with ``auto``
+    (fpm.max_steps 'auto') a search in which nothing settles is repeated under a grown cap.
+    ``spread`` runs the runs over other processes (the answer does not depend on it).
+    ``settle`` (L,) N/m, ``targets`` (L, N, 3) m and ``distances`` (L,): the runs' settle
+    criterion (:func:`fpm.dynamics.settle.run_criterion`). ``why``: per load case what may
+    keep it from settling, said when it cannot. ``progress`` is called with {"d",
+    "total_steps"} after each d tried.
 
     Raises:
-        DampingError: no d in the bounds settles every load case within max_steps; or, as
-            soon as the predicted d's runs say so, a load case cannot settle within the step
-            budget (:func:`fpm.fitting.damping.unsettled.hopeless`), naming it.
+        DampingError: no d in the bounds settles every load case within max_steps, or a
+            load case cannot settle within the step budget
+            (:func:`fpm.fitting.damping.unsettled.hopeless`).
     """
     if max_steps is None:
         value = problem.spec.fpm.max_steps
@@ -189,17 +130,9 @@ def fastest_damping(
         runs.max_steps = max_steps
         try:
             return _search(
-                runs,
-                bounds,
-                guesses,
-                progress,
-                prediction,
-                models,
-                explain=last,
-                grow=not last,
-                limit=(limit, auto, list(why or [])),
-                earlier=earlier,
-            )
+                runs, bounds, guesses, progress, prediction, models, explain=last,
+                grow=not last, limit=(limit, auto, list(why or [])), earlier=earlier,
+            )  # fmt: skip
         except ShortCap as short:  # the predicted d's runs need more steps than the cap
             need, earlier = short.args
         except Hopeless:  # no larger cap helps
@@ -228,16 +161,13 @@ def _search(
     limit: tuple[int, bool, list[str]] | None = None,
     earlier: list[tuple[int, float, bool]] | None = None,
 ) -> DampingFit:
-    """The search (:func:`fastest_damping`); ``explain``: a failure says what would work (one
-    probe run of up to ``probe_steps`` times max_steps), else it only says that nothing settled;
-    ``grow``: the cap may grow (fpm.max_steps 'auto'), so if the predicted d's runs reach it
-    unsettled, :class:`ShortCap` says how many steps they need (their decay's prediction)
-    at once, rather than searching on under a cap that is too small; ``limit``: (the step
-    budget, whether it is 'auto''s, per load case what may keep it from settling): a case
-    that the predicted d's runs show cannot settle within it ends the search
-    (:func:`fpm.fitting.damping.unsettled.hopeless`), as does one whose cap grew to what its decay
-    asked for at the last cap (``earlier``: (steps, predicted steps, still moving) per case
-    there) and that reached it unsettled again."""
+    """The search (:func:`fastest_damping`) under one cap. ``explain``: a failure says what
+    would work (:func:`fpm.fitting.damping.unsettled.what_would_work`); ``grow``: the cap may
+    grow, so the predicted d's runs reaching it unsettled raise :class:`ShortCap` at once;
+    ``limit``: (the step budget, whether it is 'auto''s, per case what may keep it from
+    settling) against which a hopeless case ends the search, ``earlier`` its (steps,
+    predicted steps, still moving) per case at the last cap
+    (:func:`fpm.fitting.damping.unsettled.hopeless`)."""
     lo, hi = round(math.log(bounds[0]), 12), round(math.log(bounds[1]), 12)
     max_steps, settings = runs.max_steps, runs.settings
     steps: dict[float, list[int] | None] = {}  # log d -> steps per case (None: not settled)
@@ -402,35 +332,16 @@ def _search(
     edge = None
     if models is not None:
         edge = predicted_edge(models, math.exp(y_best), lo, max_steps, settings)
+    y_min = smallest_settling(runs, steps, forecast, y_best, lo, max_steps,
+                              math.log(settings.bracket_step), edge, settings)  # fmt: skip
+    tried = [(math.exp(y), None if s is None else sum(s)) for y, s in steps.items()]
+    tried += [(math.exp(y), None) for y in slower]
     return DampingFit(
-        d=math.exp(y_best),
-        steps=list(steps[y_best] or []),
-        displacements=displacements,
-        d_min=math.exp(
-            smallest_settling(
-                runs,
-                steps,
-                forecast,
-                y_best,
-                lo,
-                max_steps,
-                math.log(settings.bracket_step),
-                edge,
-                settings,
-            )
-        ),
-        guess=math.exp(y0),
-        runs=runs.count,
-        work=runs.work,
-        tried=sorted(
-            [(math.exp(y), None if s is None else sum(s)) for y, s in steps.items()]
-            + [(math.exp(y), None) for y in slower]
-        ),
-        predicted=None if prediction is None else prediction.d,
-        predicted_steps=[] if prediction is None else list(prediction.steps),
-        max_steps=max_steps,
-        residuals=[float(r) for r in residuals],
-    )
+        d=math.exp(y_best), steps=list(steps[y_best] or []), displacements=displacements,
+        d_min=math.exp(y_min), guess=math.exp(y0), runs=runs.count, tried=sorted(tried),
+        work=runs.work, predicted=None if prediction is None else prediction.d,
+        max_steps=max_steps, residuals=[float(r) for r in residuals],
+    )  # fmt: skip
 
 
 def _unsure(
@@ -443,10 +354,7 @@ def _unsure(
     """Whether the confirming run at log d ``y`` is needed beside the predicted d (log
     ``y_mid``), whose runs settled in ``measured`` steps per case (None: they did not): yes
     unless the reduced steps predict ``y`` slower than ``y_mid`` by more than ``settings.trust``
-    times their own relative error at ``y_mid``. The reduced steps' error is mostly an offset shared
-    by nearby d (docs/notes/2026-11-28-calibration-measured.md, *Confirming runs skipped*): a side
-    the model puts clearly beyond its own error cannot be faster, and a run there would only say
-    so."""
+    times their own relative error at ``y_mid`` (an offset nearby d share)."""
     if not measured:
         return True
     predicted = total_steps(models, math.exp(y_mid), SCHEMA_MAX_STEPS)
@@ -463,8 +371,7 @@ def _total(steps: list[int] | None) -> int:
 
 def _flat(steps: dict[float, list[int] | None], y_best: float, settings: DampingSettings) -> bool:
     """The best d's two tried neighbours both settled within ``settings.flat`` of its total
-    steps: a d between
-    them could gain at most that, not worth a run."""
+    steps: a d between them could gain at most that."""
     tried = sorted(steps)
     i = tried.index(y_best)
     neighbours = [steps[y] for y in tried[max(i - 1, 0) : i] + tried[i + 1 : i + 2]]

@@ -1,16 +1,6 @@
-"""Stage 2 of the two-stage calibration, after the chains: its driver, :func:`fit_stage` (the
-service's damping job).
-
-In turn: the chain to polish (:func:`fpm.fitting.damping.polish.chain_to_polish`), the polish
-(:func:`fpm.fitting.damping.polish.polish_stiffness`: the chains' best theta, N/m, kappa Pa,
-polished on static equilibria), depth 'auto' resolved
-(:func:`fpm.fitting.damping.depth.resolve_depth`; the paper method's finalize uses it too), the
-validation cases started beside the stage (:func:`fpm.fitting.damping.validation.validate`),
-with ``fpm.stiffness: "field"`` the per-cell field at that depth
-(:func:`fpm.fitting.field.fit_field`), then d (:func:`fpm.fitting.damping.choice.fit_damping`,
-N s/m, at the dt of theta or of the field) and the final check of its runs
-(:func:`fpm.fitting.damping.validation.final_run`). Its result, :class:`DampingStage`, is
-JSON-able: the runs of the fastest d are the calibration's last dynamic run.
+"""Stage 2's driver, :func:`fit_stage` (the service's damping job): the polish, depth 'auto',
+the validation cases started beside the stage, with ``fpm.stiffness: "field"`` the per-cell
+field, then d and the final check of its runs. Its result, :class:`DampingStage`, is JSON-able.
 """
 
 from __future__ import annotations
@@ -31,17 +21,17 @@ from ..bounds import fit_depth, full_depth
 from ..cost import StaticCost
 from ..field import fit_field
 from ..reduced import ReducedBasis
+from ..reference import reference_displacements
 from ..step_budget import budget_depth
 from ..stiffness_stage import ChainResult, Progress
-from .choice import DampingPlan, fit_damping
-from .critical import damping_guesses
+from .choice import DampingPlan, damping_guesses, fit_damping
 from .depth import resolve_depth
 from .lockstep import Spread
 from .polish import chain_to_polish, polish_stiffness
 from .search import DampingFit
 from .settings import DEFAULT, DampingSettings
 from .unsettled import DampingError
-from .validation import FinalRun, Validation, final_run, reference_displacements, validate
+from .validation import FinalRun, Validation, final_run, validate
 
 
 @dataclass
@@ -112,9 +102,8 @@ class DampingStage:
 
 def chose_the_runs(problem: Problem) -> bool:
     """Whether the product chose the d search's dt and step cap (``fpm.dt`` and
-    ``fpm.max_steps`` both 'auto'): a dt stable by construction, so a search that settles
-    nothing was too slow, and the stage keeps the static fit (:func:`unfitted_damping`);
-    a dt or cap the spec names is the user's, and its failure says what to change."""
+    ``fpm.max_steps`` both 'auto'): then a search that settles nothing keeps the static fit
+    (:func:`unfitted_damping`); a dt or cap the spec names is the user's to change."""
     return problem.spec.fpm.dt == "auto" and problem.spec.fpm.max_steps == "auto"
 
 
@@ -126,11 +115,9 @@ def unfitted_damping(
     static: np.ndarray,
     predicted: float | None = None,
 ) -> DampingFit:
-    """Where the d search finds no d that settles (it raised :class:`DampingError`): the
-    stiffness fitted on static equilibria stands, so the stage keeps it and gives d as the
-    fastest d the modes ``predicted`` (N s/m), else the geometric mean of the two
-    critical-damping estimates (:func:`damping_guesses`), with no run behind it: the static
-    equilibria ``static`` (L, N, 3) m stand for the settled states."""
+    """Where the d search finds no d that settles: the static fit stands, with d the fastest d
+    the modes ``predicted`` (N s/m), else the geometric mean of the two critical-damping
+    estimates, and the static equilibria ``static`` (L, N, 3) m as the settled states."""
     d = predicted
     if d is None:
         low, high = damping_guesses(problem, solver, stiffness, depth, static)
@@ -140,9 +127,8 @@ def unfitted_damping(
 
 
 Validator = Callable[[list[float], "int | None"], "Future[Validation]"]
-"""Starts the validation cases' static solves (:func:`fpm.fitting.damping.validation.validate`)
-at (theta, the depth finalize validates at) somewhere else than this thread, e.g. on another
-worker (:class:`worker.spread.ValidationTask`); their answer does not depend on where."""
+"""Starts the validation cases' static solves at (theta, the depth finalize validates at)
+elsewhere than this thread (:class:`worker.spread.ValidationTask`)."""
 
 
 def fit_stage(
@@ -157,19 +143,12 @@ def fit_stage(
     settings: DampingSettings = DEFAULT,
 ) -> DampingStage:
     """Two-stage, after the chains: polish the best stiffness (at the depth the chains fitted
-    at), resolve the depth, find d.
-
-    families+volume (and field): the polish is the defect-corrected reduced fit
-    (:func:`fpm.fitting.damping.polish.polish_stiffness`) from the best chain's state on
-    ``basis``, the calibration's first basis (built there when None: the same bits).
-
-    ``spread``: given the :class:`~fpm.fitting.damping.choice.DampingPlan` (what a run needs
-    besides d and its caps) and the static equilibria (L, N, 3) m its runs settle towards
-    (None: none), the :class:`~fpm.fitting.damping.lockstep.Spread` that runs the predicted d's
-    load cases and the d tried next over other processes (None: here); the worker hands them
-    to free workers (:mod:`worker.spread`). The answer does not depend on it. ``validator``:
-    where the validation cases are solved (None: on a thread beside the stage).
-    ``settings``: the stage's (:class:`fpm.fitting.damping.settings.DampingSettings`).
+    at; families+volume: the defect-corrected reduced fit on ``basis``, built when None),
+    resolve the depth, find d. ``spread``: given the plan of the runs
+    (:class:`~fpm.fitting.damping.choice.DampingPlan`) and the static equilibria (L, N, 3) m
+    they settle towards (None: none), what runs the search's runs over other processes
+    (None: here; :mod:`worker.spread`); ``validator``: where the validation cases are solved
+    (None: on a thread beside the stage). Neither changes the answer.
     """
     side = ThreadPoolExecutor(1, thread_name_prefix="validation")
     try:
@@ -178,9 +157,8 @@ def fit_stage(
             return side.submit(validate, problem, reference, theta, depth, settings=settings)
 
         validating = beside if validator is None else validator
-        stage = _fit_stage(
-            problem, reference, chains, progress, spread, validating, basis, settings
-        )
+        stage = _fit_stage(problem, reference, chains, progress, spread, validating, basis,
+                           settings)  # fmt: skip
     except BaseException:  # a failed or canceled stage does not wait for its validation
         side.shutdown(wait=False, cancel_futures=True)
         raise
@@ -198,15 +176,12 @@ def _fit_stage(
     basis: ReducedBasis | None,
     settings: DampingSettings,
 ) -> DampingStage:
-    """:func:`fit_stage`'s work; ``validator`` starts the validation cases' static solves
-    while the stage goes on (they need the final stiffness and depth, not d), once the depth is
-    chosen and the depth probes' systems are dropped, beside the slowest modes' prediction:
-    started beside the depth probes, the validation's systems and theirs would sit in memory
-    together, at the calibration's peak. A field's model is validated by finalize."""
+    """:func:`fit_stage`'s work. The validation cases start once the depth is chosen and the
+    depth probes' systems are dropped (so the two never sit in memory together); a field's
+    model is validated by finalize."""
     t0 = time.perf_counter()
     disp = reference_displacements(reference, problem)
     best = chain_to_polish(problem, chains, settings)
-    validating: dict[int | None, Future[Validation]] = {}
     checks = bool(problem.validation_cases) and not is_field(problem)
     cost = StaticCost(problem, disp, fit_depth(problem))
     # the slowest modes, found beside the polish from its second round (their hierarchy is
@@ -220,9 +195,8 @@ def _fit_stage(
     if problem.spec.fpm.depth == "auto":
         if progress is not None:
             progress({"phase": "depth"})
-        depth, deepest, _ = resolve_depth(
-            cost, theta, problem.spec.fpm.auto_depth_tolerance, progress
-        )
+        depth, deepest, _ = resolve_depth(cost, theta, problem.spec.fpm.auto_depth_tolerance,
+                                          progress)  # fmt: skip
     elif depth is None:
         depth = deepest
     budget = None
@@ -236,19 +210,14 @@ def _fit_stage(
         depth = budget["depth"]
     cost.solver.keep_only(depth)  # the depth probes' systems are not asked again
     checked = None if depth >= deepest else depth  # as finalize validates
-    if checks and checked not in validating:
-        validating[checked] = validator(list(theta), checked)
+    validating = validator(list(theta), checked) if checks else None
     stiffness = model_stiffness(problem, theta)
     field = None
     if is_field(problem):  # the per-cell field on theta (the four parameters if it is refused)
         field = fit_field(problem, disp, cost.solver, theta, depth, progress=progress)
         stiffness = field.stiffness(problem)
-    static = np.stack(
-        [
-            cost.displacements(stiffness, j, depth).displacements
-            for j in range(len(problem.load_cases))
-        ]
-    )
+    cases = range(len(problem.load_cases))
+    static = np.stack([cost.displacements(stiffness, j, depth).displacements for j in cases])
     if progress is not None:
         progress({"phase": "damping"})
     dt = time_step(problem, stiffness)
@@ -256,19 +225,10 @@ def _fit_stage(
     unfitted = None
     try:
         fit, plan = fit_damping(
-            problem,
-            cost.solver,
-            stiffness,
-            depth,
-            static,
-            dt,
+            problem, cost.solver, stiffness, depth, static, dt,
             None if progress is None else (lambda i: progress({"phase": "damping", **i})),
-            plan,
-            spread,
-            disp,
-            ahead.modes(depth),
-            settings,
-        )
+            plan, spread, disp, ahead.modes(depth), settings,
+        )  # fmt: skip
     except DampingError as error:
         if not chose_the_runs(problem):  # the spec's dt or cap: its advice is the answer
             raise
@@ -280,28 +240,14 @@ def _fit_stage(
         settings=settings,
     )  # fmt: skip
     validation = None
-    if checks:
-        found = validating[checked].result()
-        validation = {**asdict(found), "depth": checked}
+    if validating is not None:
+        validation = {**asdict(validating.result()), "depth": checked}
     return DampingStage(
-        theta=[float(t) for t in theta],
-        static_cost=float(static_cost),
-        polish_evaluations=evaluations,
-        depth=int(depth),
-        full_depth=int(deepest),
-        d=fit.d,
-        d_min=fit.d_min,
-        d_guess=fit.guess,
-        dt=dt,
-        damping_runs=fit.runs,
-        damping_tried=fit.tried,
-        final=final,
-        seconds=time.perf_counter() - t0,
-        d_predicted=fit.predicted,
-        max_steps=fit.max_steps,
-        field=None if field is None else field.to_dict(),
-        validation=validation,
-        settle=None if unfitted else plan.settle,
-        step_budget=budget,
-        unfitted=unfitted,
-    )
+        theta=[float(t) for t in theta], static_cost=float(static_cost),
+        polish_evaluations=evaluations, depth=int(depth), full_depth=int(deepest), d=fit.d,
+        d_min=fit.d_min, d_guess=fit.guess, dt=dt, damping_runs=fit.runs,
+        damping_tried=fit.tried, final=final, seconds=time.perf_counter() - t0,
+        d_predicted=fit.predicted, max_steps=fit.max_steps,
+        field=None if field is None else field.to_dict(), validation=validation,
+        settle=None if unfitted else plan.settle, step_budget=budget, unfitted=unfitted,
+    )  # fmt: skip

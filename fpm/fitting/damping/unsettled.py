@@ -1,13 +1,5 @@
-"""When the d search's runs cannot settle (:mod:`fpm.fitting.damping.search`): the errors it
-raises, the step budget a load case is judged against, and what would work instead (the
-settings named here are those of :class:`fpm.fitting.damping.settings.DampingSettings`).
-
-A run at the predicted d that reaches its cap unsettled is read by the decay of its residual
-over the whole run (:func:`long_decay`); a case whose decay predicts more than ``hopeless`` times
-the step budget, or whose settling recedes as its cap grows, ends the search at once
-(:func:`hopeless`, :class:`Hopeless`). Where no d settles at all, :func:`what_would_work` says
-the dt and step cap that would.
-"""
+"""When the d search's runs cannot settle: its errors, the step budget a load case is judged
+against (:func:`hopeless`), and what would work instead (:func:`what_would_work`)."""
 
 from __future__ import annotations
 
@@ -23,10 +15,8 @@ from .settings import DEFAULT, DampingSettings
 
 
 def _read_after(need: float, limit: int, settings: DampingSettings) -> float:
-    """The steps a run at its cap must have taken before its decay (``need``, the steps it
-    predicts; inf: not shrinking) may stop the search, against the budget ``limit``: at least
-    ``settings.hopeless_after`` (or the budget, if smaller); a tenth of the budget for a run
-    that has not shrunk at all."""
+    """The steps a run at its cap must have taken before its decay (``need``; inf: not
+    shrinking) may stop the search against the budget ``limit``."""
     return min(settings.hopeless_after, limit) if math.isfinite(need) else limit / 10
 
 
@@ -40,13 +30,11 @@ def hopeless(
     earlier: list[tuple[int, float, bool]] | None = None,
     settings: DampingSettings = DEFAULT,
 ) -> None:
-    """Raise :class:`DampingError` naming the load cases whose run at ``d`` (N s/m, the
-    predicted d) stopped at its cap with a decay that predicts more than ``settings.hopeless`` times
-    the step budget ``limit``: (steps taken, steps predicted, still moving) per case in ``needs``,
-    ``why`` what may keep each from settling (none: nothing said). Also the cases that reached their
-    cap unsettled again after it grew to what their decay predicted at the cap before (``earlier``,
-    the same per case there): a run whose settling recedes as it goes (a creep, not the exponential
-    decay the prediction assumes) cannot be given a cap that holds it."""
+    """Raise :class:`Hopeless` naming the load cases whose run at the predicted ``d`` (N s/m)
+    stopped at its cap with a decay predicting more than ``settings.hopeless`` times the step
+    budget ``limit`` ((steps taken, steps predicted, still moving) per case in ``needs``;
+    ``why``: what may keep each from settling), or that reached their cap unsettled again
+    after it grew to what their decay predicted at the cap before (``earlier``): a creep."""
     slow = [
         j
         for j, (taken, need, moving) in enumerate(needs)
@@ -108,13 +96,11 @@ def hopeless(
 
 
 def long_decay(run: DynamicRun | CaseRun, settings: DampingSettings = DEFAULT) -> float:
-    """The steps ``run`` (stopped at its cap) would take to settle, predicted from the decay of
-    its residual over the whole run: the envelope (largest sample) over its last quarter
-    against that over the quarter before, extrapolated exponentially down to its settle
-    force (as :func:`fpm.fitting.damping.lockstep.predicted_steps` does over the last two pieces of
-    ``settings.chunk`` steps, which a slow mode's swing, thousands of steps long, can fill with
-    a rising envelope); inf when the envelope has not fallen; its steps when it never settles
-    (settle force 0) or is too short to read (under 2 chunks a quarter, the first swing)."""
+    """The steps ``run`` (stopped at its cap) would take to settle, from the decay of its
+    residual over the whole run: the envelope over its last quarter against the quarter
+    before, extrapolated to its settle force (a slow mode's swing can fill two chunks with a
+    rising envelope); inf where it has not fallen; its steps where it never settles or is too
+    short to read (under 2 chunks a quarter)."""
     at = run.steps
     span = at // 4
     last = [r for n, r in run.history if at - span < n <= at]
@@ -128,10 +114,9 @@ def long_decay(run: DynamicRun | CaseRun, settings: DampingSettings = DEFAULT) -
 
 
 def what_would_work(runs: _Runs, d: float, max_steps: int) -> str:
-    """Numbers for a run that cannot settle: the dt 'auto' would take (half the stability
-    estimate, at most 1 ms) and the steps a run at d needs there, measured by one probe of up to
-    ``probe_steps`` x max_steps steps per load case (``runs.settings``) (capped at 10^6; none where
-    that is the search's own dt and cap, whose runs already said it)."""
+    """Numbers for a run that cannot settle: the dt 'auto' would take and the steps a run at d
+    needs there, by one probe of up to ``probe_steps`` x max_steps steps per load case (none
+    where that is the search's own dt and cap)."""
     p = runs.problem
     dt = min(runs.dt, auto_time_step(p, runs.stiffness))
     cap = min(1_000_000, runs.settings.probe_steps * max_steps)

@@ -1,20 +1,7 @@
-"""The fit checked against its FEM reference, outside the cost (docs/physics.md).
-
-The reference (a :class:`fpm.fem.reference.FemResult` or an array of displacements, m) holds the
-load cases' displacements, (L, N, 3) in spec order, then the validation cases', (V, N, 3), when
-it was solved for them (:func:`reference_displacements`, :func:`validation_reference`).
-
-- :func:`check_reference`: its units, before any annealing (:mod:`fpm.fitting.diagnosis`);
-- :func:`final_run`: the last dynamic run at (stiffness, d, depth) against the reference and the
-  static equilibria at (stiffness, depth), giving the reported cost, discrepancies and settle
-  steps (:class:`FinalRun`), and a warning when the dynamic and static costs disagree by more
-  than its ``static_agreement`` (:class:`fpm.fitting.damping.settings.DampingSettings`);
-- :func:`validate`: the validation cases (never in the cost) at the fitted stiffness, by their
-  static equilibria (:class:`Validation`: relative discrepancy and % of h per case), and a note
-  where a case's figure is mostly not the lattice's (:func:`geometry_notes`);
-- :func:`replayed_run`: a load case run again as the fit's last run ran it (the web view's
-  profile).
-"""
+"""The fit checked against its FEM reference, outside the cost: the last dynamic run against
+the reference and the static equilibria (:func:`final_run`), the validation cases at the fitted
+stiffness (:func:`validate`), and a load case run again as the fit's last run ran it
+(:func:`replayed_run`, the web view's profile)."""
 
 from __future__ import annotations
 
@@ -38,64 +25,8 @@ from ...fem.linear_solver import NegativeCurvature, SingularStiffnessError
 from ...model.problem import Problem
 from ...model.stiffness import fitted_theta, model_stiffness
 from ..cost import StaticCost, Theta, discrepancies
+from ..reference import validation_reference
 from .settings import DEFAULT, DampingSettings
-
-
-def reference_displacements(reference: Any, problem: Problem | None = None) -> np.ndarray:
-    """(L, N, 3) from a FemResult (``.displacements``) or an array: the load cases' part
-    (the reference also holds the validation cases after them, :func:`validation_reference`)."""
-    every = np.asarray(getattr(reference, "displacements", reference), dtype=float)
-    return every if problem is None else every[: len(problem.load_cases)]
-
-
-def validation_reference(reference: Any, problem: Problem) -> np.ndarray | None:
-    """(V, N, 3) the reference of the validation cases, or None if it holds none (a reference
-    of the load cases only)."""
-    every = np.asarray(getattr(reference, "displacements", reference), dtype=float)
-    n, v = len(problem.load_cases), len(problem.validation_cases)
-    if not v or len(every) < n + v:
-        return None
-    return every[n : n + v]
-
-
-def check_reference(problem: Problem, reference: Any) -> list[str]:
-    """Units sanity of the FEM reference, load and validation cases
-    (:func:`fpm.fitting.diagnosis.check_reference`): raises on a reference no small-strain
-    solid gives, returns warnings."""
-    from ..diagnosis import check_reference as check
-
-    return check(problem, reference) + resolution_notes(problem, reference)
-
-
-def resolution_notes(problem: Problem, reference: Any) -> list[str]:
-    """Warnings on how far the reference is from converged (:mod:`fpm.fem.refine`): a load or
-    validation case whose estimated error is above WARN_ERROR, and the reference's own notes
-    (a refinement the node budget refused, an error not estimated)."""
-    from ...fem.levels import WARN_ERROR
-
-    error = getattr(reference, "estimated_error", None)
-    notes = [str(n) for n in getattr(reference, "notes", None) or []]
-    if error is None:
-        return notes
-    names = [c.name for c in problem.load_cases] + [
-        f"{c.name} (validation)" for c in problem.validation_cases
-    ]
-    refined = int(getattr(reference, "refinements", 0) or 0)
-    how = (
-        f"the change from its last refinement ({refined} in all)"
-        if refined
-        else "its change under one refinement with the force spread over the node's share of "
-        "the solid"
-    )
-    return [
-        f"load case '{name}': the reference's estimated error is {e:.1f}% ({how}), above "
-        f"{WARN_ERROR:g}%: the reference does not resolve this load (a force on a single node "
-        "of a coarse mesh, a press on one voxel); the fit inherits that error: use "
-        "reference.refine 'auto' (or a higher number, or a larger reference.node_budget), or "
-        'spread the force over more nodes ("distribute": true)'
-        for name, e in zip(names, error, strict=False)
-        if e > WARN_ERROR
-    ] + notes
 
 
 @dataclass
@@ -148,18 +79,13 @@ def final_run(
     distances: list[float] | None = None,
     settings: DampingSettings = DEFAULT,
 ) -> FinalRun:
-    """Check dynamic displacements (L, N, 3) at (theta, d, depth) against the reference and
-    the static equilibria at (theta, depth).
-
-    On the force criterion (``settle`` None) the dynamic and static costs must agree within
-    ``settings.static_agreement`` (0.1%) of the cost, or ``settings.settle_resolution`` of the
-    reference cost. On the distance criterion (``settle``: each case's settle stiffness,
-    N/m, with ``residuals`` (L,) N the 2-norms of the runs' last unbalanced forces) each
-    settled state must be within :data:`fpm.dynamics.settle.PROMISE` times the spec's
-    settle distance of its static equilibrium (``statics`` (L, N, 3) m; None: solved here),
-    measured; the estimate the runs stopped on is reported beside it. ``distances``: each
-    case's settle distance where the runs stopped on the target criterion (``residuals`` (L,)
-    m then their reach from ``statics``); None: the spec's nominal distance, on the bound."""
+    """Check dynamic displacements (L, N, 3) m at (theta, d, depth) against the reference and
+    the static equilibria at (theta, depth). On the force criterion (``settle`` None) the two
+    costs must agree to ``settings.static_agreement`` (or ``settle_resolution`` of the
+    reference cost). On the distance criterion (``settle`` (L,) N/m; ``residuals`` (L,) the
+    runs' last 2-norm residuals, N, or on the target criterion (``distances`` given) their
+    reach, m) each settled state must be within PROMISE times its settle distance of its
+    static equilibrium (``statics`` (L, N, 3) m; None: solved here), measured."""
     problem = static.problem
     static_ev = static(theta, depth)
     cost = float(sum(static.case_cost(j, u) for j, u in enumerate(displacements)))
@@ -202,19 +128,12 @@ def final_run(
             "tolerance stops runs short of equilibrium; a smaller fpm.settle_tolerance helps"
         )
     return FinalRun(
-        cost=cost,
-        static_cost=float(static_ev.cost),
-        settle_steps=[int(s) for s in steps],
-        settled=settled,
-        relative=figures.relative,
-        loaded=figures.loaded,
-        h_percent=figures.h_percent,
-        notes=notes,
-        settle_estimated=estimated,
-        settle_measured=measured,
-        settle_distance=None if measured is None else distances,
+        cost=cost, static_cost=float(static_ev.cost), settle_steps=[int(s) for s in steps],
+        settled=settled, relative=figures.relative, loaded=figures.loaded,
+        h_percent=figures.h_percent, notes=notes, settle_estimated=estimated,
+        settle_measured=measured, settle_distance=None if measured is None else distances,
         compliance=figures.compliance,
-    )
+    )  # fmt: skip
 
 
 @dataclass
@@ -262,21 +181,6 @@ def validate(
     return Validation(figures.relative, figures.h_percent, notes, figures.compliance)
 
 
-def unseen_note(problem: Problem) -> list[str]:
-    """A note when a calibration of several stiffness parameters has no validation cases: its
-    figures are then all on the loads it was fitted to, which flatter it. The paper's model (one
-    k: ``fpm.stiffness`` ``"single"``) or method, which judge their fit on its own loads as the
-    paper does, get none (one k has little room to flatter itself)."""
-    paper = problem.spec.fpm.stiffness == "single" or problem.spec.annealing.method == "paper"
-    if problem.validation_cases or paper:
-        return []
-    return [
-        "no validation cases: every figure here is on the loads the fit was chosen for, which "
-        "flatter it; name a few loads it never sees as validation_cases to learn how it does "
-        "elsewhere (docs/howto/validation-cases.md)"
-    ]
-
-
 def geometry_notes(
     cost: StaticCost,
     truth: np.ndarray,
@@ -286,29 +190,18 @@ def geometry_notes(
     settings: DampingSettings = DEFAULT,
 ) -> list[str]:
     """A note for each validation case of ``cost``'s problem (the validation cases as load
-    cases) whose ``relative`` figure, %, exceeds by more than ``settings.geometry_gap`` points the
-    figure of the same model linearised at rest
-    (:meth:`fpm.dynamics.equilibrium.StaticSolver.linear_response`, its limit under small
-    loads, CG started from the equilibrium ``solved`` of each case: cheaper the closer the two
-    are)
-    against the reference ``truth`` (V, N, 3), m: the part of the figure that is the springs'
-    change of geometry (they rotate and stretch; the FEM reference is linear, small strain),
-    which a finer lattice does not remove (how much it is on an organ:
-    docs/explanation/organs-conforming.md, *Large loads*)."""
+    cases) whose ``relative`` figure, %, exceeds by more than ``settings.geometry_gap`` points
+    that of the same model linearised at rest (CG started from its equilibrium in ``solved``)
+    against ``truth`` (V, N, 3) m: the springs' change of geometry, which a finer lattice does
+    not remove (docs/explanation/organs-conforming.md, *Large loads*)."""
     checked = cost.problem
     stiffness = model_stiffness(checked, theta)
     try:
         linear = [
-            cost.solver.linear_response(
-                j,
-                stiffness,
-                cost.depth,
-                cost.solver.loads(j),
-                guess=e.displacements,
-                rtol=settings.geometry_tolerance,
-            )
+            cost.solver.linear_response(j, stiffness, cost.depth, cost.solver.loads(j),
+                                        guess=e.displacements, rtol=settings.geometry_tolerance)
             for j, e in enumerate(solved)
-        ]
+        ]  # fmt: skip
     except (SingularStiffnessError, NegativeCurvature):  # not held when linearised
         return []
     small = discrepancies(checked, np.stack(linear), truth).relative
@@ -323,11 +216,10 @@ def geometry_notes(
 
 
 def replayed_run(problem: Problem, record: dict[str, Any], load_case: int) -> SimulationResult:
-    """Load case ``load_case`` run from rest as the fit's last run ran it, from its stored
-    ``record`` (a calibration result as a dict): its stiffness, d, depth, dt and cap, and its
-    settle criterion: the target criterion towards the static equilibrium at that stiffness
-    where the record names settle distances (:mod:`fpm.dynamics.settle`), else as
-    :func:`fpm.simulate` settles. What the web view's profile shows."""
+    """Load case ``load_case`` run from rest as the fit's last run ran it (the web view's
+    profile), from its stored ``record`` (a calibration result as a dict): its stiffness, d,
+    depth, dt, cap and settle criterion (where it names no settle distances, as
+    :func:`fpm.simulate` settles)."""
     theta = fitted_theta(problem, record)
     distances, settle = record.get("settle_distance"), record.get("settle_stiffness")
     if not distances or not settle:
