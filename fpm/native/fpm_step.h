@@ -79,9 +79,9 @@ double fpm_stable_dt(const fpm_model *model);
    (FPM_ERR_UNSTABLE, FPM_ERR_VALUE) as the file's are. */
 int fpm_set_parameters(fpm_model *model, double d, double dt);
 /* Threads for the step: 0 = all OpenMP's on lattices of FPM_THREAD_NODES nodes or more, one on
-   smaller ones; n = n threads (1 without OpenMP). The forces are summed in two fixed halves, so
-   the step's result is the same on any number of threads, and more than two share only the
-   per-node update. */
+   smaller ones; n = n threads (1 without OpenMP). The nodes are stepped in two fixed halves,
+   one thread each, so the step's result is the same on any number of threads, and a third
+   thread has nothing to do. */
 int fpm_set_threads(fpm_model *model, int threads);
 /* The threads the step runs on (1 without OpenMP). */
 int fpm_thread_count(const fpm_model *model);
