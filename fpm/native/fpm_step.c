@@ -332,6 +332,24 @@ INLINE fpm_real spring_factor(const fpm_model *m, long e, fpm_real rx, fpm_real 
     return m->stiffness[e] * (length - m->rest_length[e]) / length;
 }
 
+#if FPM_AVX512
+/* c = k (L - L0) / L of 8 springs at r = (rx, ry, rz) (0 in the lanes not in live), its force on
+   end i c r: 1 / L from the 14-bit reciprocal square root estimate and two Newton steps (to
+   within an ulp or two), no square root and no division. */
+INLINE __m512d spring_coefficients(__m512d rx, __m512d ry, __m512d rz, __m512d k, __m512d rest,
+                                   __mmask8 live) {
+    const __m512d r2 = _mm512_add_pd(_mm512_add_pd(_mm512_mul_pd(rx, rx), _mm512_mul_pd(ry, ry)),
+                                     _mm512_mul_pd(rz, rz));
+    const __m512d half_r2 = _mm512_mul_pd(_mm512_set1_pd(0.5), r2);
+    __m512d y = _mm512_rsqrt14_pd(r2);
+    for (int newton = 0; newton < 2; newton++)
+        y = _mm512_mul_pd(y, _mm512_sub_pd(_mm512_set1_pd(1.5),
+                                           _mm512_mul_pd(half_r2, _mm512_mul_pd(y, y))));
+    const __m512d stretch = _mm512_sub_pd(_mm512_set1_pd(1.0), _mm512_mul_pd(rest, y));
+    return _mm512_maskz_mul_pd(live, k, stretch);
+}
+#endif
+
 /* Part p's share of the springs: blocks b0..b1 (ends i consecutive, j - i the same: vector
    loads and stores) and the single springs e0..e1 (gathers), their forces added to acc (+ on
    end i, - on end j). f: 3 LANES scratch. */
@@ -344,25 +362,12 @@ static void spring_part(fpm_model *m, long b0, long b1, long e0, long e1, fpm_re
         const long first = m->sblock[b], count = m->sblock[b + 1] - first;
         const long i = si[first], j = sj[first];
 #if FPM_AVX512
-        /* 1/L from the 14-bit estimate and two Newton steps (to within an ulp or two of
-           1/sqrt): no square root, no division */
         const __mmask8 live = (__mmask8)((1u << count) - 1u);
         const __m512d rx = _mm512_sub_pd(_mm512_loadu_pd(X + j), _mm512_loadu_pd(X + i));
         const __m512d ry = _mm512_sub_pd(_mm512_loadu_pd(Y + j), _mm512_loadu_pd(Y + i));
         const __m512d rz = _mm512_sub_pd(_mm512_loadu_pd(Z + j), _mm512_loadu_pd(Z + i));
-        const __m512d r2 = _mm512_add_pd(_mm512_add_pd(_mm512_mul_pd(rx, rx),
-                                                       _mm512_mul_pd(ry, ry)),
-                                         _mm512_mul_pd(rz, rz));
-        const __m512d half = _mm512_set1_pd(0.5), three_halves = _mm512_set1_pd(1.5);
-        const __m512d half_r2 = _mm512_mul_pd(half, r2);
-        __m512d y = _mm512_rsqrt14_pd(r2);
-        for (int newton = 0; newton < 2; newton++)
-            y = _mm512_mul_pd(y, _mm512_sub_pd(three_halves,
-                                               _mm512_mul_pd(half_r2, _mm512_mul_pd(y, y))));
-        const __m512d k = _mm512_loadu_pd(m->stiffness + first);
-        const __m512d rest = _mm512_loadu_pd(m->rest_length + first);
-        const __m512d stretch = _mm512_sub_pd(_mm512_set1_pd(1.0), _mm512_mul_pd(rest, y));
-        const __m512d c = _mm512_maskz_mul_pd(live, k, stretch);
+        const __m512d c = spring_coefficients(rx, ry, rz, _mm512_loadu_pd(m->stiffness + first),
+                                              _mm512_loadu_pd(m->rest_length + first), live);
         const __m512d f[3] = {_mm512_mul_pd(c, rx), _mm512_mul_pd(c, ry), _mm512_mul_pd(c, rz)};
         for (int d = 0; d < 3; d++) {
             fpm_real *at_i = acc + d * NP + i, *at_j = acc + d * NP + j;
@@ -417,25 +422,15 @@ static void pull_part(fpm_model *m, long u0, long u1, fpm_real *restrict acc) {
 #if FPM_AVX512
         const __m512d x0 = _mm512_loadu_pd(X + base), y0 = _mm512_loadu_pd(Y + base);
         const __m512d z0 = _mm512_loadu_pd(Z + base);
-        const __m512d half = _mm512_set1_pd(0.5), three_halves = _mm512_set1_pd(1.5);
         __m512d fx = _mm512_setzero_pd(), fy = _mm512_setzero_pd(), fz = _mm512_setzero_pd();
         for (; u < u1 && m->slot_window[u] == (uint32_t)w; u++) {
             const long o = base + m->slot_offset[u];
             const __m512d rx = _mm512_sub_pd(_mm512_loadu_pd(X + o), x0);
             const __m512d ry = _mm512_sub_pd(_mm512_loadu_pd(Y + o), y0);
             const __m512d rz = _mm512_sub_pd(_mm512_loadu_pd(Z + o), z0);
-            const __m512d r2 = _mm512_add_pd(_mm512_add_pd(_mm512_mul_pd(rx, rx),
-                                                           _mm512_mul_pd(ry, ry)),
-                                             _mm512_mul_pd(rz, rz));
-            const __m512d half_r2 = _mm512_mul_pd(half, r2);
-            __m512d y = _mm512_rsqrt14_pd(r2);
-            for (int newton = 0; newton < 2; newton++)
-                y = _mm512_mul_pd(y, _mm512_sub_pd(three_halves,
-                                                   _mm512_mul_pd(half_r2, _mm512_mul_pd(y, y))));
-            const __m512d k = _mm512_loadu_pd(slot_k + LANES * u);
-            const __m512d rest = _mm512_loadu_pd(slot_length + LANES * u);
-            const __m512d stretch = _mm512_sub_pd(_mm512_set1_pd(1.0), _mm512_mul_pd(rest, y));
-            const __m512d c = _mm512_maskz_mul_pd((__mmask8)m->slot_live[u], k, stretch);
+            const __m512d c = spring_coefficients(rx, ry, rz, _mm512_loadu_pd(slot_k + LANES * u),
+                                                  _mm512_loadu_pd(slot_length + LANES * u),
+                                                  (__mmask8)m->slot_live[u]);
             fx = _mm512_add_pd(fx, _mm512_mul_pd(c, rx));
             fy = _mm512_add_pd(fy, _mm512_mul_pd(c, ry));
             fz = _mm512_add_pd(fz, _mm512_mul_pd(c, rz));
