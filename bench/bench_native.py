@@ -93,11 +93,16 @@ def spec_runtime(
     return rt, push
 
 
+def changing_pushes(push: np.ndarray, dtype: Any) -> np.ndarray:
+    """(16, N, 3) ``push`` scaled by 1 + sin, one a step, so that the forces change every step."""
+    return np.ascontiguousarray([push * (1.0 + 0.5 * np.sin(0.01 * n)) for n in range(16)],
+                                dtype=dtype)  # fmt: skip
+
+
 def steps_per_second(rt: Any, push: np.ndarray) -> tuple[float, float]:
     """(steps/s over wall time, CPU seconds per step) of ``rt`` under a push that changes
     every step."""
-    pushes = [np.ascontiguousarray(push * (1.0 + 0.5 * np.sin(0.01 * n)), dtype=rt.x.dtype)
-              for n in range(16)]  # fmt: skip
+    pushes = list(changing_pushes(push, rt.x.dtype))
     for p in pushes[:4]:
         rt.step(p)
     count, steps = 20, 0
@@ -161,9 +166,7 @@ def c_loop_seconds(lib: ctypes.CDLL, rt: Any, push: np.ndarray, threads: int) ->
     from fpm.native import runtime_bytes
 
     data = runtime_bytes(rt)
-    pushes = np.ascontiguousarray(
-        [push * (1.0 + 0.5 * np.sin(0.01 * n)) for n in range(16)], dtype=np.float64
-    )
+    pushes = changing_pushes(push, np.float64)
     steps = 20
     while True:
         t0 = time.perf_counter()
